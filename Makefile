@@ -1,0 +1,48 @@
+# Two commands for a new user: `make demo` and `make test` (CONTRACT section 1).
+# Where rclpy is already importable (a sourced /opt/ros), the venv sees the
+# system packages; elsewhere the ROS 2 wheels come from the package index.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+# A parent shell may carry the wheels' bootstrap flag from another venv.
+unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE
+
+ROS_WHEELS := ros-rclpy ros-rmw-fastrtps-cpp ros-std-msgs ros-geometry-msgs \
+              ros-sensor-msgs ros-diagnostic-msgs ros-rosgraph-msgs ros-builtin-interfaces
+PY_DEPS    := numpy scipy numba matplotlib pyyaml rosbags mcap mcap-ros2-support
+TEST_DEPS  := pytest colcon-core colcon-ros colcon-package-information
+
+DEMO_OUT ?= out/demo
+
+.PHONY: demo test bench venv clean
+
+venv: $(STAMP)
+
+$(STAMP): setup.py package.xml Makefile
+	@if $(PYTHON) -c 'import rclpy' >/dev/null 2>&1; then \
+	  echo "rclpy found on the system: venv with --system-site-packages"; \
+	  [ -x $(BIN)/python ] || $(PYTHON) -m venv --system-site-packages $(VENV); \
+	  $(BIN)/pip install -q --upgrade pip; \
+	else \
+	  echo "no system rclpy: installing the ROS 2 Python wheels into $(VENV)"; \
+	  [ -x $(BIN)/python ] || $(PYTHON) -m venv $(VENV); \
+	  $(BIN)/pip install -q --upgrade pip; \
+	  $(BIN)/pip install -q $(ROS_WHEELS); \
+	fi
+	$(BIN)/pip install -q $(PY_DEPS) $(TEST_DEPS)
+	$(BIN)/pip install -q -e .
+	$(BIN)/python -c 'import rclpy, sensor_msgs.msg, stewart63_ros' 
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/python -m stewart63_ros.tools.demo --out $(DEMO_OUT)
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q test
+
+bench: $(STAMP)
+	$(BIN)/python bench/bench_core.py
+
+clean:
+	rm -rf $(VENV) build install log out *.egg-info

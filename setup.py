@@ -1,0 +1,37 @@
+"""ament_python package stewart63_ros; also pip-installable into a plain venv."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'stewart63_ros'
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
+        ('share/' + PACKAGE, ['package.xml']),
+        ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
+        ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
+    ],
+    install_requires=['setuptools', 'numpy', 'scipy', 'numba', 'matplotlib', 'pyyaml', 'rosbags'],
+    zip_safe=True,
+    maintainer='stewart63_ros maintainers',
+    maintainer_email='maintainers@stewart63.org',
+    description='Simulated hardware-in-the-loop rig for a 6-3 Stewart platform',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'plant = stewart63_ros.nodes.plant:main',
+            'controller = stewart63_ros.nodes.controller:main',
+            'fk = stewart63_ros.nodes.fk_node:main',
+            'record = stewart63_ros.tools.record:main',
+            'play = stewart63_ros.tools.play:main',
+            'rig = stewart63_ros.tools.rig:main',
+            'sim = stewart63_ros.tools.sim:main',
+            'plot = stewart63_ros.tools.plot:main',
+        ],
+    },
+)

@@ -1,0 +1,70 @@
+"""Orientation conventions of CONTRACT section 4, in one place.
+
+theta = (theta_x, theta_y, theta_z) with R = Rz(theta_z) Ry(theta_y) Rx(theta_x),
+i.e. extrinsic x-y-z ("roll, pitch, yaw about fixed axes"): scipy's ``'xyz'``.
+Quaternions are (x, y, z, w), scalar last, as in geometry_msgs and scipy.
+Euler angles appear only at the edges (parameters, CSV, plots); the model
+carries a unit quaternion, free of singularities.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+EULER_SEQ = 'xyz'  # lower case = extrinsic: R = Rz Ry Rx
+
+
+def rotation_from_euler(theta) -> np.ndarray:
+    return Rotation.from_euler(EULER_SEQ, np.asarray(theta, dtype=float)).as_matrix()
+
+
+def quaternion_from_euler(theta) -> np.ndarray:
+    return Rotation.from_euler(EULER_SEQ, np.asarray(theta, dtype=float)).as_quat()
+
+
+def euler_from_quaternion(quat) -> np.ndarray:
+    """theta from (x, y, z, w); accepts (4,) or (N, 4)."""
+    return Rotation.from_quat(np.asarray(quat, dtype=float)).as_euler(EULER_SEQ)
+
+
+def euler_from_matrix(rot) -> np.ndarray:
+    return Rotation.from_matrix(np.asarray(rot, dtype=float)).as_euler(EULER_SEQ)
+
+
+def matrix_from_quaternion(q) -> np.ndarray:
+    """R from a unit quaternion (x, y, z, w).
+
+    Hand-written rather than scipy's Rotation because the dynamics call it on
+    every right-hand-side evaluation, where Rotation's object overhead (~10 us)
+    would dominate.
+    """
+    x, y, z, w = q
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    return np.array([
+        [1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)],
+        [2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)],
+        [2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)]])
+
+
+def quaternion_rate(q, omega) -> np.ndarray:
+    """dq/dt for a base-frame angular velocity omega: q' = 1/2 [omega, 0] (x) q."""
+    x, y, z, w = q
+    ox, oy, oz = omega
+    return 0.5 * np.array([
+        ox * w + oy * z - oz * y,
+        -ox * z + oy * w + oz * x,
+        ox * y - oy * x + oz * w,
+        -ox * x - oy * y - oz * z])
+
+
+def euler_rate_matrix(theta) -> np.ndarray:
+    """E(theta) with omega = E(theta) dtheta/dt (base frame) for R = Rz Ry Rx.
+
+    omega = dtz * z + Rz dty * y + Rz Ry dtx * x.
+    """
+    _, ty, tz = theta
+    cy, sy, cz, sz = np.cos(ty), np.sin(ty), np.cos(tz), np.sin(tz)
+    return np.array([[cy * cz, -sz, 0.0],
+                     [cy * sz, cz, 0.0],
+                     [-sy, 0.0, 1.0]])
