@@ -64,3 +64,57 @@ TOPIC_TYPES = {
     CLOCK: 'rosgraph_msgs/msg/Clock',
     DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray',
 }
+
+#: Topics whose publishers are latched (TRANSIENT_LOCAL): a recorder asks for
+#: their history, so a setpoint published before recording started is in the bag.
+LATCHED_TOPICS = (LEG_SETPOINT, POSE_SETPOINT)
+
+
+def _relative(topic: str) -> str:
+    """``/rig2/leg_lengths`` and ``leg_lengths`` -> ``leg_lengths`` (absolute
+    contract topics such as ``/clock`` stay as they are)."""
+    if topic in (CLOCK, DIAGNOSTICS):
+        return topic
+    for name in TOPIC_TYPES:
+        if not name.startswith('/') and (topic == name or topic.endswith('/' + name)):
+            return name
+    return topic
+
+
+def publisher_qos(topic: str) -> QoSProfile:
+    """The profile a publisher of ``topic`` (relative or fully qualified) uses."""
+    name = _relative(topic)
+    if name in LATCHED_TOPICS:
+        return SETPOINT_QOS
+    if name == DIAGNOSTICS:
+        return DIAGNOSTICS_QOS
+    return STREAM_PUB
+
+
+def recorder_qos(topic: str) -> QoSProfile:
+    """The profile a recorder subscribes ``topic`` with: RECORD_SUB, and
+    TRANSIENT_LOCAL for latched topics so their last sample is recorded too."""
+    if _relative(topic) in LATCHED_TOPICS:
+        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=RECORD_SUB.depth,
+                          reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    return RECORD_SUB
+
+
+def wait_for_subscribers(publishers, min_count: int = 1, timeout: float = 10.0,
+                         poll: float = 0.01) -> bool:
+    """Block until every publisher in ``publishers`` has at least ``min_count``
+    matched subscriptions, at most ``timeout`` seconds; True if they all have.
+
+    Matching is done by the middleware's own threads, so no spinning is needed.
+    Publishers of a rig call this before their first sample (CONTRACT section 2:
+    "rig and record wait until publishers and subscribers are matched").
+    """
+    import time
+    deadline = time.monotonic() + timeout
+    while True:
+        if all(p.get_subscription_count() >= min_count for p in publishers):
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(poll)
