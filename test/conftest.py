@@ -1,0 +1,19 @@
+"""Shared fixtures. Keep this small: helpers that only one test file needs live there."""
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope='session')
+def default_params_file() -> Path:
+    """The packaged parameter file, read from the checkout."""
+    return REPO / 'config' / 'stewart63.yaml'
+
+
+@pytest.fixture(scope='session')
+def default_mech(default_params_file):
+    """The default mechanism (validated)."""
+    from stewart63_ros.core.params import load_mechanism
+    return load_mechanism(default_params_file)
