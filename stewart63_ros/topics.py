@@ -38,6 +38,10 @@ STREAM_PUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH,
 LATEST_SUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
+#: Consumers that must see every sample (fk): a short queue absorbs jitter.
+EVERY_SUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                       reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.VOLATILE)
 #: Recording: keep everything.
 RECORD_SUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH * 10,
                         reliability=ReliabilityPolicy.RELIABLE,

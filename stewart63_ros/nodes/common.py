@@ -1,0 +1,259 @@
+"""What every node shares: start-up, parameters, input checks, diagnostics.
+
+The nodes are thin shells around ``stewart63_ros.core``: they turn messages
+into arrays, call the core, and turn arrays back into messages.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import signal
+import sys
+import time
+
+import numpy as np
+
+LEG_NAMES = ['leg_%d' % i for i in range(1, 7)]
+
+
+# -- input checks (no ROS types needed) ---------------------------------------
+class Rejected(ValueError):
+    """An input message that must not reach the model; ``reason`` is a short key."""
+
+    def __init__(self, reason: str, detail: str):
+        super().__init__('%s: %s' % (reason, detail))
+        self.reason = reason
+
+
+def stamp_ns(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def leg_vector(names, values, field: str) -> np.ndarray:
+    """The six values of a JointState field, in leg order, or Rejected.
+
+    Names must be exactly leg_1..leg_6 in order (an empty name list is taken
+    as that order); values must be six finite numbers.
+    """
+    names = list(names)
+    if names and names != LEG_NAMES:
+        unknown = [n for n in names if n not in LEG_NAMES]
+        if unknown:
+            raise Rejected('unknown_joint_names', 'unknown joint names %s' % unknown[:6])
+        raise Rejected('bad_joint_order', 'joint names %s are not leg_1..leg_6 in order' % names)
+    arr = np.asarray(values, dtype=float)
+    if arr.shape != (6,):
+        raise Rejected('wrong_size', '%s has %d entries, expected 6' % (field, arr.size))
+    if not np.all(np.isfinite(arr)):
+        raise Rejected('non_finite', '%s holds NaN or Inf' % field)
+    return arr
+
+
+class StampGate:
+    """Rejects a sample whose stamp is older than the last accepted one on its topic."""
+
+    def __init__(self):
+        self.last_ns = None
+
+    def check(self, stamp) -> int:
+        ns = stamp_ns(stamp)
+        if self.last_ns is not None and ns < self.last_ns:
+            raise Rejected('stamp_from_past', 'stamp %.9f s is older than the last accepted %.9f s'
+                           % (ns * 1e-9, self.last_ns * 1e-9))
+        return ns
+
+    def accept(self, ns: int) -> None:
+        self.last_ns = ns
+
+
+def finite_vector(values, size: int, field: str) -> np.ndarray:
+    arr = np.asarray(values, dtype=float)
+    if arr.shape != (size,) or not np.all(np.isfinite(arr)):
+        raise Rejected('non_finite' if arr.shape == (size,) else 'wrong_size',
+                       '%s must be %d finite numbers' % (field, size))
+    return arr
+
+
+# -- latency statistics --------------------------------------------------------
+class LatencyStats:
+    """Recent latencies [s]: percentiles over a sliding window, max over all."""
+
+    def __init__(self, window: int = 20000):
+        self.samples = collections.deque(maxlen=window)
+        self.count = 0
+        self.max = 0.0
+
+    def add(self, seconds: float) -> None:
+        self.samples.append(seconds)
+        self.count += 1
+        self.max = max(self.max, seconds)
+
+    def summary(self) -> dict:
+        if not self.samples:
+            return {'count': 0}
+        arr = np.fromiter(self.samples, float)
+        return {'count': self.count, 'p50_ms': float(np.percentile(arr, 50) * 1e3),
+                'p99_ms': float(np.percentile(arr, 99) * 1e3), 'max_ms': self.max * 1e3}
+
+
+# -- ROS side ------------------------------------------------------------------
+def ros_time(seconds: float):
+    """builtin_interfaces/Time from seconds (exact to the nanosecond)."""
+    from builtin_interfaces.msg import Time
+    ns = int(round(seconds * 1e9))
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+class Health:
+    """Counters behind a node's /diagnostics status, published at about 1 Hz.
+
+    State: ERROR when the node says so (``fault``), WARN when inputs were
+    rejected or cycles were late in the last period, else OK.
+    """
+
+    def __init__(self, node, name: str):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from stewart63_ros import topics
+        self.node = node
+        self.name = name
+        self.received = collections.Counter()
+        self.published = collections.Counter()
+        self.rejected = collections.Counter()
+        self.last_rejection = ''
+        self.latency = LatencyStats()
+        self.fault = ''
+        self.warning = ''
+        self.values = {}
+        self._last_report = time.monotonic()
+        self._received_at_report = collections.Counter()
+        self._rejected_at_report = 0
+        self.pub = node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
+                                         topics.DIAGNOSTICS_QOS)
+
+    def reject(self, topic: str, exc: Rejected) -> None:
+        self.rejected['%s/%s' % (topic, exc.reason)] += 1
+        self.last_rejection = '%s: %s' % (topic, exc)
+        self.node.get_logger().warn('rejected %s' % self.last_rejection,
+                                    throttle_duration_sec=1.0)
+
+    def report(self, stamp=None) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+        now = time.monotonic()
+        period = max(now - self._last_report, 1e-9)
+        rejected_total = sum(self.rejected.values())
+        fresh_rejections = rejected_total - self._rejected_at_report
+        if self.fault:
+            level, message = DiagnosticStatus.ERROR, self.fault
+        elif fresh_rejections or self.warning:
+            level = DiagnosticStatus.WARN
+            message = self.warning or 'rejected %d inputs (last: %s)' % (
+                fresh_rejections, self.last_rejection)
+        else:
+            level, message = DiagnosticStatus.OK, 'ok'
+        values = []
+        for topic, n in sorted(self.received.items()):
+            rate = (n - self._received_at_report[topic]) / period
+            values.append(KeyValue(key='rate_hz/' + topic, value='%.1f' % rate))
+            values.append(KeyValue(key='received/' + topic, value=str(n)))
+        for topic, n in sorted(self.published.items()):
+            values.append(KeyValue(key='published/' + topic, value=str(n)))
+        values.append(KeyValue(key='rejected_total', value=str(rejected_total)))
+        for key, n in sorted(self.rejected.items()):
+            values.append(KeyValue(key='rejected/' + key, value=str(n)))
+        for key, val in self.latency.summary().items():
+            values.append(KeyValue(key='latency/' + key, value='%.4g' % val))
+        for key, val in self.values.items():
+            values.append(KeyValue(key=key, value=str(val)))
+        status = DiagnosticStatus(level=level, name='stewart63/%s' % self.name,
+                                  message=message, hardware_id='stewart63_ros', values=values)
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = stamp if stamp is not None else self.node.get_clock().now().to_msg()
+        self.pub.publish(msg)
+        self.published['/diagnostics'] += 1
+        self._last_report = now
+        self._received_at_report = collections.Counter(self.received)
+        self._rejected_at_report = rejected_total
+
+
+def node_parameters(node, node_name: str) -> dict:
+    """The flat parameter dictionary: packaged defaults, then the node's ROS parameters.
+
+    Nodes start with ``automatically_declare_parameters_from_overrides``, so
+    ``--params-file`` and ``-p name:=value`` arrive as declared parameters.
+    """
+    from stewart63_ros.core.params import default_params_path, read_parameter_file
+    params = read_parameter_file(default_params_path(), node_name)
+    for name, param in node._parameters.items():
+        if name == 'use_sim_time':
+            continue
+        value = param.value
+        if value is not None:
+            params[name] = list(value) if not isinstance(value, (str, bool, int, float)) else value
+    return params
+
+
+def wait_until(node, executor, predicate, timeout: float) -> bool:
+    """Spin until ``predicate()`` or ``timeout`` seconds; True if it held."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return False
+        executor.spin_once(timeout_sec=min(0.05, remaining))
+    return True
+
+
+def make_parser(prog: str, description: str) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=prog, description=description,
+        epilog='ROS arguments follow --ros-args, e.g. --ros-args --params-file '
+        'config/stewart63.yaml -r __ns:=/rig2 -p name:=value (README: parameters).')
+    return parser
+
+
+def _interrupt(*_):
+    raise KeyboardInterrupt
+
+
+def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> int:
+    """Parse --help / own options, start rclpy, run the node until shutdown.
+
+    Exits 2 with a one-line message on a parameter error; SIGTERM and Ctrl-C
+    stop the node cleanly.
+    """
+    from stewart63_ros.core.params import ParameterError
+    argv = list(sys.argv if argv is None else argv)
+    parser = make_parser(prog, description)
+    if extra_args:
+        extra_args(parser)
+    import rclpy
+    from rclpy.utilities import remove_ros_args
+    options = parser.parse_args(remove_ros_args(argv)[1:])
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.signals import SignalHandlerOptions
+    # Our own handlers: Ctrl-C and SIGTERM raise KeyboardInterrupt, so the
+    # node flushes its last messages to the recorder before rclpy shuts down.
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    # SIGTERM (from rig, systemd, docker) ends the node like Ctrl-C does.
+    signal.signal(signal.SIGTERM, _interrupt)
+    signal.signal(signal.SIGINT, _interrupt)
+    node = None
+    code = 0
+    try:
+        node = node_class(options)
+        code = node.run() or 0
+    except ParameterError as exc:
+        print('%s: parameter error: %s' % (prog, exc), file=sys.stderr)
+        code = 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        code = 0
+    finally:
+        if node is not None:
+            try:
+                node.close()
+            except Exception:  # noqa: BLE001 - shutting down anyway
+                pass
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    return code

@@ -1,0 +1,120 @@
+"""fk: the platform pose and twist from measured leg lengths.
+
+On every ``leg_lengths`` sample: tracking forward kinematics (Newton from the
+previous pose, all-modes fallback) -> ``platform_pose`` and ``platform_twist``
+stamped with the sample's stamp. Lengths with no assembly, or a pose whose
+Jacobian condition number exceeds ``singularity_threshold``, are reported on
+/diagnostics and nothing is published for that sample.
+
+``fk --solve L1 .. L6 [--params FILE] [--all]`` solves once and prints JSON,
+without DDS.
+"""
+from __future__ import annotations
+
+import sys
+
+
+def main(argv=None):
+    argv = list(sys.argv if argv is None else argv)
+    if '--solve' in argv:
+        from stewart63_ros.tools.fk_solve import main as solve_main
+        sys.exit(solve_main(argv[1:]))
+    from stewart63_ros.nodes.common import run
+    sys.exit(run('fk', __doc__.split('\n\n')[0], _node_class(), argv,
+                 extra_args=_solve_help))
+
+
+def _solve_help(parser):
+    parser.add_argument('--solve', nargs=6, metavar='L', type=float,
+                        help='solve once for six leg lengths and print JSON (no DDS)')
+    parser.add_argument('--params', help='with --solve: parameter file')
+    parser.add_argument('--all', action='store_true', help='with --solve: every assembly mode')
+
+
+def _node_class():
+    import numpy as np
+    from geometry_msgs.msg import PoseStamped, TwistStamped
+    from sensor_msgs.msg import JointState
+
+    from stewart63_ros import topics
+    from stewart63_ros.core.fk import FKTracker, NoAssemblyError
+    from stewart63_ros.nodes.base import RigNode
+    from stewart63_ros.nodes.common import Rejected, StampGate, leg_vector
+
+    class FKNode(RigNode):
+        def __init__(self, options):
+            super().__init__('fk')
+            threshold = self.positive('singularity_threshold', 1.0e4)
+            self.tracker = FKTracker(self.mech, cond_threshold=threshold)
+            self.warm_up()
+            self.gate = StampGate()
+            self.singular = 0
+            self.no_assembly = 0
+            self.pub_pose = self.publisher(PoseStamped, topics.PLATFORM_POSE, topics.STREAM_PUB)
+            self.pub_twist = self.publisher(TwistStamped, topics.PLATFORM_TWIST,
+                                            topics.STREAM_PUB)
+            # Every sample gets a pose: a short queue rather than newest-only.
+            self.create_subscription(JointState, topics.LEG_LENGTHS, self.on_sample,
+                                     topics.EVERY_SUB)
+
+        def warm_up(self):
+            """Compile / load the solver kernels now, not on the first sample."""
+            from stewart63_ros.core.kinematics import leg_lengths
+            from stewart63_ros.core.rotation import rotation_from_euler
+            mech = self.mech
+            lengths = leg_lengths(mech, mech.initial_position,
+                                  rotation_from_euler(mech.initial_orientation))
+            self.tracker.solve(lengths, np.zeros(6))
+            self.tracker.fk.all_modes(lengths)
+            self.tracker.reset(mech.initial_position, rotation_from_euler(mech.initial_orientation))
+
+        def on_sample(self, msg):
+            self.health.received[topics.LEG_LENGTHS] += 1
+            try:
+                ns = self.gate.check(msg.header.stamp)
+                lengths = leg_vector(msg.name, msg.position, 'position')
+                rates = leg_vector(msg.name, msg.velocity, 'velocity') if len(msg.velocity) \
+                    else None
+            except Rejected as exc:
+                self.health.reject(topics.LEG_LENGTHS, exc)
+                return
+            self.gate.accept(ns)
+            try:
+                result = self.tracker.solve(lengths, rates)
+            except NoAssemblyError as exc:
+                self.no_assembly += 1
+                self.health.reject(topics.LEG_LENGTHS, Rejected('no_assembly', str(exc)))
+                return
+            if result.singular:
+                self.singular += 1
+                self.health.warning = ('near-singular pose (Jacobian condition %.3g): not '
+                                       'published' % result.condition)
+                return
+            pose = PoseStamped()
+            pose.header = msg.header
+            p, q = pose.pose.position, pose.pose.orientation
+            p.x, p.y, p.z = (float(v) for v in result.position)
+            q.x, q.y, q.z, q.w = (float(v) for v in result.quaternion)
+            self.pub_pose.publish(pose)
+            self.health.published[topics.PLATFORM_POSE] += 1
+            if rates is not None:
+                twist = TwistStamped()
+                twist.header = msg.header
+                lin, ang = twist.twist.linear, twist.twist.angular
+                lin.x, lin.y, lin.z = (float(v) for v in result.velocity)
+                ang.x, ang.y, ang.z = (float(v) for v in result.omega)
+                self.pub_twist.publish(twist)
+                self.health.published[topics.PLATFORM_TWIST] += 1
+
+        def report(self):
+            self.health.values.update(singular_samples=self.singular,
+                                      no_assembly_samples=self.no_assembly)
+            super().report()
+            if self.started:
+                self.health.warning = ''
+
+    return FKNode
+
+
+if __name__ == '__main__':
+    main()

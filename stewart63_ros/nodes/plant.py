@@ -1,0 +1,302 @@
+"""plant: integrates the platform dynamics and publishes simulated leg sensors.
+
+Every sample period 1/sensor_rate it publishes ``leg_lengths`` (L_i, dL_i/dt),
+``ground_truth/pose`` and ``ground_truth/twist``, and applies the newest
+``leg_forces`` with zero-order hold (plus ``external_wrench``).
+
+clock_mode ``lockstep``: simulated time on /clock; sample k+1 is computed only
+once the force answering sample k has arrived (or ``force_timeout`` passed,
+which is counted and reported), so a distributed run is deterministic and as
+fast as the machine allows. clock_mode ``realtime``: paced by the wall clock;
+a force that has not arrived when the next step is integrated is a missed
+cycle, the previous force is held, and it is counted.
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+
+from stewart63_ros import topics
+from stewart63_ros.core.dynamics import OMEGA, POS, QUAT, VEL, Dynamics
+from stewart63_ros.core.params import ParameterError
+from stewart63_ros.core.simulate import initial_state, substeps_for
+from stewart63_ros.nodes.base import RigNode
+from stewart63_ros.nodes.common import (LEG_NAMES, Rejected, StampGate, finite_vector,
+                                        leg_vector, ros_time, run, stamp_ns)
+
+#: Integrate this long before the next deadline in realtime mode [s]: room
+#: for one RK4 step so the sample still leaves on time.
+INTEGRATION_GUARD = 2.5e-4
+
+
+class SensorModel:
+    """Optional linear-sensor imperfections; all off by default.
+
+    ``sensor_noise`` [m] and ``sensor_rate_noise`` [m/s]: Gaussian standard
+    deviations; ``sensor_resolution`` [m]: quantisation step of L;
+    ``sensor_delay`` [samples]: transport delay; ``sensor_seed``: RNG seed.
+    """
+
+    def __init__(self, params):
+        self.noise = float(params.get('sensor_noise', 0.0))
+        self.rate_noise = float(params.get('sensor_rate_noise', 0.0))
+        self.resolution = float(params.get('sensor_resolution', 0.0))
+        self.delay = int(params.get('sensor_delay', 0))
+        for key in ('sensor_noise', 'sensor_rate_noise', 'sensor_resolution', 'sensor_delay'):
+            value = float(params.get(key, 0))
+            if not np.isfinite(value) or value < 0:
+                raise ParameterError(key, 'must be a finite number >= 0, got %r' % value)
+        self.rng = np.random.default_rng(int(params.get('sensor_seed', 0)))
+        self.history = []
+
+    def measure(self, lengths, rates):
+        if self.delay:
+            self.history.append((lengths, rates))
+            lengths, rates = self.history[0]
+            if len(self.history) > self.delay:
+                self.history.pop(0)
+        if self.noise:
+            lengths = lengths + self.rng.normal(0.0, self.noise, 6)
+        if self.rate_noise:
+            rates = rates + self.rng.normal(0.0, self.rate_noise, 6)
+        if self.resolution:
+            lengths = np.round(lengths / self.resolution) * self.resolution
+        return lengths, rates
+
+
+class PlantNode(RigNode):
+    def __init__(self, options):
+        super().__init__('plant')
+        self.rate = self.positive('sensor_rate', 1000.0)
+        self.mode = str(self.param('clock_mode', 'realtime'))
+        if self.mode not in ('realtime', 'lockstep'):
+            raise ParameterError('clock_mode', "must be 'realtime' or 'lockstep', got %r" % self.mode)
+        self.duration = float(self.param('duration', 0.0))   # simulated seconds; 0 = forever
+        if not np.isfinite(self.duration) or self.duration < 0:
+            raise ParameterError('duration', 'must be >= 0 seconds')
+        self.force_timeout = self.positive('force_timeout', 1.0)
+        self.summary_file = str(self.param('summary_file', ''))
+        # Matched leg_lengths subscriptions to wait for before the first sample
+        # (rig: controller + fk + recorder).
+        self.lengths_subscribers = int(self.param('lengths_subscribers', 0))
+        self.sensor = SensorModel(self.params)
+
+        self.dyn = Dynamics(self.mech)
+        self.period = 1.0 / self.rate
+        self.substeps = substeps_for(self.period)
+        self.y = initial_state(self.mech)
+        self.dyn.step(self.y, np.zeros(6), self.period, self.substeps)   # load the kernels now
+        self.k = 0
+        self.force = np.zeros(6)
+        self.force_ns = None            # stamp of the sample the held force answers
+        self.wrench = None
+        self.sent_wall = {}             # sample stamp -> wall time it was published
+        self.force_gate = StampGate()
+        self.wrench_gate = StampGate()
+        self.timeouts = 0
+        self.missed = 0
+        self.late = 0
+        self.endstop_samples = 0
+
+        self.pub_lengths = self.publisher(JointState, topics.LEG_LENGTHS, topics.STREAM_PUB)
+        self.pub_pose = self.publisher(PoseStamped, topics.TRUE_POSE, topics.STREAM_PUB)
+        self.pub_twist = self.publisher(TwistStamped, topics.TRUE_TWIST, topics.STREAM_PUB)
+        self.pub_clock = (self.publisher(Clock, topics.CLOCK, topics.STREAM_PUB)
+                          if self.mode == 'lockstep' else None)
+        self.sub_forces = self.create_subscription(JointState, topics.LEG_FORCES,
+                                                   self.on_forces, topics.LATEST_SUB)
+        self.create_subscription(WrenchStamped, topics.EXTERNAL_WRENCH, self.on_wrench,
+                                 topics.LATEST_SUB)
+        self.t0_wall = None
+
+    # -- inputs ---------------------------------------------------------------
+    def on_forces(self, msg: JointState):
+        self.health.received[topics.LEG_FORCES] += 1
+        try:
+            ns = self.force_gate.check(msg.header.stamp)
+            force = leg_vector(msg.name, msg.effort, 'effort')
+        except Rejected as exc:
+            self.health.reject(topics.LEG_FORCES, exc)
+            return
+        self.force_gate.accept(ns)
+        self.force, self.force_ns = force, ns
+        sent = self.sent_wall.pop(ns, None)
+        if sent is not None:
+            self.health.latency.add(time.perf_counter() - sent)
+
+    def on_wrench(self, msg: WrenchStamped):
+        self.health.received[topics.EXTERNAL_WRENCH] += 1
+        try:
+            ns = self.wrench_gate.check(msg.header.stamp)
+            f, m = msg.wrench.force, msg.wrench.torque
+            force = finite_vector([f.x, f.y, f.z], 3, 'wrench.force')
+            torque = finite_vector([m.x, m.y, m.z], 3, 'wrench.torque')
+        except Rejected as exc:
+            self.health.reject(topics.EXTERNAL_WRENCH, exc)
+            return
+        self.wrench_gate.accept(ns)
+        self.wrench = (force, torque)
+
+    # -- outputs --------------------------------------------------------------
+    def sample_time(self, k: int) -> float:
+        base = 0.0 if self.mode == 'lockstep' else self.t0_wall
+        return base + k * self.period
+
+    def publish_sample(self):
+        t = self.sample_time(self.k)
+        stamp = ros_time(t)
+        lengths, rates = self.dyn.lengths_and_rates(self.y)
+        if np.any(lengths < self.mech.leg_length_min) or np.any(lengths > self.mech.leg_length_max):
+            self.endstop_samples += 1
+            self.health.warning = 'a leg is at an end stop (%d samples so far)' % self.endstop_samples
+        lengths, rates = self.sensor.measure(lengths, rates)
+        if self.pub_clock is not None:
+            self.pub_clock.publish(Clock(clock=stamp))
+        msg = JointState(name=LEG_NAMES, position=lengths.tolist(), velocity=rates.tolist())
+        msg.header.stamp = stamp
+        msg.header.frame_id = 'base'
+        self.sent_wall[stamp_ns(stamp)] = time.perf_counter()
+        if len(self.sent_wall) > 1000:   # answers that never came
+            self.sent_wall.pop(next(iter(self.sent_wall)))
+        self.pub_lengths.publish(msg)
+        self.publish_truth(stamp)
+        self.health.published[topics.LEG_LENGTHS] += 1
+        return stamp_ns(stamp)
+
+    def publish_truth(self, stamp):
+        y = self.y
+        pose = PoseStamped()
+        pose.header.stamp = stamp
+        pose.header.frame_id = 'base'
+        p, q = pose.pose.position, pose.pose.orientation
+        p.x, p.y, p.z = (float(v) for v in y[POS])
+        quat = y[QUAT] / np.linalg.norm(y[QUAT])
+        q.x, q.y, q.z, q.w = (float(v) for v in quat)
+        twist = TwistStamped()
+        twist.header = pose.header
+        lin, ang = twist.twist.linear, twist.twist.angular
+        lin.x, lin.y, lin.z = (float(v) for v in y[VEL])
+        ang.x, ang.y, ang.z = (float(v) for v in y[OMEGA])
+        self.pub_pose.publish(pose)
+        self.pub_twist.publish(twist)
+
+    def step(self):
+        self.y = self.dyn.step(self.y, self.force, self.period, self.substeps, self.wrench)
+        if not np.all(np.isfinite(self.y)):
+            raise RuntimeError('the simulation diverged (non-finite state)')
+        self.k += 1
+
+    def report(self):
+        h = self.health
+        h.values.update({'sample': self.k, 'sim_time_s': '%.6f' % (self.k * self.period),
+                         'clock_mode': self.mode, 'force_timeouts': self.timeouts,
+                         'missed_cycles': self.missed, 'late_cycles': self.late,
+                         'endstop_samples': self.endstop_samples})
+        if not self.started:
+            return
+        if self.mode == 'lockstep':
+            h.report(ros_time(self.k * self.period))
+        else:
+            h.report()
+        h.warning = ''
+
+    # -- main loops -----------------------------------------------------------
+    def run(self):
+        # Lockstep cannot start before the controller is there to answer.
+        need_forces = 1 if self.mode == 'lockstep' else 0
+        self.wait_for_matches(lambda: (
+            self.sub_forces.get_publisher_count() >= need_forces
+            and self.pub_lengths.get_subscription_count() >= self.lengths_subscribers))
+        self.t0_wall = time.time()
+        n_samples = int(round(self.duration * self.rate)) if self.duration > 0 else None
+        self.get_logger().info('%s at %g Hz%s' % (
+            self.mode, self.rate, ', %d samples' % n_samples if n_samples else ''))
+        if self.mode == 'lockstep':
+            self.run_lockstep(n_samples)
+        else:
+            self.run_realtime(n_samples)
+        self.write_summary()
+        return 0
+
+    def wait_for_answer(self, ns, timeout) -> bool:
+        deadline = time.monotonic() + timeout
+        spin = self.executor_.spin_once
+        while self.force_ns != ns:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            spin(timeout_sec=remaining)
+        return True
+
+    def run_lockstep(self, n_samples):
+        while True:
+            ns = self.publish_sample()
+            if not self.wait_for_answer(ns, self.force_timeout):
+                self.timeouts += 1
+                self.health.warning = 'no force for sample %d within %.3f s' % (
+                    self.k, self.force_timeout)
+            if n_samples is not None and self.k >= n_samples:
+                return
+            self.step()
+
+    def run_realtime(self, n_samples):
+        spin = self.executor_.spin_once
+        start = time.monotonic()
+        self.t0_wall = time.time()
+        while True:
+            ns = self.publish_sample()
+            if n_samples is not None and self.k >= n_samples:
+                self.wait_for_answer(ns, 0.1)
+                return
+            deadline = start + (self.k + 1) * self.period
+            # Spin for the answer until just before the next deadline.
+            while self.force_ns != ns:
+                remaining = deadline - INTEGRATION_GUARD - time.monotonic()
+                if remaining <= 0:
+                    break
+                spin(timeout_sec=remaining)
+            if self.force_ns != ns:
+                self.missed += 1
+            self.step()
+            while True:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                spin(timeout_sec=remaining)
+            if time.monotonic() - deadline > 0.5 * self.period:
+                self.late += 1
+
+    def write_summary(self):
+        lengths, _ = self.dyn.lengths_and_rates(self.y)
+        setpoint = self.mech.setpoint_lengths
+        errors = 100.0 * np.abs(lengths - setpoint) / setpoint
+        summary = {
+            'clock_mode': self.mode, 'rate_hz': self.rate, 'samples': self.k + 1,
+            'sim_time_s': self.k * self.period,
+            'final_leg_lengths_m': lengths.tolist(),
+            'final_leg_errors_percent': errors.tolist(),
+            'positioning_error_percent': float(errors.max()),
+            'loop_latency': self.health.latency.summary(),
+            'force_timeouts': self.timeouts, 'missed_cycles': self.missed,
+            'late_cycles': self.late, 'endstop_samples': self.endstop_samples,
+            'wall_time_s': time.time() - self.t0_wall,
+        }
+        if self.summary_file:
+            with open(self.summary_file, 'w') as stream:
+                json.dump(summary, stream, indent=1)
+        self.get_logger().info('done: %d samples, final error %.3f %%, latency %s' % (
+            summary['samples'], summary['positioning_error_percent'], summary['loop_latency']))
+
+
+def main(argv=None):
+    sys.exit(run('plant', __doc__.split('\n\n')[0], PlantNode, argv))
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,235 @@
+"""`rig`: plant, controller and fk (and `record`) as separate processes over DDS.
+
+    rig [--params FILE] [--mode realtime|lockstep] [--duration S] [--record DIR]
+        [--namespace NS]
+
+One parameter file and one namespace for all. Every node waits until its
+peers are matched before the first sample, so a short run loses nothing at
+its start. Ctrl-C or SIGTERM stops every process cleanly; the exit status is
+non-zero if a node died or failed. With --duration the run ends after S
+simulated seconds (the plant stops itself) and a summary is printed.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from stewart63_ros.core.params import ParameterError, default_params_path, load_mechanism
+
+NODES = ('plant', 'controller', 'fk')
+MODULES = {'plant': 'stewart63_ros.nodes.plant', 'controller': 'stewart63_ros.nodes.controller',
+           'fk': 'stewart63_ros.nodes.fk_node', 'record': 'stewart63_ros.tools.record'}
+
+
+class Rig:
+    """The processes of one rig; ``start()``, ``wait()``, ``stop()``."""
+
+    def __init__(self, params, mode='lockstep', duration=None, record=None, namespace='',
+                 log_dir=None, extra_params=None, nodes=NODES):
+        self.params = str(params)
+        self.mode = mode
+        self.duration = duration
+        self.record = record
+        self.namespace = namespace or ''
+        self.log_dir = Path(log_dir or tempfile.mkdtemp(prefix='stewart63_rig_'))
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.summary_file = self.log_dir / 'plant_summary.json'
+        self.extra_params = dict(extra_params or {})
+        self.nodes = tuple(nodes)
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def ros_args(self, name):
+        args = ['--ros-args', '--params-file', self.params, '-p', 'clock_mode:=%s' % self.mode]
+        if self.namespace:
+            args += ['-r', '__ns:=%s' % self.namespace]
+        wait = 1 if self.record else 0
+        args += ['-p', 'wait_for_subscribers:=%d' % wait]
+        if name == 'plant':
+            consumers = sum(n in self.nodes for n in ('controller', 'fk')) + wait
+            args += ['-p', 'lengths_subscribers:=%d' % consumers,
+                     '-p', 'summary_file:=%s' % self.summary_file]
+            if self.duration:
+                args += ['-p', 'duration:=%r' % float(self.duration)]
+        for key, value in self.extra_params.get(name, {}).items():
+            args += ['-p', '%s:=%s' % (key, value)]
+        return args
+
+    def spawn(self, name, argv):
+        log = open(self.log_dir / ('%s.log' % name), 'w')
+        # Own process group: a Ctrl-C in the terminal reaches only the rig,
+        # which then stops each child itself, in order.
+        proc = subprocess.Popen([sys.executable, '-m', MODULES[name]] + argv,
+                                stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        self.procs[name] = proc
+        return proc
+
+    def start(self):
+        """Recorder first; then controller and fk; the plant once they are matched.
+
+        The plant is the source of every message (the others answer its
+        samples), so starting it last, after the recorder has matched the
+        other nodes' publishers, means nothing published is missed.
+        """
+        downstream = [n for n in self.nodes if n != 'plant']
+        if self.record:
+            argv = [str(self.record), '--wait-for-publishers', 'leg_forces', 'platform_pose']
+            if self.namespace:
+                argv += ['--namespace', self.namespace]
+            self.spawn('record', argv)
+            self.wait_for_line('record', 'READY', 30)
+        for name in downstream:
+            self.spawn(name, self.ros_args(name))
+        if self.record:
+            self.wait_for_line('record', 'MATCHED', 40)
+        if 'plant' in self.nodes:
+            self.spawn('plant', self.ros_args('plant'))
+
+    def wait_for_line(self, name, line, timeout):
+        proc = self.procs[name]
+        log = self.log_dir / ('%s.log' % name)
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                if line in log.read_text().split():
+                    return
+            except OSError:
+                pass
+            if proc.poll() is not None:
+                raise RuntimeError('%s exited (%d): %s' % (name, proc.returncode,
+                                                            self.log_tail(name)))
+            if time.monotonic() > deadline:
+                raise RuntimeError('%s did not print %s within %g s' % (name, line, timeout))
+            time.sleep(0.02)
+
+    def log_tail(self, name, lines=5):
+        try:
+            return ' | '.join((self.log_dir / ('%s.log' % name)).read_text().splitlines()[-lines:])
+        except OSError:
+            return ''
+
+    def failed(self):
+        """Names of nodes that exited with an error."""
+        return [n for n, p in self.procs.items() if p.poll() not in (None, 0)]
+
+    def wait(self, timeout=None) -> bool:
+        """Until the plant ends its run (True), a node dies, or ``timeout`` (False)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        plant = self.procs.get('plant')
+        while True:
+            if self.failed():
+                return False
+            if plant is not None and plant.poll() == 0:
+                return True
+            if any(p.poll() is not None for n, p in self.procs.items() if n != 'plant'):
+                return False
+            if deadline is not None and time.monotonic() > deadline:
+                return False
+            time.sleep(0.05)
+
+    def stop(self, grace=10.0):
+        """SIGINT the nodes (the recorder last, so it gets their final messages)."""
+        order = [n for n in ('plant', 'controller', 'fk') if n in self.procs] + (
+            ['record'] if 'record' in self.procs else [])
+        for group in ([n for n in order if n != 'record'], ['record']):
+            for name in group:
+                proc = self.procs.get(name)
+                if proc is not None and proc.poll() is None:
+                    proc.send_signal(signal.SIGINT)
+            for name in group:
+                proc = self.procs.get(name)
+                if proc is None:
+                    continue
+                try:
+                    proc.wait(grace)
+                except subprocess.TimeoutExpired:
+                    proc.terminate()
+                    try:
+                        proc.wait(3)
+                    except subprocess.TimeoutExpired:
+                        proc.kill()
+                        proc.wait()
+        return {n: p.returncode for n, p in self.procs.items()}
+
+    def summary(self):
+        try:
+            return json.loads(self.summary_file.read_text())
+        except (OSError, ValueError):
+            return None
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog='rig', description=__doc__.split('\n\n')[0])
+    parser.add_argument('--params', help='parameter file (default: the packaged one)')
+    parser.add_argument('--mode', choices=('realtime', 'lockstep'), default='lockstep')
+    parser.add_argument('--duration', type=float, help='simulated seconds, then stop')
+    parser.add_argument('--record', metavar='DIR', help='record every topic into a new bag DIR')
+    parser.add_argument('--namespace', default='', help='namespace of this rig, e.g. /rig2')
+    parser.add_argument('--log-dir', help='where node logs go (default: a temp directory)')
+    args = parser.parse_args(argv)
+    params = args.params or str(default_params_path())
+    try:
+        load_mechanism(params)   # fail here, not in three processes
+    except ParameterError as exc:
+        print('rig: parameter error: %s: %s' % (params, exc), file=sys.stderr)
+        return 2
+    if args.duration is not None and not args.duration > 0:
+        parser.error('--duration must be positive')
+    if args.record and os.path.exists(args.record):
+        print('rig: error: %s exists; record writes a new bag' % args.record, file=sys.stderr)
+        return 2
+
+    rig = Rig(params, args.mode, args.duration, args.record, args.namespace, args.log_dir)
+    stopping = []
+    signal.signal(signal.SIGTERM, lambda *_: stopping.append('SIGTERM'))
+    ok = False
+    start = time.monotonic()
+    try:
+        rig.start()
+        print('rig: %s, logs in %s' % (', '.join(rig.procs), rig.log_dir), flush=True)
+        while not stopping:
+            ok = rig.wait(timeout=0.2)
+            if ok or rig.failed() or any(
+                    p.poll() is not None for n, p in rig.procs.items() if n != 'plant'):
+                break
+    except KeyboardInterrupt:
+        stopping.append('SIGINT')
+    except RuntimeError as exc:
+        print('rig: error: %s' % exc, file=sys.stderr)
+    finally:
+        codes = rig.stop()
+    wall = time.monotonic() - start
+    died = {n: c for n, c in codes.items() if c not in (0, None)}
+    for name in died:
+        print('rig: %s exited with %s: %s' % (name, died[name], rig.log_tail(name)),
+              file=sys.stderr)
+    if stopping:
+        print('rig: stopped by %s' % stopping[0])
+        return 1 if died else 0
+    summary = rig.summary()
+    if summary:
+        lat = summary['loop_latency']
+        print('rig summary: %d samples in %.2f s wall (%s, %g Hz)' % (
+            summary['samples'], wall, summary['clock_mode'], summary['rate_hz']))
+        print('  final positioning error: %.4f %% (max over legs of |L - L0| / L0)'
+              % summary['positioning_error_percent'])
+        if lat.get('count'):
+            print('  loop latency (sample stamp -> force received): p50 %.3f ms, p99 %.3f ms, '
+                  'max %.3f ms' % (lat['p50_ms'], lat['p99_ms'], lat['max_ms']))
+        print('  missed cycles %d, force timeouts %d, end-stop samples %d' % (
+            summary['missed_cycles'], summary['force_timeouts'], summary['endstop_samples']))
+    if args.record:
+        print('  bag: %s' % args.record)
+    if died or not ok:
+        return 1
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
