@@ -7,7 +7,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from stewart63_ros.core.params import ParameterError, mechanism_from_params
-from stewart63_ros.nodes.common import Health, node_parameters, wait_until
+from stewart63_ros.nodes.common import DirectTake, Health, node_parameters, wait_until
 
 
 class RigNode(Node):
@@ -79,6 +79,20 @@ class RigNode(Node):
     def run(self):
         self.wait_for_matches()
         self.executor_.spin()
+
+    def run_on(self, subscription, service_period: float = 0.005):
+        """Serve ``subscription`` directly (see DirectTake); the executor gets
+        a turn every ``service_period`` seconds for timers and other topics."""
+        import rclpy
+        self.wait_for_matches()
+        direct = DirectTake(self, subscription)
+        next_service = 0.0
+        while rclpy.ok():
+            now = time.monotonic()
+            if now >= next_service:
+                self.executor_.spin_once(timeout_sec=0)
+                next_service = now + service_period
+            direct.poll(service_period)
 
     def flush(self, timeout: float = 2.0) -> None:
         """Let reliable subscribers (the recorder) receive everything before exiting."""

@@ -116,6 +116,9 @@ class Health:
         from stewart63_ros import topics
         self.node = node
         self.name = name
+        # 'stewart63/controller' in the root namespace, 'stewart63/rig2/controller'
+        # in /rig2: /diagnostics is absolute, so two rigs must not share a name.
+        self.status_name = 'stewart63' + node.get_fully_qualified_name()
         self.received = collections.Counter()
         self.published = collections.Counter()
         self.rejected = collections.Counter()
@@ -164,7 +167,7 @@ class Health:
             values.append(KeyValue(key='latency/' + key, value='%.4g' % val))
         for key, val in self.values.items():
             values.append(KeyValue(key=key, value=str(val)))
-        status = DiagnosticStatus(level=level, name='stewart63/%s' % self.name,
+        status = DiagnosticStatus(level=level, name=self.status_name,
                                   message=message, hardware_id='stewart63_ros', values=values)
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = stamp if stamp is not None else self.node.get_clock().now().to_msg()
@@ -173,6 +176,36 @@ class Health:
         self._last_report = now
         self._received_at_report = collections.Counter(self.received)
         self._rejected_at_report = rejected_total
+
+
+class DirectTake:
+    """Wait on one subscription and take its messages without the executor.
+
+    The executor rebuilds its wait set on every spin (hundreds of
+    microseconds in Python); a 1 kHz loop waits on a single subscription in a
+    wait set of its own instead, the way rclpy's own ``wait_for_message``
+    does. The subscription stays in the executor too: either path hands the
+    message to the same callback.
+    """
+
+    def __init__(self, node, subscription):
+        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+        self.sub = subscription
+        self.wait_set = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, node.context.handle)
+
+    def poll(self, timeout_sec: float) -> bool:
+        """Wait up to ``timeout_sec`` for one message and run the callback on it."""
+        ws, sub = self.wait_set, self.sub
+        ws.clear_entities()
+        ws.add_subscription(sub.handle)
+        ws.wait(max(0, int(timeout_sec * 1e9)))
+        if sub.handle.pointer not in ws.get_ready_entities('subscription'):
+            return False
+        taken = sub.handle.take_message(sub.msg_type, sub.raw)
+        if taken is None:
+            return False
+        sub.callback(taken[0])
+        return True
 
 
 def node_parameters(node, node_name: str) -> dict:

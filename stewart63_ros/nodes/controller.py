@@ -44,8 +44,8 @@ class ControllerNode(RigNode):
         self.last_sample_wall = None
         self.tripped = False
         self.pub_forces = self.publisher(JointState, topics.LEG_FORCES, topics.STREAM_PUB)
-        self.create_subscription(JointState, topics.LEG_LENGTHS, self.on_sample,
-                                 topics.LATEST_SUB)
+        self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
+                                                    self.on_sample, topics.LATEST_SUB)
         self.create_subscription(JointState, topics.LEG_SETPOINT, self.on_leg_setpoint,
                                  topics.SETPOINT_QOS)
         self.create_subscription(PoseStamped, topics.POSE_SETPOINT, self.on_pose_setpoint,
@@ -113,6 +113,9 @@ class ControllerNode(RigNode):
             self.health.reject(topics.POSE_SETPOINT, exc)
             return
         self.pose_gate.accept(ns)
+
+    def run(self):
+        self.run_on(self.sub_samples)
 
     def watchdog(self):
         if self.last_sample_wall is None or self.tripped:

@@ -54,8 +54,8 @@ def _node_class():
             self.pub_twist = self.publisher(TwistStamped, topics.PLATFORM_TWIST,
                                             topics.STREAM_PUB)
             # Every sample gets a pose: a short queue rather than newest-only.
-            self.create_subscription(JointState, topics.LEG_LENGTHS, self.on_sample,
-                                     topics.EVERY_SUB)
+            self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
+                                                        self.on_sample, topics.EVERY_SUB)
 
         def warm_up(self):
             """Compile / load the solver kernels now, not on the first sample."""
@@ -105,6 +105,9 @@ def _node_class():
                 ang.x, ang.y, ang.z = (float(v) for v in result.omega)
                 self.pub_twist.publish(twist)
                 self.health.published[topics.PLATFORM_TWIST] += 1
+
+        def run(self):
+            self.run_on(self.sub_samples)
 
         def report(self):
             self.health.values.update(singular_samples=self.singular,

@@ -28,7 +28,7 @@ from stewart63_ros.core.params import ParameterError
 from stewart63_ros.core.simulate import initial_state, substeps_for
 from stewart63_ros.nodes.base import RigNode
 from stewart63_ros.nodes.common import (LEG_NAMES, Rejected, StampGate, finite_vector,
-                                        leg_vector, ros_time, run, stamp_ns)
+                                        leg_vector, ros_time, run, stamp_ns, DirectTake)
 
 #: Integrate this long before the next deadline in realtime mode [s]: room
 #: for one RK4 step so the sample still leaves on time.
@@ -114,6 +114,8 @@ class PlantNode(RigNode):
         self.create_subscription(WrenchStamped, topics.EXTERNAL_WRENCH, self.on_wrench,
                                  topics.LATEST_SUB)
         self.t0_wall = None
+        self.forces_in = DirectTake(self, self.sub_forces)
+        self.next_service = 0.0
 
     # -- inputs ---------------------------------------------------------------
     def on_forces(self, msg: JointState):
@@ -156,8 +158,6 @@ class PlantNode(RigNode):
             self.endstop_samples += 1
             self.health.warning = 'a leg is at an end stop (%d samples so far)' % self.endstop_samples
         lengths, rates = self.sensor.measure(lengths, rates)
-        if self.pub_clock is not None:
-            self.pub_clock.publish(Clock(clock=stamp))
         msg = JointState(name=LEG_NAMES, position=lengths.tolist(), velocity=rates.tolist())
         msg.header.stamp = stamp
         msg.header.frame_id = 'base'
@@ -165,6 +165,9 @@ class PlantNode(RigNode):
         if len(self.sent_wall) > 1000:   # answers that never came
             self.sent_wall.pop(next(iter(self.sent_wall)))
         self.pub_lengths.publish(msg)
+        # The rest goes out while the controller works on the sample.
+        if self.pub_clock is not None:
+            self.pub_clock.publish(Clock(clock=stamp))
         self.publish_truth(stamp)
         self.health.published[topics.LEG_LENGTHS] += 1
         return stamp_ns(stamp)
@@ -224,14 +227,20 @@ class PlantNode(RigNode):
         self.write_summary()
         return 0
 
-    def wait_for_answer(self, ns, timeout) -> bool:
-        deadline = time.monotonic() + timeout
-        spin = self.executor_.spin_once
+    def wait_for_answer(self, ns, timeout, until=None) -> bool:
+        """Take leg_forces until the answer to sample ``ns`` is in, or time is up.
+
+        The executor (timers, external_wrench) gets a turn every few ms.
+        """
+        deadline = time.monotonic() + timeout if until is None else until
         while self.force_ns != ns:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
+            now = time.monotonic()
+            if now >= deadline:
                 return False
-            spin(timeout_sec=remaining)
+            if now >= self.next_service:
+                self.executor_.spin_once(timeout_sec=0)
+                self.next_service = now + 0.005
+            self.forces_in.poll(min(deadline - now, 0.005))
         return True
 
     def run_lockstep(self, n_samples):
@@ -255,13 +264,8 @@ class PlantNode(RigNode):
                 self.wait_for_answer(ns, 0.1)
                 return
             deadline = start + (self.k + 1) * self.period
-            # Spin for the answer until just before the next deadline.
-            while self.force_ns != ns:
-                remaining = deadline - INTEGRATION_GUARD - time.monotonic()
-                if remaining <= 0:
-                    break
-                spin(timeout_sec=remaining)
-            if self.force_ns != ns:
+            # Take the answer until just before the next deadline.
+            if not self.wait_for_answer(ns, 0.0, until=deadline - INTEGRATION_GUARD):
                 self.missed += 1
             self.step()
             while True:
