@@ -1,0 +1,429 @@
+"""Reading (and repairing) the rosbag2 directories that ``record`` writes.
+
+Everything here works without rclpy: ``plot``, the tests and ``play`` use it.
+
+- :func:`read_messages` yields ``(topic, timestamp_ns, message)`` decoded with
+  rosbags' Kilted type store (or the definitions stored in the bag).
+- :func:`read_raw` yields the CDR bytes unchanged, for replay.
+- :func:`trajectory_from_bag` builds the columns of the trajectory CSV
+  (CONTRACT section 5) from a recording.
+- :func:`recover_bag` repairs a bag whose recorder was killed hard (no MCAP
+  summary/footer, no ``metadata.yaml``).
+
+Every failure to read a bag (not a bag, truncated, corrupt, a topic that is not
+in it) raises :class:`BagError`; the command-line tools turn it into a one-line
+message and a non-zero exit.
+"""
+from __future__ import annotations
+
+import functools
+import os
+import shutil
+import tempfile
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+import numpy as np
+
+#: Key of ``metadata.yaml``'s ``custom_data`` holding the namespace a bag was
+#: recorded in (``/`` when none): ``play --namespace`` re-roots topics from it.
+NAMESPACE_KEY = 'stewart63_ros.namespace'
+
+#: The trajectory CSV's columns (CONTRACT section 5), in order.
+TRAJECTORY_COLUMNS = (
+    ['t', 'x', 'y', 'z', 'theta_x', 'theta_y', 'theta_z',
+     'vx', 'vy', 'vz', 'wx', 'wy', 'wz']
+    + [f'L{i}' for i in range(1, 7)]
+    + [f'Ldot{i}' for i in range(1, 7)]
+    + [f'F{i}' for i in range(1, 7)])
+
+#: Topics whose names stay absolute whatever the namespace.
+ABSOLUTE_TOPICS = ('/clock', '/diagnostics')
+
+
+class BagError(Exception):
+    """A path that is not a readable bag, a damaged bag, or a missing topic."""
+
+
+@functools.lru_cache(maxsize=1)
+def typestore():
+    """rosbags' type store for ROS 2 Kilted (the distro of the wheels)."""
+    from rosbags.typesys import Stores, get_typestore
+    store = getattr(Stores, 'ROS2_KILTED', None) or Stores.LATEST
+    return get_typestore(store)
+
+
+# --------------------------------------------------------------------------
+# Opening
+
+
+def _mcap_files(path: Path) -> list[Path]:
+    return sorted(p for p in path.glob('*.mcap') if p.is_file())
+
+
+def check_bag_dir(bag_dir) -> Path:
+    """The bag directory as a Path, or :class:`BagError` saying why it is not one."""
+    path = Path(bag_dir)
+    if not path.exists():
+        raise BagError(f'{path}: no such bag directory')
+    if not path.is_dir():
+        raise BagError(f'{path}: not a bag (a rosbag2 bag is a directory with metadata.yaml)')
+    if not (path / 'metadata.yaml').is_file():
+        if _mcap_files(path):
+            raise BagError(f'{path}: metadata.yaml is missing (was the recorder killed?); '
+                           f'repair it with: record --recover {path}')
+        raise BagError(f'{path}: not a bag (no metadata.yaml)')
+    return path
+
+
+def open_reader(bag_dir):
+    """An opened rosbags ``AnyReader`` on ``bag_dir``; close it (or use ``with``)."""
+    from rosbags.highlevel import AnyReader
+    path = check_bag_dir(bag_dir)
+    reader = AnyReader([path], default_typestore=typestore())
+    try:
+        reader.open()
+    except Exception as exc:  # rosbags raises several types; one for our callers
+        raise BagError(f'{path}: cannot read bag: {_describe(exc)}') from exc
+    return reader
+
+
+def _describe(exc: BaseException) -> str:
+    text = str(exc).strip() or type(exc).__name__
+    return text.splitlines()[0]
+
+
+def bag_namespace(reader) -> str:
+    """The namespace the bag was recorded in (``/`` if not recorded by ``record``)."""
+    for path in getattr(reader, 'paths', []):
+        try:
+            from ruamel.yaml import YAML
+            meta = YAML(typ='safe').load((Path(path) / 'metadata.yaml').read_text())
+            custom = meta['rosbag2_bagfile_information'].get('custom_data') or {}
+        except Exception:
+            continue
+        if custom.get(NAMESPACE_KEY):
+            return str(custom[NAMESPACE_KEY])
+    return '/'
+
+
+def resolve_bag_topics(reader, topics: Iterable[str] | None) -> list[str]:
+    """Full bag topic names for ``topics`` (relative names resolve under the
+    namespace the bag was recorded in; then under ``/``; then as the unique bag
+    topic ending in ``/name``). ``None`` means every topic. Unknown topics raise
+    :class:`BagError`, naming the topics the bag has."""
+    available = sorted({c.topic for c in reader.connections})
+    if topics is None:
+        return available
+    ns = bag_namespace(reader).rstrip('/')
+    out = []
+    for name in topics:
+        found = None
+        if name.startswith('/'):
+            found = name if name in available else None
+        else:
+            for cand in (f'{ns}/{name}', f'/{name}'):
+                if cand in available:
+                    found = cand
+                    break
+            if found is None:
+                ends = [t for t in available if t.endswith('/' + name)]
+                if len(ends) == 1:
+                    found = ends[0]
+        if found is None:
+            raise BagError(f'topic {name!r} is not in the bag '
+                           f'(it has: {", ".join(available) or "no topics"})')
+        if found not in out:
+            out.append(found)
+    return out
+
+
+# --------------------------------------------------------------------------
+# Reading
+
+
+def read_raw(bag_dir, topics: Iterable[str] | None = None, start_ns: int | None = None
+             ) -> Iterator[tuple[str, str, int, bytes]]:
+    """Yield ``(topic, msgtype, timestamp_ns, cdr_bytes)`` in timestamp order."""
+    reader = open_reader(bag_dir)
+    try:
+        names = set(resolve_bag_topics(reader, topics))
+        conns = [c for c in reader.connections if c.topic in names]
+        if not conns:
+            return
+        try:
+            for conn, stamp, data in reader.messages(connections=conns, start=start_ns):
+                yield conn.topic, conn.msgtype, stamp, data
+        except Exception as exc:
+            raise BagError(f'{bag_dir}: damaged bag: {_describe(exc)}') from exc
+    finally:
+        reader.close()
+
+
+def read_messages(bag_dir, topics: Iterable[str] | None = None
+                  ) -> Iterator[tuple[str, int, object]]:
+    """Yield ``(topic, timestamp_ns, message)`` decoded, in timestamp order.
+
+    ``topics`` are bag topic names (``/leg_lengths``) or relative names
+    (``leg_lengths``); ``None`` reads every topic. Messages are rosbags
+    dataclasses (``msg.header.stamp.sec``, ``msg.position`` as a numpy array).
+    """
+    reader = open_reader(bag_dir)
+    try:
+        names = set(resolve_bag_topics(reader, topics))
+        conns = [c for c in reader.connections if c.topic in names]
+        if not conns:
+            return
+        try:
+            for conn, stamp, data in reader.messages(connections=conns):
+                yield conn.topic, stamp, reader.deserialize(data, conn.msgtype)
+        except Exception as exc:
+            raise BagError(f'{bag_dir}: damaged bag: {_describe(exc)}') from exc
+    finally:
+        reader.close()
+
+
+def bag_info(bag_dir) -> dict:
+    """``{'topics': {topic: (msgtype, count)}, 'start_ns', 'end_ns', 'message_count',
+    'namespace'}`` from the bag's metadata."""
+    reader = open_reader(bag_dir)
+    try:
+        topics = {}
+        for conn in reader.connections:
+            msgtype, count = topics.get(conn.topic, (conn.msgtype, 0))
+            topics[conn.topic] = (msgtype, count + conn.msgcount)
+        return {'topics': topics, 'start_ns': reader.start_time, 'end_ns': reader.end_time,
+                'message_count': reader.message_count, 'namespace': bag_namespace(reader)}
+    finally:
+        reader.close()
+
+
+def _stamp_ns(msg) -> int:
+    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+
+
+def trajectory_from_bag(bag_dir, *, relative_time: bool = True) -> dict[str, np.ndarray]:
+    """The trajectory CSV's columns (:data:`TRAJECTORY_COLUMNS`) from a recording.
+
+    One row per ``leg_lengths`` sample (per pose sample if the bag has no leg
+    lengths). The pose and twist come from ``ground_truth/pose`` and
+    ``ground_truth/twist`` when the bag has them, else from ``platform_pose``
+    and ``platform_twist``; ``leg_forces`` gives F. Rows are joined on
+    ``header.stamp`` (a pose's stamp is its sample's; ``leg_forces`` carries the
+    stamp of the sample it answers); a value with no message of that stamp is
+    NaN (a controller running slower than the sensor answers only some samples).
+    θ = ``Rotation.from_quat(q).as_euler('xyz')`` (R = Rz·Ry·Rx). ``t`` is the
+    stamp in seconds, from the first row's stamp when ``relative_time``.
+    """
+    from scipy.spatial.transform import Rotation
+
+    reader = open_reader(bag_dir)
+    try:
+        available = {c.topic for c in reader.connections}
+
+        def find(name):
+            try:
+                return resolve_bag_topics(reader, [name])[0]
+            except BagError:
+                return None
+        pose_t, twist_t = find('ground_truth/pose'), find('ground_truth/twist')
+        if pose_t is None:
+            pose_t, twist_t = find('platform_pose'), find('platform_twist')
+        legs_t, forces_t = find('leg_lengths'), find('leg_forces')
+        if legs_t is None and pose_t is None:
+            raise BagError(f'{bag_dir}: no leg_lengths, ground_truth/pose or platform_pose '
+                           f'in the bag (it has: {", ".join(sorted(available)) or "no topics"})')
+        wanted = [t for t in (pose_t, twist_t, legs_t, forces_t) if t]
+        conns = [c for c in reader.connections if c.topic in wanted]
+        data = {t: {} for t in wanted}
+        try:
+            for conn, _, raw in reader.messages(connections=conns):
+                msg = reader.deserialize(raw, conn.msgtype)
+                topic = conn.topic
+                stamp = _stamp_ns(msg)
+                if topic == pose_t:
+                    p, q = msg.pose.position, msg.pose.orientation
+                    data[topic][stamp] = (p.x, p.y, p.z, q.x, q.y, q.z, q.w)
+                elif topic == twist_t:
+                    v, w = msg.twist.linear, msg.twist.angular
+                    data[topic][stamp] = (v.x, v.y, v.z, w.x, w.y, w.z)
+                elif topic == legs_t:
+                    data[topic][stamp] = (_six(msg.position), _six(msg.velocity))
+                else:
+                    data[topic][stamp] = _six(msg.effort)
+        except BagError:
+            raise
+        except Exception as exc:
+            raise BagError(f'{bag_dir}: damaged bag: {_describe(exc)}') from exc
+    finally:
+        reader.close()
+
+    base = data[legs_t] if legs_t else data[pose_t]
+    stamps = np.array(sorted(base), dtype=np.int64)
+    n = len(stamps)
+    cols = {name: np.full(n, np.nan) for name in TRAJECTORY_COLUMNS}
+    if n == 0:
+        cols['t'] = np.zeros(0)
+        return cols
+    t0 = stamps[0] if relative_time else 0
+    cols['t'] = (stamps - t0) * 1e-9
+
+    if pose_t:
+        pose = np.full((n, 7), np.nan)
+        for i, s in enumerate(stamps):
+            v = data[pose_t].get(int(s))
+            if v is not None:
+                pose[i] = v
+        for k, name in enumerate(('x', 'y', 'z')):
+            cols[name] = pose[:, k]
+        ok = np.all(np.isfinite(pose[:, 3:]), axis=1) & (np.linalg.norm(
+            np.nan_to_num(pose[:, 3:]), axis=1) > 0)
+        if ok.any():
+            euler = np.full((n, 3), np.nan)
+            euler[ok] = Rotation.from_quat(pose[ok, 3:]).as_euler('xyz')
+            for k, name in enumerate(('theta_x', 'theta_y', 'theta_z')):
+                cols[name] = euler[:, k]
+    if twist_t:
+        for i, s in enumerate(stamps):
+            v = data[twist_t].get(int(s))
+            if v is not None:
+                for k, name in enumerate(('vx', 'vy', 'vz', 'wx', 'wy', 'wz')):
+                    cols[name][i] = v[k]
+    if legs_t:
+        for i, s in enumerate(stamps):
+            pos, vel = data[legs_t][int(s)]
+            for k in range(6):
+                cols[f'L{k + 1}'][i] = pos[k]
+                cols[f'Ldot{k + 1}'][i] = vel[k]
+    if forces_t:
+        for i, s in enumerate(stamps):
+            f = data[forces_t].get(int(s))
+            if f is not None:
+                for k in range(6):
+                    cols[f'F{k + 1}'][i] = f[k]
+    return cols
+
+
+def _six(values) -> np.ndarray:
+    out = np.full(6, np.nan)
+    arr = np.asarray(values, dtype=float).ravel()[:6]
+    out[:len(arr)] = arr
+    return out
+
+
+# --------------------------------------------------------------------------
+# Recovery after a hard kill
+
+
+def recover_bag(bag_dir) -> dict[str, int]:
+    """Repair a bag whose recorder died without closing it.
+
+    What such a bag holds: the MCAP file up to the last chunk the recorder
+    flushed (it flushes every ``flush_period``), then possibly a partly written
+    chunk, and no summary, footer or ``metadata.yaml``. This reads every
+    complete record (schemas, channels with their offered QoS, messages), writes
+    a new, complete MCAP file and ``metadata.yaml`` in ``bag_dir``, and keeps
+    the damaged file beside it as ``<name>.mcap.orig``. A bag that is already
+    complete is re-indexed the same way (its messages are all kept).
+
+    Returns the number of messages recovered per topic. Raises :class:`BagError`
+    if ``bag_dir`` holds no MCAP file or nothing readable.
+    """
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.metadata import parse_qos
+    from rosbags.typesys import get_types_from_msg
+    from rosbags.typesys import get_typestore as _get_typestore
+    from rosbags.typesys import Stores
+
+    path = Path(bag_dir)
+    if not path.is_dir():
+        raise BagError(f'{path}: not a bag directory')
+    files = [p for p in _mcap_files(path)]
+    if not files:
+        raise BagError(f'{path}: no .mcap file to recover')
+    if len(files) > 1:
+        raise BagError(f'{path}: several .mcap files ({", ".join(p.name for p in files)}); '
+                       'recover handles one')
+    src = files[0]
+    orig = src.with_name(src.name + '.orig')
+    if orig.exists():
+        raise BagError(f'{orig} exists already (an earlier recovery?); not overwriting it')
+
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    messages: list[tuple[int, int, bytes]] = []
+    damaged = None
+    try:
+        with src.open('rb') as fh:
+            for rec in StreamReader(fh, record_size_limit=2**31).records:
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                elif isinstance(rec, Message):
+                    messages.append((rec.channel_id, rec.log_time, bytes(rec.data)))
+    except Exception as exc:  # the incomplete tail of a killed recording
+        damaged = _describe(exc)
+    if not channels:
+        raise BagError(f'{src}: no readable MCAP records'
+                       + (f' ({damaged})' if damaged else ''))
+
+    kilted = typestore()
+    custom = {}
+    meta_path = path / 'metadata.yaml'
+    if meta_path.is_file():
+        try:
+            from ruamel.yaml import YAML
+            meta = YAML(typ='safe').load(meta_path.read_text())
+            custom = dict(meta['rosbag2_bagfile_information'].get('custom_data') or {})
+        except Exception:
+            custom = {}
+
+    tmp_parent = Path(tempfile.mkdtemp(prefix='.recover-', dir=path.parent))
+    try:
+        out_dir = tmp_parent / path.name
+        writer = Writer(out_dir, version=9, storage_plugin=StoragePlugin.MCAP)
+        for key, value in custom.items():
+            writer.set_custom_data(str(key), str(value))
+        writer.open()
+        conns = {}
+        counts: dict[str, int] = {}
+        for cid, chan in sorted(channels.items()):
+            schema = schemas.get(chan.schema_id)
+            msgtype = schema.name if schema else ''
+            if msgtype in kilted.fielddefs:
+                store = kilted
+            else:
+                store = _get_typestore(Stores.EMPTY)
+                if schema is None or schema.encoding != 'ros2msg':
+                    raise BagError(f'{src}: no usable definition of type {msgtype!r}')
+                store.register(get_types_from_msg(schema.data.decode(), msgtype))
+            try:
+                qos = parse_qos(chan.metadata.get('offered_qos_profiles', ''))
+            except Exception:
+                qos = []
+            conns[cid] = writer.add_connection(
+                chan.topic, msgtype, typestore=store,
+                serialization_format=chan.message_encoding or 'cdr',
+                offered_qos_profiles=qos)
+            counts[chan.topic] = 0
+        for cid, stamp, data in sorted(messages, key=lambda m: m[1]):
+            conn = conns.get(cid)
+            if conn is None:
+                continue
+            writer.write(conn, stamp, data)
+            counts[conn.topic] += 1
+        writer.close()
+        # Swap in: keep the damaged file, then move the new files in.
+        os.replace(src, orig)
+        for item in out_dir.iterdir():
+            if item.name == 'metadata.yaml':
+                continue
+            os.replace(item, path / item.name)
+        os.replace(out_dir / 'metadata.yaml', meta_path)
+    finally:
+        shutil.rmtree(tmp_parent, ignore_errors=True)
+    return counts
+
