@@ -31,6 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from stewart63_ros.core._jit import njit
+from stewart63_ros.core.control import _pd
 from stewart63_ros.core.kinematics import LegState
 from stewart63_ros.core.rotation import matrix_from_quaternion
 
@@ -44,6 +45,9 @@ POS, QUAT, VEL, OMEGA = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 13)
 #: ``endstop_stiffness`` [N/m] and ``endstop_damping`` [N s/m].
 DEFAULT_ENDSTOP_STIFFNESS = 2.0e6
 DEFAULT_ENDSTOP_DAMPING = 5.0e3
+
+_NO_WRENCH = np.zeros(6)
+_NO_GAINS = np.zeros((0, 6))
 
 # Indices into the constants vector handed to the compiled kernels.
 _MASS, _G, _COM, _MD, _MU, _LD, _LU, _IT, _CP, _CU, _KSTOP, _CSTOP, _LMIN, _LMAX = (
@@ -230,12 +234,24 @@ def _solve_spd(A, b):
 
 @njit
 def _derivative(const, base, plat, inertia_body, y, forces, wrench, endstops):
+    return _derivative_pd(const, base, plat, inertia_body, y, forces, wrench, endstops,
+                          _NO_GAINS, 0.0)
+
+
+@njit
+def _derivative_pd(const, base, plat, inertia_body, y, forces, wrench, endstops, pd, max_force):
+    """dy/dt; with ``pd`` = [setpoint; kp; kv] (3, 6) the PD law of eq. (40) adds
+    its force from the same L, dL/dt (continuous control inside the ODE)."""
     rot = _rotation(y[3:7])
     n = np.sqrt(y[3] ** 2 + y[4] ** 2 + y[5] ** 2 + y[6] ** 2)
     x, qy, z, w = y[3] / n, y[4] / n, y[5] / n, y[6] / n
     omega = y[10:13]
     J, eta, H, L, Ldot = _terms(const, base, plat, inertia_body, rot, y[0:3], y[7:10], omega)
-    f = forces + _endstop(const, L, Ldot) if endstops else forces
+    f = forces
+    if pd.shape[0] == 3:
+        f = f + _pd(L, Ldot, pd[0], pd[1], pd[2], max_force)
+    if endstops:
+        f = f + _endstop(const, L, Ldot)
     rhs = H @ f - eta
     rhs[:3] += rot @ wrench[:3]
     rhs[3:] += rot @ wrench[3:]
@@ -267,7 +283,6 @@ def _rk4(const, base, plat, inertia_body, y, forces, wrench, dt, steps):
     return y
 
 
-_NO_WRENCH = np.zeros(6)
 
 
 def _wrench6(wrench):
@@ -348,12 +363,11 @@ class Dynamics:
         """L_i [m] and dL_i/dt [m/s] at the state y: what ideal linear sensors read."""
         return _lengths_rates(self._base, self._plat, np.asarray(y, float))
 
-    def derivative_with(self, y, force_law, wrench=None):
-        """dy/dt with forces from ``force_law(L, dL/dt)`` (continuous control)."""
-        y = np.asarray(y, float)
-        lengths, rates = _lengths_rates(self._base, self._plat, y)
-        return _derivative(*self._args(), y, np.asarray(force_law(lengths, rates), float),
-                           _wrench6(wrench), True)
+    def derivative_with(self, y, controller, wrench=None):
+        """dy/dt under continuous PD control (a ``PDController``), eq. (40) inside the ODE."""
+        gains = np.vstack([controller.setpoint, controller.kp, controller.kv])
+        return _derivative_pd(*self._args(), np.asarray(y, float), np.zeros(6),
+                              _wrench6(wrench), True, gains, controller.max_force)
 
     def endstop_forces(self, lengths, rates):
         """Extra piston force from the end stops (zero inside the stroke) [N]."""

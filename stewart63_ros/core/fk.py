@@ -37,16 +37,14 @@ from stewart63_ros.core.rotation import euler_from_matrix, rotation_from_euler
 
 #: Flag a pose whose 6x6 Jacobian (metres; rotation columns carry q x s in m)
 #: has a 2-norm condition number above this. The default workspace of the
-#: packaged mechanism stays below ~10; a singular pose sends it to infinity.
-DEFAULT_COND_THRESHOLD = 1.0e3
+#: packaged mechanism stays between 3 and 6 (5000 random poses); a singular
+#: pose sends it to infinity. At 100, a length error dL moves the pose by up to
+#: ~100 dL (metres and radians x platform size): an estimate no longer to trust.
+DEFAULT_COND_THRESHOLD = 100.0
 #: Pair k's legs (0-based): legs 2k and 2k+1 meet at vertex k.
 PAIRS = ((0, 1), (2, 3), (4, 5))
 #: Platform sides (i, j), in the order the equations are chained 1-2, 2-3, 3-1.
 SIDES = ((0, 1), (1, 2), (2, 0))
-_N_SAMPLES = 32          # > 16: the degree-16 resultant is recovered exactly
-_HALF_ANGLE = np.array([[1.0, 0.0, -1.0],   # (1 + t^2) [cos, sin, 1] = T [1, t, t^2]
-                        [0.0, 2.0, 0.0],
-                        [1.0, 0.0, 1.0]])
 
 
 class NoAssemblyError(ValueError):
@@ -93,6 +91,11 @@ class FKResult:
                    self.condition, ', SINGULAR' if self.singular else ''))
 
 
+def _arr(x) -> np.ndarray:
+    """A writable C-contiguous float64 copy (one numba signature for every caller)."""
+    return np.array(x, dtype=np.float64, order='C')
+
+
 def _quaternion(rot):
     from scipy.spatial.transform import Rotation
     q = Rotation.from_matrix(rot).as_quat()
@@ -132,7 +135,7 @@ def _rodrigues_left(w, rot):
 def _legs(base, legp, t, rot, lengths, jac, res):
     """Fill jac (rows [s_i, q_i x s_i]) and res = lengths - L(pose); return max |res|."""
     worst = 0.0
-    for i in range(6):
+    for i in range(base.shape[0]):
         q0 = rot[0, 0] * legp[i, 0] + rot[0, 1] * legp[i, 1] + rot[0, 2] * legp[i, 2]
         q1 = rot[1, 0] * legp[i, 0] + rot[1, 1] * legp[i, 1] + rot[1, 2] * legp[i, 2]
         q2 = rot[2, 0] * legp[i, 0] + rot[2, 1] * legp[i, 1] + rot[2, 2] * legp[i, 2]
@@ -153,7 +156,7 @@ def _solve6(a, b):
     """Gaussian elimination with partial pivoting on copies; NaN when singular."""
     a = a.copy()
     x = b.copy()
-    n = 6
+    n = b.shape[0]      # not a constant: a fully unrolled 6x6 elimination compiles for ages
     for k in range(n):
         p = k
         for i in range(k + 1, n):
@@ -222,7 +225,7 @@ def _cond(jac):
 
 @njit(cache=True)
 def _newton(base, legp, lengths, t0, rot0, max_iter, step_tol):
-    """Newton on L(t, R) = lengths; returns t, R, iterations, converged, residual, cond.
+    """Newton on L(t, R) = lengths; returns t, R, iterations, converged, residual.
 
     Step: J [dt; dw] = lengths - L, t += dt, R = exp([dw]x) R (eq. 13 with the
     twist replaced by a small displacement). Converged when the step is below
@@ -239,7 +242,7 @@ def _newton(base, legp, lengths, t0, rot0, max_iter, step_tol):
         _legs(base, legp, t, rot, lengths, jac, res)
         d = _solve6(jac, res)
         size = 0.0
-        for k in range(6):
+        for k in range(d.shape[0]):
             size = max(size, abs(d[k]))
         if not np.isfinite(size) or size > 1e3:
             break
@@ -259,35 +262,301 @@ def _newton(base, legp, lengths, t0, rot0, max_iter, step_tol):
     rot[1, 2] = c0[2] * c1[0] - c0[0] * c1[2]
     rot[2, 2] = c0[0] * c1[1] - c0[1] * c1[0]
     worst = _legs(base, legp, t, rot, lengths, jac, res)
-    return t, rot, it, ok, worst, _cond(jac)
+    return t, rot, it, ok, worst
+
+
+@njit(cache=True)
+def _track(base, legp, lengths, t0, rot0, max_iter, size):
+    """One tracking step: Newton from the previous pose, then its move and the condition."""
+    t, rot, it, ok, res = _newton(base, legp, lengths, t0, rot0, max_iter, 1e-12)
+    jac = np.empty((6, 6))
+    _legs(base, legp, t, rot, lengths, jac, np.empty(6))
+    return t, rot, it, ok, res, _pose_distance(t, rot, t0, rot0, size), _cond(jac)
+
+
+@njit(cache=True)
+def _twist(base, legp, t, rot, rates):
+    """[v; omega] = J^-1 dL/dt (eq. 13 inverted), base frame."""
+    jac = np.empty((6, 6))
+    _legs(base, legp, t, rot, np.zeros(6), jac, np.empty(6))
+    return _solve6(jac, rates)
+
+
+@njit(cache=True)
+def _pose_distance(t, rot, t_ref, rot_ref, size):
+    """|t - t_ref| + size * angle(R_ref^T R): one length for position and orientation."""
+    # The angle from both the sine and the cosine of R_ref^T R: accurate at
+    # small and large angles alike.
+    m = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            m[i, j] = rot_ref[0, i] * rot[0, j] + rot_ref[1, i] * rot[1, j] + rot_ref[2, i] * rot[2, j]
+    sin2 = np.sqrt((m[2, 1] - m[1, 2]) ** 2 + (m[0, 2] - m[2, 0]) ** 2 + (m[1, 0] - m[0, 1]) ** 2)
+    angle = np.arctan2(sin2, m[0, 0] + m[1, 1] + m[2, 2] - 1.0)
+    dt = np.sqrt((t[0] - t_ref[0]) ** 2 + (t[1] - t_ref[1]) ** 2 + (t[2] - t_ref[2]) ** 2)
+    return dt + size * angle
+
+
+@njit(cache=True)
+def _triangle_frame(p):
+    """Columns: x along p0->p1, z normal to the triangle, y = z x x."""
+    f = np.empty((3, 3))
+    x = p[1] - p[0]
+    y = p[2] - p[0]
+    z = np.array([x[1] * y[2] - x[2] * y[1], x[2] * y[0] - x[0] * y[2], x[0] * y[1] - x[1] * y[0]])
+    x = x / np.sqrt(x[0] ** 2 + x[1] ** 2 + x[2] ** 2)
+    z = z / np.sqrt(z[0] ** 2 + z[1] ** 2 + z[2] ** 2)
+    f[:, 0] = x
+    f[:, 2] = z
+    f[0, 1] = z[1] * x[2] - z[2] * x[1]
+    f[1, 1] = z[2] * x[0] - z[0] * x[2]
+    f[2, 1] = z[0] * x[1] - z[1] * x[0]
+    return f
+
+
+@njit(cache=True)
+def _polish_modes(base, legp, lengths, vertices, plat, size, res_tol):
+    """Candidate vertex triples -> distinct poses satisfying the six leg equations.
+
+    The rotation maps the platform triangle's frame onto the candidate's
+    (exact when the side lengths match, a good start otherwise); Newton then
+    polishes it; non-converged candidates and duplicates are dropped.
+    """
+    n = vertices.shape[0]
+    ts = np.empty((n, 3))
+    rots = np.empty((n, 3, 3))
+    iters = np.empty(n, np.int64)
+    resid = np.empty(n)
+    conds = np.empty(n)
+    fp = _triangle_frame(plat)
+    cp = (plat[0] + plat[1] + plat[2]) / 3.0
+    count = 0
+    for c in range(n):
+        fv = _triangle_frame(vertices[c])
+        rot = np.zeros((3, 3))
+        for i in range(3):
+            for j in range(3):
+                rot[i, j] = fv[i, 0] * fp[j, 0] + fv[i, 1] * fp[j, 1] + fv[i, 2] * fp[j, 2]
+        if not np.all(np.isfinite(rot)):
+            continue
+        cv = (vertices[c, 0] + vertices[c, 1] + vertices[c, 2]) / 3.0
+        t0 = np.empty(3)
+        for i in range(3):
+            t0[i] = cv[i] - (rot[i, 0] * cp[0] + rot[i, 1] * cp[1] + rot[i, 2] * cp[2])
+        t, r, it, ok, res = _newton(base, legp, lengths, t0, rot, 30, 1e-12)
+        if not ok or res > res_tol:
+            continue
+        new = True
+        for k in range(count):
+            if _pose_distance(t, r, ts[k], rots[k], size) < 1e-7 * max(size, 1.0):
+                new = False
+                break
+        if new:
+            jac = np.empty((6, 6))
+            _legs(base, legp, t, r, lengths, jac, np.empty(6))
+            conds[count] = _cond(jac)
+            ts[count] = t
+            rots[count] = r
+            iters[count] = it
+            resid[count] = res
+            count += 1
+    return ts[:count], rots[:count], iters[:count], resid[:count], conds[:count]
 
 
 # -- all assembly modes --------------------------------------------------------
 
-def _frame(points):
-    """Orthonormal frame (columns) of three points: x along 1->2, z normal to the plane."""
-    x = points[1] - points[0]
-    z = np.cross(x, points[2] - points[0])
-    x = x / np.linalg.norm(x)
-    z = z / np.linalg.norm(z)
-    return np.column_stack([x, np.cross(z, x), z])
+@njit(cache=True)
+def _hroots(c0, c1, c2):
+    """Roots of c2 t^2 + c1 t + c0 as homogeneous pairs t = x / w, stable as c2 -> 0.
 
-
-def _homogeneous_roots(c):
-    """Roots of c0 w^2 + c1 x w + c2 x^2 (rows of c) as pairs (x, w), stable for c2 -> 0.
-
-    With q = -(c1 + s)/2, s = sqrt(c1^2 - 4 c0 c2) signed so |q| is large, the
-    roots are x/w = q/c2 and c0/q, i.e. (q, c2) and (c0, q), and
-    (x c2 - w q)(x q - w c0) = q * (polynomial): the factor q divides the
-    resultant (see ``_resultant_samples``).
+    With q = -(c1 + s) / 2, s = +-sqrt(c1^2 - 4 c0 c2) signed so |q| is large,
+    the roots are (x, w) = (q, c2) and (c0, q), and
+    (x c2 - w q)(x q - w c0) = q (c2 x^2 + c1 x w + c0 w^2): q is the factor
+    the resultant's root form must divide by. Returns x0, w0, x1, w1, q.
     """
-    c0, c1, c2 = c[..., 0], c[..., 1], c[..., 2]
-    s = np.sqrt(c1 * c1 - 4.0 * c0 * c2 + 0j)
-    s = np.where((np.conj(c1) * s).real >= 0, s, -s)
+    s = np.sqrt(c1 * c1 - 4.0 * c0 * c2)
+    if (np.conj(c1) * s).real < 0.0:
+        s = -s
     q = -0.5 * (c1 + s)
-    x = np.stack([q, c0], -1)
-    w = np.stack([c2, q], -1)
-    return x, w, q
+    return q, c2, c0, q, q
+
+
+@njit(cache=True)
+def _bilinear(m, x, w, y, v):
+    """[w^2, x w, x^2] m [v^2, y v, y^2]^T: a biquadratic at homogeneous (x:w), (y:v)."""
+    a = (w * w, x * w, x * x)
+    b = (v * v, y * v, y * y)
+    out = 0.0 * x
+    for i in range(3):
+        for j in range(3):
+            out += a[i] * m[i, j] * b[j]
+    return out
+
+
+@njit(cache=True)
+def _circle_residual(m, phi_i, phi_j):
+    """[cos, sin, 1](phi_i) M [cos, sin, 1](phi_j)^T = |P_i - P_j|^2 - l_ij^2."""
+    a = (np.cos(phi_i), np.sin(phi_i), 1.0)
+    b = (np.cos(phi_j), np.sin(phi_j), 1.0)
+    out = 0.0
+    for i in range(3):
+        for j in range(3):
+            out += a[i] * m[i, j] * b[j]
+    return out
+
+
+@njit(cache=True)
+def _real_angles(coeffs):
+    """Circle angles phi = 2 atan(t) of the (nearly) real roots t of sum_k coeffs[k] t^k.
+
+    Roots are the eigenvalues of the companion matrix. A vanishing leading
+    coefficient means a root at t = infinity, phi = pi: it is added by hand.
+    With coplanar base points the mirror image through the base plane maps
+    t -> -t, so the polynomial is even: then the degree-8 polynomial in t^2
+    is solved instead (an 8x8 eigenproblem costs a quarter of a 16x16 one).
+    Acceptance is generous (|Im phi| < 1e-3); Newton decides later. A near
+    double real root comes out as a complex pair with a small imaginary part.
+    """
+    top = np.max(np.abs(coeffs))
+    even = True
+    for k in range(1, 17, 2):
+        even = even and abs(coeffs[k]) <= 1e-10 * top
+    step = 2 if even else 1
+    poly = coeffs[::step].copy()
+    deg = poly.size - 1
+    phis = np.empty(17)
+    n = 0
+    while deg > 0 and abs(poly[deg]) <= 1e-13 * top:
+        deg -= 1
+    if deg < poly.size - 1:
+        phis[n] = np.pi
+        n += 1
+    if deg == 0:
+        return phis[:n]
+    comp = np.zeros((deg, deg), np.complex128)
+    for k in range(deg):
+        comp[0, k] = -poly[deg - 1 - k] / poly[deg]
+    for k in range(1, deg):
+        comp[k, k - 1] = 1.0
+    for root in np.linalg.eigvals(comp):
+        for sign in (1.0, -1.0):
+            t = np.sqrt(root) * sign if even else root
+            x, y = t.real, t.imag
+            den = x * x + (1.0 - y) ** 2
+            if den > 0.0 and abs(0.5 * np.log((x * x + (1.0 + y) ** 2) / den)) < 1e-3:
+                phis[n] = np.arctan2(2.0 * x, 1.0 - x * x - y * y)   # 2 atan(t)
+                n += 1
+            if not even:
+                break
+    return phis[:n]
+
+
+@njit(cache=True)
+def _mode_candidates(centre, radius, e1, e2, sides):
+    """Circle angles (n, 3) of candidate modes: the real roots of the degree-16 resultant.
+
+    M_ij: |P_i - P_j|^2 - l_ij^2 = [cos_i, sin_i, 1] M_ij [cos_j, sin_j, 1]^T
+    with P_k = c_k + r_k (cos phi_k e1_k + sin phi_k e2_k). The half-angle
+    substitution (1 + t^2)[cos, sin, 1] = T [1, t, t^2] gives Q = T^T M T,
+    biquadratic equations E12(t1, t2), E23(t2, t3), E31(t3, t1). For fixed
+    t1, E12 is a quadratic in t2 with roots (x_a : w_a) and E31 one in t3 with
+    roots (y_b : v_b), so
+        D(t1) = Res_t3(E31, Res_t2(E12, E23)) = prod_ab E23(x_a:w_a, y_b:v_b) / (q12^4 q31^4),
+    a polynomial of degree 16 (Nanua, Waldron & Murthy 1990). It is sampled
+    on the unit circle, its coefficients recovered by a DFT (exact for
+    32 > 16 samples, and well conditioned), and its roots taken as the
+    eigenvalues of the companion matrix.
+    """
+    half = np.array([[1.0, 0.0, -1.0], [0.0, 2.0, 0.0], [1.0, 0.0, 1.0]])
+    mats = np.empty((3, 3, 3))
+    qs = np.empty((3, 3, 3))
+    for k in range(3):
+        i, j = k, (k + 1) % 3          # sides 1-2, 2-3, 3-1
+        d = centre[i] - centre[j]
+        ui = np.empty((2, 3))
+        uj = np.empty((2, 3))
+        ui[0], ui[1] = radius[i] * e1[i], radius[i] * e2[i]
+        uj[0], uj[1] = radius[j] * e1[j], radius[j] * e2[j]
+        m = mats[k]
+        for a in range(2):
+            for b in range(2):
+                m[a, b] = -2.0 * np.sum(ui[a] * uj[b])
+            m[a, 2] = 2.0 * np.sum(ui[a] * d)
+            m[2, a] = -2.0 * np.sum(uj[a] * d)
+        m[2, 2] = np.sum(d * d) + radius[i] ** 2 + radius[j] ** 2 - sides[k] ** 2
+        q = half.T @ m @ half
+        qs[k] = q / np.max(np.abs(q))
+    q12, q23, q31 = qs[0], qs[1], qs[2]
+
+    # D at N points of the unit circle, offset from +-1, +-i (special for
+    # symmetric mechanisms).
+    n_samp = 32
+    offset = 0.1234
+    dvals = np.empty(n_samp, np.complex128)
+    for n in range(n_samp):
+        z = np.exp(1j * (2.0 * np.pi * n / n_samp + offset))
+        m1 = (1.0 + 0j, z, z * z)
+        al = [0j, 0j, 0j]
+        be = [0j, 0j, 0j]
+        for a in range(3):
+            for b in range(3):
+                al[b] += m1[a] * q12[a, b]
+                be[a] += q31[a, b] * m1[b]
+        x0, w0, x1, w1, qa = _hroots(al[0], al[1], al[2])
+        y0, v0, y1, v1, qb = _hroots(be[0], be[1], be[2])
+        prod = (_bilinear(q23, x0, w0, y0, v0) * _bilinear(q23, x0, w0, y1, v1)
+                * _bilinear(q23, x1, w1, y0, v0) * _bilinear(q23, x1, w1, y1, v1))
+        dvals[n] = prod / (qa ** 4 * qb ** 4)
+    coeffs = np.zeros(17)
+    for n in range(n_samp):
+        step = np.exp(-1j * (2.0 * np.pi * n / n_samp + offset))
+        power = dvals[n] / n_samp
+        for k in range(17):          # DFT: exp(-i k theta_n) by recurrence
+            coeffs[k] += power.real
+            power *= step
+
+    phi1 = _real_angles(coeffs)
+    n_phi = phi1.size
+
+    # For each phi1: both roots of E12 in t2 and of E31 in t3; keep the
+    # combinations that close side 2-3 (all near ones: several modes may share
+    # vertex 1).
+    out = np.empty((4 * n_phi, 3))
+    count = 0
+    for p in range(n_phi):
+        c, s = np.cos(0.5 * phi1[p]), np.sin(0.5 * phi1[p])
+        m1 = (c * c, c * s, s * s)
+        al = np.zeros(3)
+        be = np.zeros(3)
+        for a in range(3):
+            for b in range(3):
+                al[b] += m1[a] * q12[a, b]
+                be[a] += q31[a, b] * m1[b]
+        phi2 = np.empty(2)
+        phi3 = np.empty(2)
+        ok = True
+        for poly, ang in ((al, phi2), (be, phi3)):
+            disc = max(poly[1] * poly[1] - 4.0 * poly[0] * poly[2], 0.0)   # near-real: real part
+            sq = np.sqrt(disc) if poly[1] >= 0 else -np.sqrt(disc)
+            q = -0.5 * (poly[1] + sq)
+            if q == 0.0:
+                ok = False
+                break
+            ang[0] = 2.0 * np.arctan2(q, poly[2])
+            ang[1] = 2.0 * np.arctan2(poly[0], q)
+        if not ok:
+            continue
+        res = np.empty(4)
+        for k in range(4):
+            res[k] = abs(_circle_residual(mats[1], phi2[k // 2], phi3[k % 2]))
+        best = np.min(res)
+        for k in range(4):
+            if res[k] == best or res[k] <= 1e-2 * sides[1] ** 2:
+                out[count, 0] = phi1[p]
+                out[count, 1] = phi2[k // 2]
+                out[count, 2] = phi3[k % 2]
+                count += 1
+    return out[:count]
 
 
 class ForwardKinematics:
@@ -296,15 +565,16 @@ class ForwardKinematics:
     def __init__(self, mech, cond_threshold: float = DEFAULT_COND_THRESHOLD):
         self.mech = mech
         self.cond_threshold = float(cond_threshold)
-        self.base = np.ascontiguousarray(mech.base_points, dtype=float)
-        self.plat = np.ascontiguousarray(mech.platform_points, dtype=float)
-        self.legp = np.ascontiguousarray(mech.leg_platform_points, dtype=float)
+        # Writable C-contiguous float copies: numba compiles (and caches) one
+        # variant per array layout and read-only flag, so every kernel call
+        # passes the same kinds (see _arr).
+        self.base = _arr(mech.base_points)
+        self.plat = _arr(mech.platform_points)
+        self.legp = _arr(mech.leg_platform_points)
         # Poses are compared with |dt| + size * (rotation angle).
         self.size = float(np.max(np.linalg.norm(self.plat - self.plat.mean(0), axis=1)))
         self.scale = float(max(self.size, np.ptp(self.base, axis=0).max()))
         self.sides = np.array([np.linalg.norm(self.plat[i] - self.plat[j]) for i, j in SIDES])
-        self._plat_frame = _frame(self.plat)
-        self._plat_centroid = self.plat.mean(0)
         # Circle axes u_k and the reference directions e1_k, e2_k. e2_k is the
         # base-plane normal made orthogonal to u_k: for coplanar base points
         # the mirror image through the base plane is then phi -> -phi, and
@@ -328,12 +598,12 @@ class ForwardKinematics:
             self.pair_distance.append(dist)
         self.axis, self.e1, self.e2 = map(np.array, (self.axis, self.e1, self.e2))
         self.pair_distance = np.array(self.pair_distance)
-        z = np.exp(2j * np.pi * np.arange(_N_SAMPLES) / _N_SAMPLES)
-        self._m1_samples = np.stack([np.ones_like(z), z, z * z], -1)
+        self.reference = (_arr(mech.initial_position),
+                          _arr(rotation_from_euler(mech.initial_orientation)))
 
     # -- small helpers --------------------------------------------------------
     def check_lengths(self, lengths) -> np.ndarray:
-        lengths = np.asarray(lengths, dtype=float)
+        lengths = _arr(lengths)
         if lengths.shape != (6,) or not np.all(np.isfinite(lengths)):
             raise ValueError('leg lengths must be 6 finite numbers, got %r' % (lengths,))
         bad = np.flatnonzero(lengths <= 0)
@@ -344,33 +614,32 @@ class ForwardKinematics:
 
     def condition(self, position, rotation) -> float:
         """2-norm condition number of the Jacobian at a pose."""
-        return float(np.linalg.cond(self.jacobian(position, rotation)))
+        return float(_cond(self.jacobian(position, rotation)))
 
     def jacobian(self, position, rotation) -> np.ndarray:
         jac, res = np.empty((6, 6)), np.empty(6)
-        _legs(self.base, self.legp, np.asarray(position, float), np.asarray(rotation, float),
-              np.zeros(6), jac, res)
+        _legs(self.base, self.legp, _arr(position), _arr(rotation), np.zeros(6), jac, res)
         return jac
 
     def twist(self, position, rotation, rates):
         """(v, omega), base frame, from leg rates: J [v; omega] = dL/dt (eq. 13)."""
-        x = np.linalg.solve(self.jacobian(position, rotation), np.asarray(rates, float))
+        x = _twist(self.base, self.legp, _arr(position), _arr(rotation), _arr(rates))
         return x[:3], x[3:]
 
     def distance(self, position, rotation, ref_position, ref_rotation) -> float:
         """|dt| + size * angle(R_ref^T R): metres, the angle weighted by the platform radius."""
-        cos = (np.trace(np.asarray(ref_rotation).T @ rotation) - 1.0) / 2.0
-        return float(np.linalg.norm(np.asarray(position) - ref_position)
-                     + self.size * np.arccos(np.clip(cos, -1.0, 1.0)))
+        return _pose_distance(_arr(position), _arr(rotation), _arr(ref_position),
+                              _arr(ref_rotation), self.size)
 
     def refine(self, lengths, position, rotation, max_iter: int = 30,
                step_tol: float = 1e-12) -> FKResult | None:
         """Newton from a pose; None when it does not converge."""
-        t, rot, it, ok, res, cond = _newton(self.base, self.legp, lengths,
-                                            np.asarray(position, float),
-                                            np.asarray(rotation, float), max_iter, step_tol)
+        t, rot, it, ok, res = _newton(self.base, self.legp, self.check_lengths(lengths),
+                                      _arr(position), _arr(rotation), int(max_iter),
+                                      float(step_tol))
         if not ok or res > 1e-9 * self.scale:
             return None
+        cond = self.condition(t, rot)
         return FKResult(t, rot, cond, cond > self.cond_threshold, res, it)
 
     # -- the circles ----------------------------------------------------------
@@ -392,69 +661,6 @@ class ForwardKinematics:
         centre = self.base[0::2] + along[:, None] * self.axis
         return centre, np.sqrt(np.maximum(r2, 0.0))
 
-    def _side_matrices(self, centre, radius):
-        """M_ij with |P_i - P_j|^2 - l_ij^2 = [cos_i, sin_i, 1] M_ij [cos_j, sin_j, 1]^T."""
-        out = []
-        for (i, j), side in zip(SIDES, self.sides):
-            d = centre[i] - centre[j]
-            ui = radius[i] * np.stack([self.e1[i], self.e2[i]])    # (2, 3)
-            uj = radius[j] * np.stack([self.e1[j], self.e2[j]])
-            m = np.empty((3, 3))
-            m[:2, :2] = -2.0 * ui @ uj.T
-            m[:2, 2] = 2.0 * ui @ d
-            m[2, :2] = -2.0 * uj @ d
-            m[2, 2] = d @ d + radius[i] ** 2 + radius[j] ** 2 - side ** 2
-            out.append(m)
-        return out
-
-    def _resultant_samples(self, q12, q23, q31):
-        """The degree-16 resultant D(t1) at the sample points, by its root form.
-
-        For fixed t1, E12 = 0 is a quadratic a(t2) with homogeneous roots
-        (x_a, w_a) and E31 = 0 a quadratic b(t3) with roots (y_b, v_b). Then
-        Res_t3(b, Res_t2(a, E23)) = prod_ab E23(x_a, w_a; y_b, v_b) / (q_a^4 q_b^4)
-        with q the normalising factors of ``_homogeneous_roots``: a polynomial
-        of degree 16 in t1 (Nanua et al. 1990), whatever the root labelling.
-        """
-        m1 = self._m1_samples
-        alpha = m1 @ q12                 # coefficients of t2^0, t2^1, t2^2
-        beta = m1 @ q31.T                # coefficients of t3^0..2
-        x, w, qa = _homogeneous_roots(alpha)
-        y, v, qb = _homogeneous_roots(beta)
-        mx = np.stack([w * w, x * w, x * x], -1)    # (N, 2, 3): [w^2, x w, x^2]
-        my = np.stack([v * v, y * v, y * y], -1)
-        e = np.einsum('nai,ij,nbj->nab', mx, q23, my)
-        return np.prod(e.reshape(len(e), 4), axis=1) / (qa ** 4 * qb ** 4)
-
-    def _vertex_candidates(self, centre, radius, mats, qs):
-        """Real roots of D(t1) and the angles of vertices 2 and 3 that go with them."""
-        q12, q23, q31 = qs
-        coeffs = np.fft.fft(self._resultant_samples(q12, q23, q31)) / _N_SAMPLES
-        coeffs = coeffs[:17].real
-        roots = np.roots(coeffs[::-1]) if np.any(coeffs[1:]) else np.zeros(0)
-        with np.errstate(all='ignore'):
-            phi1 = 2.0 * np.arctan(roots)            # complex for complex roots
-        # Accept generously; Newton decides. Near-double roots come out as a
-        # complex pair with a small imaginary part.
-        phi1 = phi1.real[np.abs(phi1.imag) < 1e-3]
-        if coeffs[16] == 0.0 or abs(coeffs[16]) < 1e-12 * np.abs(coeffs).max():
-            phi1 = np.append(phi1, np.pi)          # a root at t1 = infinity
-        if phi1.size == 0:
-            return np.zeros((0, 3))
-        # Homogeneous half-angle monomials of phi1: [cos^2, cos sin, sin^2](phi/2).
-        c, s = np.cos(phi1 / 2), np.sin(phi1 / 2)
-        m1 = np.stack([c * c, c * s, s * s], -1)
-        x, w, _ = _homogeneous_roots((m1 @ q12).real + 0j)
-        y, v, _ = _homogeneous_roots((m1 @ q31.T).real + 0j)
-        phi2 = 2.0 * np.arctan2((x * np.conj(w)).real, (w * np.conj(w)).real)   # (n, 2)
-        phi3 = 2.0 * np.arctan2((y * np.conj(v)).real, (v * np.conj(v)).real)
-        cs2 = np.stack([np.cos(phi2), np.sin(phi2), np.ones_like(phi2)], -1)     # (n, 2, 3)
-        cs3 = np.stack([np.cos(phi3), np.sin(phi3), np.ones_like(phi3)], -1)
-        r23 = np.abs(np.einsum('nai,ij,nbj->nab', cs2, mats[1], cs3)).reshape(-1, 4)
-        keep = (r23 <= 1e-2 * self.sides[1] ** 2) | (r23 == r23.min(1, keepdims=True))
-        n, combo = np.nonzero(keep)
-        return np.stack([phi1[n], phi2[n, combo // 2], phi3[n, combo % 2]], -1)
-
     def all_modes(self, lengths, reference=None) -> list:
         """Every real assembly mode, nearest the reference pose first.
 
@@ -463,39 +669,24 @@ class ForwardKinematics:
         """
         lengths = self.check_lengths(lengths)
         centre, radius = self.circles(lengths)
-        mats = self._side_matrices(centre, radius)
-        qs = [_HALF_ANGLE.T @ m @ _HALF_ANGLE for m in mats]
-        qs = [q / np.abs(q).max() for q in qs]
-        angles = self._vertex_candidates(centre, radius, mats, qs)
-        modes = []
-        for phi in angles:
-            vertices = centre + radius[:, None] * (np.cos(phi)[:, None] * self.e1
-                                                   + np.sin(phi)[:, None] * self.e2)
-            rot = _frame(vertices) @ self._plat_frame.T
-            if not np.all(np.isfinite(rot)):
-                continue
-            t = vertices.mean(0) - rot @ self._plat_centroid
-            found = self.refine(lengths, t, rot)
-            if found is None:
-                continue
-            if all(self.distance(found.position, found.rotation, m.position, m.rotation)
-                   > 1e-7 * self.scale for m in modes):
-                modes.append(found)
+        angles = _mode_candidates(centre, radius, self.e1, self.e2, self.sides)
+        vertices = centre + radius[:, None] * (np.cos(angles)[..., None] * self.e1
+                                               + np.sin(angles)[..., None] * self.e2)
+        t, rot, iters, res, cond = _polish_modes(self.base, self.legp, lengths, vertices,
+                                                 self.plat, self.size, 1e-9 * self.scale)
+        modes = [FKResult(t[k], rot[k], cond[k], cond[k] > self.cond_threshold, res[k],
+                          iters[k], True) for k in range(len(t))]
         if not modes:
             raise NoAssemblyError('no assembly mode: the six leg lengths %s m do not close '
                                   'the platform triangle' % np.round(lengths, 6).tolist())
-        if reference is None:
-            reference = (self.mech.initial_position,
-                         rotation_from_euler(self.mech.initial_orientation))
-        modes.sort(key=lambda m: self.distance(m.position, m.rotation, *reference))
-        for m in modes:
-            m.fallback = True
+        ref_t, ref_r = self.reference if reference is None else (
+            _arr(reference[0]), _arr(reference[1]))
+        modes.sort(key=lambda m: _pose_distance(m.position, m.rotation, ref_t, ref_r, self.size))
         return modes
 
     def nearest(self, lengths, position, rotation) -> FKResult:
         """The assembly mode nearest a pose."""
-        return self.all_modes(lengths, (np.asarray(position, float),
-                                        np.asarray(rotation, float)))[0]
+        return self.all_modes(lengths, (position, rotation))[0]
 
 
 class FKTracker:
@@ -517,26 +708,27 @@ class FKTracker:
             fk.cond_threshold = float(cond_threshold)
         self.fk = fk
         mech = fk.mech
-        self.position = np.array(mech.initial_position if position is None else position, float)
-        self.rotation = np.array(rotation_from_euler(mech.initial_orientation)
-                                 if rotation is None else rotation, float)
+        self.position = _arr(mech.initial_position if position is None else position)
+        self.rotation = _arr(rotation_from_euler(mech.initial_orientation)
+                             if rotation is None else rotation)
         self.max_move = max_move
         self.max_iter = max_iter
 
     def reset(self, position, rotation):
-        self.position = np.array(position, float)
-        self.rotation = np.array(rotation, float)
+        """Continue from this pose (a known start, or after a jump in the data)."""
+        self.position = _arr(position)
+        self.rotation = _arr(rotation)
 
     def solve(self, lengths, rates=None) -> FKResult:
         """Pose (and twist, if leg rates are given) for one sample of leg lengths."""
         fk = self.fk
-        lengths = np.asarray(lengths, dtype=float)
-        if lengths.shape != (6,) or not np.all(np.isfinite(lengths)):
+        lengths = _arr(lengths)
+        if lengths.shape != (6,):
             lengths = fk.check_lengths(lengths)     # raises with a clear message
-        t, rot, it, ok, res, cond = _newton(fk.base, fk.legp, lengths, self.position,
-                                            self.rotation, self.max_iter, 1e-12)
-        if ok and res <= 1e-9 * fk.scale and (
-                fk.distance(t, rot, self.position, self.rotation) <= self.max_move):
+        # NaN or negative lengths fail Newton and are reported by all_modes.
+        t, rot, it, ok, res, move, cond = _track(fk.base, fk.legp, lengths, self.position,
+                                                 self.rotation, self.max_iter, fk.size)
+        if ok and res <= 1e-9 * fk.scale and move <= self.max_move:
             result = FKResult(t, rot, cond, cond > fk.cond_threshold, res, it)
         else:
             result = fk.nearest(lengths, self.position, self.rotation)
