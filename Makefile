@@ -43,6 +43,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python bench/bench_core.py
+	for b in bench/bench_fk.py bench/bench_loop.py bench/bench_bags.py; do [ -f $$b ] && $(BIN)/python $$b; done; true
 
 clean:
 	rm -rf $(VENV) build install log out *.egg-info

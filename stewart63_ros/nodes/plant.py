@@ -8,8 +8,9 @@ clock_mode ``lockstep``: simulated time on /clock; sample k+1 is computed only
 once the force answering sample k has arrived (or ``force_timeout`` passed,
 which is counted and reported), so a distributed run is deterministic and as
 fast as the machine allows. clock_mode ``realtime``: paced by the wall clock;
-a force that has not arrived when the next step is integrated is a missed
-cycle, the previous force is held, and it is counted.
+a force takes effect when it arrives (the real loop delay acts on the
+physics); an answer that has not arrived by the next sample is a missed
+cycle, counted and reported.
 """
 from __future__ import annotations
 
@@ -29,11 +30,6 @@ from stewart63_ros.core.simulate import initial_state, substeps_for
 from stewart63_ros.nodes.base import RigNode
 from stewart63_ros.nodes.common import (LEG_NAMES, Rejected, StampGate, finite_vector,
                                         leg_vector, ros_time, run, stamp_ns, DirectTake)
-
-#: Integrate this long before the next deadline in realtime mode [s]: room
-#: for one RK4 step so the sample still leaves on time.
-INTEGRATION_GUARD = 2.5e-4
-
 
 class SensorModel:
     """Optional linear-sensor imperfections; all off by default.
@@ -114,6 +110,8 @@ class PlantNode(RigNode):
         self.create_subscription(WrenchStamped, topics.EXTERNAL_WRENCH, self.on_wrench,
                                  topics.LATEST_SUB)
         self.t0_wall = None
+        self.t0_mono = None         # realtime: monotonic time of sample 0
+        self.t_phys = 0.0           # realtime: simulated time the state is at
         self.forces_in = DirectTake(self, self.sub_forces)
         self.next_service = 0.0
 
@@ -127,6 +125,9 @@ class PlantNode(RigNode):
             self.health.reject(topics.LEG_FORCES, exc)
             return
         self.force_gate.accept(ns)
+        if self.t0_mono is not None:
+            # Realtime: the old force acted until now; the new one from now on.
+            self.advance_to(min(time.monotonic() - self.t0_mono, (self.k + 1) * self.period))
         self.force, self.force_ns = force, ns
         sent = self.sent_wall.pop(ns, None)
         if sent is not None:
@@ -143,6 +144,8 @@ class PlantNode(RigNode):
             self.health.reject(topics.EXTERNAL_WRENCH, exc)
             return
         self.wrench_gate.accept(ns)
+        if self.t0_mono is not None:
+            self.advance_to(min(time.monotonic() - self.t0_mono, (self.k + 1) * self.period))
         self.wrench = (force, torque)
 
     # -- outputs --------------------------------------------------------------
@@ -190,6 +193,7 @@ class PlantNode(RigNode):
         self.pub_twist.publish(twist)
 
     def step(self):
+        """Lockstep: one sample period with the force answering this sample."""
         self.y = self.dyn.step(self.y, self.force, self.period, self.substeps, self.wrench)
         if not np.all(np.isfinite(self.y)):
             raise RuntimeError('the simulation diverged (non-finite state)')
@@ -246,35 +250,56 @@ class PlantNode(RigNode):
     def run_lockstep(self, n_samples):
         while True:
             ns = self.publish_sample()
-            if not self.wait_for_answer(ns, self.force_timeout):
+            # Sample 0 races discovery: our side of every match is complete,
+            # a peer's side may not be yet, and reliable delivery repairs the
+            # sample only at the next heartbeat (about 1 s later). Give it the
+            # discovery bound rather than step without its force.
+            timeout = self.force_timeout if self.k else max(self.force_timeout,
+                                                              self.discovery_timeout)
+            if not self.wait_for_answer(ns, timeout):
                 self.timeouts += 1
                 self.health.warning = 'no force for sample %d within %.3f s' % (
-                    self.k, self.force_timeout)
+                    self.k, timeout)
             if n_samples is not None and self.k >= n_samples:
                 return
             self.step()
 
     def run_realtime(self, n_samples):
-        spin = self.executor_.spin_once
-        start = time.monotonic()
+        """Physics in wall-clock time: a force takes effect when it arrives.
+
+        Between sample k and the arrival of its answer the previous force
+        holds (the real loop delay); the step to t_k+1 is integrated in up to
+        two pieces, split at the arrival (see on_forces). An answer that has
+        not arrived by the next sample is a missed cycle.
+        """
+        self.t0_mono = time.monotonic()
         self.t0_wall = time.time()
         while True:
             ns = self.publish_sample()
             if n_samples is not None and self.k >= n_samples:
                 self.wait_for_answer(ns, 0.1)
                 return
-            deadline = start + (self.k + 1) * self.period
-            # Take the answer until just before the next deadline.
-            if not self.wait_for_answer(ns, 0.0, until=deadline - INTEGRATION_GUARD):
+            deadline = self.t0_mono + (self.k + 1) * self.period
+            # Sleep in the wait set until the next deadline, taking forces.
+            answered = self.wait_for_answer(ns, 0.0, until=deadline)
+            while time.monotonic() < deadline:
+                self.forces_in.poll(deadline - time.monotonic())
+            if not answered and self.force_ns != ns:
                 self.missed += 1
-            self.step()
-            while True:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    break
-                spin(timeout_sec=remaining)
+            self.advance_to((self.k + 1) * self.period)
+            self.k += 1
             if time.monotonic() - deadline > 0.5 * self.period:
                 self.late += 1
+
+    def advance_to(self, t: float) -> None:
+        """Integrate from the physics time to ``t`` [s since start] with the held force."""
+        dt = t - self.t_phys
+        if dt <= 1e-7:
+            return
+        self.y = self.dyn.step(self.y, self.force, dt, substeps_for(dt), self.wrench)
+        if not np.all(np.isfinite(self.y)):
+            raise RuntimeError('the simulation diverged (non-finite state)')
+        self.t_phys = t
 
     def write_summary(self):
         lengths, _ = self.dyn.lengths_and_rates(self.y)

@@ -45,20 +45,28 @@ class Rig:
         self.nodes = tuple(nodes)
         self.procs: dict[str, subprocess.Popen] = {}
 
+    def overlay(self) -> Path:
+        """A second parameter file with what the rig decides; it comes after the
+        user's file, so it wins over the user's node sections (a ``-p`` does not)."""
+        wait = 1 if self.record else 0
+        shared = {'clock_mode': self.mode, 'wait_for_subscribers': wait}
+        plant = dict(shared, summary_file=str(self.summary_file),
+                     lengths_subscribers=sum(n in self.nodes for n in ('controller', 'fk')) + wait)
+        if self.duration:
+            plant['duration'] = float(self.duration)
+        doc = {'/**': {'ros__parameters': shared}, '/**/plant': {'ros__parameters': plant}}
+        for node, values in self.extra_params.items():
+            section = doc.setdefault('/**/%s' % node, {'ros__parameters': dict(shared)})
+            section['ros__parameters'].update(values)
+        path = self.log_dir / 'rig_params.yaml'
+        import yaml
+        path.write_text(yaml.safe_dump(doc, sort_keys=False))
+        return path
+
     def ros_args(self, name):
-        args = ['--ros-args', '--params-file', self.params, '-p', 'clock_mode:=%s' % self.mode]
+        args = ['--ros-args', '--params-file', self.params, '--params-file', str(self.overlay())]
         if self.namespace:
             args += ['-r', '__ns:=%s' % self.namespace]
-        wait = 1 if self.record else 0
-        args += ['-p', 'wait_for_subscribers:=%d' % wait]
-        if name == 'plant':
-            consumers = sum(n in self.nodes for n in ('controller', 'fk')) + wait
-            args += ['-p', 'lengths_subscribers:=%d' % consumers,
-                     '-p', 'summary_file:=%s' % self.summary_file]
-            if self.duration:
-                args += ['-p', 'duration:=%r' % float(self.duration)]
-        for key, value in self.extra_params.get(name, {}).items():
-            args += ['-p', '%s:=%s' % (key, value)]
         return args
 
     def spawn(self, name, argv):
