@@ -32,7 +32,8 @@ $(STAMP): setup.py package.xml Makefile
 	fi
 	$(BIN)/pip install -q $(PY_DEPS) $(TEST_DEPS)
 	$(BIN)/pip install -q -e .
-	$(BIN)/python -c 'import rclpy, sensor_msgs.msg, stewart63_ros' 
+	$(BIN)/python -c 'import rclpy, sensor_msgs.msg, stewart63_ros'
+	$(BIN)/python -m stewart63_ros.core.precompile
 	touch $(STAMP)
 
 demo: $(STAMP)

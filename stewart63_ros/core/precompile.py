@@ -1,0 +1,35 @@
+"""Compile every numba kernel once and store it in numba's cache.
+
+`make` runs this after installing, so that the first node processes (which
+load the kernels from the cache in a fraction of a second) do not each spend
+tens of seconds compiling them at once.
+"""
+import time
+
+import numpy as np
+
+
+def main():
+    start = time.perf_counter()
+    from stewart63_ros.core.control import PDController
+    from stewart63_ros.core.dynamics import Dynamics
+    from stewart63_ros.core.fk import FKTracker
+    from stewart63_ros.core.params import load_mechanism
+    from stewart63_ros.core.simulate import initial_state
+    mech = load_mechanism()
+    dyn = Dynamics(mech)
+    law = PDController(mech)
+    y = initial_state(mech)
+    dyn.derivative(y, np.zeros(6))
+    dyn.derivative_with(y, law)
+    dyn.step(y, np.zeros(6), 1e-3)
+    lengths, rates = dyn.lengths_and_rates(y)
+    law(lengths, rates)
+    tracker = FKTracker(mech)
+    tracker.solve(lengths, rates)
+    tracker.fk.all_modes(lengths)
+    print('numba kernels ready (%.1f s)' % (time.perf_counter() - start))
+
+
+if __name__ == '__main__':
+    main()
