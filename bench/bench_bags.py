@@ -42,7 +42,7 @@ def cpu_seconds(pid: int) -> float:
 
 
 def record_run(rt: RosTest, tmp: Path, rate: float, seconds: float, topics: list[str],
-               executor: bool) -> dict:
+               executor: bool, pub_args=()) -> dict:
     bag = tmp / f'bag-{int(rate)}-{len(topics)}{"-exec" if executor else ""}'
     count = int(rate * seconds)
     cmd = [PYTHON, '-m', 'stewart63_ros.tools.record', str(bag), '--topics', *topics]
@@ -53,7 +53,7 @@ def record_run(rt: RosTest, tmp: Path, rate: float, seconds: float, topics: list
         raise RuntimeError(rec.describe())
     cpu0 = cpu_seconds(rec.pid)
     pub = rt.spawn([PYTHON, PUBLISHER, '--count', str(count), '--rate', str(rate),
-                    '--topics', *topics], name='publisher')
+                    '--topics', *topics, *pub_args], name='publisher')
     if pub.wait(seconds * 3 + 60) is None:
         stop(pub)
     cpu1 = cpu_seconds(rec.pid)
@@ -105,20 +105,29 @@ def main(argv=None) -> int:
     p.add_argument('--topics', type=int, default=4, choices=range(1, 5))
     p.add_argument('--executor', action='store_true', help='record with --executor')
     p.add_argument('--no-play', action='store_true')
+    p.add_argument('--load', type=int, default=0,
+                   help='run N busy-loop processes meanwhile (a loaded machine)')
+    p.add_argument('--pub-depth', type=int, help='publisher history depth (default 1000)')
+    p.add_argument('--keep-all', action='store_true', help='KEEP_ALL publisher history')
     a = p.parse_args(argv)
+    pub_args = ((['--depth', str(a.pub_depth)] if a.pub_depth else [])
+                + (['--keep-all'] if a.keep_all else []))
 
     topics = STREAMS[:a.topics]
     lease = lease_domain_id()
     tmp = Path(tempfile.mkdtemp(prefix='bench_bags-'))
     rt = RosTest(lease, tmp / 'logs')
     print(f'domain {lease.domain_id}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}, '
-          f'topics {topics}, recorder {"executor" if a.executor else "wait-set loop"}')
+          f'topics {topics}, recorder {"executor" if a.executor else "wait-set loop"}, '
+          f'publisher {" ".join(pub_args) or "STREAM_PUB"}, {a.load} busy loops')
     try:
+        for _ in range(a.load):
+            rt.spawn([PYTHON, '-c', 'while True: pass'], name='load')
         print(f'{"rate/topic":>10} {"offered msg/s":>14} {"offered":>8} {"recorded":>9} '
               f'{"lost":>5} {"rec CPU %":>9}')
         last = None
         for rate in a.rates:
-            r = record_run(rt, tmp, rate, a.seconds, topics, a.executor)
+            r = record_run(rt, tmp, rate, a.seconds, topics, a.executor, pub_args)
             print(f'{rate:>10.0f} {r["msg_per_s"]:>14.0f} {r["offered"]:>8} '
                   f'{r["recorded"]:>9} {r["lost"]:>5} {r["cpu_pct"]:>9.1f}'
                   + ('' if r['acked'] else '  (publisher not acked)'), flush=True)

@@ -82,6 +82,9 @@ def main(argv=None) -> int:
     p.add_argument('--wait-subscribers', type=int, default=1)
     p.add_argument('--wait-timeout', type=float, default=20.0)
     p.add_argument('--namespace', default=None)
+    p.add_argument('--depth', type=int, default=None,
+                   help='publisher history depth (default: the topics module\'s)')
+    p.add_argument('--keep-all', action='store_true', help='KEEP_ALL publisher history')
     a = p.parse_args(argv)
 
     import rclpy
@@ -96,7 +99,15 @@ def main(argv=None) -> int:
             sp = node.create_publisher(message_class(T.TOPIC_TYPES['leg_setpoint']),
                                        'leg_setpoint', T.publisher_qos('leg_setpoint'))
             sp.publish(build('leg_setpoint', 0, a.rate))
-        pubs = [node.create_publisher(message_class(T.TOPIC_TYPES[t]), t, T.publisher_qos(t))
+        def qos(t):
+            q = T.publisher_qos(t)
+            if a.depth or a.keep_all:
+                from rclpy.qos import HistoryPolicy, QoSProfile
+                q = QoSProfile(history=HistoryPolicy.KEEP_ALL if a.keep_all else q.history,
+                               depth=a.depth or q.depth, reliability=q.reliability,
+                               durability=q.durability)
+            return q
+        pubs = [node.create_publisher(message_class(T.TOPIC_TYPES[t]), t, qos(t))
                 for t in a.topics]
         if a.wait_subscribers > 0:
             if not T.wait_for_subscribers(pubs, a.wait_subscribers, a.wait_timeout):

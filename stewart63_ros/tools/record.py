@@ -305,9 +305,14 @@ class Recorder:
                       'subscribing best effort', file=sys.stderr, flush=True)
                 self._subscribe(topic, self._types[topic], be)
 
-    def publisher_counts(self):
-        """Matched publishers per subscribed topic."""
-        return {t: s.get_publisher_count() for t, s in self._subs.items()}
+    def publisher_counts(self, topics=None):
+        """Matched publishers per subscribed topic (or per topic of ``topics``,
+        relative names resolved in the recorder's namespace)."""
+        if topics:
+            names = [self._node.resolve_topic_name(t) for t in topics]
+            return {t: (self._subs[t].get_publisher_count() if t in self._subs else 0)
+                    for t in names}
+        return {t: s.get_publisher_count() for t, s in list(self._subs.items())}
 
     def matched(self, topics=None) -> bool:
         """True when every topic in ``topics`` (default: all subscribed) has a
@@ -525,7 +530,7 @@ def main(argv=None) -> int:
             if ok:
                 print(MATCHED_LINE, flush=True)
             elif not stop.is_set():
-                missing = [t for t, n in rec.publisher_counts().items() if n < 1]
+                missing = [t for t, n in rec.publisher_counts(wanted).items() if n < 1]
                 print(f'record: warning: no publisher matched after {args.wait_timeout:g} s '
                       f'on {", ".join(missing)}; recording anyway', file=sys.stderr, flush=True)
         if args.ready_file:
