@@ -202,7 +202,8 @@ def _stamp_ns(msg) -> int:
     return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
 
 
-def trajectory_from_bag(bag_dir, *, relative_time: bool = True) -> dict[str, np.ndarray]:
+def trajectory_from_bag(bag_dir, *, relative_time: bool = True,
+                        hold_forces: bool = False) -> dict[str, np.ndarray]:
     """The trajectory CSV's columns (:data:`TRAJECTORY_COLUMNS`) from a recording.
 
     One row per ``leg_lengths`` sample (per pose sample if the bag has no leg
@@ -211,7 +212,9 @@ def trajectory_from_bag(bag_dir, *, relative_time: bool = True) -> dict[str, np.
     and ``platform_twist``; ``leg_forces`` gives F. Rows are joined on
     ``header.stamp`` (a pose's stamp is its sample's; ``leg_forces`` carries the
     stamp of the sample it answers); a value with no message of that stamp is
-    NaN (a controller running slower than the sensor answers only some samples).
+    NaN (a controller running slower than the sensor answers only some samples);
+    with ``hold_forces`` each F row instead holds the last force received
+    (zero-order hold, as the plant applies it).
     θ = ``Rotation.from_quat(q).as_euler('xyz')`` (R = Rz·Ry·Rx). ``t`` is the
     stamp in seconds, from the first row's stamp when ``relative_time``.
     """
@@ -301,6 +304,12 @@ def trajectory_from_bag(bag_dir, *, relative_time: bool = True) -> dict[str, np.
             if f is not None:
                 for k in range(6):
                     cols[f'F{k + 1}'][i] = f[k]
+        if hold_forces:
+            for k in range(6):
+                col = cols[f'F{k + 1}']
+                idx = np.where(np.isfinite(col), np.arange(n), 0)
+                np.maximum.accumulate(idx, out=idx)
+                cols[f'F{k + 1}'] = col[idx]   # rows before the first force stay NaN
     return cols
 
 

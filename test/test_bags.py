@@ -212,6 +212,8 @@ def test_trajectory_from_bag(recorded):
         assert np.allclose(cols[f'L{i + 1}'], 1.6 + 0.001 * i + 1e-6 * k)
         assert np.allclose(cols[f'Ldot{i + 1}'], 0.01 * i - 1e-5 * k)
         assert np.allclose(cols[f'F{i + 1}'], 100.0 * i + 0.5 * k)
+    held = bagio.trajectory_from_bag(recorded['bag'], hold_forces=True)
+    assert all(np.array_equal(held[c], cols[c]) for c in cols)   # nothing to hold here
 
 
 def test_record_stops_cleanly_on_sigterm(ros, tmp_path):

@@ -123,8 +123,6 @@ class Recorder:
         if os.path.lexists(self.path):
             raise BagError(f'{self.path} exists already; record writes a new bag, '
                            'give a path that does not exist')
-        if not self.path.parent.is_dir():
-            raise BagError(f'{self.path.parent}: no such directory')
         import rclpy
         from rclpy.node import Node
         if self._context is None:
@@ -385,7 +383,7 @@ class Recorder:
                 return dict(self.counts)
             self._closed = True
         try:
-            if self._node is not None and self._writer is not None and self.fast_path:
+            if self._node is not None and self._writer is not None:
                 try:
                     self._take_all()
                 except Exception:
