@@ -1,0 +1,72 @@
+"""Time the forward kinematics: one tracking solve and one all-modes solve.
+
+Targets (issue 3): tracking < 50 us, all modes < 1 ms. Prints medians over
+many calls (and the 90th percentile, since a shared machine is noisy).
+Run: .venv/bin/python bench/bench_fk.py [--params FILE] [--count N]
+"""
+import argparse
+import time
+
+import numpy as np
+
+from stewart63_ros.core.fk import FKTracker, ForwardKinematics
+from stewart63_ros.core.kinematics import leg_lengths
+from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.rotation import rotation_from_euler
+
+
+def timings(func, count):
+    out = np.empty(count)
+    for k in range(count):
+        start = time.perf_counter()
+        func(k)
+        out[k] = time.perf_counter() - start
+    return out * 1e6
+
+
+def report(name, us, target):
+    print('%-36s median %8.1f us   p90 %8.1f us   (target < %g us)'
+          % (name, np.median(us), np.percentile(us, 90), target))
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--params', default=None)
+    parser.add_argument('--count', type=int, default=5000)
+    args = parser.parse_args()
+    mech = load_mechanism(args.params)
+    fk = ForwardKinematics(mech)
+
+    # A smooth 1 kHz path around the start pose: what the fk node sees.
+    n = args.count
+    s = np.arange(n) / 1000.0
+    positions = np.asarray(mech.initial_position) + 0.05 * np.c_[
+        np.sin(2 * s), np.sin(3 * s), 0.5 * np.sin(1.3 * s)]
+    thetas = 0.1 * np.c_[np.sin(1.7 * s), np.sin(2.3 * s), np.sin(0.9 * s)]
+    rots = [rotation_from_euler(th) for th in thetas]
+    lengths = [leg_lengths(mech, t, r) for t, r in zip(positions, rots)]
+    rates = np.gradient(np.array(lengths), 1e-3, axis=0)
+
+    start = time.perf_counter()
+    fk.all_modes(mech.setpoint_lengths)
+    FKTracker(fk).solve(lengths[0])
+    print('first call (numba cache load or compile): %.2f s' % (time.perf_counter() - start))
+
+    tracker = FKTracker(fk, positions[0], rots[0])
+    us = timings(lambda k: tracker.solve(lengths[k]), n)
+    report('tracking solve (pose)', us, 50)
+    tracker = FKTracker(fk, positions[0], rots[0])
+    us = timings(lambda k: tracker.solve(lengths[k], rates[k]), n)
+    report('tracking solve (pose + twist)', us, 50)
+    tracker = FKTracker(fk, positions[0], rots[0])
+    us = timings(lambda k: tracker.solve(lengths[k], rates[k]).quaternion, n)
+    report('  + quaternion (as the fk node)', us, 50)
+
+    m = min(n, 1000)
+    us = timings(lambda k: fk.all_modes(lengths[k]), m)
+    counts = [len(fk.all_modes(lengths[k])) for k in range(0, m, 100)]
+    report('all-modes solve (%d modes)' % int(np.median(counts)), us, 1000)
+
+
+if __name__ == '__main__':
+    main()
