@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 
 from stewart63_ros.core.fk import ForwardKinematics, NoAssemblyError
@@ -69,7 +70,10 @@ def main(argv=None) -> int:
                'modes': [_pose(m) for m in modes]}
     else:
         out = _pose(modes[0])
-    print(json.dumps(out, indent=2))
+    try:
+        print(json.dumps(out, indent=2), flush=True)
+    except BrokenPipeError:      # `fk --solve ... | head`: the reader left; no traceback
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     return 0
 
 
