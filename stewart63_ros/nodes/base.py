@@ -28,11 +28,20 @@ class RigNode(Node):
         self.wait_for_subscribers = int(self.param('wait_for_subscribers', 0))
         self.discovery_timeout = self.positive('discovery_timeout', 20.0)
         self.health = Health(self, name)
-        self.executor_ = SingleThreadedExecutor()
-        self.executor_.add_node(self)
+        self._executor = None       # made on first use: see executor_
         self.data_publishers = []
         self.started = False        # diagnostics wait for the peers, like the data
         self.create_timer(1.0, self.report)
+
+    @property
+    def executor_(self) -> SingleThreadedExecutor:
+        """This node's executor, made on first use, after the constructor: a
+        constructor that raises (a parameter error) leaves no executor whose
+        __del__ would print a traceback after rclpy has shut down."""
+        if self._executor is None:
+            self._executor = SingleThreadedExecutor()
+            self._executor.add_node(self)
+        return self._executor
 
     # -- parameters ---------------------------------------------------------
     def param(self, name, default):

@@ -164,7 +164,8 @@ class Health:
         for key, n in sorted(self.rejected.items()):
             values.append(KeyValue(key='rejected/' + key, value=str(n)))
         for key, val in self.latency.summary().items():
-            values.append(KeyValue(key='latency/' + key, value='%.4g' % val))
+            text = str(val) if isinstance(val, int) else '%.4g' % val   # counts in full
+            values.append(KeyValue(key='latency/' + key, value=text))
         for key, val in self.values.items():
             values.append(KeyValue(key=key, value=str(val)))
         status = DiagnosticStatus(level=level, name=self.status_name,
