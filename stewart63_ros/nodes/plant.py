@@ -284,6 +284,10 @@ class PlantNode(RigNode):
             answered = self.wait_for_answer(ns, 0.0, until=deadline)
             while time.monotonic() < deadline:
                 self.forces_in.poll(deadline - time.monotonic())
+            # A loop running behind its deadlines waits for nothing above:
+            # still take the forces that came in, or it would never apply one.
+            while self.force_ns != ns and self.forces_in.poll(0.0):
+                pass
             if not answered and self.force_ns != ns:
                 self.missed += 1
             self.advance_to((self.k + 1) * self.period)

@@ -24,6 +24,10 @@ from pathlib import Path
 from stewart63_ros.core.params import ParameterError, default_params_path, load_mechanism
 
 NODES = ('plant', 'controller', 'fk')
+#: Bound on the nodes' start-up until the recorder has matched them [s]. It
+#: includes loading the numba kernels, which a fresh install (or a changed
+#: core) compiles first: more than a minute on a loaded two-core machine.
+START_TIMEOUT = 180.0
 MODULES = {'plant': 'stewart63_ros.nodes.plant', 'controller': 'stewart63_ros.nodes.controller',
            'fk': 'stewart63_ros.nodes.fk_node', 'record': 'stewart63_ros.tools.record'}
 
@@ -87,7 +91,8 @@ class Rig:
         """
         downstream = [n for n in self.nodes if n != 'plant']
         if self.record:
-            argv = [str(self.record), '--wait-for-publishers', 'leg_forces', 'platform_pose']
+            argv = [str(self.record), '--wait-for-publishers', 'leg_forces', 'platform_pose',
+                    '--wait-timeout', '%g' % START_TIMEOUT]
             if self.namespace:
                 argv += ['--namespace', self.namespace]
             self.spawn('record', argv)
@@ -95,12 +100,11 @@ class Rig:
         for name in downstream:
             self.spawn(name, self.ros_args(name))
         if self.record:
-            self.wait_for_line('record', 'MATCHED', 40)
+            self.wait_for_line('record', 'MATCHED', START_TIMEOUT + 10)
         if 'plant' in self.nodes:
             self.spawn('plant', self.ros_args('plant'))
 
     def wait_for_line(self, name, line, timeout):
-        proc = self.procs[name]
         log = self.log_dir / ('%s.log' % name)
         deadline = time.monotonic() + timeout
         while True:
@@ -109,9 +113,10 @@ class Rig:
                     return
             except OSError:
                 pass
-            if proc.poll() is not None:
-                raise RuntimeError('%s exited (%d): %s' % (name, proc.returncode,
-                                                            self.log_tail(name)))
+            for other, other_proc in self.procs.items():   # a node that died starting
+                if other_proc.poll() is not None:
+                    raise RuntimeError('%s exited (%d): %s' % (other, other_proc.returncode,
+                                                                self.log_tail(other)))
             if time.monotonic() > deadline:
                 raise RuntimeError('%s did not print %s within %g s' % (name, line, timeout))
             time.sleep(0.02)
@@ -142,7 +147,13 @@ class Rig:
             time.sleep(0.05)
 
     def stop(self, grace=10.0):
-        """SIGINT the nodes (the recorder last, so it gets their final messages)."""
+        """SIGINT the nodes (the recorder last, so it gets their final messages).
+
+        Returns each process's exit code; a process that ended by the SIGINT
+        sent here (one still importing, before its handler is in place) has
+        stopped as asked: 0.
+        """
+        interrupted = set()
         order = [n for n in ('plant', 'controller', 'fk') if n in self.procs] + (
             ['record'] if 'record' in self.procs else [])
         for group in ([n for n in order if n != 'record'], ['record']):
@@ -150,6 +161,7 @@ class Rig:
                 proc = self.procs.get(name)
                 if proc is not None and proc.poll() is None:
                     proc.send_signal(signal.SIGINT)
+                    interrupted.add(name)
             for name in group:
                 proc = self.procs.get(name)
                 if proc is None:
@@ -163,7 +175,8 @@ class Rig:
                     except subprocess.TimeoutExpired:
                         proc.kill()
                         proc.wait()
-        return {n: p.returncode for n, p in self.procs.items()}
+        return {n: 0 if n in interrupted and p.returncode == -signal.SIGINT else p.returncode
+                for n, p in self.procs.items()}
 
     def summary(self):
         try:
@@ -195,7 +208,12 @@ def main(argv=None) -> int:
 
     rig = Rig(params, args.mode, args.duration, args.record, args.namespace, args.log_dir)
     stopping = []
-    signal.signal(signal.SIGTERM, lambda *_: stopping.append('SIGTERM'))
+
+    def on_sigterm(*_):
+        # Like Ctrl-C, also while start() waits for the nodes to come up.
+        stopping.append('SIGTERM')
+        raise KeyboardInterrupt
+    signal.signal(signal.SIGTERM, on_sigterm)
     ok = False
     start = time.monotonic()
     try:
@@ -207,19 +225,24 @@ def main(argv=None) -> int:
                     p.poll() is not None for n, p in rig.procs.items() if n != 'plant'):
                 break
     except KeyboardInterrupt:
-        stopping.append('SIGINT')
+        if not stopping:
+            stopping.append('SIGINT')
     except RuntimeError as exc:
         print('rig: error: %s' % exc, file=sys.stderr)
     finally:
+        # Who had failed before the stop: a node interrupted while it was still
+        # starting (importing, compiling) ends with whatever code that gives.
+        failed_before = set(rig.failed())
         codes = rig.stop()
     wall = time.monotonic() - start
     died = {n: c for n, c in codes.items() if c not in (0, None)}
     for name in died:
-        print('rig: %s exited with %s: %s' % (name, died[name], rig.log_tail(name)),
+        how = 'exited' if name in failed_before or not stopping else 'ended, while stopping,'
+        print('rig: %s %s with %s: %s' % (name, how, died[name], rig.log_tail(name)),
               file=sys.stderr)
     if stopping:
         print('rig: stopped by %s' % stopping[0])
-        return 1 if died else 0
+        return 1 if failed_before else 0
     summary = rig.summary()
     if summary:
         lat = summary['loop_latency']
