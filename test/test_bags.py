@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.reader import make_reader
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -450,9 +451,14 @@ def _bad_copies(src: Path, tmp: Path) -> dict[str, Path]:
     mcap = lambda d: next(d.glob('*.mcap'))  # noqa: E731
     f = mcap(out['truncated'])
     os.truncate(f, f.stat().st_size // 2)
+    # Overwrite the middle of the largest chunk: message records. (The message
+    # index records between chunks are redundant for every reader we know of,
+    # so damage there is harmless, and a blind offset sometimes hit them.)
     f = mcap(out['corrupt'])
+    with f.open('rb') as fh:
+        chunk = max(make_reader(fh).get_summary().chunk_indexes, key=lambda c: c.chunk_length)
     with f.open('r+b') as fh:
-        fh.seek(f.stat().st_size // 2)
+        fh.seek(chunk.chunk_start_offset + chunk.chunk_length // 2 - 2048)
         fh.write(b'\xff' * 4096)
     (out['badyaml'] / 'metadata.yaml').write_text('rosbag2_bagfile_information: [[[\n')
     mcap(out['nomcap']).unlink()
