@@ -16,6 +16,8 @@ setup(
         ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'numba', 'matplotlib', 'pyyaml', 'rosbags'],
+    # MuJoCo only for `make bench` and its agreement test (issue 6), never at run time.
+    extras_require={'bench': ['mujoco>=3.1']},
     zip_safe=True,
     maintainer='stewart63_ros maintainers',
     maintainer_email='maintainers@stewart63.org',

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -94,6 +95,33 @@ def play_timing(rt: RosTest, bag: Path, seconds_max: float) -> dict:
     a = np.abs(err)
     return {'n': n, 'expected': len(want), 'p50': np.percentile(a, 50),
             'p99': np.percentile(a, 99), 'max': a.max(), 'duration': duration}
+
+
+def measure(rates=(1000, 2000, 4000), seconds: float = 3.0, repeat: int = 3,
+            verbose: bool = True) -> dict:
+    """{'record_msgs_per_s'}: the highest rate (all four stream topics) that
+    ``record`` took with nothing lost, median over ``repeat`` sweeps of ``rates``
+    (samples/s per topic); 0 when even the lowest lost messages."""
+    lease = lease_domain_id()
+    tmp = Path(tempfile.mkdtemp(prefix='bench_bags-'))
+    rt = RosTest(lease, tmp / 'logs')
+    best = []
+    try:
+        for sweep in range(repeat):
+            top = 0.0
+            for rate in rates:
+                r = record_run(rt, tmp / f'sweep{sweep}', rate, seconds, STREAMS, False)
+                if verbose:
+                    print('record: %d topics x %5.0f/s = %6.0f msg/s offered, %d lost'
+                          % (len(STREAMS), rate, r['msg_per_s'], r['lost']), flush=True)
+                if r['lost']:
+                    break
+                top = r['msg_per_s']
+            best.append(top)
+    finally:
+        rt.cleanup()
+        shutil.rmtree(tmp, ignore_errors=True)
+    return {'record_msgs_per_s': float(np.median(best))}
 
 
 def main(argv=None) -> int:

@@ -1,7 +1,8 @@
 """Time the forward kinematics: one tracking solve and one all-modes solve.
 
-Targets (issue 3): tracking < 50 us, all modes < 1 ms. Prints medians over
-many calls (and the 90th percentile, since a shared machine is noisy).
+Targets: tracking < 50 us (issue 3), < 20 us (issue 6); all modes < 1 ms.
+Prints medians over many calls (and the 90th percentile, since a shared
+machine is noisy). ``measure()`` returns the figures for bench/bench_all.py.
 Run: .venv/bin/python bench/bench_fk.py [--params FILE] [--count N]
 """
 import argparse
@@ -29,16 +30,9 @@ def report(name, us, target):
           % (name, np.median(us), np.percentile(us, 90), target))
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--params', default=None)
-    parser.add_argument('--count', type=int, default=5000)
-    args = parser.parse_args()
-    mech = load_mechanism(args.params)
-    fk = ForwardKinematics(mech)
-
-    # A smooth 1 kHz path around the start pose: what the fk node sees.
-    n = args.count
+def smooth_path(mech, n):
+    """Leg lengths and rates along a smooth 1 kHz path around the start pose:
+    what the fk node sees, and the start pose."""
     s = np.arange(n) / 1000.0
     positions = np.asarray(mech.initial_position) + 0.05 * np.c_[
         np.sin(2 * s), np.sin(3 * s), 0.5 * np.sin(1.3 * s)]
@@ -46,26 +40,46 @@ def main():
     rots = [rotation_from_euler(th) for th in thetas]
     lengths = [leg_lengths(mech, t, r) for t, r in zip(positions, rots)]
     rates = np.gradient(np.array(lengths), 1e-3, axis=0)
+    return lengths, rates, positions[0], rots[0]
+
+
+def measure(params=None, count=5000, verbose=True):
+    """{'fk_track_us', 'fk_all_modes_us'}: medians per call, as the fk node calls them
+    (pose + twist + quaternion; every assembly mode)."""
+    mech = load_mechanism(params)
+    fk = ForwardKinematics(mech)
+    lengths, rates, pos0, rot0 = smooth_path(mech, count)
 
     start = time.perf_counter()
     fk.all_modes(mech.setpoint_lengths)
     FKTracker(fk).solve(lengths[0])
-    print('first call (numba cache load or compile): %.2f s' % (time.perf_counter() - start))
+    if verbose:
+        print('first call (numba cache load or compile): %.2f s' % (time.perf_counter() - start))
 
-    tracker = FKTracker(fk, positions[0], rots[0])
-    us = timings(lambda k: tracker.solve(lengths[k]), n)
-    report('tracking solve (pose)', us, 50)
-    tracker = FKTracker(fk, positions[0], rots[0])
-    us = timings(lambda k: tracker.solve(lengths[k], rates[k]), n)
-    report('tracking solve (pose + twist)', us, 50)
-    tracker = FKTracker(fk, positions[0], rots[0])
-    us = timings(lambda k: tracker.solve(lengths[k], rates[k]).quaternion, n)
-    report('  + quaternion (as the fk node)', us, 50)
+    tracker = FKTracker(fk, pos0, rot0)
+    pose_us = timings(lambda k: tracker.solve(lengths[k]), count)
+    tracker = FKTracker(fk, pos0, rot0)
+    twist_us = timings(lambda k: tracker.solve(lengths[k], rates[k]), count)
+    tracker = FKTracker(fk, pos0, rot0)
+    node_us = timings(lambda k: tracker.solve(lengths[k], rates[k]).quaternion, count)
+    m = min(count, 1000)
+    all_us = timings(lambda k: fk.all_modes(lengths[k]), m)
+    if verbose:
+        report('tracking solve (pose)', pose_us, 20)
+        report('tracking solve (pose + twist)', twist_us, 20)
+        report('  + quaternion (as the fk node)', node_us, 20)
+        modes = int(np.median([len(fk.all_modes(lengths[k])) for k in range(0, m, 100)]))
+        report('all-modes solve (%d modes)' % modes, all_us, 1000)
+    return {'fk_track_us': float(np.median(node_us)),
+            'fk_all_modes_us': float(np.median(all_us))}
 
-    m = min(n, 1000)
-    us = timings(lambda k: fk.all_modes(lengths[k]), m)
-    counts = [len(fk.all_modes(lengths[k])) for k in range(0, m, 100)]
-    report('all-modes solve (%d modes)' % int(np.median(counts)), us, 1000)
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--params', default=None)
+    parser.add_argument('--count', type=int, default=5000)
+    args = parser.parse_args()
+    measure(args.params, args.count)
 
 
 if __name__ == '__main__':
