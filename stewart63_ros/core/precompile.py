@@ -15,7 +15,7 @@ def main():
     from stewart63_ros.core.dynamics import Dynamics
     from stewart63_ros.core.fk import FKTracker
     from stewart63_ros.core.params import load_mechanism
-    from stewart63_ros.core.simulate import initial_state
+    from stewart63_ros.core.simulate import initial_state, run_continuous, run_sampled
     mech = load_mechanism()
     dyn = Dynamics(mech)
     law = PDController(mech)
@@ -28,6 +28,9 @@ def main():
     tracker = FKTracker(mech)
     tracker.solve(lengths, rates)
     tracker.fk.all_modes(lengths)
+    # The compiled closed loops: scipy's RK45 (dopri), its output samples, the sampled loop.
+    run_continuous(mech, 0.02, dyn=dyn)
+    run_sampled(mech, 0.002, 1000.0, dyn=dyn)
     print('numba kernels ready (%.1f s)' % (time.perf_counter() - start))
 
 
