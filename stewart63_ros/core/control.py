@@ -3,7 +3,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from stewart63_ros.core._jit import njit
+from stewart63_ros.core._jit import njit, njit_kernel
+
+
+@njit_kernel
+def _pd_leg(length, rate, setpoint, kp, kv, max_force):
+    """Eq. (40) for one leg, scalars: the arithmetic of ``_pd`` (a NaN stays NaN,
+    as with np.minimum/np.maximum), for the compiled right-hand side."""
+    force = kp * (setpoint - length) - kv * rate
+    if force > max_force:
+        return max_force
+    if force < -max_force:
+        return -max_force
+    return force
 
 
 @njit

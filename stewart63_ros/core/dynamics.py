@@ -25,13 +25,19 @@ assemble into eq. (38),
 
 with J symmetric positive definite and H = Jacobian^T (row i of the Jacobian
 is [s_i, q_i x s_i]).
+
+The compiled right-hand side is scalar code: R and the 3-vectors of the state
+travel as tuples of floats, J, H, eta, L and dL/dt are written into one work
+array, so that an evaluation allocates nothing but its result
+(``_derivative_pd``; ``_rk4`` allocates once per call), and the small kernels
+(``njit_kernel``) are inlined into their compiled callers.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from stewart63_ros.core._jit import njit
-from stewart63_ros.core.control import _pd
+from stewart63_ros.core._jit import njit, njit_kernel
+from stewart63_ros.core.control import _pd_leg
 from stewart63_ros.core.kinematics import LegState
 from stewart63_ros.core.rotation import matrix_from_quaternion
 
@@ -54,49 +60,117 @@ _MASS, _G, _COM, _MD, _MU, _LD, _LU, _IT, _CP, _CU, _KSTOP, _CSTOP, _LMIN, _LMAX
     0, 1, 4, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17)
 _NCONST = 18
 
+# Rows of the work array (_WORK_ROWS, 6) that the kernels below fill instead
+# of allocating small arrays: J (6 rows), H (6 rows), eta, L, dL/dt, F.
+# Small vectors travel as tuples of floats (no allocation, no reference count).
+_J, _H, _ETA, _L, _LDOT, _F = 0, 6, 12, 13, 14, 15
+_WORK_ROWS = 16
+
+
+# -- kinematics, scalar form ----------------------------------------------------------------
+@njit_kernel
+def _unit_quaternion(x, y, z, w):
+    """The quaternion (x, y, z, w) divided by its norm."""
+    n = np.sqrt(x ** 2 + y ** 2 + z ** 2 + w ** 2)
+    return x / n, y / n, z / n, w / n
+
+
+@njit_kernel
+def _rotation_rows(x, y, z, w):
+    """R of the unit quaternion (x, y, z, w), as a tuple of its three rows."""
+    return ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+            (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+            (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
+
 
 @njit
 def _rotation(quat):
-    n = np.sqrt(quat[0] ** 2 + quat[1] ** 2 + quat[2] ** 2 + quat[3] ** 2)
-    x, y, z, w = quat[0] / n, quat[1] / n, quat[2] / n, quat[3] / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    """R (3, 3) of the quaternion (x, y, z, w), normalised here."""
+    rows = _rotation_rows(*_unit_quaternion(quat[0], quat[1], quat[2], quat[3]))
+    rot = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            rot[a, b] = rows[a][b]
+    return rot
 
 
-@njit
-def _terms(const, base, plat, inertia_body, rot, pos, vel, omega):
-    """J, eta, H of eq. (38) plus L, dL/dt; see the module docstring.
+@njit_kernel
+def _state_tuples(y):
+    """(unit quaternion, t, dt/dt, omega) of the 13-state y as tuples."""
+    return (_unit_quaternion(y[3], y[4], y[5], y[6]), (y[0], y[1], y[2]), (y[7], y[8], y[9]),
+            (y[10], y[11], y[12]))
 
-    Written with scalars so that the compiled kernel allocates almost nothing.
+
+@njit_kernel
+def _leg(rot, pos, vel, omega, base, plat, i):
+    """Geometry and rates of leg i, scalars: (q, L, s, dS/dt, dL/dt).
+
+    q = R p_i (eq. 1), S = t + q - b_i (eq. 2), L = |S| (eq. 5), s = S / L
+    (eq. 4), dS/dt = omega x q + v (eq. 3), dL/dt = s . dS/dt (eq. 13).
+    """
+    px, py, pz = plat[i, 0], plat[i, 1], plat[i, 2]
+    qx = rot[0][0] * px + rot[0][1] * py + rot[0][2] * pz
+    qy = rot[1][0] * px + rot[1][1] * py + rot[1][2] * pz
+    qz = rot[2][0] * px + rot[2][1] * py + rot[2][2] * pz
+    Sx, Sy, Sz = qx + pos[0] - base[i, 0], qy + pos[1] - base[i, 1], qz + pos[2] - base[i, 2]
+    L = np.sqrt(Sx * Sx + Sy * Sy + Sz * Sz)
+    sx, sy, sz = Sx / L, Sy / L, Sz / L
+    wx, wy, wz = omega
+    dx = wy * qz - wz * qy + vel[0]
+    dy = wz * qx - wx * qz + vel[1]
+    dz = wx * qy - wy * qx + vel[2]
+    Ldot = sx * dx + sy * dy + sz * dz
+    return qx, qy, qz, L, sx, sy, sz, dx, dy, dz, Ldot
+
+
+# -- eq. (38) -------------------------------------------------------------------------------
+@njit_kernel
+def _platform_inertia(rot, ib, mass, cx, cy, cz):
+    """Lower triangle (xx, yx, yy, zx, zy, zz) of the platform inertia about its
+    origin in the base frame, I_o = R I_body R^T + m (|c|^2 1 - c c^T)."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rot
+    # Rows of R I_body.
+    a0 = r00 * ib[0, 0] + r01 * ib[1, 0] + r02 * ib[2, 0]
+    a1 = r00 * ib[0, 1] + r01 * ib[1, 1] + r02 * ib[2, 1]
+    a2 = r00 * ib[0, 2] + r01 * ib[1, 2] + r02 * ib[2, 2]
+    b0 = r10 * ib[0, 0] + r11 * ib[1, 0] + r12 * ib[2, 0]
+    b1 = r10 * ib[0, 1] + r11 * ib[1, 1] + r12 * ib[2, 1]
+    b2 = r10 * ib[0, 2] + r11 * ib[1, 2] + r12 * ib[2, 2]
+    d0 = r20 * ib[0, 0] + r21 * ib[1, 0] + r22 * ib[2, 0]
+    d1 = r20 * ib[0, 1] + r21 * ib[1, 1] + r22 * ib[2, 1]
+    d2 = r20 * ib[0, 2] + r21 * ib[1, 2] + r22 * ib[2, 2]
+    cc = cx * cx + cy * cy + cz * cz
+    ixx = a0 * r00 + a1 * r01 + a2 * r02 + mass * (cc - cx * cx)
+    iyx = b0 * r00 + b1 * r01 + b2 * r02 - mass * (cy * cx)
+    iyy = b0 * r10 + b1 * r11 + b2 * r12 + mass * (cc - cy * cy)
+    izx = d0 * r00 + d1 * r01 + d2 * r02 - mass * (cz * cx)
+    izy = d0 * r10 + d1 * r11 + d2 * r12 - mass * (cz * cy)
+    izz = d0 * r20 + d1 * r21 + d2 * r22 + mass * (cc - cz * cz)
+    return ixx, iyx, iyy, izx, izy, izz
+
+
+@njit_kernel
+def _terms_into(const, base, plat, inertia_body, rot, pos, vel, omega, out):
+    """J, eta, H of eq. (38) plus L, dL/dt, written into the rows _J, _ETA, _H,
+    _L, _LDOT of ``out``; ``rot`` (rows), ``pos``, ``vel``, ``omega`` are tuples.
+
+    Written with scalars so that the compiled kernel allocates nothing.
     The leg inertia K_i = c_i 1 + d_i s s^T (c = I_eff/L^2, d = m_u - c) maps
     through the vertex map G_i = [1, -[q_i]x] as
     G^T K G = c_i G^T G + d_i h_i h_i^T with h_i = [s_i, q_i x s_i] (column i of H).
+    J is symmetric: its lower triangle is summed, then mirrored.
     """
     mass = const[_MASS]
     gx, gy, gz = const[_G], const[_G + 1], const[_G + 2]
     m_d, m_u, l_d, l_u = const[_MD], const[_MU], const[_LD], const[_LU]
     i_t, c_p, c_u = const[_IT], const[_CP], const[_CU]
-    wx, wy, wz = omega[0], omega[1], omega[2]
-    J = np.zeros((6, 6))
-    eta = np.zeros(6)
-    H = np.empty((6, 6))
-    L_out = np.empty(6)
-    Ld_out = np.empty(6)
+    wx, wy, wz = omega
+    for a in range(6):
+        out[_ETA, a] = 0.0
+        for b in range(a + 1):
+            out[_J + a, b] = 0.0
     for i in range(6):
-        px, py, pz = plat[i, 0], plat[i, 1], plat[i, 2]
-        qx = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2] * pz          # eq. (1)
-        qy = rot[1, 0] * px + rot[1, 1] * py + rot[1, 2] * pz
-        qz = rot[2, 0] * px + rot[2, 1] * py + rot[2, 2] * pz
-        Sx, Sy, Sz = qx + pos[0] - base[i, 0], qy + pos[1] - base[i, 1], qz + pos[2] - base[i, 2]
-        L = np.sqrt(Sx * Sx + Sy * Sy + Sz * Sz)                          # eq. (5)
-        sx, sy, sz = Sx / L, Sy / L, Sz / L                               # eq. (4)
-        # eq. (3): dS/dt = omega x q + v
-        dx = wy * qz - wz * qy + vel[0]
-        dy = wz * qx - wx * qz + vel[1]
-        dz = wx * qy - wy * qx + vel[2]
-        Ldot = sx * dx + sy * dy + sz * dz                                # eq. (13)
+        qx, qy, qz, L, sx, sy, sz, dx, dy, dz, Ldot = _leg(rot, pos, vel, omega, base, plat, i)
         Wx, Wy, Wz = (sy * dz - sz * dy) / L, (sz * dx - sx * dz) / L, (sx * dy - sy * dx) / L  # (14)
         arm_u = L - l_u
         i_eff = m_d * l_d * l_d + m_u * arm_u * arm_u + i_t
@@ -118,118 +192,191 @@ def _terms(const, base, plat, inertia_body, rot, pos, vel, omega):
         ux, uy, uz = wy * az - wz * ay, wz * ax - wx * az, wx * ay - wy * ax
         su = sx * ux + sy * uy + sz * uz
         bx, by, bz = c * ux + d * su * sx - f0x, c * uy + d * su * sy - f0y, c * uz + d * su * sz - f0z
-        eta[0] += bx
-        eta[1] += by
-        eta[2] += bz
-        eta[3] += qy * bz - qz * by
-        eta[4] += qz * bx - qx * bz
-        eta[5] += qx * by - qy * bx
+        out[_ETA, 0] += bx
+        out[_ETA, 1] += by
+        out[_ETA, 2] += bz
+        out[_ETA, 3] += qy * bz - qz * by
+        out[_ETA, 4] += qz * bx - qx * bz
+        out[_ETA, 5] += qx * by - qy * bx
         h = (sx, sy, sz, qy * sz - qz * sy, qz * sx - qx * sz, qx * sy - qy * sx)
         for a in range(6):
-            H[a, i] = h[a]
-            for b in range(6):
-                J[a, b] += d * h[a] * h[b]
-        # c_i G^T G = c [[1, -[q]x], [[q]x, |q|^2 1 - q q^T]]; -[q]x = [[0, qz, -qy], ...]
+            out[_H + a, i] = h[a]
+            for b in range(a + 1):
+                out[_J + a, b] += d * h[a] * h[b]
+        # c_i G^T G = c [[1, -[q]x], [[q]x, |q|^2 1 - q q^T]]; [q]x = [[0, -qz, qy], ...]
         qq = qx * qx + qy * qy + qz * qz
         qv = (qx, qy, qz)
         for a in range(3):
-            J[a, a] += c
-            J[3 + a, 3 + a] += c * qq
-            for b in range(3):
-                J[3 + a, 3 + b] -= c * qv[a] * qv[b]
-        J[0, 4] += c * qz
-        J[0, 5] -= c * qy
-        J[1, 3] -= c * qz
-        J[1, 5] += c * qx
-        J[2, 3] += c * qy
-        J[2, 4] -= c * qx
-        L_out[i] = L
-        Ld_out[i] = Ldot
-    # Rigid platform about its origin: COM offset c, parallel-axis inertia.
-    com = rot @ const[_COM:_COM + 3]
-    i_origin = rot @ inertia_body @ rot.T + mass * ((com @ com) * np.eye(3) - np.outer(com, com))
-    J[3:, 3:] += i_origin
+            out[_J + a, a] += c
+            out[_J + 3 + a, 3 + a] += c * qq
+            for b in range(a + 1):
+                out[_J + 3 + a, 3 + b] -= c * qv[a] * qv[b]
+        out[_J + 4, 0] += c * qz
+        out[_J + 5, 0] -= c * qy
+        out[_J + 3, 1] -= c * qz
+        out[_J + 5, 1] += c * qx
+        out[_J + 3, 2] += c * qy
+        out[_J + 4, 2] -= c * qx
+        out[_L, i] = L
+        out[_LDOT, i] = Ldot
+    # Rigid platform about its origin: COM offset c = R c_body, parallel-axis
+    # inertia I_o = R I_body R^T + m (|c|^2 1 - c c^T), cf. eq. (37).
+    c0, c1, c2 = const[_COM], const[_COM + 1], const[_COM + 2]
+    cx = rot[0][0] * c0 + rot[0][1] * c1 + rot[0][2] * c2
+    cy = rot[1][0] * c0 + rot[1][1] * c1 + rot[1][2] * c2
+    cz = rot[2][0] * c0 + rot[2][1] * c1 + rot[2][2] * c2
+    ixx, iyx, iyy, izx, izy, izz = _platform_inertia(rot, inertia_body, mass, cx, cy, cz)
+    out[_J + 3, 3] += ixx
+    out[_J + 4, 3] += iyx
+    out[_J + 4, 4] += iyy
+    out[_J + 5, 3] += izx
+    out[_J + 5, 4] += izy
+    out[_J + 5, 5] += izz
     for a in range(3):
-        J[a, a] += mass
-    cx, cy, cz = com[0], com[1], com[2]
-    J[0, 4] += mass * cz
-    J[0, 5] -= mass * cy
-    J[1, 3] -= mass * cz
-    J[1, 5] += mass * cx
-    J[2, 3] += mass * cy
-    J[2, 4] -= mass * cx
-    for a in range(3):
-        for b in range(3):
-            J[3 + b, a] = J[a, 3 + b]
-    # Platform velocity and gravity terms.
+        out[_J + a, a] += mass
+    out[_J + 4, 0] += mass * cz
+    out[_J + 5, 0] -= mass * cy
+    out[_J + 3, 1] -= mass * cz
+    out[_J + 5, 1] += mass * cx
+    out[_J + 3, 2] += mass * cy
+    out[_J + 4, 2] -= mass * cx
+    for a in range(6):
+        for b in range(a):
+            out[_J + b, a] = out[_J + a, b]
+    # Platform velocity and gravity terms: m (omega x (omega x c) - g) and
+    # omega x (I_o omega) - m c x g.
     ax, ay, az = wy * cz - wz * cy, wz * cx - wx * cz, wx * cy - wy * cx
-    eta[0] += mass * (wy * az - wz * ay - gx)
-    eta[1] += mass * (wz * ax - wx * az - gy)
-    eta[2] += mass * (wx * ay - wy * ax - gz)
-    lx = i_origin[0, 0] * wx + i_origin[0, 1] * wy + i_origin[0, 2] * wz
-    ly = i_origin[1, 0] * wx + i_origin[1, 1] * wy + i_origin[1, 2] * wz
-    lz = i_origin[2, 0] * wx + i_origin[2, 1] * wy + i_origin[2, 2] * wz
-    eta[3] += wy * lz - wz * ly - mass * (cy * gz - cz * gy)
-    eta[4] += wz * lx - wx * lz - mass * (cz * gx - cx * gz)
-    eta[5] += wx * ly - wy * lx - mass * (cx * gy - cy * gx)
-    return J, eta, H, L_out, Ld_out
+    out[_ETA, 0] += mass * (wy * az - wz * ay - gx)
+    out[_ETA, 1] += mass * (wz * ax - wx * az - gy)
+    out[_ETA, 2] += mass * (wx * ay - wy * ax - gz)
+    lx = ixx * wx + iyx * wy + izx * wz
+    ly = iyx * wx + iyy * wy + izy * wz
+    lz = izx * wx + izy * wy + izz * wz
+    out[_ETA, 3] += wy * lz - wz * ly - mass * (cy * gz - cz * gy)
+    out[_ETA, 4] += wz * lx - wx * lz - mass * (cz * gx - cx * gz)
+    out[_ETA, 5] += wx * ly - wy * lx - mass * (cx * gy - cy * gx)
+
+
+@njit
+def _terms(const, base, plat, inertia_body, rot, pos, vel, omega):
+    """J, eta, H of eq. (38) plus L, dL/dt (new arrays); see ``_terms_into``."""
+    out = np.empty((_WORK_ROWS, 6))
+    rows = ((rot[0, 0], rot[0, 1], rot[0, 2]), (rot[1, 0], rot[1, 1], rot[1, 2]),
+            (rot[2, 0], rot[2, 1], rot[2, 2]))
+    _terms_into(const, base, plat, inertia_body, rows, (pos[0], pos[1], pos[2]),
+                (vel[0], vel[1], vel[2]), (omega[0], omega[1], omega[2]), out)
+    return (out[_J:_J + 6].copy(), out[_ETA].copy(), out[_H:_H + 6].copy(), out[_L].copy(),
+            out[_LDOT].copy())
 
 
 @njit
 def _lengths_rates(base, plat, y):
-    """L_i and dL_i/dt of the state y, eqs. (2)-(5), (13)."""
-    rot = _rotation(y[3:7])
+    """L_i and dL_i/dt of the state y, eqs. (2)-(5), (13): the arithmetic of ``_terms``."""
+    quat, pos, vel, omega = _state_tuples(y)
+    rot = _rotation_rows(*quat)
     L = np.empty(6)
     Ldot = np.empty(6)
-    w = y[10:13]
     for i in range(6):
-        q = rot @ plat[i]
-        S = q + y[0:3] - base[i]
-        L[i] = np.sqrt(S @ S)
-        Sdot = np.array([w[1] * q[2] - w[2] * q[1], w[2] * q[0] - w[0] * q[2],
-                         w[0] * q[1] - w[1] * q[0]]) + y[7:10]
-        Ldot[i] = (S @ Sdot) / L[i]
+        leg = _leg(rot, pos, vel, omega, base, plat, i)
+        L[i] = leg[3]
+        Ldot[i] = leg[10]
     return L, Ldot
+
+
+@njit_kernel
+def _endstop_leg(const, L, Ldot):
+    """End-stop force of one leg (zero inside the stroke) [N]."""
+    pen = min(L - const[_LMIN], 0.0) + max(L - const[_LMAX], 0.0)
+    if pen != 0.0:
+        return -const[_KSTOP] * pen - const[_CSTOP] * Ldot
+    return 0.0
 
 
 @njit
 def _endstop(const, L, Ldot):
-    out = np.zeros(6)
+    out = np.empty(6)
     for i in range(6):
-        pen = min(L[i] - const[_LMIN], 0.0) + max(L[i] - const[_LMAX], 0.0)
-        if pen != 0.0:
-            out[i] = -const[_KSTOP] * pen - const[_CSTOP] * Ldot[i]
+        out[i] = _endstop_leg(const, L[i], Ldot[i])
     return out
+
+
+@njit_kernel
+def _solve_spd_into(A, b, k, n):
+    """Cholesky solve of the n x n symmetric positive definite J = A[:n, :n] in
+    place (no LAPACK call): A's lower triangle is overwritten by the factor,
+    the right-hand side b[k:k + n] by the solution."""
+    for j in range(n):
+        d = A[j, j]
+        for m in range(j):
+            d -= A[j, m] * A[j, m]
+        A[j, j] = np.sqrt(d)
+        for i in range(j + 1, n):
+            v = A[i, j]
+            for m in range(j):
+                v -= A[i, m] * A[j, m]
+            A[i, j] = v / A[j, j]
+    for i in range(n):              # forward substitution, L z = b
+        v = b[k + i]
+        for m in range(i):
+            v -= A[i, m] * b[k + m]
+        b[k + i] = v / A[i, i]
+    for i in range(n - 1, -1, -1):  # back substitution, L^T x = z
+        v = b[k + i]
+        for m in range(i + 1, n):
+            v -= A[m, i] * b[k + m]
+        b[k + i] = v / A[i, i]
 
 
 @njit
 def _solve_spd(A, b):
-    """Cholesky solve of the 6x6 symmetric positive definite J (no LAPACK call)."""
-    n = A.shape[0]
-    Lc = np.zeros((n, n))
-    for j in range(n):
-        d = A[j, j]
-        for k in range(j):
-            d -= Lc[j, k] * Lc[j, k]
-        Lc[j, j] = np.sqrt(d)
-        for i in range(j + 1, n):
-            v = A[i, j]
-            for k in range(j):
-                v -= Lc[i, k] * Lc[j, k]
-            Lc[i, j] = v / Lc[j, j]
-    z = np.empty(n)
-    for i in range(n):
-        v = b[i]
-        for k in range(i):
-            v -= Lc[i, k] * z[k]
-        z[i] = v / Lc[i, i]
-    x = np.empty(n)
-    for i in range(n - 1, -1, -1):
-        v = z[i]
-        for k in range(i + 1, n):
-            v -= Lc[k, i] * x[k]
-        x[i] = v / Lc[i, i]
+    """x with A x = b for a symmetric positive definite A (A, b untouched)."""
+    x = b.copy()
+    _solve_spd_into(A.copy(), x, 0, A.shape[0])
     return x
+
+
+@njit_kernel
+def _derivative_into(const, base, plat, inertia_body, y, forces, wrench, endstops, pd,
+                     max_force, dy, work):
+    """dy/dt written into ``dy`` (13,); ``work`` (_WORK_ROWS, 6) is scratch space.
+
+    With ``pd`` = [setpoint; kp; kv] (3, 6) the PD law of eq. (40) adds its
+    force from the same L, dL/dt (continuous control inside the ODE)."""
+    quat, pos, vel, omega = _state_tuples(y)
+    rot = _rotation_rows(*quat)
+    _terms_into(const, base, plat, inertia_body, rot, pos, vel, omega, work)
+    # Piston forces: applied, plus eq. (40), plus the end stops.
+    with_pd = pd.shape[0] == 3
+    for i in range(6):
+        L, Ldot = work[_L, i], work[_LDOT, i]
+        f = forces[i]
+        if with_pd:
+            f = f + _pd_leg(L, Ldot, pd[0, i], pd[1, i], pd[2, i], max_force)
+        if endstops:
+            f = f + _endstop_leg(const, L, Ldot)
+        work[_F, i] = f
+    # Right-hand side of eq. (38), H F - eta + [R F_ext; R M_ext], into dy[7:13] ...
+    for a in range(6):
+        v = 0.0
+        for i in range(6):
+            v += work[_H + a, i] * work[_F, i]
+        dy[7 + a] = v - work[_ETA, a]
+    for a in range(3):
+        r = rot[a]
+        dy[7 + a] += r[0] * wrench[0] + r[1] * wrench[1] + r[2] * wrench[2]
+        dy[10 + a] += r[0] * wrench[3] + r[1] * wrench[4] + r[2] * wrench[5]
+    # ... and [dd t; alpha] = J^-1 (...) there (J's lower triangle is overwritten).
+    _solve_spd_into(work, dy, 7, 6)
+    dy[0] = y[7]
+    dy[1] = y[8]
+    dy[2] = y[9]
+    x, qy, z, w = quat
+    ox, oy, oz = omega
+    # dq/dt = 1/2 [omega, 0] (x) q, omega in the base frame
+    dy[3] = 0.5 * (ox * w + oy * z - oz * qy)
+    dy[4] = 0.5 * (-ox * z + oy * w + oz * x)
+    dy[5] = 0.5 * (ox * qy - oy * x + oz * w)
+    dy[6] = 0.5 * (-ox * x - oy * qy - oz * z)
 
 
 @njit
@@ -240,48 +387,45 @@ def _derivative(const, base, plat, inertia_body, y, forces, wrench, endstops):
 
 @njit
 def _derivative_pd(const, base, plat, inertia_body, y, forces, wrench, endstops, pd, max_force):
-    """dy/dt; with ``pd`` = [setpoint; kp; kv] (3, 6) the PD law of eq. (40) adds
-    its force from the same L, dL/dt (continuous control inside the ODE)."""
-    rot = _rotation(y[3:7])
-    n = np.sqrt(y[3] ** 2 + y[4] ** 2 + y[5] ** 2 + y[6] ** 2)
-    x, qy, z, w = y[3] / n, y[4] / n, y[5] / n, y[6] / n
-    omega = y[10:13]
-    J, eta, H, L, Ldot = _terms(const, base, plat, inertia_body, rot, y[0:3], y[7:10], omega)
-    f = forces
-    if pd.shape[0] == 3:
-        f = f + _pd(L, Ldot, pd[0], pd[1], pd[2], max_force)
-    if endstops:
-        f = f + _endstop(const, L, Ldot)
-    rhs = H @ f - eta
-    rhs[:3] += rot @ wrench[:3]
-    rhs[3:] += rot @ wrench[3:]
-    acc = _solve_spd(J, rhs)
+    """dy/dt (a new array); see ``_derivative_into``."""
     dy = np.empty(13)
-    dy[0:3] = y[7:10]
-    ox, oy, oz = omega[0], omega[1], omega[2]
-    # dq/dt = 1/2 [omega, 0] (x) q, omega in the base frame
-    dy[3] = 0.5 * (ox * w + oy * z - oz * qy)
-    dy[4] = 0.5 * (-ox * z + oy * w + oz * x)
-    dy[5] = 0.5 * (ox * qy - oy * x + oz * w)
-    dy[6] = 0.5 * (-ox * x - oy * qy - oz * z)
-    dy[7:10] = acc[:3]
-    dy[10:13] = acc[3:]
+    _derivative_into(const, base, plat, inertia_body, y, forces, wrench, endstops, pd,
+                     max_force, dy, np.empty((_WORK_ROWS, 6)))
     return dy
 
 
 @njit
 def _rk4(const, base, plat, inertia_body, y, forces, wrench, dt, steps):
-    """Classical RK4 with the forces held (zero-order hold) over ``steps`` steps."""
-    for _ in range(steps):
-        k1 = _derivative(const, base, plat, inertia_body, y, forces, wrench, True)
-        k2 = _derivative(const, base, plat, inertia_body, y + 0.5 * dt * k1, forces, wrench, True)
-        k3 = _derivative(const, base, plat, inertia_body, y + 0.5 * dt * k2, forces, wrench, True)
-        k4 = _derivative(const, base, plat, inertia_body, y + dt * k3, forces, wrench, True)
-        y = y + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-        n = np.sqrt(y[3] ** 2 + y[4] ** 2 + y[5] ** 2 + y[6] ** 2)
-        y[3:7] = y[3:7] / n
-    return y
+    """Classical RK4 with the forces held (zero-order hold) over ``steps`` steps.
 
+    Returns the new state (``y`` is not modified). Stages and work array are
+    allocated once per call; the loops over j are the vector expressions
+    y + dt/2 k1, ..., y + dt/6 (k1 + 2 k2 + 2 k3 + k4), component by component."""
+    y = y.copy()
+    k = np.empty((5, 13))          # k1, k2, k3, k4 and the stage state
+    work = np.empty((_WORK_ROWS, 6))
+    half, sixth = 0.5 * dt, dt / 6.0
+    for _ in range(steps):
+        _derivative_into(const, base, plat, inertia_body, y, forces, wrench, True,
+                         _NO_GAINS, 0.0, k[0], work)
+        for j in range(13):
+            k[4, j] = y[j] + half * k[0, j]
+        _derivative_into(const, base, plat, inertia_body, k[4], forces, wrench, True,
+                         _NO_GAINS, 0.0, k[1], work)
+        for j in range(13):
+            k[4, j] = y[j] + half * k[1, j]
+        _derivative_into(const, base, plat, inertia_body, k[4], forces, wrench, True,
+                         _NO_GAINS, 0.0, k[2], work)
+        for j in range(13):
+            k[4, j] = y[j] + dt * k[2, j]
+        _derivative_into(const, base, plat, inertia_body, k[4], forces, wrench, True,
+                         _NO_GAINS, 0.0, k[3], work)
+        for j in range(13):
+            y[j] = y[j] + sixth * (k[0, j] + 2.0 * k[1, j] + 2.0 * k[2, j] + k[3, j])
+        n = np.sqrt(y[3] ** 2 + y[4] ** 2 + y[5] ** 2 + y[6] ** 2)
+        for j in range(3, 7):
+            y[j] = y[j] / n
+    return y
 
 
 
