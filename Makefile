@@ -5,6 +5,9 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
+# numba's cache does not follow kernels across files: recompile all of them
+# whenever a core file changes (precompile clears the cache first).
+KERNELS := $(VENV)/.kernels
 # A parent shell may carry the wheels' bootstrap flag from another venv.
 unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE
 
@@ -17,7 +20,7 @@ DEMO_OUT ?= out/demo
 
 .PHONY: demo test bench venv clean
 
-venv: $(STAMP)
+venv: $(KERNELS)
 
 $(STAMP): setup.py package.xml Makefile
 	@if $(PYTHON) -c 'import rclpy' >/dev/null 2>&1; then \
@@ -33,17 +36,20 @@ $(STAMP): setup.py package.xml Makefile
 	$(BIN)/pip install -q $(PY_DEPS) $(TEST_DEPS)
 	$(BIN)/pip install -q -e '.[bench]'
 	$(BIN)/python -c 'import rclpy, sensor_msgs.msg, stewart63_ros'
-	$(BIN)/python -m stewart63_ros.core.precompile
 	touch $(STAMP)
 
-demo: $(STAMP)
+$(KERNELS): $(STAMP) $(wildcard stewart63_ros/core/*.py)
+	$(BIN)/python -m stewart63_ros.core.precompile
+	touch $(KERNELS)
+
+demo: $(KERNELS)
 	$(BIN)/python -m stewart63_ros.tools.demo --out $(DEMO_OUT)
 
 # The MuJoCo agreement test must run here, not skip: make installed the extra.
-test: $(STAMP)
+test: $(KERNELS)
 	STEWART63_REQUIRE_MUJOCO=1 $(BIN)/python -m pytest -q test
 
-bench: $(STAMP)
+bench: $(KERNELS)
 	$(BIN)/python bench/bench_core.py
 	for b in bench/bench_fk.py bench/bench_loop.py bench/bench_bags.py; do [ -f $$b ] && $(BIN)/python $$b; done; true
 

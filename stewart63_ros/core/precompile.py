@@ -3,14 +3,30 @@
 `make` runs this after installing, so that the first node processes (which
 load the kernels from the cache in a fraction of a second) do not each spend
 tens of seconds compiling them at once.
+
+It first drops the cached kernels: numba checks only the timestamp of the
+file that defines a kernel, so a kernel that inlines one from another file
+(dopri's RK45 calls the dynamics) would otherwise keep the old physics after
+an edit of that other file.
 """
 import time
+from pathlib import Path
 
 import numpy as np
 
 
+def clear_cache() -> int:
+    """Delete numba's cached kernels of this package; returns how many files."""
+    package = Path(__file__).resolve().parents[1]
+    stale = [p for pattern in ('*.nbi', '*.nbc') for p in package.rglob('__pycache__/' + pattern)]
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return len(stale)
+
+
 def main():
     start = time.perf_counter()
+    clear_cache()
     from stewart63_ros.core.control import PDController
     from stewart63_ros.core.dynamics import Dynamics
     from stewart63_ros.core.fk import FKTracker

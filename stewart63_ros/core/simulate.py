@@ -117,8 +117,7 @@ def _pd_samples(base, plat, states, setpoint, kp, kv, max_force, lmin, lmax):
     """Per output sample: L, dL/dt, the PD forces of eq. (40), samples outside the stroke.
 
     L and dL/dt in scalar form, as ``dynamics._terms`` computes them inside the
-    right-hand side (eqs. 1, 3-5, 13); they agree with ``sensor_reading`` to
-    round-off (that one goes through BLAS for its 3-vectors, six times slower)."""
+    right-hand side (eqs. 1, 3-5, 13), the same arithmetic as ``sensor_reading``."""
     n = states.shape[0]
     forces = np.empty((n, 6))
     lengths = np.empty(6)
