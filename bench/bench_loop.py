@@ -1,27 +1,68 @@
 """Closed-loop speed over DDS: prints figures, asserts nothing.
 
 - realtime at 1 kHz: latency from a leg_lengths stamp to the plant's receipt
-  of the answering force (p50, p99, max) and missed cycles;
+  of the answering force (p50, p99, max) and missed cycles (the answer came
+  after the next sample);
 - lockstep: samples per second.
-Each run: plant + controller + fk as separate processes on a private domain.
+Each run: plant + controller (+ fk) as separate processes on a private domain.
+
+    bench_loop.py [--duration S] [--repeat N] [--nodes full|both] [--realtime-priority P]
+                  [--json]
+
+``measure(duration, repeat)`` returns the medians over ``repeat`` runs of the
+full rig (plant + controller + fk) as a dict, for bench/bench_all.py.
 """
+from __future__ import annotations
+
 import argparse
+import fcntl
+import json
 import os
-import random
+import statistics
 import tempfile
 import time
+from pathlib import Path
 
 from stewart63_ros.core.params import default_params_path
 from stewart63_ros.tools.rig import Rig
 
+FULL = ('plant', 'controller', 'fk')
+PAIR = ('plant', 'controller')
+#: The lock files test/ros_harness.py leases domain ids with: a bench and a
+#: test running at the same time never share a domain.
+_LOCK_DIR = Path(tempfile.gettempdir()) / 'stewart63_ros_domains'
 
-def run(mode, duration, nodes):
+
+def lease_domain() -> tuple[int, int]:
+    """(domain id, lock fd): a domain no other live holder of the lock uses."""
+    _LOCK_DIR.mkdir(parents=True, exist_ok=True)
+    start = os.getpid() % 100
+    for k in range(100):
+        domain = 1 + (start + k) % 100
+        fd = os.open(_LOCK_DIR / ('%d.lock' % domain), os.O_CREAT | os.O_RDWR, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue
+        return domain, fd
+    raise RuntimeError('no free ROS domain id on this machine')
+
+
+def run(mode, duration, nodes, realtime_priority=0):
+    """One rig run; the plant's summary (plus total_wall_s), or None if it failed."""
+    extra = {'realtime_priority': realtime_priority} if realtime_priority else {}
     rig = Rig(default_params_path(), mode, duration, nodes=nodes,
-              log_dir=tempfile.mkdtemp(prefix='bench_loop_'))
+              log_dir=tempfile.mkdtemp(prefix='bench_loop_'), **extra)
     start = time.monotonic()
-    rig.start()
-    ok = rig.wait(timeout=60 + 50 * duration)
-    rig.stop()
+    try:
+        rig.start()
+        ok = rig.wait(timeout=60 + 50 * duration)
+    except RuntimeError as exc:
+        print('%s run failed: %s; logs in %s' % (mode, exc, rig.log_dir))
+        ok = False
+    finally:
+        rig.stop()
     summary = rig.summary()
     if not ok or summary is None:
         print('%s run failed; logs in %s' % (mode, rig.log_dir))
@@ -30,26 +71,131 @@ def run(mode, duration, nodes):
     return summary
 
 
+def realtime_figures(s) -> dict:
+    lat = s['loop_latency']
+    return {'p50_us': lat['p50_ms'] * 1e3, 'p99_us': lat['p99_ms'] * 1e3,
+            'max_us': lat['max_ms'] * 1e3, 'missed': s['missed_cycles'],
+            'late': s['late_cycles'], 'samples': s['samples'],
+            'missed_fraction': s['missed_cycles'] / s['samples']}
+
+
+def lockstep_figures(s) -> dict:
+    lat = s['loop_latency']
+    return {'samples_per_s': s['samples'] / s['wall_time_s'], 'p50_us': lat['p50_ms'] * 1e3,
+            'p99_us': lat['p99_ms'] * 1e3, 'timeouts': s['force_timeouts']}
+
+
+def print_realtime(nodes, f):
+    print('realtime 1 kHz, %-24s latency p50 %.3f ms, p99 %.3f ms, max %.3f ms; '
+          'missed %d of %d cycles (%.3f %%), late %d'
+          % ('+'.join(nodes) + ':', f['p50_us'] / 1e3, f['p99_us'] / 1e3, f['max_us'] / 1e3,
+             f['missed'], f['samples'], 100.0 * f['missed_fraction'], f['late']), flush=True)
+
+
+def print_lockstep(nodes, f):
+    print('lockstep,        %-24s %.0f samples/s (round trip p50 %.3f ms, p99 %.3f ms)'
+          % ('+'.join(nodes) + ':', f['samples_per_s'], f['p50_us'] / 1e3, f['p99_us'] / 1e3),
+          flush=True)
+
+
+def _median(runs, key):
+    values = [r[key] for r in runs]
+    return statistics.median(values) if values else None
+
+
+def collect(duration, repeat, node_sets=(FULL,), quiet=False, realtime_priority=0) -> dict:
+    """Runs realtime then lockstep, ``repeat`` times, for every node set;
+    {nodes: {'realtime': [figures...], 'lockstep': [figures...]}}."""
+    domain, fd = lease_domain()
+    saved = {k: os.environ.get(k) for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')}
+    os.environ['ROS_DOMAIN_ID'] = str(domain)
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    out = {nodes: {'realtime': [], 'lockstep': []} for nodes in node_sets}
+    try:
+        for _ in range(repeat):
+            for nodes in node_sets:
+                s = run('realtime', duration, nodes, realtime_priority)
+                if s:
+                    out[nodes]['realtime'].append(realtime_figures(s))
+                    if not quiet:
+                        print_realtime(nodes, out[nodes]['realtime'][-1])
+                s = run('lockstep', duration, nodes)    # (FIFO: no faster there)
+                if s:
+                    out[nodes]['lockstep'].append(lockstep_figures(s))
+                    if not quiet:
+                        print_lockstep(nodes, out[nodes]['lockstep'][-1])
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+        os.close(fd)
+    return out
+
+
+def medians(runs: dict) -> dict:
+    rt, ls = runs['realtime'], runs['lockstep']
+    return {'loop_latency_p50_us': _median(rt, 'p50_us'),
+            'loop_latency_p99_us': _median(rt, 'p99_us'),
+            'loop_latency_max_us': _median(rt, 'max_us'),
+            'loop_missed_fraction': _median(rt, 'missed_fraction'),
+            'lockstep_samples_per_s': _median(ls, 'samples_per_s'),
+            'lockstep_round_trip_p50_us': _median(ls, 'p50_us'),
+            'loop_runs': len(rt), 'lockstep_runs': len(ls)}
+
+
+def measure(duration: float = 5.0, repeat: int = 3, realtime_priority: int = 0) -> dict:
+    """Medians over ``repeat`` runs of the full rig (plant + controller + fk):
+    loop_latency_p50_us, loop_latency_p99_us, loop_missed_fraction (realtime,
+    1 kHz) and lockstep_samples_per_s (plus a few more figures).
+    ``realtime_priority``: for the realtime runs, see ``rig --realtime-priority``
+    (0: normal scheduling)."""
+    result = medians(collect(duration, repeat, realtime_priority=realtime_priority)[FULL])
+    result['loop_realtime_priority'] = realtime_priority
+    print('rig over DDS%s, median of %d: realtime p50 %s us, p99 %s us, missed %s; '
+          'lockstep %s samples/s' % (
+              ' (SCHED_FIFO %d)' % realtime_priority if realtime_priority else '',
+              result['loop_runs'], _fmt(result['loop_latency_p50_us']),
+              _fmt(result['loop_latency_p99_us']), _fmt(result['loop_missed_fraction'], '%.4f'),
+              _fmt(result['lockstep_samples_per_s'], '%.0f')), flush=True)
+    return result
+
+
+def _fmt(value, form='%.0f'):
+    return 'n/a' if value is None else form % value
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    parser.add_argument('--duration', type=float, default=5.0)
+    parser.add_argument('--duration', type=float, default=5.0, help='simulated s per run')
+    parser.add_argument('--repeat', type=int, default=1, help='runs of each kind (medians)')
+    parser.add_argument('--nodes', choices=('full', 'both'), default='both',
+                        help='full: plant+controller+fk only; both: also plant+controller')
+    parser.add_argument('--realtime-priority', type=int, default=0, metavar='P',
+                        help='realtime runs: plant and controller SCHED_FIFO at priority P, '
+                        'fk P-1 (rig --realtime-priority; needs root); default 0: normal '
+                        'scheduling')
+    parser.add_argument('--json', action='store_true',
+                        help='end with one line: JSON of the medians per node set')
     args = parser.parse_args()
-    os.environ['ROS_DOMAIN_ID'] = str(random.randint(150, 230))
-    for nodes in (('plant', 'controller'), ('plant', 'controller', 'fk')):
-        s = run('realtime', args.duration, nodes)
-        if s:
-            lat = s['loop_latency']
-            print('realtime 1 kHz, %-24s latency p50 %.3f ms, p99 %.3f ms, max %.3f ms; '
-                  'missed %d of %d cycles (%.3f %%), late %d'
-                  % ('+'.join(nodes) + ':', lat['p50_ms'], lat['p99_ms'], lat['max_ms'],
-                     s['missed_cycles'], s['samples'], 100.0 * s['missed_cycles'] / s['samples'],
-                     s['late_cycles']))
-        s = run('lockstep', args.duration, nodes)
-        if s:
-            lat = s['loop_latency']
-            print('lockstep,        %-24s %.0f samples/s (round trip p50 %.3f ms, p99 %.3f ms)'
-                  % ('+'.join(nodes) + ':', s['samples'] / s['wall_time_s'], lat['p50_ms'],
-                     lat['p99_ms']))
+    node_sets = (FULL,) if args.nodes == 'full' else (PAIR, FULL)
+    runs = collect(args.duration, args.repeat, node_sets,
+                   realtime_priority=args.realtime_priority)
+    result = {}
+    for nodes in node_sets:
+        m = medians(runs[nodes])
+        result['+'.join(nodes)] = m
+        if args.repeat > 1:
+            print('median of %d, %-22s realtime p50 %s us, p99 %s us, max %s us, missed %s %%; '
+                  'lockstep %s samples/s' % (
+                      m['loop_runs'], '+'.join(nodes) + ':', _fmt(m['loop_latency_p50_us']),
+                      _fmt(m['loop_latency_p99_us']), _fmt(m['loop_latency_max_us']),
+                      _fmt(None if m['loop_missed_fraction'] is None
+                           else 100 * m['loop_missed_fraction'], '%.3f'),
+                      _fmt(m['lockstep_samples_per_s'])))
+    if args.json:
+        print('BENCH_LOOP_JSON ' + json.dumps(result))
 
 
 if __name__ == '__main__':

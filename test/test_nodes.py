@@ -700,6 +700,7 @@ def test_parameter_errors_stop_the_node(ros, tmp_path):
         ('controller', ['--params-file', str(bad_file)], 'kp'),
         ('plant', ['-p', 'clock_mode:=bogus'], 'clock_mode'),
         ('fk', ['-p', 'singularity_threshold:=-5.0'], 'singularity_threshold'),
+        ('controller', ['-p', 'realtime_priority:=100'], 'realtime_priority'),
     ]
     procs = [(ros.spawn([executable(exe), '--ros-args', '-r', '__ns:=/bad%d' % i, *args],
                         name=exe), exe, key) for i, (exe, args, key) in enumerate(cases)]
@@ -712,3 +713,139 @@ def test_parameter_errors_stop_the_node(ros, tmp_path):
         lines = [s for s in err.splitlines() if 'parameter error' in s]
         assert len(lines) == 1 and key in lines[0] and lines[0].startswith(exe + ':'), err
         print('\n%s exit %d: %s' % (exe, rc, lines[0]))
+
+
+# -- 6. the serialized hot-path messages (nodes/wire.py), no DDS ---------------------
+def _joint_state(names, position, velocity, effort, frame_id='base', ns=1_234_567_891):
+    from sensor_msgs.msg import JointState
+    msg = JointState(name=list(names), position=list(position), velocity=list(velocity),
+                     effort=list(effort))
+    msg.header.stamp = to_time(ns)
+    msg.header.frame_id = frame_id
+    return msg
+
+
+def _object_path(msg, gate, want, optional=()):
+    """What the nodes did with a message object: the reference for the fast path."""
+    from stewart63_ros.nodes.common import leg_vector
+    ns = gate.check(msg.header.stamp)
+    values = {f: leg_vector(msg.name, getattr(msg, f), f) for f in want}
+    for f in optional:
+        if len(getattr(msg, f)):
+            values[f] = leg_vector(msg.name, getattr(msg, f), f)
+    return ns, msg.header.frame_id, values
+
+
+def test_serialized_joint_states_read_as_message_objects_do():
+    """Every variant of names, sizes, non-finite numbers and frame ids: the
+    bytes path gives the values, stamp and frame id of the object path, or
+    the same Rejected reason."""
+    import itertools
+
+    from rclpy.serialization import serialize_message
+
+    from stewart63_ros.nodes import wire
+    from stewart63_ros.nodes.common import Rejected, StampGate
+    rng = np.random.default_rng(7)
+    six = rng.normal(size=6)
+    arrays = {'empty': [], 'six': six, 'five': six[:5], 'seven': np.append(six, 1.0),
+              'nan': np.where(np.arange(6) == 2, np.nan, six),
+              'inf': np.where(np.arange(6) == 5, -np.inf, six)}
+    names = {'legs': LEGS, 'none': [], 'reversed': LEGS[::-1], 'unknown': LEGS[:5] + ['leg_7'],
+             'five': LEGS[:5]}
+    uses = [(('position', 'velocity'), ()), (('effort',), ()), (('position',), ('velocity',))]
+    checked = fast = 0
+    for (nk, nm), fields, frame_id, (want, optional) in itertools.product(
+            names.items(), itertools.product(['six', 'empty', 'nan', 'five', 'seven', 'inf'],
+                                             repeat=3),
+            ['', 'base', 'base_link', 'ünï'], uses):
+        msg = _joint_state(nm, *(arrays[f] for f in fields), frame_id=frame_id)
+        data = serialize_message(msg)
+        try:
+            expected = _object_path(msg, StampGate(), want, optional)
+        except Rejected as exc:
+            expected = exc.reason
+        try:
+            ns, sec, nanosec, frame, values = wire.joint_state_sample(data, StampGate(), want,
+                                                                      optional)
+            got = (ns, frame, values)
+            assert (sec, nanosec) == (msg.header.stamp.sec, msg.header.stamp.nanosec)
+        except Rejected as exc:
+            got = exc.reason
+        if isinstance(expected, str):
+            assert got == expected, (nk, fields, want)
+        else:
+            assert not isinstance(got, str), (nk, fields, want, got)
+            assert got[:2] == expected[:2]
+            assert sorted(got[2]) == sorted(expected[2])
+            for key, value in expected[2].items():
+                assert np.array_equal(got[2][key], value) and got[2][key].dtype == float
+        fast += wire.read_joint_state(data, want, optional) is not None
+        checked += 1
+    # the old stamp is rejected on either path, before the fields are looked at
+    gate = StampGate()
+    gate.accept(2_000_000_000)
+    for msg in (_joint_state(LEGS, six, six, []), _joint_state(LEGS, arrays['nan'], six, [])):
+        with pytest.raises(Rejected) as exc:
+            wire.joint_state_sample(serialize_message(msg), gate, ('position', 'velocity'))
+        assert exc.value.reason == 'stamp_from_past'
+    with pytest.raises(Rejected) as exc:
+        wire.joint_state_sample(b'\x00\x01\x00\x00\xff', StampGate(), ('effort',))
+    assert exc.value.reason == 'undecodable'
+    assert fast > 100
+    print('\n%d serialized JointState variants: bytes path == object path (%d on the fast path)'
+          % (checked, fast))
+
+
+def test_message_templates_serialize_like_rclpy():
+    from geometry_msgs.msg import PoseStamped, TwistStamped
+    from rclpy.serialization import deserialize_message, serialize_message
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import JointState
+
+    from stewart63_ros.nodes import wire
+    rng = np.random.default_rng(3)
+    for frame_id in ('', 'base', 'base_link', b'base', 'ünï'):
+        text = frame_id.decode() if isinstance(frame_id, bytes) else frame_id
+        pos, vel = rng.normal(size=6), rng.normal(size=6)
+        data = wire.JointStateTemplates(('position', 'velocity')).get(frame_id).fill(
+            3, 999_999_999, position=pos, velocity=vel)
+        assert deserialize_message(data, JointState) == _joint_state(LEGS, pos, vel, [], text,
+                                                                     3_999_999_999)
+        assert len(data) == _exact_size(data, JointState)
+        effort = rng.normal(size=6)
+        data = wire.JointStateTemplates(('effort',)).get(frame_id).fill(-2, 5, effort=effort)
+        assert deserialize_message(data, JointState) == _joint_state(LEGS, [], [], effort, text,
+                                                                     -2 * 10**9 + 5)
+        assert len(data) == _exact_size(data, JointState)
+    p, q = rng.normal(size=3), rng.normal(size=4)
+    msg = deserialize_message(wire.pose_template('base').fill(1, 2, position=p, orientation=q),
+                              PoseStamped)
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id) == (1, 2, 'base')
+    pp, qq = msg.pose.position, msg.pose.orientation
+    assert [pp.x, pp.y, pp.z] == p.tolist() and [qq.x, qq.y, qq.z, qq.w] == q.tolist()
+    lin, ang = rng.normal(size=3), rng.normal(size=3)
+    msg = deserialize_message(wire.twist_template('odom').fill(4, 5, linear=lin, angular=ang),
+                              TwistStamped)
+    assert msg.header.frame_id == 'odom' and msg.header.stamp.nanosec == 5
+    tl, ta = msg.twist.linear, msg.twist.angular
+    assert [tl.x, tl.y, tl.z] == lin.tolist() and [ta.x, ta.y, ta.z] == ang.tolist()
+    msg = deserialize_message(wire.clock_template().fill(7, 8), Clock)
+    assert (msg.clock.sec, msg.clock.nanosec) == (7, 8)
+    for tpl, msg_type in ((wire.pose_template('base'), PoseStamped),
+                          (wire.twist_template(''), TwistStamped), (wire.clock_template(), Clock)):
+        assert len(tpl.fill(1, 2)) == _exact_size(tpl.fill(1, 2), msg_type)
+
+
+def _exact_size(data, msg_type):
+    """The shortest prefix of ``data`` that still deserializes: the size the
+    middleware puts on the wire (strict readers such as rosbags refuse more)."""
+    from rclpy.serialization import deserialize_message
+    size = len(data)
+    while size > 4:
+        try:
+            deserialize_message(data[:size - 1], msg_type)
+        except Exception:  # noqa: BLE001 - too short
+            return size
+        size -= 1
+    return size

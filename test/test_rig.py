@@ -37,7 +37,7 @@ REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / 'config' / 'stewart63.yaml'
 RATE = 1000.0
 LOCKSTEP_DURATION = 0.5      # simulated s: 501 samples
-REALTIME_DURATION = 2.0      # s: 2001 samples
+REALTIME_DURATION = 3.0      # s: 3001 samples
 #: Bound on a whole rig run (start-up with discovery, the run, the stop).
 RUN_TIMEOUT = 150.0
 MODULES = ('stewart63_ros.nodes.plant', 'stewart63_ros.nodes.controller',
@@ -147,6 +147,8 @@ def test_lockstep_rig_reproduces_offline_sampled_run(ros, monkeypatch, tmp_path,
     # F = Kp dL + Kv dLdot: a length difference of 1e-9 m is 4e-6 N.
     assert df <= 1e-5, 'forces differ from the offline run by %g N' % df
     assert n_truth == n and dp <= 1e-9
+    counts = assert_every_published_message_is_in_the_bag(bag, summary)
+    assert counts['/clock'] == n, counts
 
 
 def quat_angle(q1, q2) -> float:
@@ -212,6 +214,43 @@ def test_realtime_fk_pose_matches_ground_truth(ros, monkeypatch, tmp_path, mech,
                   summary['positioning_error_percent'], min(z), max(z)))
     assert dpos <= 1e-6, 'fk position off the ground truth by %g m %s' % (dpos, context)
     assert drot <= 1e-6, 'fk orientation off the ground truth by %g rad %s' % (drot, context)
+    counts = assert_every_published_message_is_in_the_bag(bag, summary)
+    print('published = recorded, per topic: %s' % counts)
+
+
+def final_published_counts(bag) -> dict:
+    """{(node status name, topic): count} from each node's last /diagnostics
+    status in the bag: what the node says it published, sent at its exit."""
+    last = {}
+    for _, _, msg in bagio.read_messages(bag, ['/diagnostics']):
+        for status in msg.status:
+            last[status.name] = {kv.key[len('published/'):]: int(kv.value)
+                                 for kv in status.values if kv.key.startswith('published/')}
+    return {(name, topic): n for name, counts in last.items() for topic, n in counts.items()
+            if topic != '/diagnostics'}    # a status cannot count itself
+
+
+def assert_every_published_message_is_in_the_bag(bag, summary):
+    """Issue 5: per topic, the publisher's count equals the bag's, in stamp order."""
+    counts = final_published_counts(bag)
+    nodes = {name.rsplit('/', 1)[-1] for name, _ in counts}
+    assert nodes == {'plant', 'controller', 'fk'}, counts
+    topics_of = {}
+    for (name, topic), n in counts.items():
+        topics_of.setdefault(topic, 0)
+        topics_of[topic] += n
+    for topic in ('leg_lengths', 'leg_forces', 'ground_truth/pose', 'ground_truth/twist',
+                  'platform_pose', 'platform_twist'):
+        assert topics_of.get(topic), (topic, counts)
+    assert topics_of['leg_lengths'] == summary['samples']
+    for topic, published in topics_of.items():
+        stamps = [stamp_ns(m) if hasattr(m, 'header') else
+                  int(m.clock.sec) * 1_000_000_000 + int(m.clock.nanosec)
+                  for _, _, m in bagio.read_messages(bag, [topic])]
+        assert len(stamps) == published, '%s: published %d, bag has %d' % (
+            topic, published, len(stamps))
+        assert all(a < b for a, b in zip(stamps, stamps[1:])), '%s out of order' % topic
+    return topics_of
 
 
 def _fmt(value):

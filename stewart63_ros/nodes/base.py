@@ -1,13 +1,15 @@
 """RigNode: the rclpy Node every stewart63 node derives from."""
 from __future__ import annotations
 
+import gc
 import time
 
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from stewart63_ros.core.params import ParameterError, mechanism_from_params
-from stewart63_ros.nodes.common import DirectTake, Health, node_parameters, wait_until
+from stewart63_ros.nodes.common import (DirectTake, Health, node_parameters,
+                                        realtime_scheduling, wait_until)
 
 
 class RigNode(Node):
@@ -17,7 +19,11 @@ class RigNode(Node):
     ``wait_for_subscribers`` (int, 0): before its first message, wait until
     every data publisher of this node has that many matched subscriptions
     (``rig --record`` sets 1 so that the recorder misses nothing);
-    ``discovery_timeout`` (s, 20): the bound on that wait.
+    ``discovery_timeout`` (s, 20): the bound on that wait;
+    ``realtime_priority`` (0..99, 0): when not 0, the node's threads run
+    SCHED_FIFO at that priority (where the OS allows it; a warning and normal
+    scheduling where it does not), so that other work on the machine cannot
+    keep a 1 kHz loop waiting for a CPU for a scheduler slice (3-4 ms).
     """
 
     def __init__(self, name: str):
@@ -28,6 +34,7 @@ class RigNode(Node):
         self.wait_for_subscribers = int(self.param('wait_for_subscribers', 0))
         self.discovery_timeout = self.positive('discovery_timeout', 20.0)
         self.health = Health(self, name)
+        self.realtime_priority = self._realtime_priority()
         self._executor = None       # made on first use: see executor_
         self.data_publishers = []
         self.started = False        # diagnostics wait for the peers, like the data
@@ -54,6 +61,20 @@ class RigNode(Node):
             raise ParameterError(name, 'expected a number, got %r' % self.param(name, default))
         if not value > 0 or value == float('inf'):
             raise ParameterError(name, 'must be a positive finite number, got %r' % value)
+        return value
+
+    def _realtime_priority(self) -> int:
+        value = self.param('realtime_priority', 0)
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 99:
+            raise ParameterError('realtime_priority', 'must be an integer from 0 (normal '
+                                 'scheduling) to 99, got %r' % (value,))
+        if value:
+            refused = realtime_scheduling(value)
+            if refused:
+                self.get_logger().warn('realtime_priority %d refused by the OS (%s): normal '
+                                       'scheduling' % (value, refused))
+                return 0
+            self.get_logger().info('SCHED_FIFO, priority %d' % value)
         return value
 
     # -- start-up -----------------------------------------------------------
@@ -89,19 +110,83 @@ class RigNode(Node):
         self.wait_for_matches()
         self.executor_.spin()
 
-    def run_on(self, subscription, service_period: float = 0.005):
-        """Serve ``subscription`` directly (see DirectTake); the executor gets
-        a turn every ``service_period`` seconds for timers and other topics."""
+    # -- hot loops -----------------------------------------------------------
+    #: s: the longest a node in a hot loop (run_on, the plant's loops) goes
+    #: without an executor turn, for what only the executor serves: parameter
+    #: services and QoS event reports. A turn costs 150-500 us of Python (the
+    #: executor rebuilds its wait set of some 30 entities), so it is kept rare:
+    #: the node's timers are run directly when due, and its other
+    #: subscriptions are taken directly (see housekeeping).
+    EXECUTOR_PERIOD = 0.1
+
+    def start_hot_loop(self, hot) -> DirectTake:
+        """Set up housekeeping around the 1 kHz subscription ``hot``.
+
+        Also takes everything made so far (modules, kernels, middleware
+        objects: hundreds of thousands) out of Python's cyclic garbage
+        collector: a full collection over them stops the process for 20-40 ms
+        at some point of every run, 20-40 missed 1 kHz cycles; what the loop
+        makes is still collected.
+        """
+        gc.collect()
+        gc.freeze()
+        self._side_subs = [s for s in self.subscriptions if s is not hot]
+        self._next_turn = 0.0
+        self._next_executor_turn = 0.0
+        return DirectTake(self, hot)
+
+    def housekeeping(self, now: float, turn_ok: bool = True) -> float:
+        """Between two messages of the hot loop: take what came in on the
+        node's other subscriptions (a microsecond each when nothing did), then,
+        if one is due, either run the due timers or give the executor a turn
+        (one of the two, to keep each call short). ``turn_ok=False`` puts that
+        off (the caller is short of time), by 0.1 s at most. Returns the
+        monotonic time of the next due one: the caller should not block past it.
+        """
+        for sub in self._side_subs:
+            taken = sub.handle.take_message(sub.msg_type, sub.raw)
+            if taken is not None:
+                sub.callback(taken[0])
+        if now < self._next_turn or not (turn_ok or now > self._next_turn + 0.1):
+            return self._next_turn
+        if not self._run_due_timers() and now >= self._next_executor_turn:
+            self.executor_.spin_once(timeout_sec=0)
+            self._next_executor_turn = time.monotonic() + self.EXECUTOR_PERIOD
+        now = time.monotonic()
+        wake = self._next_executor_turn
+        for timer in self.timers:
+            left = timer.time_until_next_call()
+            if left is not None:
+                wake = min(wake, now + max(0.0, left * 1e-9))
+        self._next_turn = wake
+        return wake
+
+    def _run_due_timers(self) -> bool:
+        """Call the node's due timers as the executor would; True if any was."""
+        ran = False
+        for timer in list(self.timers):
+            try:
+                with timer.handle:
+                    if not timer.handle.is_timer_ready():
+                        continue
+                    timer.handle.call_timer_with_info()    # the timer's next period
+            except Exception:  # noqa: BLE001 - destroyed or cancelled meanwhile: skip it
+                continue
+            if timer.callback is not None:
+                timer.callback()
+            ran = True
+        return ran
+
+    def run_on(self, subscription):
+        """Serve ``subscription`` directly (see DirectTake), with housekeeping
+        after every message: a turn of the executor then falls in the time
+        the peer needs to send the next one."""
         import rclpy
         self.wait_for_matches()
-        direct = DirectTake(self, subscription)
-        next_service = 0.0
+        direct = self.start_hot_loop(subscription)
         while rclpy.ok():
-            now = time.monotonic()
-            if now >= next_service:
-                self.executor_.spin_once(timeout_sec=0)
-                next_service = now + service_period
-            direct.poll(service_period)
+            wake = self.housekeeping(time.monotonic())
+            direct.poll(wake - time.monotonic())
 
     def flush(self, timeout: float = 2.0) -> None:
         """Let reliable subscribers (the recorder) receive everything before exiting."""

@@ -26,9 +26,9 @@ from sensor_msgs.msg import JointState
 from stewart63_ros import topics
 from stewart63_ros.core.control import PDController
 from stewart63_ros.core.kinematics import leg_lengths
+from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
-from stewart63_ros.nodes.common import (LEG_NAMES, Rejected, StampGate, finite_vector,
-                                        leg_vector, run)
+from stewart63_ros.nodes.common import Rejected, StampGate, finite_vector, leg_vector, run
 
 
 class ControllerNode(RigNode):
@@ -47,20 +47,24 @@ class ControllerNode(RigNode):
         self.last_sample_wall = None
         self.tripped = False
         self.pub_forces = self.publisher(JointState, topics.LEG_FORCES, topics.STREAM_PUB)
+        self.forces_out = wire.JointStateTemplates(('effort',))
+        self.forces_out.get('base')             # made now, not on the first sample
+        wire.warm_up(('position', 'velocity'))
+        # Serialized samples in, serialized forces out: see nodes/wire.py.
         self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
-                                                    self.on_sample, topics.LATEST_SUB)
+                                                    self.on_sample, topics.LATEST_SUB, raw=True)
         self.create_subscription(JointState, topics.LEG_SETPOINT, self.on_leg_setpoint,
                                  topics.SETPOINT_QOS)
         self.create_subscription(PoseStamped, topics.POSE_SETPOINT, self.on_pose_setpoint,
                                  topics.SETPOINT_QOS)
         self.create_timer(min(self.watchdog_timeout / 2, 0.05), self.watchdog)
 
-    def on_sample(self, msg: JointState):
+    def on_sample(self, data: bytes):
+        """A serialized leg_lengths sample in; its forces out, with its stamp."""
         self.health.received[topics.LEG_LENGTHS] += 1
         try:
-            ns = self.sample_gate.check(msg.header.stamp)
-            lengths = leg_vector(msg.name, msg.position, 'position')
-            rates = leg_vector(msg.name, msg.velocity, 'velocity')
+            ns, sec, nanosec, frame_id, values = wire.joint_state_sample(
+                data, self.sample_gate, ('position', 'velocity'))
         except Rejected as exc:
             self.health.reject(topics.LEG_LENGTHS, exc)
             return
@@ -70,11 +74,8 @@ class ControllerNode(RigNode):
             self.tripped = False
             self.health.fault = ''
             self.get_logger().info('samples are back: control resumed')
-        force = self.law(lengths, rates)
-        out = JointState(name=LEG_NAMES, effort=force.tolist())
-        out.header.stamp = msg.header.stamp
-        out.header.frame_id = msg.header.frame_id
-        self.pub_forces.publish(out)
+        force = self.law(values['position'], values['velocity'])
+        self.pub_forces.publish(self.forces_out.get(frame_id).fill(sec, nanosec, effort=force))
         self.health.published[topics.LEG_FORCES] += 1
 
     def set_setpoint(self, lengths, source):

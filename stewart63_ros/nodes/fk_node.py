@@ -38,8 +38,9 @@ def _node_class():
 
     from stewart63_ros import topics
     from stewart63_ros.core.fk import FKTracker, NoAssemblyError
+    from stewart63_ros.nodes import wire
     from stewart63_ros.nodes.base import RigNode
-    from stewart63_ros.nodes.common import Rejected, StampGate, leg_vector
+    from stewart63_ros.nodes.common import Rejected, StampGate
 
     class FKNode(RigNode):
         def __init__(self, options):
@@ -53,9 +54,16 @@ def _node_class():
             self.pub_pose = self.publisher(PoseStamped, topics.PLATFORM_POSE, topics.STREAM_PUB)
             self.pub_twist = self.publisher(TwistStamped, topics.PLATFORM_TWIST,
                                             topics.STREAM_PUB)
+            self.pose_out = wire.FrameTemplates(wire.pose_template)
+            self.twist_out = wire.FrameTemplates(wire.twist_template)
+            for out in (self.pose_out, self.twist_out):     # made now, not on sample 1
+                out.get('base')
+            wire.warm_up(('position',), ('velocity',))
             # Every sample gets a pose: a short queue rather than newest-only.
+            # Serialized samples in, serialized poses out: see nodes/wire.py.
             self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
-                                                        self.on_sample, topics.EVERY_SUB)
+                                                        self.on_sample, topics.EVERY_SUB,
+                                                        raw=True)
 
         def warm_up(self):
             """Compile / load the solver kernels now, not on the first sample."""
@@ -68,19 +76,18 @@ def _node_class():
             self.tracker.fk.all_modes(lengths)
             self.tracker.reset(mech.initial_position, rotation_from_euler(mech.initial_orientation))
 
-        def on_sample(self, msg):
+        def on_sample(self, data):
             self.health.received[topics.LEG_LENGTHS] += 1
             try:
-                ns = self.gate.check(msg.header.stamp)
-                lengths = leg_vector(msg.name, msg.position, 'position')
-                rates = leg_vector(msg.name, msg.velocity, 'velocity') if len(msg.velocity) \
-                    else None
+                ns, sec, nanosec, frame_id, values = wire.joint_state_sample(
+                    data, self.gate, ('position',), ('velocity',))
             except Rejected as exc:
                 self.health.reject(topics.LEG_LENGTHS, exc)
                 return
             self.gate.accept(ns)
+            rates = values.get('velocity')
             try:
-                result = self.tracker.solve(lengths, rates)
+                result = self.tracker.solve(values['position'], rates)
             except NoAssemblyError as exc:
                 self.no_assembly += 1
                 self.health.reject(topics.LEG_LENGTHS, Rejected('no_assembly', str(exc)))
@@ -90,20 +97,12 @@ def _node_class():
                 self.health.warning = ('near-singular pose (Jacobian condition %.3g): not '
                                        'published' % result.condition)
                 return
-            pose = PoseStamped()
-            pose.header = msg.header
-            p, q = pose.pose.position, pose.pose.orientation
-            p.x, p.y, p.z = (float(v) for v in result.position)
-            q.x, q.y, q.z, q.w = (float(v) for v in result.quaternion)
-            self.pub_pose.publish(pose)
+            self.pub_pose.publish(self.pose_out.get(frame_id).fill(
+                sec, nanosec, position=result.position, orientation=result.quaternion))
             self.health.published[topics.PLATFORM_POSE] += 1
             if rates is not None:
-                twist = TwistStamped()
-                twist.header = msg.header
-                lin, ang = twist.twist.linear, twist.twist.angular
-                lin.x, lin.y, lin.z = (float(v) for v in result.velocity)
-                ang.x, ang.y, ang.z = (float(v) for v in result.omega)
-                self.pub_twist.publish(twist)
+                self.pub_twist.publish(self.twist_out.get(frame_id).fill(
+                    sec, nanosec, linear=result.velocity, angular=result.omega))
                 self.health.published[topics.PLATFORM_TWIST] += 1
 
         def run(self):

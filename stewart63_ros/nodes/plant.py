@@ -1,8 +1,10 @@
 """plant: integrates the platform dynamics and publishes simulated leg sensors.
 
 Every sample period 1/sensor_rate it publishes ``leg_lengths`` (L_i, dL_i/dt),
-``ground_truth/pose`` and ``ground_truth/twist``, and applies the newest
-``leg_forces`` with zero-order hold (plus ``external_wrench``).
+``ground_truth/pose`` and ``ground_truth/twist`` (and /clock in lockstep;
+these three are skipped while nobody subscribes to them: they are VOLATILE,
+so no subscriber can tell), and applies the newest ``leg_forces`` with
+zero-order hold (plus ``external_wrench``).
 
 clock_mode ``lockstep``: simulated time on /clock; sample k+1 is computed only
 once the force answering sample k has arrived (or ``force_timeout`` passed,
@@ -27,9 +29,9 @@ from stewart63_ros import topics
 from stewart63_ros.core.dynamics import OMEGA, POS, QUAT, VEL, Dynamics
 from stewart63_ros.core.params import ParameterError
 from stewart63_ros.core.simulate import initial_state, substeps_for
+from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
-from stewart63_ros.nodes.common import (LEG_NAMES, Rejected, StampGate, finite_vector,
-                                        leg_vector, ros_time, run, stamp_ns, DirectTake)
+from stewart63_ros.nodes.common import Rejected, StampGate, finite_vector, ros_time, run
 
 class SensorModel:
     """Optional linear-sensor imperfections; all off by default.
@@ -87,7 +89,10 @@ class PlantNode(RigNode):
         self.period = 1.0 / self.rate
         self.substeps = substeps_for(self.period)
         self.y = initial_state(self.mech)
-        self.dyn.step(self.y, np.zeros(6), self.period, self.substeps)   # load the kernels now
+        # Load the kernels now: a first call costs milliseconds, a realtime
+        # loop would start that far behind its deadlines.
+        self.dyn.step(self.y, np.zeros(6), self.period, self.substeps)
+        self.dyn.lengths_and_rates(self.y)
         self.k = 0
         self.force = np.zeros(6)
         self.force_ns = None            # stamp of the sample the held force answers
@@ -105,25 +110,32 @@ class PlantNode(RigNode):
         self.pub_twist = self.publisher(TwistStamped, topics.TRUE_TWIST, topics.STREAM_PUB)
         self.pub_clock = (self.publisher(Clock, topics.CLOCK, topics.STREAM_PUB)
                           if self.mode == 'lockstep' else None)
+        # Serialized messages out and forces in: see nodes/wire.py.
+        self.lengths_out = wire.JointStateTemplates(('position', 'velocity')).get('base')
+        self.pose_out = wire.pose_template('base')
+        self.twist_out = wire.twist_template('base')
+        self.clock_out = wire.clock_template()
+        wire.warm_up(('effort',))
         self.sub_forces = self.create_subscription(JointState, topics.LEG_FORCES,
-                                                   self.on_forces, topics.LATEST_SUB)
+                                                   self.on_forces, topics.LATEST_SUB, raw=True)
         self.create_subscription(WrenchStamped, topics.EXTERNAL_WRENCH, self.on_wrench,
                                  topics.LATEST_SUB)
         self.t0_wall = None
         self.t0_mono = None         # realtime: monotonic time of sample 0
         self.t_phys = 0.0           # realtime: simulated time the state is at
-        self.forces_in = DirectTake(self, self.sub_forces)
-        self.next_service = 0.0
+        self.forces_in = None       # DirectTake, made when the loop starts
 
     # -- inputs ---------------------------------------------------------------
-    def on_forces(self, msg: JointState):
+    def on_forces(self, data: bytes):
+        """A serialized leg_forces message: the newest force, from now on."""
+        received = time.perf_counter()      # the loop latency ends here, at the take
         self.health.received[topics.LEG_FORCES] += 1
         try:
-            ns = self.force_gate.check(msg.header.stamp)
-            force = leg_vector(msg.name, msg.effort, 'effort')
+            ns, _, _, _, values = wire.joint_state_sample(data, self.force_gate, ('effort',))
         except Rejected as exc:
             self.health.reject(topics.LEG_FORCES, exc)
             return
+        force = values['effort']
         self.force_gate.accept(ns)
         if self.t0_mono is not None:
             # Realtime: the old force acted until now; the new one from now on.
@@ -131,7 +143,7 @@ class PlantNode(RigNode):
         self.force, self.force_ns = force, ns
         sent = self.sent_wall.pop(ns, None)
         if sent is not None:
-            self.health.latency.add(time.perf_counter() - sent)
+            self.health.latency.add(received - sent)
 
     def on_wrench(self, msg: WrenchStamped):
         self.health.received[topics.EXTERNAL_WRENCH] += 1
@@ -154,43 +166,39 @@ class PlantNode(RigNode):
         return base + k * self.period
 
     def publish_sample(self):
-        t = self.sample_time(self.k)
-        stamp = ros_time(t)
+        ns = int(round(self.sample_time(self.k) * 1e9))
+        sec, nanosec = divmod(ns, 1_000_000_000)
         lengths, rates = self.dyn.lengths_and_rates(self.y)
-        if np.any(lengths < self.mech.leg_length_min) or np.any(lengths > self.mech.leg_length_max):
+        if lengths.min() < self.mech.leg_length_min or lengths.max() > self.mech.leg_length_max:
             self.endstop_samples += 1
             self.health.warning = 'a leg is at an end stop (%d samples so far)' % self.endstop_samples
         lengths, rates = self.sensor.measure(lengths, rates)
-        msg = JointState(name=LEG_NAMES, position=lengths.tolist(), velocity=rates.tolist())
-        msg.header.stamp = stamp
-        msg.header.frame_id = 'base'
-        self.sent_wall[stamp_ns(stamp)] = time.perf_counter()
+        data = self.lengths_out.fill(sec, nanosec, position=lengths, velocity=rates)
+        self.sent_wall[ns] = time.perf_counter()
         if len(self.sent_wall) > 1000:   # answers that never came
             self.sent_wall.pop(next(iter(self.sent_wall)))
-        self.pub_lengths.publish(msg)
+        self.pub_lengths.publish(data)
         # The rest goes out while the controller works on the sample.
-        if self.pub_clock is not None:
-            self.pub_clock.publish(Clock(clock=stamp))
-        self.publish_truth(stamp)
+        if self.pub_clock is not None and self.pub_clock.get_subscription_count():
+            self.pub_clock.publish(self.clock_out.fill(sec, nanosec))
+            self.health.published[topics.CLOCK] += 1
+        self.publish_truth(sec, nanosec)
         self.health.published[topics.LEG_LENGTHS] += 1
-        return stamp_ns(stamp)
+        return ns
 
-    def publish_truth(self, stamp):
+    def publish_truth(self, sec, nanosec):
+        """ground_truth pose and twist, to whoever listens (the topics are
+        VOLATILE: with no subscriber matched there is nobody to send them to)."""
         y = self.y
-        pose = PoseStamped()
-        pose.header.stamp = stamp
-        pose.header.frame_id = 'base'
-        p, q = pose.pose.position, pose.pose.orientation
-        p.x, p.y, p.z = (float(v) for v in y[POS])
-        quat = y[QUAT] / np.linalg.norm(y[QUAT])
-        q.x, q.y, q.z, q.w = (float(v) for v in quat)
-        twist = TwistStamped()
-        twist.header = pose.header
-        lin, ang = twist.twist.linear, twist.twist.angular
-        lin.x, lin.y, lin.z = (float(v) for v in y[VEL])
-        ang.x, ang.y, ang.z = (float(v) for v in y[OMEGA])
-        self.pub_pose.publish(pose)
-        self.pub_twist.publish(twist)
+        if self.pub_pose.get_subscription_count():
+            quat = y[QUAT] / np.sqrt(y[QUAT] @ y[QUAT])
+            self.pub_pose.publish(self.pose_out.fill(sec, nanosec, position=y[POS],
+                                                     orientation=quat))
+            self.health.published[topics.TRUE_POSE] += 1
+        if self.pub_twist.get_subscription_count():
+            self.pub_twist.publish(self.twist_out.fill(sec, nanosec, linear=y[VEL],
+                                                       angular=y[OMEGA]))
+            self.health.published[topics.TRUE_TWIST] += 1
 
     def step(self):
         """Lockstep: one sample period with the force answering this sample."""
@@ -220,6 +228,7 @@ class PlantNode(RigNode):
         self.wait_for_matches(lambda: (
             self.sub_forces.get_publisher_count() >= need_forces
             and self.pub_lengths.get_subscription_count() >= self.lengths_subscribers))
+        self.forces_in = self.start_hot_loop(self.sub_forces)
         self.t0_wall = time.time()
         n_samples = int(round(self.duration * self.rate)) if self.duration > 0 else None
         self.get_logger().info('%s at %g Hz%s' % (
@@ -231,20 +240,23 @@ class PlantNode(RigNode):
         self.write_summary()
         return 0
 
-    def wait_for_answer(self, ns, timeout, until=None) -> bool:
+    def wait_for_answer(self, ns, timeout, until=None, housekeeping=True) -> bool:
         """Take leg_forces until the answer to sample ``ns`` is in, or time is up.
 
-        The executor (timers, external_wrench) gets a turn every few ms.
+        With ``housekeeping``, the node's other topics and the executor (timers,
+        parameter services) are served first, while the controller works.
         """
         deadline = time.monotonic() + timeout if until is None else until
         while self.force_ns != ns:
             now = time.monotonic()
             if now >= deadline:
                 return False
-            if now >= self.next_service:
-                self.executor_.spin_once(timeout_sec=0)
-                self.next_service = now + 0.005
-            self.forces_in.poll(min(deadline - now, 0.005))
+            wake = deadline
+            if housekeeping:
+                wake = min(wake, self.housekeeping(now))
+                if self.force_ns == ns:     # an executor turn may have taken it
+                    break
+            self.forces_in.poll(wake - time.monotonic())
         return True
 
     def run_lockstep(self, n_samples):
@@ -280,8 +292,11 @@ class PlantNode(RigNode):
                 self.wait_for_answer(ns, 0.1)
                 return
             deadline = self.t0_mono + (self.k + 1) * self.period
-            # Sleep in the wait set until the next deadline, taking forces.
-            answered = self.wait_for_answer(ns, 0.0, until=deadline)
+            # Sleep in the wait set until the answer, taking forces; serve the
+            # rest once it is in (an executor turn only with time to spare).
+            answered = self.wait_for_answer(ns, 0.0, until=deadline, housekeeping=False)
+            now = time.monotonic()
+            self.housekeeping(now, turn_ok=deadline - now > 0.6 * self.period)
             while time.monotonic() < deadline:
                 self.forces_in.poll(deadline - time.monotonic())
             # A loop running behind its deadlines waits for nothing above:

@@ -1,7 +1,7 @@
 """`rig`: plant, controller and fk (and `record`) as separate processes over DDS.
 
     rig [--params FILE] [--mode realtime|lockstep] [--duration S] [--record DIR]
-        [--namespace NS]
+        [--namespace NS] [--realtime-priority P]
 
 One parameter file and one namespace for all. Every node waits until its
 peers are matched before the first sample, so a short run loses nothing at
@@ -36,7 +36,7 @@ class Rig:
     """The processes of one rig; ``start()``, ``wait()``, ``stop()``."""
 
     def __init__(self, params, mode='lockstep', duration=None, record=None, namespace='',
-                 log_dir=None, extra_params=None, nodes=NODES):
+                 log_dir=None, extra_params=None, nodes=NODES, realtime_priority=0):
         self.params = str(params)
         self.mode = mode
         self.duration = duration
@@ -47,6 +47,9 @@ class Rig:
         self.summary_file = self.log_dir / 'plant_summary.json'
         self.extra_params = dict(extra_params or {})
         self.nodes = tuple(nodes)
+        #: SCHED_FIFO priority for the plant and the controller (fk one
+        #: below), 0: normal scheduling. See RigNode.
+        self.realtime_priority = int(realtime_priority)
         self.procs: dict[str, subprocess.Popen] = {}
 
     def overlay(self) -> Path:
@@ -59,6 +62,15 @@ class Rig:
         if self.duration:
             plant['duration'] = float(self.duration)
         doc = {'/**': {'ros__parameters': shared}, '/**/plant': {'ros__parameters': plant}}
+        if self.realtime_priority:
+            # fk one below: it shares the middleware's shared-memory ports
+            # with the loop, and a preempted holder of a port lock would
+            # stall the plant (measured: 3 ms publishes with fk left out).
+            plant['realtime_priority'] = self.realtime_priority
+            doc['/**/controller'] = {'ros__parameters': dict(
+                shared, realtime_priority=self.realtime_priority)}
+            doc['/**/fk'] = {'ros__parameters': dict(
+                shared, realtime_priority=max(1, self.realtime_priority - 1))}
         for node, values in self.extra_params.items():
             section = doc.setdefault('/**/%s' % node, {'ros__parameters': dict(shared)})
             section['ros__parameters'].update(values)
@@ -193,6 +205,11 @@ def main(argv=None) -> int:
     parser.add_argument('--record', metavar='DIR', help='record every topic into a new bag DIR')
     parser.add_argument('--namespace', default='', help='namespace of this rig, e.g. /rig2')
     parser.add_argument('--log-dir', help='where node logs go (default: a temp directory)')
+    parser.add_argument('--realtime-priority', type=int, default=0, metavar='P',
+                        help='run plant and controller SCHED_FIFO at priority P (1-99), fk '
+                        'at P-1 (needs root or CAP_SYS_NICE, else a warning): keeps other '
+                        'work on the machine from delaying the loop (default 0: normal '
+                        'scheduling)')
     args = parser.parse_args(argv)
     params = args.params or str(default_params_path())
     try:
@@ -206,7 +223,10 @@ def main(argv=None) -> int:
         print('rig: error: %s exists; record writes a new bag' % args.record, file=sys.stderr)
         return 2
 
-    rig = Rig(params, args.mode, args.duration, args.record, args.namespace, args.log_dir)
+    if not 0 <= args.realtime_priority <= 99:
+        parser.error('--realtime-priority must be from 0 to 99')
+    rig = Rig(params, args.mode, args.duration, args.record, args.namespace, args.log_dir,
+              realtime_priority=args.realtime_priority)
     stopping = []
 
     def on_sigterm(*_):
