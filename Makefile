@@ -49,9 +49,9 @@ demo: $(KERNELS)
 test: $(KERNELS)
 	STEWART63_REQUIRE_MUJOCO=1 $(BIN)/python -m pytest -q test
 
+# Every figure, medians of repeated runs, into bench/results.json (README, Performance).
 bench: $(KERNELS)
-	$(BIN)/python bench/bench_core.py
-	for b in bench/bench_fk.py bench/bench_loop.py bench/bench_bags.py; do [ -f $$b ] && $(BIN)/python $$b; done; true
+	$(BIN)/python bench/bench_all.py
 
 clean:
 	rm -rf $(VENV) build install log out *.egg-info

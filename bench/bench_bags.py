@@ -97,7 +97,7 @@ def play_timing(rt: RosTest, bag: Path, seconds_max: float) -> dict:
             'p99': np.percentile(a, 99), 'max': a.max(), 'duration': duration}
 
 
-def measure(rates=(1000, 2000, 4000), seconds: float = 3.0, repeat: int = 3,
+def measure(rates=(1000, 2000, 4000, 8000), seconds: float = 3.0, repeat: int = 3,
             verbose: bool = True) -> dict:
     """{'record_msgs_per_s'}: the highest rate (all four stream topics) that
     ``record`` took with nothing lost, median over ``repeat`` sweeps of ``rates``

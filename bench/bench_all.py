@@ -1,0 +1,150 @@
+"""`make bench`: every speed figure of the rig in one run, next to MuJoCo's.
+
+Prints a table and writes bench/results.json. Each figure is a median over
+repeated runs taken by this one command; the machine's name, CPU and core
+count go with them. Figures, never assertions: a slow machine is not a bug.
+
+Run: .venv/bin/python bench/bench_all.py [--quick] [--out bench/results.json]
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+import bench_bags  # noqa: E402
+import bench_core  # noqa: E402
+import bench_fk  # noqa: E402
+import bench_loop  # noqa: E402
+import bench_mujoco  # noqa: E402
+
+#: key -> (unit, target on this machine, "<" or ">", what it is)
+FIGURES = {
+    'dynamics_eval_us': ('us', None, '<', 'one dynamics evaluation, eq. (38) assembled and solved'),
+    'sim_paper_10s_s': ('s', 0.01, '<', "paper's 10 s scenario, our core (>= 1000x real time)"),
+    'mujoco_paper_10s_s': ('s', None, '<', 'the same in MuJoCo, at the step it needs for 1e-6 m'),
+    'fk_track_us': ('us', 20.0, '<', 'FK tracking solve, pose + twist (fk node)'),
+    'fk_all_modes_us': ('us', 1000.0, '<', 'FK, every assembly mode'),
+    'loop_latency_p50_us': ('us', 1000.0, '<', 'realtime 1 kHz rig: sample stamp -> force received'),
+    'loop_latency_p99_us': ('us', 1000.0, '<', '  the same, 99th percentile'),
+    'loop_missed_fraction': ('', 0.001, '<', '  cycles whose force came after the next sample'),
+    'lockstep_samples_per_s': ('1/s', 5000.0, '>', 'lockstep rig throughput'),
+    'machine_wake_late_fraction': ('', None, '<', '1 kHz sleep loop alone: wake-ups > 0.5 ms late'),
+    'record_msgs_per_s': ('1/s', None, '>', 'recording throughput with nothing lost'),
+}
+
+
+def machine() -> dict:
+    cpu = platform.processor()
+    try:
+        for line in Path('/proc/cpuinfo').read_text().splitlines():
+            if line.startswith('model name'):
+                cpu = line.split(':', 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {'name': platform.node(), 'cpu': cpu, 'cores': os.cpu_count(),
+            'python': platform.python_version(), 'system': platform.platform()}
+
+
+def wake_jitter(seconds: float = 5.0, late_us: float = 500.0) -> dict:
+    """The machine's own floor for a 1 kHz loop: one process that only sleeps
+    to each millisecond deadline (a cyclictest in Python). A rig cycle needs
+    three such wake-ups (plant, controller, plant), so the rig's missed
+    fraction cannot go below what this shows."""
+    import numpy as np
+    n, period = int(seconds * 1000), 1e-3
+    late = np.empty(n)
+    start = time.monotonic()
+    for k in range(n):
+        deadline = start + (k + 1) * period
+        while True:
+            now = time.monotonic()
+            if now >= deadline:
+                break
+            ahead = deadline - now
+            time.sleep(ahead - 50e-6 if ahead > 60e-6 else 0)
+        late[k] = time.monotonic() - deadline
+    out = {'machine_wake_late_fraction': float(np.mean(late > late_us * 1e-6)),
+           'machine_wake_p999_us': float(np.percentile(late, 99.9) * 1e6)}
+    print('1 kHz sleep loop, nothing else running: wake-up lateness p50 %.0f us, p99 %.0f us, '
+          'p99.9 %.0f us, max %.0f us; %.3f %% later than %.0f us'
+          % (np.percentile(late, 50) * 1e6, np.percentile(late, 99) * 1e6,
+             out['machine_wake_p999_us'], late.max() * 1e6,
+             100 * out['machine_wake_late_fraction'], late_us), flush=True)
+    return out
+
+
+def verdict(key, value) -> str:
+    _, target, sense, _ = FIGURES[key]
+    if target is None or value is None:
+        return ''
+    ok = value < target if sense == '<' else value > target
+    return '%s target %s %g' % ('meets' if ok else 'MISSES', sense, target)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--quick', action='store_true',
+                        help='fewer repeats and shorter runs (a smoke test of the script)')
+    parser.add_argument('--out', default=str(HERE / 'results.json'))
+    args = parser.parse_args(argv)
+    repeat = 2 if args.quick else 5
+    host = machine()
+    print('machine %s: %s, %d cores, Python %s' % (host['name'], host['cpu'], host['cores'],
+                                                  host['python']), flush=True)
+    started = time.time()
+    results: dict = {}
+    sections = [
+        ('physics core', lambda: bench_core.measure(repeat=repeat)),
+        ('MuJoCo side by side', lambda: bench_mujoco.measure(repeat=repeat)),
+        ('forward kinematics', lambda: bench_fk.measure(count=2000 if args.quick else 5000)),
+        ('machine floor: 1 kHz wake-up jitter', lambda: wake_jitter(2.0 if args.quick else 5.0)),
+        ('rig over DDS', lambda: bench_loop.measure(duration=2.0 if args.quick else 5.0,
+                                                     repeat=1 if args.quick else 3)),
+        ('rig over DDS, plant and controller SCHED_FIFO 10 (root only)',
+         lambda: {'rt_priority_' + k: v for k, v in bench_loop.measure(
+             duration=2.0 if args.quick else 5.0, repeat=1 if args.quick else 3,
+             realtime_priority=10).items() if k.startswith('loop_')}
+         if os.geteuid() == 0 else {}),
+        ('recording', lambda: bench_bags.measure(seconds=2.0 if args.quick else 3.0,
+                                                 repeat=1 if args.quick else 3)),
+    ]
+    for title, run in sections:
+        print('\n== %s' % title, flush=True)
+        try:
+            results.update(run())
+        except Exception as exc:  # one failed section must not hide the others
+            print('%s failed: %s: %s' % (title, type(exc).__name__, exc), flush=True)
+
+    print('\n%-24s %14s  %-8s %s' % ('figure', 'median', '', 'what'))
+    for key, (unit, _, _, what) in FIGURES.items():
+        value = results.get(key)
+        shown = 'n/a' if value is None else ('%.4g' % value)
+        print('%-24s %14s %-4s %-60s %s' % (key, shown, unit, what, verdict(key, value)))
+    if results.get('sim_paper_10s_s') and results.get('mujoco_paper_10s_s'):
+        print('our core is %.1fx faster than MuJoCo at <= 1e-6 m on the paper scenario'
+              % (results['mujoco_paper_10s_s'] / results['sim_paper_10s_s']))
+    if 'rt_priority_loop_missed_fraction' in results:
+        print('with realtime_priority 10: p99 %.0f us, missed fraction %.4f'
+              % (results['rt_priority_loop_latency_p99_us'],
+                 results['rt_priority_loop_missed_fraction']))
+    out = {'machine': host, 'date': datetime.datetime.now().isoformat(timespec='seconds'),
+           'repeats': repeat, 'quick': args.quick, 'wall_s': round(time.time() - started, 1),
+           **results}
+    Path(args.out).write_text(json.dumps(out, indent=1) + '\n')
+    print('written: %s' % args.out)
+    missing = [k for k in FIGURES if k not in results]
+    return 1 if missing else 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
