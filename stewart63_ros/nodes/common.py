@@ -341,11 +341,15 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
         code = 0
     finally:
         if node is not None:
+            started = time.monotonic()
             try:
                 node.close()
             except Exception:  # noqa: BLE001 - shutting down anyway
                 pass
             node.destroy_node()
+            # In the node's log, so that a slow stop shows where it went.
+            print('%s: stopped (exit %d, close took %.2f s)'
+                  % (prog, code, time.monotonic() - started), flush=True)
         if rclpy.ok():
             rclpy.shutdown()
     return code

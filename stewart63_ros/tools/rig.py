@@ -168,25 +168,20 @@ class Rig:
         interrupted = set()
         order = [n for n in ('plant', 'controller', 'fk') if n in self.procs] + (
             ['record'] if 'record' in self.procs else [])
+        # The nodes together, then the recorder; each group on one deadline,
+        # so stopping takes at most grace + 3 s a group, however many hang.
         for group in ([n for n in order if n != 'record'], ['record']):
-            for name in group:
-                proc = self.procs.get(name)
-                if proc is not None and proc.poll() is None:
+            procs = [self.procs[n] for n in group if n in self.procs]
+            for name, proc in zip(group, procs):
+                if proc.poll() is None:
                     proc.send_signal(signal.SIGINT)
                     interrupted.add(name)
-            for name in group:
-                proc = self.procs.get(name)
-                if proc is None:
-                    continue
-                try:
-                    proc.wait(grace)
-                except subprocess.TimeoutExpired:
-                    proc.terminate()
-                    try:
-                        proc.wait(3)
-                    except subprocess.TimeoutExpired:
-                        proc.kill()
-                        proc.wait()
+            for escalate, timeout in ((None, grace), (subprocess.Popen.terminate, 3.0),
+                                      (subprocess.Popen.kill, None)):
+                for proc in procs:
+                    if escalate is not None and proc.poll() is None:
+                        escalate(proc)
+                _wait_all(procs, timeout)
         return {n: 0 if n in interrupted and p.returncode == -signal.SIGINT else p.returncode
                 for n, p in self.procs.items()}
 
@@ -195,6 +190,16 @@ class Rig:
             return json.loads(self.summary_file.read_text())
         except (OSError, ValueError):
             return None
+
+
+def _wait_all(procs, timeout):
+    """Wait for every process until one common deadline (None: for ever)."""
+    deadline = None if timeout is None else time.monotonic() + timeout
+    for proc in procs:
+        try:
+            proc.wait(None if deadline is None else max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            pass
 
 
 def main(argv=None) -> int:
