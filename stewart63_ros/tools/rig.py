@@ -239,6 +239,9 @@ def main(argv=None) -> int:
         stopping.append('SIGTERM')
         raise KeyboardInterrupt
     signal.signal(signal.SIGTERM, on_sigterm)
+    # Explicitly: a rig started as a background job of a script inherits
+    # SIGINT ignored, and `kill -INT` must stop it all the same.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     ok = False
     start = time.monotonic()
     try:
