@@ -125,6 +125,19 @@ def _leg(rot, pos, vel, omega, base, plat, i):
 
 # -- eq. (38) -------------------------------------------------------------------------------
 @njit_kernel
+def _add_offset_coupling(out, k, x, y, z):
+    """Add k [r]x to J's moment-force block (lower left: rows 3-5, columns
+    0-2): the coupling of a mass k at offset r = (x, y, z) from the platform
+    origin (a leg's share at its vertex, or the platform's own COM)."""
+    out[_J + 4, 0] += k * z
+    out[_J + 5, 0] -= k * y
+    out[_J + 3, 1] -= k * z
+    out[_J + 5, 1] += k * x
+    out[_J + 3, 2] += k * y
+    out[_J + 4, 2] -= k * x
+
+
+@njit_kernel
 def _platform_inertia(rot, ib, mass, cx, cy, cz):
     """Lower triangle (xx, yx, yy, zx, zy, zz) of the platform inertia about its
     origin in the base frame, I_o = R I_body R^T + m (|c|^2 1 - c c^T)."""
@@ -211,12 +224,7 @@ def _terms_into(const, base, plat, inertia_body, rot, pos, vel, omega, out):
             out[_J + 3 + a, 3 + a] += c * qq
             for b in range(a + 1):
                 out[_J + 3 + a, 3 + b] -= c * qv[a] * qv[b]
-        out[_J + 4, 0] += c * qz
-        out[_J + 5, 0] -= c * qy
-        out[_J + 3, 1] -= c * qz
-        out[_J + 5, 1] += c * qx
-        out[_J + 3, 2] += c * qy
-        out[_J + 4, 2] -= c * qx
+        _add_offset_coupling(out, c, qx, qy, qz)
         out[_L, i] = L
         out[_LDOT, i] = Ldot
     # Rigid platform about its origin: COM offset c = R c_body, parallel-axis
@@ -234,12 +242,7 @@ def _terms_into(const, base, plat, inertia_body, rot, pos, vel, omega, out):
     out[_J + 5, 5] += izz
     for a in range(3):
         out[_J + a, a] += mass
-    out[_J + 4, 0] += mass * cz
-    out[_J + 5, 0] -= mass * cy
-    out[_J + 3, 1] -= mass * cz
-    out[_J + 5, 1] += mass * cx
-    out[_J + 3, 2] += mass * cy
-    out[_J + 4, 2] -= mass * cx
+    _add_offset_coupling(out, mass, cx, cy, cz)
     for a in range(6):
         for b in range(a):
             out[_J + b, a] = out[_J + a, b]
