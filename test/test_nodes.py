@@ -799,7 +799,7 @@ def test_serialized_joint_states_read_as_message_objects_do():
 
 def test_message_templates_serialize_like_rclpy():
     from geometry_msgs.msg import PoseStamped, TwistStamped
-    from rclpy.serialization import deserialize_message, serialize_message
+    from rclpy.serialization import deserialize_message
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import JointState
 
