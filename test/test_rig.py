@@ -151,6 +151,52 @@ def test_lockstep_rig_reproduces_offline_sampled_run(ros, monkeypatch, tmp_path,
     assert counts['/clock'] == n, counts
 
 
+def test_played_leg_lengths_into_a_fresh_fk_reproduce_the_recorded_truth(
+        ros, monkeypatch, tmp_path, mech, warm_kernels):
+    """Issue 5: `play BAG --topics leg_lengths` stands in for the plant; a new
+    fk process turns the recorded samples back into the recorded ground truth."""
+    from geometry_msgs.msg import PoseStamped
+
+    from stewart63_ros import topics as T
+    bag, summary, _, _ = run_rig(ros, monkeypatch, tmp_path, 'lockstep', LOCKSTEP_DURATION)
+    truth, n_truth = by_stamp(bag, 'ground_truth/pose')
+    assert n_truth == summary['samples']
+
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import TwistStamped
+    got = {}
+    probe = ros.node('probe')
+    probe.create_subscription(PoseStamped, '/replay/platform_pose',
+                              lambda m: got.__setitem__(stamp_ns(m), m), T.RECORD_SUB)
+    probe.create_subscription(TwistStamped, '/replay/platform_twist', lambda m: None,
+                              T.RECORD_SUB)
+    probe.create_subscription(DiagnosticArray, '/diagnostics', lambda m: None,
+                              T.DIAGNOSTICS_QOS)
+    # fk starts taking samples only once its publishers have matched the probe,
+    # and play starts only then: nothing is published before anyone listens.
+    fk = ros.spawn([PYTHON, '-m', 'stewart63_ros.nodes.fk_node', '--ros-args',
+                    '--params-file', str(PARAMS), '-r', '__ns:=/replay',
+                    '-p', 'wait_for_subscribers:=1'], name='fk')
+    assert ros.spin_until(lambda: 'matched after' in fk.stderr(), 60), fk.describe()
+    play = ros.spawn([PYTHON, '-m', 'stewart63_ros.tools.play', str(bag), '--topics',
+                      'leg_lengths', '--namespace', '/replay'], name='play')
+    ros.spin_until(lambda: len(got) >= n_truth, 60)
+    assert play.wait(30) == 0, play.describe()
+    ros.spin_until(lambda: len(got) >= n_truth, 5)
+    assert sorted(got) == sorted(truth), (len(got), n_truth, fk.describe())
+    dpos = drot = 0.0
+    for s, msg in got.items():
+        t, f = truth[s].pose, msg.pose
+        dpos = max(dpos, max(abs(f.position.x - t.position.x), abs(f.position.y - t.position.y),
+                             abs(f.position.z - t.position.z)))
+        drot = max(drot, quat_angle(
+            [t.orientation.x, t.orientation.y, t.orientation.z, t.orientation.w],
+            [f.orientation.x, f.orientation.y, f.orientation.z, f.orientation.w]))
+    print('\nplay -> fresh fk: %d poses, max |dt| %.3g m, max angle %.3g rad vs recorded truth'
+          % (len(got), dpos, drot))
+    assert dpos <= 1e-6 and drot <= 1e-6, (dpos, drot)
+
+
 def quat_angle(q1, q2) -> float:
     """Angle [rad] of the rotation between two unit quaternions (x, y, z, w),
     accurate near zero (atan2 of the relative rotation's parts)."""
