@@ -21,7 +21,7 @@ from stewart63_ros.core import dopri
 from stewart63_ros.core._jit import njit
 from stewart63_ros.core.control import PDController, _pd
 from stewart63_ros.core.dynamics import (_NO_WRENCH, OMEGA, POS, QUAT, STATE_SIZE, VEL, Dynamics,
-                                         _derivative_pd, _lengths_rates, _rk4, _rotation)
+                                         _derivative_pd, _lengths_rates, _rk4)
 from stewart63_ros.core.rotation import (euler_from_quaternion, euler_rate_matrix,
                                          quaternion_from_euler)
 
@@ -114,35 +114,14 @@ def _sampled_pd(const, base, plat, inertia_body, y0, wrench, setpoint, kp, kv, m
 
 @njit
 def _pd_samples(base, plat, states, setpoint, kp, kv, max_force, lmin, lmax):
-    """Per output sample: L, dL/dt, the PD forces of eq. (40), samples outside the stroke.
-
-    L and dL/dt in scalar form, as ``dynamics._terms`` computes them inside the
-    right-hand side (eqs. 1, 3-5, 13), the same arithmetic as ``sensor_reading``."""
+    """Per output sample: the PD forces of eq. (40) from L, dL/dt (the sensors'
+    ``_lengths_rates``), and how many samples had a leg outside the stroke."""
     n = states.shape[0]
     forces = np.empty((n, 6))
-    lengths = np.empty(6)
-    rates = np.empty(6)
     contact = 0
     for k in range(n):
-        y = states[k]
-        rot = _rotation(y[3:7])
-        wx, wy, wz = y[10], y[11], y[12]
-        outside = False
-        for i in range(6):
-            px, py, pz = plat[i, 0], plat[i, 1], plat[i, 2]
-            qx = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2] * pz
-            qy = rot[1, 0] * px + rot[1, 1] * py + rot[1, 2] * pz
-            qz = rot[2, 0] * px + rot[2, 1] * py + rot[2, 2] * pz
-            Sx, Sy, Sz = qx + y[0] - base[i, 0], qy + y[1] - base[i, 1], qz + y[2] - base[i, 2]
-            L = np.sqrt(Sx * Sx + Sy * Sy + Sz * Sz)
-            dx = wy * qz - wz * qy + y[7]
-            dy = wz * qx - wx * qz + y[8]
-            dz = wx * qy - wy * qx + y[9]
-            lengths[i] = L
-            rates[i] = (Sx / L) * dx + (Sy / L) * dy + (Sz / L) * dz
-            if L < lmin or L > lmax:
-                outside = True
-        if outside:
+        lengths, rates = _lengths_rates(base, plat, states[k])
+        if _outside(lengths, lmin, lmax):
             contact += 1
         forces[k] = _pd(lengths, rates, setpoint, kp, kv, max_force)
     return forces, contact

@@ -86,27 +86,39 @@ def _sentinel(i: int, j: int) -> float:
     return -1.234567890123e-300 * (1 + i * 16 + j)
 
 
-class JointStateTemplates:
-    """Serialized JointState (names leg_1..leg_6) per frame_id, for one set of fields."""
+class FrameTemplates:
+    """A template per frame_id (str or UTF-8 bytes) made by ``make(frame_id_str)``."""
 
-    def __init__(self, fields=('position', 'velocity')):
-        self.fields = tuple(fields)
+    def __init__(self, make):
+        self.make = make
         self._by_frame = {}
 
     def get(self, frame_id) -> Template:
-        """``frame_id`` as str or as its UTF-8 bytes."""
         tpl = self._by_frame.get(frame_id)
         if tpl is None:
-            from sensor_msgs.msg import JointState
             text = frame_id.decode('utf-8') if isinstance(frame_id, bytes) else frame_id
-            msg = JointState(name=list(LEG_NAMES))
-            msg.header.frame_id = text
-            tpl = Template(msg, {f: _setter(f) for f in self.fields},
-                           {f: 6 for f in self.fields}, end=joint_state_end)
+            tpl = self.make(text)
             if len(self._by_frame) > 16:     # frame ids are few; never grow without bound
                 self._by_frame.clear()
             self._by_frame[frame_id] = tpl
         return tpl
+
+
+def joint_state_template(frame_id: str = 'base', fields=('position', 'velocity')) -> Template:
+    """JointState with names leg_1..leg_6 and the six-number ``fields``."""
+    from sensor_msgs.msg import JointState
+    msg = JointState(name=list(LEG_NAMES))
+    msg.header.frame_id = frame_id
+    return Template(msg, {f: _setter(f) for f in fields}, {f: 6 for f in fields},
+                    end=joint_state_end)
+
+
+class JointStateTemplates(FrameTemplates):
+    """Serialized JointState (names leg_1..leg_6) per frame_id, for one set of fields."""
+
+    def __init__(self, fields=('position', 'velocity')):
+        fields = tuple(fields)
+        super().__init__(lambda frame_id: joint_state_template(frame_id, fields))
 
 
 def _setter(field):
@@ -148,24 +160,6 @@ def twist_template(frame_id: str = 'base') -> Template:
 def clock_template() -> Template:
     from rosgraph_msgs.msg import Clock
     return Template(Clock(), {}, {})
-
-
-class FrameTemplates:
-    """A template per frame_id (str or UTF-8 bytes) made by ``make(frame_id_str)``."""
-
-    def __init__(self, make):
-        self.make = make
-        self._by_frame = {}
-
-    def get(self, frame_id) -> Template:
-        tpl = self._by_frame.get(frame_id)
-        if tpl is None:
-            text = frame_id.decode('utf-8') if isinstance(frame_id, bytes) else frame_id
-            tpl = self.make(text)
-            if len(self._by_frame) > 16:
-                self._by_frame.clear()
-            self._by_frame[frame_id] = tpl
-        return tpl
 
 
 # -- reading -------------------------------------------------------------------
