@@ -14,11 +14,11 @@ unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE
 ROS_WHEELS := ros-rclpy ros-rmw-fastrtps-cpp ros-std-msgs ros-geometry-msgs \
               ros-sensor-msgs ros-diagnostic-msgs ros-rosgraph-msgs ros-builtin-interfaces
 PY_DEPS    := numpy scipy numba matplotlib pyyaml rosbags mcap mcap-ros2-support
-TEST_DEPS  := pytest colcon-core colcon-ros colcon-package-information
+TEST_DEPS  := pytest ruff colcon-core colcon-ros colcon-package-information
 
 DEMO_OUT ?= out/demo
 
-.PHONY: demo test bench venv clean
+.PHONY: demo test lint bench venv clean
 
 venv: $(KERNELS)
 
@@ -48,6 +48,10 @@ demo: $(KERNELS)
 # The MuJoCo agreement test must run here, not skip: make installed the extra.
 test: $(KERNELS)
 	STEWART63_REQUIRE_MUJOCO=1 $(BIN)/python -m pytest -q test
+
+# pyflakes, pycodestyle, bugbear, blind except (ruff.toml).
+lint: $(STAMP)
+	$(BIN)/ruff check .
 
 # Every figure, medians of repeated runs, into bench/results.json (README, Performance).
 bench: $(KERNELS)

@@ -25,17 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
+from stewart63_ros.core.trajectory import COLUMNS
+
 #: Key of ``metadata.yaml``'s ``custom_data`` holding the namespace a bag was
 #: recorded in (``/`` when none): ``play --namespace`` re-roots topics from it.
 NAMESPACE_KEY = 'stewart63_ros.namespace'
-
-#: The trajectory CSV's columns (CONTRACT section 5), in order.
-TRAJECTORY_COLUMNS = (
-    ['t', 'x', 'y', 'z', 'theta_x', 'theta_y', 'theta_z',
-     'vx', 'vy', 'vz', 'wx', 'wy', 'wz']
-    + [f'L{i}' for i in range(1, 7)]
-    + [f'Ldot{i}' for i in range(1, 7)]
-    + [f'F{i}' for i in range(1, 7)])
 
 #: Topics whose names stay absolute whatever the namespace.
 ABSOLUTE_TOPICS = ('/clock', '/diagnostics')
@@ -204,7 +198,7 @@ def _stamp_ns(msg) -> int:
 
 def trajectory_from_bag(bag_dir, *, relative_time: bool = True,
                         hold_forces: bool = False) -> dict[str, np.ndarray]:
-    """The trajectory CSV's columns (:data:`TRAJECTORY_COLUMNS`) from a recording.
+    """The trajectory CSV's columns (:data:`COLUMNS`) from a recording.
 
     One row per ``leg_lengths`` sample (per pose sample if the bag has no leg
     lengths). The pose and twist come from ``ground_truth/pose`` and
@@ -264,7 +258,7 @@ def trajectory_from_bag(bag_dir, *, relative_time: bool = True,
     base = data[legs_t] if legs_t else data[pose_t]
     stamps = np.array(sorted(base), dtype=np.int64)
     n = len(stamps)
-    cols = {name: np.full(n, np.nan) for name in TRAJECTORY_COLUMNS}
+    cols = {name: np.full(n, np.nan) for name in COLUMNS}
     if n == 0:
         cols['t'] = np.zeros(0)
         return cols

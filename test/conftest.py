@@ -1,7 +1,12 @@
-"""Shared fixtures. Keep this small: helpers that only one test file needs live there."""
+"""Shared fixtures. Keep this small: helpers that only one test file needs live there.
+
+pytest puts this folder on ``sys.path`` (rootdir conftest, prepend import
+mode), so test modules import ``ros_harness`` and ``stream_publisher`` directly.
+"""
 from pathlib import Path
 
 import pytest
+from ros_harness import ros  # noqa: F401  (the DDS fixture: a domain id, child processes)
 
 REPO = Path(__file__).resolve().parents[1]
 

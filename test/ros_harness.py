@@ -12,7 +12,7 @@ Rules they enforce (see the project's testing notes):
 
 Use in a test module::
 
-    from ros_harness import ros, wait_for, wait_matched   # noqa: F401  (fixture)
+    from ros_harness import wait_for, wait_matched   # the `ros` fixture comes from conftest.py
 
     def test_x(ros):
         proc = ros.spawn([sys.executable, '-m', 'stewart63_ros.tools.record', str(bag)])

@@ -11,7 +11,6 @@ import hashlib
 import os
 import shutil
 import signal
-import sys
 import threading
 import time
 from pathlib import Path
@@ -20,14 +19,12 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+from ros_harness import (PYTHON, RosTest, lease_domain_id, stop, wait_line, wait_matched, wait_until)
+import stream_publisher as SP
 
-from ros_harness import (PYTHON, RosTest, lease_domain_id, ros, stop,  # noqa: E402,F401
-                         wait_line, wait_matched, wait_until)
-import stream_publisher as SP  # noqa: E402
-
-from stewart63_ros import bagio  # noqa: E402
-from stewart63_ros.bagio import BagError  # noqa: E402
+from stewart63_ros import bagio
+from stewart63_ros.core.trajectory import COLUMNS
+from stewart63_ros.bagio import BagError
 
 HERE = Path(__file__).resolve().parent
 PUBLISHER = str(HERE / 'stream_publisher.py')
@@ -202,7 +199,7 @@ def test_metadata_lists_topics_and_offered_qos(recorded):
 
 def test_trajectory_from_bag(recorded):
     cols = bagio.trajectory_from_bag(recorded['bag'])
-    assert list(cols) == bagio.TRAJECTORY_COLUMNS
+    assert list(cols) == list(COLUMNS)
     k = np.arange(N)
     assert all(len(v) == N for v in cols.values())
     assert np.allclose(cols['t'], k / RATE)

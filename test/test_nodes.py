@@ -21,22 +21,18 @@ import math
 import os
 import shutil
 import signal
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+from ros_harness import (PYTHON, REPO, RosTest, lease_domain_id, wait_matched, wait_until)
 
-from ros_harness import (PYTHON, REPO, RosTest, lease_domain_id, ros,  # noqa: E402,F401
-                         wait_matched, wait_until)
-
-from stewart63_ros.core.control import pd_forces  # noqa: E402
-from stewart63_ros.core.kinematics import LegState, leg_lengths  # noqa: E402
-from stewart63_ros.core.params import load_mechanism  # noqa: E402
-from stewart63_ros.core.rotation import (euler_rate_matrix, quaternion_from_euler,  # noqa: E402
+from stewart63_ros.core.control import pd_forces
+from stewart63_ros.core.kinematics import LegState, leg_lengths
+from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.rotation import (euler_rate_matrix, quaternion_from_euler,
                                          rotation_from_euler)
 
 PARAMS = REPO / 'config' / 'stewart63.yaml'
@@ -727,7 +723,7 @@ def _joint_state(names, position, velocity, effort, frame_id='base', ns=1_234_56
 
 def _object_path(msg, gate, want, optional=()):
     """What the nodes did with a message object: the reference for the fast path."""
-    from stewart63_ros.nodes.common import leg_vector
+    from stewart63_ros.nodes.checks import leg_vector
     ns = gate.check(msg.header.stamp)
     values = {f: leg_vector(msg.name, getattr(msg, f), f) for f in want}
     for f in optional:
@@ -745,7 +741,7 @@ def test_serialized_joint_states_read_as_message_objects_do():
     from rclpy.serialization import serialize_message
 
     from stewart63_ros.nodes import wire
-    from stewart63_ros.nodes.common import Rejected, StampGate
+    from stewart63_ros.nodes.checks import Rejected, StampGate
     rng = np.random.default_rng(7)
     six = rng.normal(size=6)
     arrays = {'empty': [], 'six': six, 'five': six[:5], 'seven': np.append(six, 1.0),

@@ -274,7 +274,6 @@ def _run_sim(params, out):
 
 @pytest.mark.parametrize('case', SIM_CASES, ids=[c[0] for c in SIM_CASES])
 def test_sim_refuses_bad_file(tmp_path, default_doc, case):
-    pytest.importorskip('stewart63_ros.tools.sim')
     _, change, remove, key = case
     path = write_variant(tmp_path, default_doc, change, remove)
     result = _run_sim(path, tmp_path / 'out')
@@ -285,7 +284,6 @@ def test_sim_refuses_bad_file(tmp_path, default_doc, case):
 
 
 def test_sim_refuses_non_yaml(tmp_path):
-    pytest.importorskip('stewart63_ros.tools.sim')
     path = tmp_path / 'bad.yaml'
     path.write_text('base_points: [1.0, 2.0\n')
     result = _run_sim(path, tmp_path / 'out')

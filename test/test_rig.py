@@ -16,22 +16,19 @@ import contextlib
 import json
 import os
 import signal
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+from ros_harness import PYTHON, wait_line, wait_until
 
-from ros_harness import PYTHON, ros, wait_line, wait_until  # noqa: E402,F401
-
-from stewart63_ros import bagio  # noqa: E402
-from stewart63_ros.core.dynamics import POS, Dynamics  # noqa: E402
-from stewart63_ros.core.params import load_mechanism  # noqa: E402
-from stewart63_ros.core.simulate import run_sampled, sensor_reading  # noqa: E402
-from stewart63_ros.tools.rig import Rig  # noqa: E402
+from stewart63_ros import bagio
+from stewart63_ros.core.dynamics import POS, Dynamics
+from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.simulate import run_sampled, sensor_reading
+from stewart63_ros.tools.rig import Rig
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / 'config' / 'stewart63.yaml'

@@ -7,8 +7,8 @@ from stewart63_ros.core._jit import njit, njit_kernel
 
 
 @njit_kernel
-def _pd_leg(length, rate, setpoint, kp, kv, max_force):
-    """Eq. (40) for one leg, scalars: the arithmetic of ``_pd`` (a NaN stays NaN,
+def pd_leg(length, rate, setpoint, kp, kv, max_force):
+    """Eq. (40) for one leg, scalars: the arithmetic of ``pd_law`` (a NaN stays NaN,
     as with np.minimum/np.maximum), for the compiled right-hand side."""
     force = kp * (setpoint - length) - kv * rate
     if force > max_force:
@@ -19,7 +19,7 @@ def _pd_leg(length, rate, setpoint, kp, kv, max_force):
 
 
 @njit
-def _pd(lengths, rates, setpoint, kp, kv, max_force):
+def pd_law(lengths, rates, setpoint, kp, kv, max_force):
     force = kp * (setpoint - lengths) - kv * rates
     return np.minimum(np.maximum(force, -max_force), max_force)
 
@@ -27,7 +27,7 @@ def _pd(lengths, rates, setpoint, kp, kv, max_force):
 def pd_forces(lengths, rates, setpoint, kp, kv, max_force):
     """F_i = Kp_i ((L_i)_0 - L_i) - Kv_i dL_i/dt, clipped to +-max_force [N], eq. (40)."""
     f = np.asarray
-    return _pd(f(lengths, float), f(rates, float), f(setpoint, float), f(kp, float),
+    return pd_law(f(lengths, float), f(rates, float), f(setpoint, float), f(kp, float),
                f(kv, float), float(max_force))
 
 
@@ -41,7 +41,7 @@ class PDController:
         self.setpoint = np.array(mech.setpoint_lengths if setpoint is None else setpoint, float)
 
     def __call__(self, lengths, rates):
-        return _pd(lengths, rates, self.setpoint, self.kp, self.kv, self.max_force)
+        return pd_law(lengths, rates, self.setpoint, self.kp, self.kv, self.max_force)
 
     @property
     def setpoint(self):

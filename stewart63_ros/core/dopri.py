@@ -4,9 +4,9 @@
 Python bookkeeping around each step (stage combinations with small numpy
 calls, the error norm, step-size control, the wrapper of the right-hand
 side): about 8 us per right-hand-side evaluation, while the evaluation itself
-(``dynamics._derivative_pd``, compiled) costs under 0.5 us. The paper's 10 s
+(``dynamics.derivative_pd``, compiled) costs under 0.5 us. The paper's 10 s
 scenario takes about 2200 evaluations: ~25 ms in scipy. This module runs the
-same algorithm in one compiled call that evaluates ``_derivative_pd`` compiled
+same algorithm in one compiled call that evaluates ``derivative_pd`` compiled
 to compiled, so the run costs little more than the evaluations (~2.5 ms).
 
 It is scipy's ``RK45`` step for step, not a look-alike:
@@ -44,7 +44,7 @@ import numpy as np
 from scipy.integrate import RK45 as _RK45
 
 from stewart63_ros.core._jit import njit
-from stewart63_ros.core.dynamics import _derivative_pd
+from stewart63_ros.core.dynamics import derivative_pd
 
 try:  # the step-control constants of scipy's explicit Runge-Kutta solvers
     from scipy.integrate._ivp import rk as _scipy_rk
@@ -95,13 +95,13 @@ def _all_finite(x):
 def _dopri45_pd(const, base, plat, inertia_body, y0, forces, wrench, endstops, pd, max_force,
                 t0, t_bound, t_eval, rtol, atol, max_step, max_steps,
                 A, B, C, E, P, n_stages, error_order, safety, min_factor, max_factor):
-    """scipy's RK45 on dy/dt = ``_derivative_pd(..., y, forces, wrench, endstops, pd, max_force)``.
+    """scipy's RK45 on dy/dt = ``derivative_pd(..., y, forces, wrench, endstops, pd, max_force)``.
 
     Integrates from ``t0`` to ``t_bound`` (> t0) and returns
     (states at ``t_eval`` (sorted, within [t0, t_bound]) as (len(t_eval), n),
     rhs evaluations, accepted steps, rejected steps, status). On failure
     (status != 0) the rows not reached are NaN. The right-hand side is
-    autonomous (time never enters ``_derivative_pd``), so ``C`` is unused.
+    autonomous (time never enters ``derivative_pd``), so ``C`` is unused.
 
     Each vector expression is scipy's, in scipy's order; the small matrix
     products go through np.dot (BLAS, as numpy does), so that on a machine
@@ -119,7 +119,7 @@ def _dopri45_pd(const, base, plat, inertia_body, y0, forces, wrench, endstops, p
         return ys, nfev, accepted, rejected, 3
     y = y0.copy()
     t = t0
-    f = _derivative_pd(const, base, plat, inertia_body, y, forces, wrench, endstops, pd,
+    f = derivative_pd(const, base, plat, inertia_body, y, forces, wrench, endstops, pd,
                        max_force)
     nfev += 1
     if not _all_finite(f):
@@ -142,7 +142,7 @@ def _dopri45_pd(const, base, plat, inertia_body, y0, forces, wrench, endstops, p
         h0 = 0.01 * d0 / d1
     h0 = min(h0, interval)
     y1 = y + h0 * f
-    f1 = _derivative_pd(const, base, plat, inertia_body, y1, forces, wrench, endstops, pd,
+    f1 = derivative_pd(const, base, plat, inertia_body, y1, forces, wrench, endstops, pd,
                         max_force)
     nfev += 1
     d2 = _norm((f1 - f) / scale) / h0
@@ -181,10 +181,10 @@ def _dopri45_pd(const, base, plat, inertia_body, y0, forces, wrench, endstops, p
             K[0] = f
             for s in range(1, n_stages):
                 dy = np.dot(K[:s].T, A[s, :s]) * h
-                K[s] = _derivative_pd(const, base, plat, inertia_body, y + dy, forces, wrench,
+                K[s] = derivative_pd(const, base, plat, inertia_body, y + dy, forces, wrench,
                                       endstops, pd, max_force)
             y_new = y + h * np.dot(K[:n_stages].T, B)
-            f_new = _derivative_pd(const, base, plat, inertia_body, y_new, forces, wrench,
+            f_new = derivative_pd(const, base, plat, inertia_body, y_new, forces, wrench,
                                    endstops, pd, max_force)
             K[n_stages] = f_new
             nfev += n_stages
@@ -247,14 +247,14 @@ def solve_pd(dyn, y0, t_eval, forces=None, wrench=None, gains=None, max_force=0.
              endstops=True, rtol=1e-8, atol=1e-10, max_step=np.inf, max_steps=MAX_STEPS):
     """Integrate the dynamics of ``dyn`` (a ``Dynamics``) from t_eval[0] to t_eval[-1].
 
-    dy/dt is ``_derivative_pd``: piston forces ``forces`` (held) plus, with
+    dy/dt is ``derivative_pd``: piston forces ``forces`` (held) plus, with
     ``gains`` = [setpoint; kp; kv] (3, 6), the PD law of eq. (40) evaluated
     inside the ODE. Returns (states (len(t_eval), 13), info dict with nfev,
     accepted, rejected). Raises ValueError on a non-finite initial state or
     bad ``t_eval``, RuntimeError if the integration fails (as scipy's
     ``sol.success`` False) or takes more than ``max_steps`` step attempts.
     """
-    from stewart63_ros.core.dynamics import _NO_GAINS, STATE_SIZE, _wrench6
+    from stewart63_ros.core.dynamics import NO_GAINS, STATE_SIZE, wrench6
     y0 = np.array(y0, dtype=float)
     if y0.shape != (STATE_SIZE,):
         raise ValueError('initial state must have %d components, got shape %s'
@@ -267,7 +267,7 @@ def solve_pd(dyn, y0, t_eval, forces=None, wrench=None, gains=None, max_force=0.
             or np.any(np.diff(t_eval) < 0) or t_eval[-1] < t_eval[0]):
         raise ValueError('t_eval must be a finite increasing time vector of two or more samples')
     forces = np.zeros(6) if forces is None else np.ascontiguousarray(forces, dtype=float)
-    pd = _NO_GAINS if gains is None else np.ascontiguousarray(gains, dtype=float)
+    pd = NO_GAINS if gains is None else np.ascontiguousarray(gains, dtype=float)
     rtol, atol, max_step = float(rtol), float(atol), float(max_step)
     if not (rtol > 0 and atol >= 0 and max_step > 0):
         raise ValueError('rtol and max_step must be positive and atol non-negative')
@@ -275,7 +275,7 @@ def solve_pd(dyn, y0, t_eval, forces=None, wrench=None, gains=None, max_force=0.
         warnings.warn('rtol %g is too small; using %g' % (rtol, 100 * np.finfo(float).eps))
         rtol = 100 * np.finfo(float).eps
     ys, nfev, accepted, rejected, status = _dopri45_pd(
-        *dyn._args(), y0, forces, _wrench6(wrench), bool(endstops), pd, float(max_force),
+        *dyn.kernel_args(), y0, forces, wrench6(wrench), bool(endstops), pd, float(max_force),
         float(t_eval[0]), float(t_eval[-1]), t_eval, rtol, atol, max_step, int(max_steps),
         TABLEAU_A, TABLEAU_B, TABLEAU_C, TABLEAU_E, TABLEAU_P, N_STAGES, ERROR_ORDER,
         SAFETY, MIN_FACTOR, MAX_FACTOR)

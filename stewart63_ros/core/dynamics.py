@@ -29,7 +29,7 @@ is [s_i, q_i x s_i]).
 The compiled right-hand side is scalar code: R and the 3-vectors of the state
 travel as tuples of floats, J, H, eta, L and dL/dt are written into one work
 array, so that an evaluation allocates nothing but its result
-(``_derivative_pd``; ``_rk4`` allocates once per call), and the small kernels
+(``derivative_pd``; ``rk4`` allocates once per call), and the small kernels
 (``njit_kernel``) are inlined into their compiled callers.
 """
 from __future__ import annotations
@@ -37,8 +37,8 @@ from __future__ import annotations
 import numpy as np
 
 from stewart63_ros.core._jit import njit, njit_kernel
-from stewart63_ros.core.control import _pd_leg
-from stewart63_ros.core.kinematics import LegState
+from stewart63_ros.core.control import pd_leg
+from stewart63_ros.core.kinematics import LegState, leg_kernel
 from stewart63_ros.core.rotation import matrix_from_quaternion
 
 #: State vector layout: position t (3), quaternion (x, y, z, w) (4),
@@ -52,8 +52,8 @@ POS, QUAT, VEL, OMEGA = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 13)
 DEFAULT_ENDSTOP_STIFFNESS = 2.0e6
 DEFAULT_ENDSTOP_DAMPING = 5.0e3
 
-_NO_WRENCH = np.zeros(6)
-_NO_GAINS = np.zeros((0, 6))
+NO_WRENCH = np.zeros(6)
+NO_GAINS = np.zeros((0, 6))
 
 # Indices into the constants vector handed to the compiled kernels.
 _MASS, _G, _COM, _MD, _MU, _LD, _LU, _IT, _CP, _CU, _KSTOP, _CSTOP, _LMIN, _LMAX = (
@@ -83,44 +83,11 @@ def _rotation_rows(x, y, z, w):
             (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
 
 
-@njit
-def _rotation(quat):
-    """R (3, 3) of the quaternion (x, y, z, w), normalised here."""
-    rows = _rotation_rows(*_unit_quaternion(quat[0], quat[1], quat[2], quat[3]))
-    rot = np.empty((3, 3))
-    for a in range(3):
-        for b in range(3):
-            rot[a, b] = rows[a][b]
-    return rot
-
-
 @njit_kernel
 def _state_tuples(y):
     """(unit quaternion, t, dt/dt, omega) of the 13-state y as tuples."""
     return (_unit_quaternion(y[3], y[4], y[5], y[6]), (y[0], y[1], y[2]), (y[7], y[8], y[9]),
             (y[10], y[11], y[12]))
-
-
-@njit_kernel
-def _leg(rot, pos, vel, omega, base, plat, i):
-    """Geometry and rates of leg i, scalars: (q, L, s, dS/dt, dL/dt).
-
-    q = R p_i (eq. 1), S = t + q - b_i (eq. 2), L = |S| (eq. 5), s = S / L
-    (eq. 4), dS/dt = omega x q + v (eq. 3), dL/dt = s . dS/dt (eq. 13).
-    """
-    px, py, pz = plat[i, 0], plat[i, 1], plat[i, 2]
-    qx = rot[0][0] * px + rot[0][1] * py + rot[0][2] * pz
-    qy = rot[1][0] * px + rot[1][1] * py + rot[1][2] * pz
-    qz = rot[2][0] * px + rot[2][1] * py + rot[2][2] * pz
-    Sx, Sy, Sz = qx + pos[0] - base[i, 0], qy + pos[1] - base[i, 1], qz + pos[2] - base[i, 2]
-    L = np.sqrt(Sx * Sx + Sy * Sy + Sz * Sz)
-    sx, sy, sz = Sx / L, Sy / L, Sz / L
-    wx, wy, wz = omega
-    dx = wy * qz - wz * qy + vel[0]
-    dy = wz * qx - wx * qz + vel[1]
-    dz = wx * qy - wy * qx + vel[2]
-    Ldot = sx * dx + sy * dy + sz * dz
-    return qx, qy, qz, L, sx, sy, sz, dx, dy, dz, Ldot
 
 
 # -- eq. (38) -------------------------------------------------------------------------------
@@ -183,7 +150,7 @@ def _terms_into(const, base, plat, inertia_body, rot, pos, vel, omega, out):
         for b in range(a + 1):
             out[_J + a, b] = 0.0
     for i in range(6):
-        qx, qy, qz, L, sx, sy, sz, dx, dy, dz, Ldot = _leg(rot, pos, vel, omega, base, plat, i)
+        qx, qy, qz, L, sx, sy, sz, dx, dy, dz, Ldot = leg_kernel(rot, pos, vel, omega, base, plat, i)
         Wx, Wy, Wz = (sy * dz - sz * dy) / L, (sz * dx - sx * dz) / L, (sx * dy - sy * dx) / L  # (14)
         arm_u = L - l_u
         i_eff = m_d * l_d * l_d + m_u * arm_u * arm_u + i_t
@@ -273,14 +240,14 @@ def _terms(const, base, plat, inertia_body, rot, pos, vel, omega):
 
 
 @njit
-def _lengths_rates(base, plat, y):
+def lengths_rates(base, plat, y):
     """L_i and dL_i/dt of the state y, eqs. (2)-(5), (13): the arithmetic of ``_terms``."""
     quat, pos, vel, omega = _state_tuples(y)
     rot = _rotation_rows(*quat)
     L = np.empty(6)
     Ldot = np.empty(6)
     for i in range(6):
-        leg = _leg(rot, pos, vel, omega, base, plat, i)
+        leg = leg_kernel(rot, pos, vel, omega, base, plat, i)
         L[i] = leg[3]
         Ldot[i] = leg[10]
     return L, Ldot
@@ -354,7 +321,7 @@ def _derivative_into(const, base, plat, inertia_body, y, forces, wrench, endstop
         L, Ldot = work[_L, i], work[_LDOT, i]
         f = forces[i]
         if with_pd:
-            f = f + _pd_leg(L, Ldot, pd[0, i], pd[1, i], pd[2, i], max_force)
+            f = f + pd_leg(L, Ldot, pd[0, i], pd[1, i], pd[2, i], max_force)
         if endstops:
             f = f + _endstop_leg(const, L, Ldot)
         work[_F, i] = f
@@ -384,12 +351,12 @@ def _derivative_into(const, base, plat, inertia_body, y, forces, wrench, endstop
 
 @njit
 def _derivative(const, base, plat, inertia_body, y, forces, wrench, endstops):
-    return _derivative_pd(const, base, plat, inertia_body, y, forces, wrench, endstops,
-                          _NO_GAINS, 0.0)
+    return derivative_pd(const, base, plat, inertia_body, y, forces, wrench, endstops,
+                          NO_GAINS, 0.0)
 
 
 @njit
-def _derivative_pd(const, base, plat, inertia_body, y, forces, wrench, endstops, pd, max_force):
+def derivative_pd(const, base, plat, inertia_body, y, forces, wrench, endstops, pd, max_force):
     """dy/dt (a new array); see ``_derivative_into``."""
     dy = np.empty(13)
     _derivative_into(const, base, plat, inertia_body, y, forces, wrench, endstops, pd,
@@ -398,7 +365,7 @@ def _derivative_pd(const, base, plat, inertia_body, y, forces, wrench, endstops,
 
 
 @njit
-def _rk4(const, base, plat, inertia_body, y, forces, wrench, dt, steps):
+def rk4(const, base, plat, inertia_body, y, forces, wrench, dt, steps):
     """Classical RK4 with the forces held (zero-order hold) over ``steps`` steps.
 
     Returns the new state (``y`` is not modified). Stages and work array are
@@ -410,19 +377,19 @@ def _rk4(const, base, plat, inertia_body, y, forces, wrench, dt, steps):
     half, sixth = 0.5 * dt, dt / 6.0
     for _ in range(steps):
         _derivative_into(const, base, plat, inertia_body, y, forces, wrench, True,
-                         _NO_GAINS, 0.0, k[0], work)
+                         NO_GAINS, 0.0, k[0], work)
         for j in range(13):
             k[4, j] = y[j] + half * k[0, j]
         _derivative_into(const, base, plat, inertia_body, k[4], forces, wrench, True,
-                         _NO_GAINS, 0.0, k[1], work)
+                         NO_GAINS, 0.0, k[1], work)
         for j in range(13):
             k[4, j] = y[j] + half * k[1, j]
         _derivative_into(const, base, plat, inertia_body, k[4], forces, wrench, True,
-                         _NO_GAINS, 0.0, k[2], work)
+                         NO_GAINS, 0.0, k[2], work)
         for j in range(13):
             k[4, j] = y[j] + dt * k[2, j]
         _derivative_into(const, base, plat, inertia_body, k[4], forces, wrench, True,
-                         _NO_GAINS, 0.0, k[3], work)
+                         NO_GAINS, 0.0, k[3], work)
         for j in range(13):
             y[j] = y[j] + sixth * (k[0, j] + 2.0 * k[1, j] + 2.0 * k[2, j] + k[3, j])
         n = np.sqrt(y[3] ** 2 + y[4] ** 2 + y[5] ** 2 + y[6] ** 2)
@@ -432,9 +399,9 @@ def _rk4(const, base, plat, inertia_body, y, forces, wrench, dt, steps):
 
 
 
-def _wrench6(wrench):
+def wrench6(wrench):
     if wrench is None:
-        return _NO_WRENCH
+        return NO_WRENCH
     return np.concatenate([np.asarray(wrench[0], float), np.asarray(wrench[1], float)])
 
 
@@ -455,21 +422,25 @@ class Dynamics:
         const[_KSTOP] = float(extra.get('endstop_stiffness', DEFAULT_ENDSTOP_STIFFNESS))
         const[_CSTOP] = float(extra.get('endstop_damping', DEFAULT_ENDSTOP_DAMPING))
         const[_LMIN], const[_LMAX] = mech.leg_length_min, mech.leg_length_max
-        self._const = const
-        self._base = np.ascontiguousarray(mech.base_points, dtype=float)
-        self._plat = np.ascontiguousarray(mech.leg_platform_points, dtype=float)
-        self._inertia = np.ascontiguousarray(mech.platform_inertia, dtype=float)
+        #: Arrays the compiled kernels take (see ``kernel_args``).
+        self.constants = const
+        self.base_points = np.ascontiguousarray(mech.base_points, dtype=float)
+        self.leg_points = np.ascontiguousarray(mech.leg_platform_points, dtype=float)
+        self.platform_inertia = np.ascontiguousarray(mech.platform_inertia, dtype=float)
         self.g = np.asarray(mech.gravity)
         self.mass = mech.platform_mass
 
-    def _args(self):
-        return self._const, self._base, self._plat, self._inertia
+    def kernel_args(self) -> tuple:
+        """(constants, base_points (6, 3), leg_points (6, 3), platform_inertia (3, 3)):
+        the first four arguments of every compiled kernel of this module
+        (``derivative_pd``, ``rk4``); ``lengths_rates`` takes the middle two."""
+        return self.constants, self.base_points, self.leg_points, self.platform_inertia
 
     # -- eq. (38) -------------------------------------------------------------
     def equation_terms(self, rot, position, velocity, omega):
         """J (6x6, symmetric positive definite), eta (6,) and H (6x6) of eq. (38)."""
         f = np.asarray
-        J, eta, H, _, _ = _terms(*self._args(), f(rot, float), f(position, float),
+        J, eta, H, _, _ = _terms(*self.kernel_args(), f(rot, float), f(position, float),
                                  f(velocity, float), f(omega, float))
         return J, eta, H
 
@@ -480,7 +451,7 @@ class Dynamics:
         """
         J, eta, H = self.equation_terms(rot, position, velocity, omega)
         rhs = H @ np.asarray(forces, float) - eta
-        w = _wrench6(wrench)
+        w = wrench6(wrench)
         rhs[:3] += rot @ w[:3]
         rhs[3:] += rot @ w[3:]
         x = np.linalg.solve(J, rhs)
@@ -490,7 +461,7 @@ class Dynamics:
         """Piston forces that produce (dd t, alpha) at this state: H F = J x + eta - ext."""
         J, eta, H = self.equation_terms(rot, position, velocity, omega)
         rhs = J @ np.concatenate([accel, alpha]) + eta
-        w = _wrench6(wrench)
+        w = wrench6(wrench)
         rhs[:3] -= rot @ w[:3]
         rhs[3:] -= rot @ w[3:]
         return np.linalg.solve(H, rhs)
@@ -498,27 +469,27 @@ class Dynamics:
     # -- state vector ---------------------------------------------------------
     def derivative(self, y, forces, wrench=None, with_endstops=True):
         """dy/dt of the 13-vector state under piston forces ``forces`` [N]."""
-        return _derivative(*self._args(), np.asarray(y, float), np.asarray(forces, float),
-                           _wrench6(wrench), with_endstops)
+        return _derivative(*self.kernel_args(), np.asarray(y, float), np.asarray(forces, float),
+                           wrench6(wrench), with_endstops)
 
     def step(self, y, forces, dt, substeps=1, wrench=None):
         """Advance ``dt`` with forces held constant (RK4, ``substeps`` steps)."""
-        return _rk4(*self._args(), np.array(y, float), np.asarray(forces, float),
-                    _wrench6(wrench), dt / substeps, substeps)
+        return rk4(*self.kernel_args(), np.array(y, float), np.asarray(forces, float),
+                    wrench6(wrench), dt / substeps, substeps)
 
     def lengths_and_rates(self, y):
         """L_i [m] and dL_i/dt [m/s] at the state y: what ideal linear sensors read."""
-        return _lengths_rates(self._base, self._plat, np.asarray(y, float))
+        return lengths_rates(self.base_points, self.leg_points, np.asarray(y, float))
 
     def derivative_with(self, y, controller, wrench=None):
         """dy/dt under continuous PD control (a ``PDController``), eq. (40) inside the ODE."""
         gains = np.vstack([controller.setpoint, controller.kp, controller.kv])
-        return _derivative_pd(*self._args(), np.asarray(y, float), np.zeros(6),
-                              _wrench6(wrench), True, gains, controller.max_force)
+        return derivative_pd(*self.kernel_args(), np.asarray(y, float), np.zeros(6),
+                              wrench6(wrench), True, gains, controller.max_force)
 
     def endstop_forces(self, lengths, rates):
         """Extra piston force from the end stops (zero inside the stroke) [N]."""
-        return _endstop(self._const, np.asarray(lengths, float), np.asarray(rates, float))
+        return _endstop(self.constants, np.asarray(lengths, float), np.asarray(rates, float))
 
     def legs(self, y) -> LegState:
         quat = y[QUAT] / np.linalg.norm(y[QUAT])

@@ -36,15 +36,16 @@ compile.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
+from stewart63_ros.core._jit import njit
+from stewart63_ros.core.kinematics import leg_kernel
 from stewart63_ros.core.rotation import euler_from_matrix, rotation_from_euler
 
 #: Flag a pose whose 6x6 Jacobian (rows [s_i, q_i x s_i], in metres) has a
 #: 2-norm condition number above this. Over 5000 random poses of the default
 #: workspace it stays between 3 and 6; at a singular pose it is infinite. At
 #: 100, a length error dL can move the estimate by ~100 dL: not to be trusted.
-DEFAULT_COND_THRESHOLD = 100.0
+DEFAULT_COND_THRESHOLD = 1.0e4
 #: Pair k's legs (0-based): legs 2k and 2k+1 meet at vertex k.
 PAIRS = ((0, 1), (2, 3), (4, 5))
 #: Platform sides (0-based vertices) in the order the equations are chained: 1-2, 2-3, 3-1.
@@ -107,7 +108,7 @@ def _arr(x) -> np.ndarray:
 
 # -- numba kernels: Newton on the six leg equations ----------------------------
 
-@njit(cache=True)
+@njit
 def _quaternion(rot):
     """Unit quaternion (x, y, z, w), w >= 0, of a rotation matrix.
 
@@ -140,7 +141,7 @@ def _quaternion(rot):
     return q
 
 
-@njit(cache=True)
+@njit
 def _rotate_left(w, rot):
     """exp([w]x) rot (Rodrigues): rot turned by the base-frame rotation vector w."""
     th2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
@@ -167,17 +168,14 @@ def _rotate_left(w, rot):
     return out
 
 
-@njit(cache=True)
+@njit
 def _legs(base, legp, t, rot, lengths, jac, res):
     """jac rows [s_i, q_i x s_i] (eqs. 1-5, 13) and res = lengths - L; returns max |res|."""
     worst = 0.0
+    pos, still = (t[0], t[1], t[2]), (0.0, 0.0, 0.0)
     for i in range(base.shape[0]):
-        q0 = rot[0, 0] * legp[i, 0] + rot[0, 1] * legp[i, 1] + rot[0, 2] * legp[i, 2]
-        q1 = rot[1, 0] * legp[i, 0] + rot[1, 1] * legp[i, 1] + rot[1, 2] * legp[i, 2]
-        q2 = rot[2, 0] * legp[i, 0] + rot[2, 1] * legp[i, 1] + rot[2, 2] * legp[i, 2]
-        s0, s1, s2 = q0 + t[0] - base[i, 0], q1 + t[1] - base[i, 1], q2 + t[2] - base[i, 2]
-        length = np.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
-        s0, s1, s2 = s0 / length, s1 / length, s2 / length
+        q0, q1, q2, length, s0, s1, s2, _, _, _, _ = leg_kernel(rot, pos, still, still, base,
+                                                               legp, i)
         jac[i, 0], jac[i, 1], jac[i, 2] = s0, s1, s2
         jac[i, 3] = q1 * s2 - q2 * s1
         jac[i, 4] = q2 * s0 - q0 * s2
@@ -187,7 +185,7 @@ def _legs(base, legp, t, rot, lengths, jac, res):
     return worst
 
 
-@njit(cache=True)
+@njit
 def _solve(a, b):
     """x = a^-1 b by Gaussian elimination with partial pivoting; NaN when singular."""
     a = a.copy()
@@ -222,7 +220,7 @@ def _solve(a, b):
     return x
 
 
-@njit(cache=True)
+@njit
 def _cond(jac):
     """2-norm condition number sigma_max / sigma_min of a square matrix.
 
@@ -265,7 +263,7 @@ def _cond(jac):
     return np.sqrt(smax / smin) if smin > 0.0 else np.inf
 
 
-@njit(cache=True)
+@njit
 def _newton(base, legp, lengths, t0, rot0, max_iter, step_tol):
     """Newton on L(t, R) = lengths; returns t, R, iterations, converged, max |residual|.
 
@@ -320,7 +318,7 @@ def _newton(base, legp, lengths, t0, rot0, max_iter, step_tol):
     return t, rot, it, ok, worst
 
 
-@njit(cache=True)
+@njit
 def _pose_distance(t, rot, t_ref, rot_ref, size):
     """|t - t_ref| + size * angle(R_ref^T R): position and orientation in one length.
 
@@ -338,7 +336,7 @@ def _pose_distance(t, rot, t_ref, rot_ref, size):
     return dt + size * angle
 
 
-@njit(cache=True)
+@njit
 def _track(base, legp, lengths, t_prev, rot_prev, t_cur, rot_cur, extrapolate, max_iter, size):
     """One tracking step: Newton from the pose predicted by the last two samples.
 
@@ -367,7 +365,7 @@ def _track(base, legp, lengths, t_prev, rot_prev, t_cur, rot_cur, extrapolate, m
     return t, rot, it, ok, res, _pose_distance(t, rot, t0, r0, size), _cond(jac), t0, r0
 
 
-@njit(cache=True)
+@njit
 def _twist(base, legp, t, rot, rates):
     """[v; omega] = J^-1 dL/dt (eq. 13 solved for the twist), base frame."""
     jac = np.empty((6, 6))
@@ -377,7 +375,7 @@ def _twist(base, legp, t, rot, rates):
 
 # -- all assembly modes --------------------------------------------------------
 
-@njit(cache=True)
+@njit
 def _hroots(c0, c1, c2):
     """Roots of c2 t^2 + c1 t + c0 as homogeneous pairs t = x / w, stable as c2 -> 0.
 
@@ -393,7 +391,7 @@ def _hroots(c0, c1, c2):
     return q, c2, c0, q, q
 
 
-@njit(cache=True)
+@njit
 def _biquadratic(m, x, w, y, v):
     """[w^2, x w, x^2] m [v^2, y v, y^2]^T: sum m_ab t^a u^b at t = x/w, u = y/v, homogenised."""
     a0, a1, a2 = w * w, x * w, x * x
@@ -403,7 +401,7 @@ def _biquadratic(m, x, w, y, v):
             + a2 * (m[2, 0] * b0 + m[2, 1] * b1 + m[2, 2] * b2))
 
 
-@njit(cache=True)
+@njit
 def _resultant_coefficients(q12, q23, q31):
     """Coefficients c_0..c_16 of D(t1) = Res_t3(E31, Res_t2(E12, E23)).
 
@@ -438,7 +436,7 @@ def _resultant_coefficients(q12, q23, q31):
     return coeffs
 
 
-@njit(cache=True)
+@njit
 def _real_angles(coeffs):
     """Angles phi = 2 atan(t) of the (nearly) real roots t of sum_k coeffs[k] t^k.
 
@@ -492,7 +490,7 @@ def _real_angles(coeffs):
     return phis[:n]
 
 
-@njit(cache=True)
+@njit
 def _side_residual(m, phi_i, phi_j):
     """[cos, sin, 1](phi_i) M [cos, sin, 1](phi_j)^T = |P_i - P_j|^2 - l_ij^2."""
     ci, si, cj, sj = np.cos(phi_i), np.sin(phi_i), np.cos(phi_j), np.sin(phi_j)
@@ -501,7 +499,7 @@ def _side_residual(m, phi_i, phi_j):
             + m[2, 0] * cj + m[2, 1] * sj + m[2, 2])
 
 
-@njit(cache=True)
+@njit
 def _angle_candidates(phi1, q12, q13, m23, side23):
     """(n, 3) circle angles: each phi1 with the roots of E12 (in t2) and E31 (in t3).
 
@@ -548,7 +546,7 @@ def _angle_candidates(phi1, q12, q13, m23, side23):
     return out[:count]
 
 
-@njit(cache=True)
+@njit
 def _circles(base, axis, pair_distance, lengths, tol):
     """Centre (3, 3) and radius (3,) of each vertex's circle, and the first pair
     (0-based) whose legs cannot meet, or -1.
@@ -572,7 +570,7 @@ def _circles(base, axis, pair_distance, lengths, tol):
     return centre, radius, bad
 
 
-@njit(cache=True)
+@njit
 def _side_matrices(centre, radius, e1, e2, sides):
     """M_ij (3, 3, 3) with |P_i - P_j|^2 - l_ij^2 = [cos_i, sin_i, 1] M_ij [cos_j, sin_j, 1]^T
     for sides 1-2, 2-3, 3-1, and Q_ij = T^T M_ij T / max|.| (half-angle form)."""
@@ -608,7 +606,7 @@ def _side_matrices(centre, radius, e1, e2, sides):
     return mats, qs
 
 
-@njit(cache=True)
+@njit
 def _mode_vertices(centre, radius, e1, e2, sides):
     """Candidate vertex triples (n, 3, 3) from the real roots of the degree-16 resultant."""
     mats, qs = _side_matrices(centre, radius, e1, e2, sides)
@@ -623,7 +621,7 @@ def _mode_vertices(centre, radius, e1, e2, sides):
     return out
 
 
-@njit(cache=True)
+@njit
 def _triangle_frame(p):
     """Columns x, y, z: x along p0 -> p1, z normal to the triangle, y = z x x."""
     f = np.empty((3, 3))
@@ -640,7 +638,7 @@ def _triangle_frame(p):
     return f
 
 
-@njit(cache=True)
+@njit
 def _polish_modes(base, legp, lengths, vertices, plat, size, res_tol):
     """Candidate vertex triples (n, 3, 3) -> the distinct poses fitting the six lengths.
 
@@ -871,12 +869,3 @@ class FKTracker:
         self._moving = not result.fallback
         return result
 
-
-def assembly_modes(mech, lengths, reference=None) -> list:
-    """Every real assembly mode for six leg lengths (see ForwardKinematics.all_modes)."""
-    return ForwardKinematics(mech).all_modes(lengths, reference)
-
-
-def twist(mech, position, rotation, rates):
-    """(v, omega) in the base frame from leg rates: solve(J, dL/dt)."""
-    return ForwardKinematics(mech).twist(position, rotation, rates)

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from stewart63_ros.core._jit import njit_kernel
+
 
 def vertex_vectors(mech, rot: np.ndarray) -> np.ndarray:
     """q_i = R p_i, eq. (1): each leg's platform vertex relative to t, base frame."""
@@ -72,3 +74,30 @@ def leg_accelerations(legs: LegState, accel, alpha, omega):
     ddl = np.einsum('ij,ij->i', legs.s, a_p) + legs.L * w2
     ang = (np.cross(legs.s, a_p) - 2.0 * legs.Ldot[:, None] * legs.W) / legs.L[:, None]
     return a_p, ddl, ang
+
+
+@njit_kernel
+def leg_kernel(rot, pos, vel, omega, base, plat, i):
+    """Geometry and rates of leg i, scalars: (q, L, s, dS/dt, dL/dt); compiled,
+    shared by the dynamics and the forward kinematics.
+
+    ``rot`` is R (its rows as tuples, or a (3, 3) array), ``pos``, ``vel``,
+    ``omega`` are 3-tuples (t, dt/dt, omega, base frame), ``base`` and
+    ``plat`` the (6, 3) arrays b_i and p_k(i).
+
+    q = R p_i (eq. 1), S = t + q - b_i (eq. 2), L = |S| (eq. 5), s = S / L
+    (eq. 4), dS/dt = omega x q + v (eq. 3), dL/dt = s . dS/dt (eq. 13).
+    """
+    px, py, pz = plat[i, 0], plat[i, 1], plat[i, 2]
+    qx = rot[0][0] * px + rot[0][1] * py + rot[0][2] * pz
+    qy = rot[1][0] * px + rot[1][1] * py + rot[1][2] * pz
+    qz = rot[2][0] * px + rot[2][1] * py + rot[2][2] * pz
+    Sx, Sy, Sz = qx + pos[0] - base[i, 0], qy + pos[1] - base[i, 1], qz + pos[2] - base[i, 2]
+    L = np.sqrt(Sx * Sx + Sy * Sy + Sz * Sz)
+    sx, sy, sz = Sx / L, Sy / L, Sz / L
+    wx, wy, wz = omega
+    dx = wy * qz - wz * qy + vel[0]
+    dy = wz * qx - wx * qz + vel[1]
+    dz = wx * qy - wy * qx + vel[2]
+    Ldot = sx * dx + sy * dy + sz * dz
+    return qx, qy, qz, L, sx, sy, sz, dx, dy, dz, Ldot

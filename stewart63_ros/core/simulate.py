@@ -19,9 +19,10 @@ from scipy.integrate import solve_ivp
 
 from stewart63_ros.core import dopri
 from stewart63_ros.core._jit import njit
-from stewart63_ros.core.control import PDController, _pd
-from stewart63_ros.core.dynamics import (_NO_WRENCH, OMEGA, POS, QUAT, STATE_SIZE, VEL, Dynamics,
-                                         _derivative_pd, _lengths_rates, _rk4)
+from stewart63_ros.core.control import PDController, pd_law
+from stewart63_ros.core.dynamics import (NO_WRENCH, OMEGA, POS, QUAT, STATE_SIZE, VEL, Dynamics,
+                                         derivative_pd, lengths_rates, rk4)
+from stewart63_ros.core.trajectory import COLUMNS
 from stewart63_ros.core.rotation import (euler_from_quaternion, euler_rate_matrix,
                                          quaternion_from_euler)
 
@@ -61,7 +62,7 @@ class Result:
 
     def table(self, dyn: Dynamics) -> np.ndarray:
         """Rows of the trajectory CSV (CONTRACT section 5)."""
-        rows = np.empty((len(self.times), 31))
+        rows = np.empty((len(self.times), len(COLUMNS)))
         rows[:, 0] = self.times
         rows[:, 1:4] = self.states[:, POS]
         rows[:, 4:7] = euler_from_quaternion(self.states[:, QUAT])
@@ -93,37 +94,37 @@ def _outside(lengths, lmin, lmax):
 @njit
 def _sampled_pd(const, base, plat, inertia_body, y0, wrench, setpoint, kp, kv, max_force,
                 lmin, lmax, n, dt, steps):
-    """The loop of ``run_sampled``: sensors, eq. (40), ``_rk4`` held over each period.
+    """The loop of ``run_sampled``: sensors, eq. (40), ``rk4`` held over each period.
 
-    The same kernels (``_lengths_rates``, ``_pd``, ``_rk4``) with the same
+    The same kernels (``lengths_rates``, ``pd_law``, ``rk4``) with the same
     arguments as ``Dynamics.step`` and the plant node, so the same numbers."""
     states = np.empty((n + 1, y0.size))
     forces = np.empty((n + 1, 6))
     contact = 0
     y = y0.copy()
     for k in range(n + 1):
-        lengths, rates = _lengths_rates(base, plat, y)
+        lengths, rates = lengths_rates(base, plat, y)
         if _outside(lengths, lmin, lmax):
             contact += 1
         states[k] = y
-        forces[k] = _pd(lengths, rates, setpoint, kp, kv, max_force)
+        forces[k] = pd_law(lengths, rates, setpoint, kp, kv, max_force)
         if k < n:
-            y = _rk4(const, base, plat, inertia_body, y, forces[k], wrench, dt, steps)
+            y = rk4(const, base, plat, inertia_body, y, forces[k], wrench, dt, steps)
     return states, forces, contact
 
 
 @njit
 def _pd_samples(base, plat, states, setpoint, kp, kv, max_force, lmin, lmax):
     """Per output sample: the PD forces of eq. (40) from L, dL/dt (the sensors'
-    ``_lengths_rates``), and how many samples had a leg outside the stroke."""
+    ``lengths_rates``), and how many samples had a leg outside the stroke."""
     n = states.shape[0]
     forces = np.empty((n, 6))
     contact = 0
     for k in range(n):
-        lengths, rates = _lengths_rates(base, plat, states[k])
+        lengths, rates = lengths_rates(base, plat, states[k])
         if _outside(lengths, lmin, lmax):
             contact += 1
-        forces[k] = _pd(lengths, rates, setpoint, kp, kv, max_force)
+        forces[k] = pd_law(lengths, rates, setpoint, kp, kv, max_force)
     return forces, contact
 
 
@@ -153,7 +154,7 @@ def run_sampled(mech, duration: float, rate: float, controller=None, y0=None,
     y = initial_state(mech) if y0 is None else np.array(y0, float)
     if loop == 'compiled' and _is_pd(controller):
         states, forces, contact = _sampled_pd(
-            *dyn._args(), y, _NO_WRENCH, controller.setpoint, controller.kp, controller.kv,
+            *dyn.kernel_args(), y, NO_WRENCH, controller.setpoint, controller.kp, controller.kv,
             float(controller.max_force), float(mech.leg_length_min),
             float(mech.leg_length_max), n, period / steps, steps)
         return Result(np.arange(n + 1) * period, states, forces, int(contact), 4 * steps * n)
@@ -189,7 +190,7 @@ def run_continuous(mech, duration: float, output_rate: float = 100.0, controller
     controller = controller or PDController(mech)
 
     # One compiled call per evaluation: dynamics and eq. (40) from the same L, dL/dt.
-    args = dyn._args()
+    args = dyn.kernel_args()
     gains = np.vstack([controller.setpoint, controller.kp, controller.kv])
     zero, max_force = np.zeros(6), float(controller.max_force)
 
@@ -203,7 +204,7 @@ def run_continuous(mech, duration: float, output_rate: float = 100.0, controller
         times, nfev = t_eval, info['nfev']
     else:
         def rhs(_t, y):
-            return _derivative_pd(*args, y, zero, _NO_WRENCH, True, gains, max_force)
+            return derivative_pd(*args, y, zero, NO_WRENCH, True, gains, max_force)
 
         # solve_ivp would loop forever on a NaN first step size (NaN derivative at t0).
         if np.all(np.isfinite(y)) and not np.all(np.isfinite(rhs(0.0, y))):
@@ -216,7 +217,7 @@ def run_continuous(mech, duration: float, output_rate: float = 100.0, controller
         states, times, nfev = sol.y.T.copy(), sol.t, sol.nfev
     states[:, QUAT] /= np.linalg.norm(states[:, QUAT], axis=1)[:, None]
     if _is_pd(controller):
-        forces, contact = _pd_samples(dyn._base, dyn._plat, states, controller.setpoint,
+        forces, contact = _pd_samples(dyn.base_points, dyn.leg_points, states, controller.setpoint,
                                       controller.kp, controller.kv, max_force,
                                       float(mech.leg_length_min), float(mech.leg_length_max))
     else:

@@ -8,8 +8,21 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from stewart63_ros.core.params import ParameterError, mechanism_from_params
-from stewart63_ros.nodes.common import (DirectTake, Health, node_parameters,
-                                        realtime_scheduling, wait_until)
+from stewart63_ros.nodes.diagnostics import Health
+from stewart63_ros.nodes.parameters import node_parameters
+from stewart63_ros.nodes.rclpy_internals import DirectTake, run_timer_if_ready, take
+from stewart63_ros.nodes.realtime import realtime_scheduling
+
+
+def wait_until(node, executor, predicate, timeout: float) -> bool:
+    """Spin until ``predicate()`` or ``timeout`` seconds; True if it held."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return False
+        executor.spin_once(timeout_sec=min(0.05, remaining))
+    return True
 
 
 class RigNode(Node):
@@ -144,9 +157,9 @@ class RigNode(Node):
         monotonic time of the next due one: the caller should not block past it.
         """
         for sub in self._side_subs:
-            taken = sub.handle.take_message(sub.msg_type, sub.raw)
-            if taken is not None:
-                sub.callback(taken[0])
+            msg = take(sub)
+            if msg is not None:
+                sub.callback(msg)
         if now < self._next_turn or not (turn_ok or now > self._next_turn + 0.1):
             return self._next_turn
         if not self._run_due_timers() and now >= self._next_executor_turn:
@@ -165,16 +178,7 @@ class RigNode(Node):
         """Call the node's due timers as the executor would; True if any was."""
         ran = False
         for timer in list(self.timers):
-            try:
-                with timer.handle:
-                    if not timer.handle.is_timer_ready():
-                        continue
-                    timer.handle.call_timer_with_info()    # the timer's next period
-            except Exception:  # noqa: BLE001 - destroyed or cancelled meanwhile: skip it
-                continue
-            if timer.callback is not None:
-                timer.callback()
-            ran = True
+            ran = run_timer_if_ready(timer) or ran
         return ran
 
     def run_on(self, subscription):
@@ -194,7 +198,7 @@ class RigNode(Node):
         for pub in self.data_publishers + [self.health.pub]:
             try:
                 pub.wait_for_all_acked(Duration(seconds=timeout))
-            except Exception:  # noqa: BLE001 - best effort at shutdown
+            except RuntimeError:     # a publisher already destroyed: nothing left to send
                 pass
 
     def close(self):

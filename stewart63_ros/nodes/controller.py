@@ -28,7 +28,8 @@ from stewart63_ros.core.control import PDController
 from stewart63_ros.core.kinematics import leg_lengths
 from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
-from stewart63_ros.nodes.common import Rejected, StampGate, finite_vector, leg_vector, run
+from stewart63_ros.nodes.checks import Rejected, StampGate, finite_vector, leg_vector
+from stewart63_ros.nodes.launcher import run
 
 
 class ControllerNode(RigNode):

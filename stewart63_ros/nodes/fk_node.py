@@ -13,109 +13,105 @@ from __future__ import annotations
 
 import sys
 
+import numpy as np
+from geometry_msgs.msg import PoseStamped, TwistStamped
+from sensor_msgs.msg import JointState
 
-def main(argv=None):
-    argv = list(sys.argv if argv is None else argv)
-    if '--solve' in argv:
-        from stewart63_ros.tools.fk_solve import main as solve_main
-        sys.exit(solve_main(argv[1:]))
-    from stewart63_ros.nodes.common import run
-    sys.exit(run('fk', __doc__.split('\n\n')[0], _node_class(), argv,
-                 extra_args=_solve_help))
+from stewart63_ros import topics
+from stewart63_ros.core.fk import DEFAULT_COND_THRESHOLD, FKTracker, NoAssemblyError
+from stewart63_ros.core.kinematics import leg_lengths
+from stewart63_ros.core.rotation import rotation_from_euler
+from stewart63_ros.nodes import wire
+from stewart63_ros.nodes.base import RigNode
+from stewart63_ros.nodes.checks import Rejected, StampGate
+from stewart63_ros.nodes.launcher import run
 
 
-def _solve_help(parser):
+class FKNode(RigNode):
+    def __init__(self, options):
+        super().__init__('fk')
+        threshold = self.positive('singularity_threshold', DEFAULT_COND_THRESHOLD)
+        self.tracker = FKTracker(self.mech, cond_threshold=threshold)
+        self.warm_up()
+        self.gate = StampGate()
+        self.singular = 0
+        self.no_assembly = 0
+        self.pub_pose = self.publisher(PoseStamped, topics.PLATFORM_POSE, topics.STREAM_PUB)
+        self.pub_twist = self.publisher(TwistStamped, topics.PLATFORM_TWIST,
+                                        topics.STREAM_PUB)
+        self.pose_out = wire.FrameTemplates(wire.pose_template)
+        self.twist_out = wire.FrameTemplates(wire.twist_template)
+        for out in (self.pose_out, self.twist_out):     # made now, not on sample 1
+            out.get('base')
+        wire.warm_up(('position',), ('velocity',))
+        # Every sample gets a pose: a short queue rather than newest-only.
+        # Serialized samples in, serialized poses out: see nodes/wire.py.
+        self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
+                                                    self.on_sample, topics.EVERY_SUB,
+                                                    raw=True)
+
+    def warm_up(self):
+        """Compile / load the solver kernels now, not on the first sample."""
+        mech = self.mech
+        lengths = leg_lengths(mech, mech.initial_position,
+                              rotation_from_euler(mech.initial_orientation))
+        self.tracker.solve(lengths, np.zeros(6))
+        self.tracker.fk.all_modes(lengths)
+        self.tracker.reset(mech.initial_position, rotation_from_euler(mech.initial_orientation))
+
+    def on_sample(self, data):
+        self.health.received[topics.LEG_LENGTHS] += 1
+        try:
+            ns, sec, nanosec, frame_id, values = wire.joint_state_sample(
+                data, self.gate, ('position',), ('velocity',))
+        except Rejected as exc:
+            self.health.reject(topics.LEG_LENGTHS, exc)
+            return
+        self.gate.accept(ns)
+        rates = values.get('velocity')
+        try:
+            result = self.tracker.solve(values['position'], rates)
+        except NoAssemblyError as exc:
+            self.no_assembly += 1
+            self.health.reject(topics.LEG_LENGTHS, Rejected('no_assembly', str(exc)))
+            return
+        if result.singular:
+            self.singular += 1
+            self.health.warning = ('near-singular pose (Jacobian condition %.3g): not '
+                                   'published' % result.condition)
+            return
+        self.pub_pose.publish(self.pose_out.get(frame_id).fill(
+            sec, nanosec, position=result.position, orientation=result.quaternion))
+        self.health.published[topics.PLATFORM_POSE] += 1
+        if rates is not None:
+            self.pub_twist.publish(self.twist_out.get(frame_id).fill(
+                sec, nanosec, linear=result.velocity, angular=result.omega))
+            self.health.published[topics.PLATFORM_TWIST] += 1
+
+    def run(self):
+        self.run_on(self.sub_samples)
+
+    def report(self):
+        self.health.values.update(singular_samples=self.singular,
+                                  no_assembly_samples=self.no_assembly)
+        super().report()
+        if self.started:
+            self.health.warning = ''
+
+
+def _solve_options(parser):
     parser.add_argument('--solve', nargs=6, metavar='L', type=float,
                         help='solve once for six leg lengths and print JSON (no DDS)')
     parser.add_argument('--params', help='with --solve: parameter file')
     parser.add_argument('--all', action='store_true', help='with --solve: every assembly mode')
 
 
-def _node_class():
-    import numpy as np
-    from geometry_msgs.msg import PoseStamped, TwistStamped
-    from sensor_msgs.msg import JointState
-
-    from stewart63_ros import topics
-    from stewart63_ros.core.fk import FKTracker, NoAssemblyError
-    from stewart63_ros.nodes import wire
-    from stewart63_ros.nodes.base import RigNode
-    from stewart63_ros.nodes.common import Rejected, StampGate
-
-    class FKNode(RigNode):
-        def __init__(self, options):
-            super().__init__('fk')
-            threshold = self.positive('singularity_threshold', 1.0e4)
-            self.tracker = FKTracker(self.mech, cond_threshold=threshold)
-            self.warm_up()
-            self.gate = StampGate()
-            self.singular = 0
-            self.no_assembly = 0
-            self.pub_pose = self.publisher(PoseStamped, topics.PLATFORM_POSE, topics.STREAM_PUB)
-            self.pub_twist = self.publisher(TwistStamped, topics.PLATFORM_TWIST,
-                                            topics.STREAM_PUB)
-            self.pose_out = wire.FrameTemplates(wire.pose_template)
-            self.twist_out = wire.FrameTemplates(wire.twist_template)
-            for out in (self.pose_out, self.twist_out):     # made now, not on sample 1
-                out.get('base')
-            wire.warm_up(('position',), ('velocity',))
-            # Every sample gets a pose: a short queue rather than newest-only.
-            # Serialized samples in, serialized poses out: see nodes/wire.py.
-            self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
-                                                        self.on_sample, topics.EVERY_SUB,
-                                                        raw=True)
-
-        def warm_up(self):
-            """Compile / load the solver kernels now, not on the first sample."""
-            from stewart63_ros.core.kinematics import leg_lengths
-            from stewart63_ros.core.rotation import rotation_from_euler
-            mech = self.mech
-            lengths = leg_lengths(mech, mech.initial_position,
-                                  rotation_from_euler(mech.initial_orientation))
-            self.tracker.solve(lengths, np.zeros(6))
-            self.tracker.fk.all_modes(lengths)
-            self.tracker.reset(mech.initial_position, rotation_from_euler(mech.initial_orientation))
-
-        def on_sample(self, data):
-            self.health.received[topics.LEG_LENGTHS] += 1
-            try:
-                ns, sec, nanosec, frame_id, values = wire.joint_state_sample(
-                    data, self.gate, ('position',), ('velocity',))
-            except Rejected as exc:
-                self.health.reject(topics.LEG_LENGTHS, exc)
-                return
-            self.gate.accept(ns)
-            rates = values.get('velocity')
-            try:
-                result = self.tracker.solve(values['position'], rates)
-            except NoAssemblyError as exc:
-                self.no_assembly += 1
-                self.health.reject(topics.LEG_LENGTHS, Rejected('no_assembly', str(exc)))
-                return
-            if result.singular:
-                self.singular += 1
-                self.health.warning = ('near-singular pose (Jacobian condition %.3g): not '
-                                       'published' % result.condition)
-                return
-            self.pub_pose.publish(self.pose_out.get(frame_id).fill(
-                sec, nanosec, position=result.position, orientation=result.quaternion))
-            self.health.published[topics.PLATFORM_POSE] += 1
-            if rates is not None:
-                self.pub_twist.publish(self.twist_out.get(frame_id).fill(
-                    sec, nanosec, linear=result.velocity, angular=result.omega))
-                self.health.published[topics.PLATFORM_TWIST] += 1
-
-        def run(self):
-            self.run_on(self.sub_samples)
-
-        def report(self):
-            self.health.values.update(singular_samples=self.singular,
-                                      no_assembly_samples=self.no_assembly)
-            super().report()
-            if self.started:
-                self.health.warning = ''
-
-    return FKNode
+def main(argv=None):
+    argv = list(sys.argv if argv is None else argv)
+    if '--solve' in argv:
+        from stewart63_ros.tools.fk_solve import main as solve_main
+        sys.exit(solve_main(argv[1:]))
+    sys.exit(run('fk', __doc__.split('\n\n')[0], FKNode, argv, extra_args=_solve_options))
 
 
 if __name__ == '__main__':

@@ -28,45 +28,12 @@ from sensor_msgs.msg import JointState
 from stewart63_ros import topics
 from stewart63_ros.core.dynamics import OMEGA, POS, QUAT, VEL, Dynamics
 from stewart63_ros.core.params import ParameterError
+from stewart63_ros.core.sensor import SensorModel
 from stewart63_ros.core.simulate import initial_state, substeps_for
 from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
-from stewart63_ros.nodes.common import Rejected, StampGate, finite_vector, ros_time, run
-
-class SensorModel:
-    """Optional linear-sensor imperfections; all off by default.
-
-    ``sensor_noise`` [m] and ``sensor_rate_noise`` [m/s]: Gaussian standard
-    deviations; ``sensor_resolution`` [m]: quantisation step of L;
-    ``sensor_delay`` [samples]: transport delay; ``sensor_seed``: RNG seed.
-    """
-
-    def __init__(self, params):
-        self.noise = float(params.get('sensor_noise', 0.0))
-        self.rate_noise = float(params.get('sensor_rate_noise', 0.0))
-        self.resolution = float(params.get('sensor_resolution', 0.0))
-        self.delay = int(params.get('sensor_delay', 0))
-        for key in ('sensor_noise', 'sensor_rate_noise', 'sensor_resolution', 'sensor_delay'):
-            value = float(params.get(key, 0))
-            if not np.isfinite(value) or value < 0:
-                raise ParameterError(key, 'must be a finite number >= 0, got %r' % value)
-        self.rng = np.random.default_rng(int(params.get('sensor_seed', 0)))
-        self.history = []
-
-    def measure(self, lengths, rates):
-        if self.delay:
-            self.history.append((lengths, rates))
-            lengths, rates = self.history[0]
-            if len(self.history) > self.delay:
-                self.history.pop(0)
-        if self.noise:
-            lengths = lengths + self.rng.normal(0.0, self.noise, 6)
-        if self.rate_noise:
-            rates = rates + self.rng.normal(0.0, self.rate_noise, 6)
-        if self.resolution:
-            lengths = np.round(lengths / self.resolution) * self.resolution
-        return lengths, rates
-
+from stewart63_ros.nodes.checks import Rejected, StampGate, finite_vector, ros_time
+from stewart63_ros.nodes.launcher import run
 
 class PlantNode(RigNode):
     def __init__(self, options):

@@ -1,0 +1,41 @@
+"""A model of the linear leg sensors: what the plant publishes as ``leg_lengths``."""
+from __future__ import annotations
+
+import numpy as np
+
+from stewart63_ros.core.params import ParameterError
+
+
+class SensorModel:
+    """Optional linear-sensor imperfections; all off by default.
+
+    ``sensor_noise`` [m] and ``sensor_rate_noise`` [m/s]: Gaussian standard
+    deviations; ``sensor_resolution`` [m]: quantisation step of L;
+    ``sensor_delay`` [samples]: transport delay; ``sensor_seed``: RNG seed.
+    """
+
+    def __init__(self, params):
+        self.noise = float(params.get('sensor_noise', 0.0))
+        self.rate_noise = float(params.get('sensor_rate_noise', 0.0))
+        self.resolution = float(params.get('sensor_resolution', 0.0))
+        self.delay = int(params.get('sensor_delay', 0))
+        for key in ('sensor_noise', 'sensor_rate_noise', 'sensor_resolution', 'sensor_delay'):
+            value = float(params.get(key, 0))
+            if not np.isfinite(value) or value < 0:
+                raise ParameterError(key, 'must be a finite number >= 0, got %r' % value)
+        self.rng = np.random.default_rng(int(params.get('sensor_seed', 0)))
+        self.history = []
+
+    def measure(self, lengths, rates):
+        if self.delay:
+            self.history.append((lengths, rates))
+            lengths, rates = self.history[0]
+            if len(self.history) > self.delay:
+                self.history.pop(0)
+        if self.noise:
+            lengths = lengths + self.rng.normal(0.0, self.noise, 6)
+        if self.rate_noise:
+            rates = rates + self.rng.normal(0.0, self.rate_noise, 6)
+        if self.resolution:
+            lengths = np.round(lengths / self.resolution) * self.resolution
+        return lengths, rates

@@ -1,0 +1,110 @@
+"""Each node's health on /diagnostics: counters, latencies, and the status they make."""
+from __future__ import annotations
+
+import collections
+import time
+
+import numpy as np
+
+from stewart63_ros.nodes.checks import Rejected
+
+
+class LatencyStats:
+    """Recent latencies [s]: percentiles over a sliding window, max over all.
+
+    The window is a preallocated ring (adding is one store, and the 1 Hz
+    summary does not first copy 20000 Python floats out of a deque).
+    """
+
+    def __init__(self, window: int = 20000):
+        self.window = np.zeros(window)
+        self.count = 0
+        self.max = 0.0
+
+    def add(self, seconds: float) -> None:
+        self.window[self.count % len(self.window)] = seconds
+        self.count += 1
+        if seconds > self.max:
+            self.max = seconds
+
+    def summary(self) -> dict:
+        if not self.count:
+            return {'count': 0}
+        p50, p99 = np.percentile(self.window[:min(self.count, len(self.window))], (50, 99))
+        return {'count': self.count, 'p50_ms': float(p50 * 1e3), 'p99_ms': float(p99 * 1e3),
+                'max_ms': self.max * 1e3}
+
+
+class Health:
+    """Counters behind a node's /diagnostics status, published at about 1 Hz.
+
+    State: ERROR when the node says so (``fault``), WARN when inputs were
+    rejected or cycles were late in the last period, else OK.
+    """
+
+    def __init__(self, node, name: str):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from stewart63_ros import topics
+        self.node = node
+        self.name = name
+        # 'stewart63/controller' in the root namespace, 'stewart63/rig2/controller'
+        # in /rig2: /diagnostics is absolute, so two rigs must not share a name.
+        self.status_name = 'stewart63' + node.get_fully_qualified_name()
+        self.received = collections.Counter()
+        self.published = collections.Counter()
+        self.rejected = collections.Counter()
+        self.last_rejection = ''
+        self.latency = LatencyStats()
+        self.fault = ''
+        self.warning = ''
+        self.values = {}
+        self._last_report = time.monotonic()
+        self._received_at_report = collections.Counter()
+        self._rejected_at_report = 0
+        self.pub = node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
+                                         topics.DIAGNOSTICS_QOS)
+
+    def reject(self, topic: str, exc: Rejected) -> None:
+        self.rejected['%s/%s' % (topic, exc.reason)] += 1
+        self.last_rejection = '%s: %s' % (topic, exc)
+        self.node.get_logger().warn('rejected %s' % self.last_rejection,
+                                    throttle_duration_sec=1.0)
+
+    def report(self, stamp=None) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+        now = time.monotonic()
+        period = max(now - self._last_report, 1e-9)
+        rejected_total = sum(self.rejected.values())
+        fresh_rejections = rejected_total - self._rejected_at_report
+        if self.fault:
+            level, message = DiagnosticStatus.ERROR, self.fault
+        elif fresh_rejections or self.warning:
+            level = DiagnosticStatus.WARN
+            message = self.warning or 'rejected %d inputs (last: %s)' % (
+                fresh_rejections, self.last_rejection)
+        else:
+            level, message = DiagnosticStatus.OK, 'ok'
+        values = []
+        for topic, n in sorted(self.received.items()):
+            rate = (n - self._received_at_report[topic]) / period
+            values.append(KeyValue(key='rate_hz/' + topic, value='%.1f' % rate))
+            values.append(KeyValue(key='received/' + topic, value=str(n)))
+        for topic, n in sorted(self.published.items()):
+            values.append(KeyValue(key='published/' + topic, value=str(n)))
+        values.append(KeyValue(key='rejected_total', value=str(rejected_total)))
+        for key, n in sorted(self.rejected.items()):
+            values.append(KeyValue(key='rejected/' + key, value=str(n)))
+        for key, val in self.latency.summary().items():
+            text = str(val) if isinstance(val, int) else '%.4g' % val   # counts in full
+            values.append(KeyValue(key='latency/' + key, value=text))
+        for key, val in self.values.items():
+            values.append(KeyValue(key=key, value=str(val)))
+        status = DiagnosticStatus(level=level, name=self.status_name,
+                                  message=message, hardware_id='stewart63_ros', values=values)
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = stamp if stamp is not None else self.node.get_clock().now().to_msg()
+        self.pub.publish(msg)
+        self.published['/diagnostics'] += 1
+        self._last_report = now
+        self._received_at_report = collections.Counter(self.received)
+        self._rejected_at_report = rejected_total

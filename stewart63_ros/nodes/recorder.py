@@ -1,0 +1,420 @@
+"""The recorder node: raw subscriptions to the rig's topics, written into a bag.
+
+``record`` (``stewart63_ros/tools/record.py``) is its command line; ``rig``
+and the tests use the ``Recorder`` class in-process. See docs/bags.md.
+"""
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+from stewart63_ros import topics as T
+from stewart63_ros.bagio import NAMESPACE_KEY, BagError
+
+READY_LINE = 'READY'
+MATCHED_LINE = 'MATCHED'
+
+
+def message_class(type_name: str):
+    """``'sensor_msgs/msg/JointState'`` -> the rclpy message class."""
+    parts = type_name.split('/')
+    if len(parts) == 2:
+        parts = [parts[0], 'msg', parts[1]]
+    if len(parts) != 3:
+        raise ValueError(f'bad message type name {type_name!r}')
+    module = importlib.import_module(f'{parts[0]}.{parts[1]}')
+    return getattr(module, parts[2])
+
+
+def qos_to_rosbags(profile):
+    """An rclpy QoSProfile (e.g. a discovered publisher's) as a rosbags ``Qos``."""
+    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
+                                    QosReliability, QosTime)
+
+    def enum(cls, value):
+        name = getattr(value, 'name', None)
+        if name in cls.__members__:
+            return cls[name]
+        try:
+            return cls(int(value))
+        except (TypeError, ValueError):
+            return cls['UNKNOWN']
+
+    def dur(d):
+        ns = d.nanoseconds if hasattr(d, 'nanoseconds') else int(d)
+        sec, nsec = divmod(int(ns), 1_000_000_000)
+        return QosTime(sec, nsec)
+
+    return Qos(enum(QosHistory, profile.history), int(profile.depth),
+               enum(QosReliability, profile.reliability),
+               enum(QosDurability, profile.durability),
+               dur(profile.deadline), dur(profile.lifespan),
+               enum(QosLiveliness, profile.liveliness),
+               dur(profile.liveliness_lease_duration),
+               bool(profile.avoid_ros_namespace_conventions))
+
+
+class Recorder:
+    """Records topics into a new bag; usable in-process (tests, ``rig``) and by ``main``.
+
+    ``open()`` checks the output path, creates the node and one raw subscription
+    per topic whose type is known (every contract topic), then sets ``ready``:
+    from then on nothing a matched publisher sends is lost. Topics of unknown
+    type named in ``topics`` are subscribed once they appear in the ROS graph.
+
+    Use ``start()``/``stop()`` to record in a background thread, or ``run()``
+    in the calling thread; ``close()`` (done by ``stop()``) writes the
+    bag's index and ``metadata.yaml`` and returns the message count per topic.
+    """
+
+    def __init__(self, bag_dir, topics=None, *, namespace=None, context=None,
+                 domain_id=None, ros_args=None, node_name='record',
+                 flush_period=0.5, discovery_period=0.25, fast_path=True):
+        self.path = Path(bag_dir)
+        self.requested = list(topics) if topics else list(T.TOPIC_TYPES)
+        self.namespace = namespace
+        self.flush_period = float(flush_period)
+        self.discovery_period = float(discovery_period)
+        self.fast_path = fast_path
+        self.ready = threading.Event()
+        self.counts: dict[str, int] = {}
+        self._context = context
+        self._own_context = context is None
+        self._domain_id = domain_id
+        self._ros_args = ros_args
+        self._node_name = node_name
+        self._node = None
+        self._writer = None
+        self._subs: dict[str, object] = {}     # full topic -> Subscription
+        self._types: dict[str, str] = {}       # full topic -> type name
+        self._pending: dict[str, str] = {}     # full topic -> requested name (type unknown)
+        self._conns: dict[str, object] = {}    # full topic -> rosbags Connection
+        self._qos_seen: dict[str, list] = {}   # full topic -> offered QoS seen in the graph
+        self._last_stamp: dict[str, int] = {}  # full topic -> last bag timestamp written
+        self._stop = threading.Event()
+        self._thread = None
+        self._guard = None
+        self._waitset = None
+        self._waitset_subs = None
+        self._executor = None
+        self._next_flush = 0.0
+        self._next_discovery = 0.0
+        self._closed = False
+        self._lock = threading.Lock()
+        self.error: BaseException | None = None
+
+    # ----------------------------------------------------------------- setup
+    def open(self):
+        """Create the bag and the subscriptions; returns self with ``ready`` set."""
+        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.rosbag2.errors import WriterError
+
+        if os.path.lexists(self.path):
+            raise BagError(f'{self.path} exists already; record writes a new bag, '
+                           'give a path that does not exist')
+        import rclpy
+        from rclpy.node import Node
+        if self._context is None:
+            self._context = rclpy.Context()
+            rclpy.init(args=self._ros_args, context=self._context, domain_id=self._domain_id)
+        try:
+            self._node = Node(self._node_name, namespace=self.namespace or None,
+                              context=self._context, start_parameter_services=False)
+            writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+            writer.set_custom_data(NAMESPACE_KEY, self._node.get_namespace())
+            try:
+                writer.open()
+            except WriterError as exc:
+                raise BagError(str(exc)) from exc
+            self._writer = writer
+            self._guard = self._node.create_guard_condition(lambda: None)
+            for name in self.requested:
+                full = self._node.resolve_topic_name(name)
+                type_name = T.TOPIC_TYPES.get(name) or T.TOPIC_TYPES.get(T._relative(full))
+                if type_name:
+                    self._subscribe(full, type_name)
+                else:
+                    self._pending[full] = name
+            if self.fast_path:
+                try:
+                    from rclpy.impl.implementation_singleton import rclpy_implementation
+                    self._rclpy = rclpy_implementation
+                    self._build_waitset()
+                except Exception:  # other rclpy versions: the executor path
+                    self.fast_path = False
+            if not self.fast_path:
+                from rclpy.executors import SingleThreadedExecutor
+                self._executor = SingleThreadedExecutor(context=self._context)
+                self._executor.add_node(self._node)
+            now = time.monotonic()
+            self._next_flush = now + self.flush_period
+            self._next_discovery = now
+        except BaseException:
+            self._teardown(abort=True)
+            raise
+        self.ready.set()
+        return self
+
+    def _subscribe(self, full, type_name, qos=None):
+        cls = message_class(type_name)
+        qos = qos or T.recorder_qos(full)
+
+        def callback(data, info, topic=full):
+            self._on_message(topic, data, info)
+        # rclpy inspects the signature: give it exactly (msg, info)
+        cb = lambda data, info: callback(data, info)  # noqa: E731
+        sub = self._node.create_subscription(cls, full, cb, qos, raw=True)
+        old = self._subs.get(full)
+        self._subs[full] = sub
+        self._types[full] = type_name
+        self.counts.setdefault(full, 0)
+        if old is not None:
+            self._node.destroy_subscription(old)
+        self._waitset_subs = None
+
+    def _build_waitset(self):
+        subs = list(self._subs.values())
+        self._waitset = self._rclpy.WaitSet(len(subs), 1, 0, 0, 0, 0, self._context.handle)
+        self._waitset_subs = subs
+
+    # -------------------------------------------------------------- recording
+    def _on_message(self, topic, data, info):
+        conn = self._conns.get(topic)
+        if conn is None:
+            conn = self._add_connection(topic)
+        stamp = info.get('received_timestamp') if info else None
+        stamp = int(stamp) if stamp else time.time_ns()
+        # Reliable topics are delivered in order; a sample re-sent after a loss
+        # carries a later reception time than the ones that followed it but is
+        # only delivered before them. Its time in the bag is when it became
+        # available in order, so each topic's bag times follow delivery order.
+        last = self._last_stamp.get(topic, 0)
+        if stamp <= last:
+            stamp = last + 1
+        self._last_stamp[topic] = stamp
+        self._writer.write(conn, stamp, data)
+        self.counts[topic] += 1
+
+    def _add_connection(self, topic):
+        from stewart63_ros.bagio import typestore
+        try:
+            infos = self._node.get_publishers_info_by_topic(topic)
+        except Exception:
+            infos = []
+        qos = [qos_to_rosbags(i.qos_profile) for i in infos
+               if i.node_name != self._node.get_name() or
+               i.node_namespace != self._node.get_namespace()]
+        if qos:
+            self._qos_seen[topic] = qos
+        conn = self._writer.add_connection(topic, self._types[topic], typestore=typestore(),
+                                           offered_qos_profiles=qos)
+        self._conns[topic] = conn
+        return conn
+
+    def _take_all(self):
+        n = 0
+        for topic, sub in list(self._subs.items()):
+            handle = sub.handle
+            while True:
+                got = handle.take_message(sub.msg_type, True)
+                if got is None:
+                    break
+                self._on_message(topic, got[0], got[1])
+                n += 1
+        return n
+
+    def spin_once(self, timeout=0.1):
+        """Wait up to ``timeout`` s for messages, write what arrived, do housekeeping."""
+        if self.fast_path:
+            if self._waitset_subs is None:
+                self._build_waitset()
+            ws = self._waitset
+            ws.clear_entities()
+            for sub in self._waitset_subs:
+                ws.add_subscription(sub.handle)
+            ws.add_guard_condition(self._guard.handle)
+            ws.wait(int(timeout * 1e9))
+            self._take_all()
+        else:
+            self._executor.spin_once(timeout_sec=timeout)
+        now = time.monotonic()
+        if now >= self._next_discovery:
+            self._next_discovery = now + self.discovery_period
+            self._discover()
+        if now >= self._next_flush:
+            self._next_flush = now + self.flush_period
+            self.flush()
+
+    def flush(self):
+        """Write the buffered messages to disk as a complete MCAP chunk, so they
+        survive a hard kill of this process (see recover_bag)."""
+        storage = getattr(self._writer, 'storage', None)
+        if storage is None:
+            return
+        chunk = getattr(storage, 'chunk', None)
+        if chunk is not None and hasattr(storage, 'close_chunk') and chunk.bio.tell():
+            storage.close_chunk()
+        bio = getattr(storage, 'bio', None)
+        if bio is not None:
+            bio.flush()
+
+    def _discover(self):
+        node = self._node
+        if self._pending:
+            for name, types in node.get_topic_names_and_types():
+                if name in self._pending and types:
+                    del self._pending[name]
+                    self._subscribe(name, types[0])
+        for topic, sub in list(self._subs.items()):
+            try:
+                infos = node.get_publishers_info_by_topic(topic)
+            except Exception:
+                continue
+            infos = [i for i in infos if not (i.node_name == node.get_name() and
+                                               i.node_namespace == node.get_namespace())]
+            if not infos:
+                continue
+            if not self._qos_seen.get(topic):
+                self._qos_seen[topic] = [qos_to_rosbags(i.qos_profile) for i in infos]
+            if topic not in self._conns:
+                self._add_connection(topic)
+            # A best-effort publisher (a sensor driver) does not match a reliable
+            # subscription: follow rosbag2 and subscribe best effort then.
+            from rclpy.qos import QoSProfile, ReliabilityPolicy
+            if (sub.qos_profile.reliability == ReliabilityPolicy.RELIABLE and
+                    any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+                        for i in infos)):
+                q = sub.qos_profile
+                be = QoSProfile(history=q.history, depth=q.depth,
+                                reliability=ReliabilityPolicy.BEST_EFFORT,
+                                durability=q.durability)
+                print(f'record: {topic} has a best-effort publisher; '
+                      'subscribing best effort', file=sys.stderr, flush=True)
+                self._subscribe(topic, self._types[topic], be)
+
+    def publisher_counts(self, topics=None):
+        """Matched publishers per subscribed topic (or per topic of ``topics``,
+        relative names resolved in the recorder's namespace)."""
+        if topics:
+            names = [self._node.resolve_topic_name(t) for t in topics]
+            return {t: (self._subs[t].get_publisher_count() if t in self._subs else 0)
+                    for t in names}
+        return {t: s.get_publisher_count() for t, s in list(self._subs.items())}
+
+    def matched(self, topics=None) -> bool:
+        """True when every topic in ``topics`` (default: all subscribed) has a
+        matched publisher. Relative names resolve in the recorder's namespace."""
+        names = [self._node.resolve_topic_name(t) for t in topics] if topics else list(self._subs)
+        for name in names:
+            sub = self._subs.get(name)
+            if sub is None or sub.get_publisher_count() < 1:
+                return False
+        return True
+
+    def wait_for_publishers(self, topics=None, timeout=30.0) -> bool:
+        """Block until :meth:`matched` (bounded); spins if no thread is recording."""
+        deadline = time.monotonic() + timeout
+        while not self.matched(topics):
+            if time.monotonic() >= deadline:
+                return False
+            if self._thread is None:
+                self.spin_once(0.02)
+            else:
+                time.sleep(0.01)
+        return True
+
+    def run(self, duration=None, stop_event=None):
+        """Record until ``stop()``, ``stop_event`` or ``duration`` seconds."""
+        end = None if duration is None else time.monotonic() + duration
+        while not self._stop.is_set() and not (stop_event and stop_event.is_set()):
+            if end is not None and time.monotonic() >= end:
+                break
+            timeout = 0.1 if end is None else max(0.0, min(0.1, end - time.monotonic()))
+            self.spin_once(timeout)
+
+    def start(self):
+        """Open if needed, then record in a background thread."""
+        if self._node is None:
+            self.open()
+
+        def target():
+            try:
+                self.run()
+            except BaseException as exc:  # reported by stop()
+                self.error = exc
+        self._thread = threading.Thread(target=target, name='recorder', daemon=True)
+        self._thread.start()
+        return self
+
+    def request_stop(self):
+        """Ask ``run()`` to return (safe from a signal handler or another thread)."""
+        self._stop.set()
+        guard = self._guard
+        if guard is not None:
+            try:
+                guard.trigger()
+            except Exception:
+                pass
+
+    def stop(self, timeout=10.0):
+        """Stop the recording thread and close the bag; returns counts per topic."""
+        self.request_stop()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        if self.error is not None:
+            raise self.error
+        return self.close()
+
+    def close(self):
+        """Write what is still queued, the MCAP summary and metadata.yaml."""
+        with self._lock:
+            if self._closed:
+                return dict(self.counts)
+            self._closed = True
+        try:
+            if self._node is not None and self._writer is not None:
+                try:
+                    self._take_all()
+                except Exception:
+                    pass
+        finally:
+            self._teardown(abort=False)
+        return dict(self.counts)
+
+    def _teardown(self, abort):
+        writer, self._writer = self._writer, None
+        try:
+            if writer is not None:
+                if abort:
+                    writer.abort()
+                else:
+                    self._patch_qos(writer)
+                    writer.close()
+        finally:
+            if self._executor is not None:
+                self._executor.shutdown(timeout_sec=1.0)
+                self._executor = None
+            if self._node is not None:
+                self._node.destroy_node()
+                self._node = None
+            if self._own_context and self._context is not None:
+                self._context.try_shutdown()
+                self._context = None
+
+    def _patch_qos(self, writer):
+        # A first message can arrive before the graph lists its publisher: give
+        # metadata.yaml the QoS seen later (the MCAP channel keeps what was known).
+        for i, conn in enumerate(writer.connections):
+            seen = self._qos_seen.get(conn.topic)
+            if seen and not conn.ext.offered_qos_profiles:
+                writer.connections[i] = conn._replace(
+                    ext=conn.ext._replace(offered_qos_profiles=list(seen)))
+
+    def summary(self) -> str:
+        total = sum(self.counts.values())
+        parts = ', '.join(f'{t} {n}' for t, n in self.counts.items() if n or t in self._conns)
+        return f'record: {self.path}: {total} messages ({parts or "no topics"})'

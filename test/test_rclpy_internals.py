@@ -1,0 +1,45 @@
+"""The private rclpy calls of the 1 kHz loops (nodes/rclpy_internals.py).
+
+These are not rclpy's public API: if a rclpy release changes them, this test
+fails loudly, instead of a hot loop that quietly stops taking messages or
+running its timers.
+"""
+import time
+
+from sensor_msgs.msg import JointState
+
+from stewart63_ros.nodes.rclpy_internals import DirectTake, run_timer_if_ready, take
+
+
+def test_take_direct_take_and_timers_work_in_this_rclpy(ros):
+    node = ros.node('internals_probe')
+    got = []
+    sub = node.create_subscription(JointState, 'internals', got.append, 10, raw=True)
+    pub = node.create_publisher(JointState, 'internals', 10)
+    assert ros.spin_until(lambda: pub.get_subscription_count() >= 1, timeout=10)
+
+    assert take(sub) is None                      # nothing yet: None, no exception
+    pub.publish(JointState(name=['a']))
+    deadline = time.monotonic() + 5
+    data = None
+    while data is None and time.monotonic() < deadline:
+        data = take(sub)
+    assert isinstance(data, bytes) and len(data) > 8   # raw: the serialized bytes
+
+    direct = DirectTake(node, sub)
+    assert direct.poll(0.0) is False               # empty: returns at once
+    pub.publish(JointState(name=['b']))
+    assert direct.poll(5.0) is True                # waits in its own wait set
+    assert len(got) == 1 and isinstance(got[0], bytes)
+
+    calls = []
+    timer = node.create_timer(0.01, lambda: calls.append(1))
+    deadline = time.monotonic() + 5
+    while not calls and time.monotonic() < deadline:
+        run_timer_if_ready(timer)
+        time.sleep(0.002)
+    assert calls, 'a due timer must run'
+    ran = run_timer_if_ready(timer)                # just ran: its next period started
+    assert ran is False and len(calls) == 1
+    timer.destroy()
+    assert run_timer_if_ready(timer) is False      # destroyed: skipped, no exception
