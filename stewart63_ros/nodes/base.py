@@ -51,7 +51,41 @@ class RigNode(Node):
         self._executor = None       # made on first use: see executor_
         self.data_publishers = []
         self.started = False        # diagnostics wait for the peers, like the data
+        # Run-time changes through the parameter services: only the keys a
+        # node registers with ``tunable`` may change; every other one is
+        # refused with a reason (the model is fixed once the node runs).
+        self._tunable = {}
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         self.create_timer(1.0, self.report)
+
+    # -- run-time parameter changes --------------------------------------------
+    def tunable(self, name: str, apply) -> None:
+        """Let parameter ``name`` change at run time (``ros2 param set``).
+
+        ``apply(value)`` checks the new value and puts it into effect at once,
+        or raises ``ParameterError`` with the reason: the change is then
+        refused and nothing changes.
+        """
+        self._tunable[name] = apply
+
+    def _on_set_parameters(self, parameters):
+        from rcl_interfaces.msg import SetParametersResult
+        for param in parameters:
+            if param.name == 'use_sim_time':      # rclpy's own, applied by rclpy
+                continue
+            apply = self._tunable.get(param.name)
+            if apply is None:
+                return SetParametersResult(successful=False, reason=(
+                    '%s cannot be changed while the node runs (the model and the node '
+                    'set-up are fixed at start-up); restart the node with the new value'
+                    % param.name))
+            try:
+                apply(param.value)
+            except ParameterError as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+            self.params[param.name] = param.value
+            self.get_logger().info('parameter %s set to %r' % (param.name, param.value))
+        return SetParametersResult(successful=True)
 
     @property
     def executor_(self) -> SingleThreadedExecutor:
