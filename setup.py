@@ -15,7 +15,8 @@ setup(
         ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
         ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
     ],
-    install_requires=['setuptools', 'numpy', 'scipy', 'numba', 'matplotlib', 'pyyaml', 'rosbags'],
+    install_requires=['setuptools', 'numpy', 'scipy', 'numba', 'matplotlib', 'pyyaml', 'rosbags',
+                      'mcap'],
     # MuJoCo only for `make bench` and its agreement test (issue 6), never at run time.
     extras_require={'bench': ['mujoco>=3.1']},
     zip_safe=True,
@@ -23,7 +24,6 @@ setup(
     maintainer_email='maintainers@stewart63.org',
     description='Simulated hardware-in-the-loop rig for a 6-3 Stewart platform',
     license='Apache-2.0',
-    tests_require=['pytest'],
     entry_points={
         'console_scripts': [
             'plant = stewart63_ros.nodes.plant:main',

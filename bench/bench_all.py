@@ -33,7 +33,8 @@ FIGURES = {
     'mujoco_paper_10s_s': ('s', None, '<', 'the same in MuJoCo, at the step it needs for 1e-6 m'),
     'fk_track_us': ('us', 20.0, '<', 'FK tracking solve, pose + twist (fk node)'),
     'fk_all_modes_us': ('us', 1000.0, '<', 'FK, every assembly mode'),
-    'loop_latency_p50_us': ('us', 1000.0, '<', 'realtime 1 kHz rig: sample stamp -> force received'),
+    'loop_latency_p50_us': ('us', 1000.0, '<',
+                            'realtime 1 kHz rig: sample stamp -> force received'),
     'loop_latency_p99_us': ('us', 1000.0, '<', '  the same, 99th percentile'),
     'loop_missed_fraction': ('', 0.001, '<', '  cycles whose force came after the next sample'),
     'lockstep_samples_per_s': ('1/s', 5000.0, '>', 'lockstep rig throughput'),
@@ -122,7 +123,7 @@ def main(argv=None) -> int:
         print('\n== %s' % title, flush=True)
         try:
             results.update(run())
-        except Exception as exc:  # one failed section must not hide the others
+        except Exception as exc:  # noqa: BLE001 - one failed section must not hide the others
             print('%s failed: %s: %s' % (title, type(exc).__name__, exc), flush=True)
 
     print('\n%-24s %14s  %-8s %s' % ('figure', 'median', '', 'what'))

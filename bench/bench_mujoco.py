@@ -55,7 +55,7 @@ def measure(repeat: int = 5, verbose: bool = True) -> dict:
         platform = MujocoPlatform(mech, Settings(timestep=dt))
         _, lengths, _, _, violation = platform.run(DURATION)
         error = float(np.abs(lengths - reference).max())
-        wall = _median_wall(lambda: platform.run(DURATION), repeat)
+        wall = _median_wall(lambda p=platform: p.run(DURATION), repeat)
         rows.append((dt, error, violation, wall))
         if error <= TOLERANCE and chosen is None:
             chosen = (dt, error, wall)
@@ -66,7 +66,7 @@ def measure(repeat: int = 5, verbose: bool = True) -> dict:
         import mujoco
         print('%-30s %10s %12.2e %10.4f %9.0f' % ('ours (RK45, rtol 1e-8)', 'adaptive',
                                                  ours_error, ours_wall, DURATION / ours_wall))
-        for dt, error, violation, wall in rows:
+        for dt, error, _violation, wall in rows:
             print('%-30s %8.2g s %12.2e %10.4f %9.0f%s'
                   % ('MuJoCo %s RK4' % mujoco.__version__,
                      dt, error, wall, DURATION / wall,

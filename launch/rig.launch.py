@@ -1,4 +1,5 @@
-"""ros2 launch stewart63_ros rig.launch.py [params_file:=F] [namespace:=NS] [clock_mode:=lockstep|realtime]
+"""ros2 launch stewart63_ros rig.launch.py [params_file:=F] [namespace:=NS]
+                                          [clock_mode:=lockstep|realtime]
 
 The same three processes as the `rig` executable (plant, controller, fk), for
 ROS 2 installs that have `launch`. Recording: `ros2 bag record` or our

@@ -91,10 +91,10 @@ def bag_namespace(reader) -> str:
     """The namespace the bag was recorded in (``/`` if not recorded by ``record``)."""
     for path in getattr(reader, 'paths', []):
         try:
-            from ruamel.yaml import YAML
+            from ruamel.yaml import YAML, YAMLError
             meta = YAML(typ='safe').load((Path(path) / 'metadata.yaml').read_text())
             custom = meta['rosbag2_bagfile_information'].get('custom_data') or {}
-        except Exception:
+        except (OSError, YAMLError, KeyError, TypeError, AttributeError):
             continue
         if custom.get(NAMESPACE_KEY):
             return str(custom[NAMESPACE_KEY])
@@ -334,7 +334,7 @@ def recover_bag(bag_dir) -> dict[str, int]:
     """
     from mcap.records import Channel, Message, Schema
     from mcap.stream_reader import StreamReader
-    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2 import ReaderError, StoragePlugin, Writer
     from rosbags.rosbag2.metadata import parse_qos
     from rosbags.typesys import get_types_from_msg
     from rosbags.typesys import get_typestore as _get_typestore
@@ -367,7 +367,7 @@ def recover_bag(bag_dir) -> dict[str, int]:
                     channels[rec.id] = rec
                 elif isinstance(rec, Message):
                     messages.append((rec.channel_id, rec.log_time, bytes(rec.data)))
-    except Exception as exc:  # the incomplete tail of a killed recording
+    except Exception as exc:  # noqa: BLE001 - any damage in the tail of a killed recording
         damaged = _describe(exc)
     if not channels:
         raise BagError(f'{src}: no readable MCAP records'
@@ -378,10 +378,10 @@ def recover_bag(bag_dir) -> dict[str, int]:
     meta_path = path / 'metadata.yaml'
     if meta_path.is_file():
         try:
-            from ruamel.yaml import YAML
+            from ruamel.yaml import YAML, YAMLError
             meta = YAML(typ='safe').load(meta_path.read_text())
             custom = dict(meta['rosbag2_bagfile_information'].get('custom_data') or {})
-        except Exception:
+        except (OSError, YAMLError, KeyError, TypeError, AttributeError, ValueError):
             custom = {}
 
     tmp_parent = Path(tempfile.mkdtemp(prefix='.recover-', dir=path.parent))
@@ -405,7 +405,7 @@ def recover_bag(bag_dir) -> dict[str, int]:
                 store.register(get_types_from_msg(schema.data.decode(), msgtype))
             try:
                 qos = parse_qos(chan.metadata.get('offered_qos_profiles', ''))
-            except Exception:
+            except (ReaderError, KeyError, TypeError, ValueError, AttributeError):
                 qos = []
             conns[cid] = writer.add_connection(
                 chan.topic, msgtype, typestore=store,

@@ -94,7 +94,8 @@ def build_xml(mech: Mechanism, settings: Settings | None = None) -> str:
     vertices = np.asarray(mech.platform_points, float)
     base = np.asarray(mech.base_points, float)
     inertia = np.asarray(mech.platform_inertia, float)
-    full = [inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]]
+    full = [inertia[0, 0], inertia[1, 1], inertia[2, 2],
+            inertia[0, 1], inertia[0, 2], inertia[1, 2]]
     it_d, it_u = mech.leg_lower_inertia[1], mech.leg_upper_inertia[1]
     legs, equalities, actuators = [], [], []
     for i in range(6):
@@ -119,7 +120,8 @@ def build_xml(mech: Mechanism, settings: Settings | None = None) -> str:
     </body>''')
         equalities.append(f'<connect body1="piston_{n}" body2="platform" anchor="0 0 0"/>')
         actuators.append(
-            f'<general name="pd_{n}" joint="slide_{n}" gainprm="{mech.kp[i]:.17g}" biastype="affine" '
+            f'<general name="pd_{n}" joint="slide_{n}" gainprm="{mech.kp[i]:.17g}" '
+            f'biastype="affine" '
             f'biasprm="0 {-mech.kp[i]:.17g} {-mech.kv[i]:.17g}" forcelimited="true" '
             f'forcerange="{-mech.max_force:.17g} {mech.max_force:.17g}"/>')
         for axis, gear in (('a', '0 0 0 0 1 0'), ('b', '0 0 0 0 0 1')):

@@ -370,7 +370,7 @@ class RosTest:
         for proc in reversed(self.procs):
             try:
                 stop(proc)
-            except Exception as exc:  # keep going: stop the others
+            except Exception as exc:  # noqa: BLE001 - keep going: stop the others
                 errors.append(exc)
         if self._rc is not None:
             self._rc.close()

@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from ros_harness import (PYTHON, RosTest, lease_domain_id, stop, wait_line, wait_matched, wait_until)
+from ros_harness import (PYTHON, RosTest, lease_domain_id, stop, wait_line, wait_matched,
+                         wait_until)
 import stream_publisher as SP
 
 from stewart63_ros import bagio
@@ -170,7 +171,7 @@ def test_bag_read_by_mcap_reader(recorded):
         reader = make_reader(fh, decoder_factories=[DecoderFactory()])
         summary = reader.get_summary()
         assert summary is not None and summary.statistics.message_count == 4 * N + 1
-        for schema, channel, message, msg in reader.iter_decoded_messages():
+        for _schema, channel, message, msg in reader.iter_decoded_messages():
             t = channel.topic.lstrip('/')
             assert message.log_time > 0
             _check_fields(t, seen[t], lambda f: getattr(msg, f))
@@ -473,7 +474,7 @@ def _bad_copies(src: Path, tmp: Path) -> dict[str, Path]:
 def test_bad_inputs_give_one_line_errors_and_touch_nothing(recorded, ros, tmp_path):
     bad = _bad_copies(recorded['bag'], tmp_path)
     before = {k: sha(p) for k, p in bad.items() if p.exists()}
-    for kind, path in bad.items():
+    for path in bad.values():
         with pytest.raises(BagError):
             list(bagio.read_messages(path))
         with pytest.raises(BagError):

@@ -575,7 +575,7 @@ def test_bad_plant_inputs_are_rejected_and_do_not_corrupt_the_simulation(rig):
     t_first = time.monotonic()
     W(wrench(wrench_stamp))
     rig.spin_for(0.05)
-    for key, send in sends.items():
+    for send in sends.values():
         send()
         rig.spin_for(0.05)
     _wait_rejections(rig, name, expected, sends)

@@ -251,8 +251,8 @@ def test_realtime_fk_pose_matches_ground_truth(ros, monkeypatch, tmp_path, mech,
              summary['force_timeouts'], _fmt(lat.get('p50_ms')), _fmt(lat.get('p99_ms')),
              _fmt(lat.get('max_ms')), wall))
     z = [m.pose.position.z for m in truth.values()]
-    context = ('(plant: missed cycles %d, late cycles %d, end-stop samples %d, final error %.3g %%; '
-               'ground truth z from %.3f to %.3f m)'
+    context = ('(plant: missed cycles %d, late cycles %d, end-stop samples %d, '
+               'final error %.3g %%; ground truth z from %.3f to %.3f m)'
                % (summary['missed_cycles'], summary['late_cycles'], summary['endstop_samples'],
                   summary['positioning_error_percent'], min(z), max(z)))
     assert dpos <= 1e-6, 'fk position off the ground truth by %g m %s' % (dpos, context)
@@ -279,7 +279,7 @@ def assert_every_published_message_is_in_the_bag(bag, summary):
     nodes = {name.rsplit('/', 1)[-1] for name, _ in counts}
     assert nodes == {'plant', 'controller', 'fk'}, counts
     topics_of = {}
-    for (name, topic), n in counts.items():
+    for (_name, topic), n in counts.items():
         topics_of.setdefault(topic, 0)
         topics_of[topic] += n
     for topic in ('leg_lengths', 'leg_forces', 'ground_truth/pose', 'ground_truth/twist',

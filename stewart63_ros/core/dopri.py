@@ -272,7 +272,8 @@ def solve_pd(dyn, y0, t_eval, forces=None, wrench=None, gains=None, max_force=0.
     if not (rtol > 0 and atol >= 0 and max_step > 0):
         raise ValueError('rtol and max_step must be positive and atol non-negative')
     if rtol < 100 * np.finfo(float).eps:   # as scipy's validate_tol
-        warnings.warn('rtol %g is too small; using %g' % (rtol, 100 * np.finfo(float).eps))
+        warnings.warn('rtol %g is too small; using %g' % (rtol, 100 * np.finfo(float).eps),
+                      stacklevel=2)
         rtol = 100 * np.finfo(float).eps
     ys, nfev, accepted, rejected, status = _dopri45_pd(
         *dyn.kernel_args(), y0, forces, wrench6(wrench), bool(endstops), pd, float(max_force),

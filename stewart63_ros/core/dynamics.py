@@ -150,8 +150,10 @@ def _terms_into(const, base, plat, inertia_body, rot, pos, vel, omega, out):
         for b in range(a + 1):
             out[_J + a, b] = 0.0
     for i in range(6):
-        qx, qy, qz, L, sx, sy, sz, dx, dy, dz, Ldot = leg_kernel(rot, pos, vel, omega, base, plat, i)
-        Wx, Wy, Wz = (sy * dz - sz * dy) / L, (sz * dx - sx * dz) / L, (sx * dy - sy * dx) / L  # (14)
+        qx, qy, qz, L, sx, sy, sz, dx, dy, dz, Ldot = leg_kernel(rot, pos, vel, omega,
+                                                                 base, plat, i)
+        # (14)
+        Wx, Wy, Wz = (sy * dz - sz * dy) / L, (sz * dx - sx * dz) / L, (sx * dy - sy * dx) / L
         arm_u = L - l_u
         i_eff = m_d * l_d * l_d + m_u * arm_u * arm_u + i_t
         c = i_eff / (L * L)
@@ -171,7 +173,9 @@ def _terms_into(const, base, plat, inertia_body, rot, pos, vel, omega, out):
         ax, ay, az = wy * qz - wz * qy, wz * qx - wx * qz, wx * qy - wy * qx
         ux, uy, uz = wy * az - wz * ay, wz * ax - wx * az, wx * ay - wy * ax
         su = sx * ux + sy * uy + sz * uz
-        bx, by, bz = c * ux + d * su * sx - f0x, c * uy + d * su * sy - f0y, c * uz + d * su * sz - f0z
+        bx = c * ux + d * su * sx - f0x
+        by = c * uy + d * su * sy - f0y
+        bz = c * uz + d * su * sz - f0z
         out[_ETA, 0] += bx
         out[_ETA, 1] += by
         out[_ETA, 2] += bz

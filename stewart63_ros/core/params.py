@@ -195,7 +195,8 @@ class Mechanism:
                 continue
             value = getattr(self, field.name)
             if field.name == 'platform_inertia':
-                value = [value[0, 0], value[1, 1], value[2, 2], value[0, 1], value[0, 2], value[1, 2]]
+                value = [value[0, 0], value[1, 1], value[2, 2],
+                         value[0, 1], value[0, 2], value[1, 2]]
             out[field.name] = np.asarray(value).ravel().tolist() if np.ndim(value) else value
         return out
 
@@ -227,7 +228,8 @@ def mechanism_from_params(params: Mapping[str, Any]) -> Mechanism:
     lmin = _scalar(params, 'leg_length_min', positive=True)
     lmax = _scalar(params, 'leg_length_max', positive=True)
     if lmax <= lmin:
-        raise ParameterError('leg_length_max', 'must exceed leg_length_min (%g <= %g)' % (lmax, lmin))
+        raise ParameterError('leg_length_max',
+                             'must exceed leg_length_min (%g <= %g)' % (lmax, lmin))
 
     mech = Mechanism(
         base_points=_frozen(base),

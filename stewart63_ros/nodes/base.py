@@ -105,7 +105,8 @@ class RigNode(Node):
         try:
             value = float(self.param(name, default))
         except (TypeError, ValueError):
-            raise ParameterError(name, 'expected a number, got %r' % self.param(name, default))
+            raise ParameterError(name, 'expected a number, got %r'
+                                 % self.param(name, default)) from None
         if not value > 0 or value == float('inf'):
             raise ParameterError(name, 'must be a positive finite number, got %r' % value)
         return value

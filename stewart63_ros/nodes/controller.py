@@ -7,12 +7,13 @@ parameter ``setpoint_lengths``, then the newest ``leg_setpoint`` or
 the stroke is rejected and reported).
 
 Watchdog: when no valid sample has arrived for ``watchdog_timeout`` seconds
-(wall clock; default 0.1 s, 2 s in lockstep) after the first one, the controller stops publishing forces and
-reports ERROR on /diagnostics until samples return. It never invents a force
-without a measurement: on a hydraulic platform the actuator driver's own
-command timeout then closes the servo valves, which locks each cylinder at
-its length. Holding the last force could drive a leg into its end stop, and
-zero force would let the platform sink under its own weight.
+(wall clock; default 0.1 s, 2 s in lockstep) after the first one, the
+controller stops publishing forces and reports ERROR on /diagnostics until
+samples return. It never invents a force without a measurement: on a hydraulic
+platform the actuator driver's own command timeout then closes the servo
+valves, which locks each cylinder at its length. Holding the last force could
+drive a leg into its end stop, and zero force would let the platform sink
+under its own weight.
 """
 from __future__ import annotations
 

@@ -41,7 +41,8 @@ class PlantNode(RigNode):
         self.rate = self.positive('sensor_rate', 1000.0)
         self.mode = str(self.param('clock_mode', 'realtime'))
         if self.mode not in ('realtime', 'lockstep'):
-            raise ParameterError('clock_mode', "must be 'realtime' or 'lockstep', got %r" % self.mode)
+            raise ParameterError('clock_mode',
+                                 "must be 'realtime' or 'lockstep', got %r" % self.mode)
         self.duration = float(self.param('duration', 0.0))   # simulated seconds; 0 = forever
         if not np.isfinite(self.duration) or self.duration < 0:
             raise ParameterError('duration', 'must be >= 0 seconds')
@@ -138,7 +139,8 @@ class PlantNode(RigNode):
         lengths, rates = self.dyn.lengths_and_rates(self.y)
         if lengths.min() < self.mech.leg_length_min or lengths.max() > self.mech.leg_length_max:
             self.endstop_samples += 1
-            self.health.warning = 'a leg is at an end stop (%d samples so far)' % self.endstop_samples
+            self.health.warning = ('a leg is at an end stop (%d samples so far)'
+                                   % self.endstop_samples)
         lengths, rates = self.sensor.measure(lengths, rates)
         data = self.lengths_out.fill(sec, nanosec, position=lengths, velocity=rates)
         self.sent_wall[ns] = time.perf_counter()

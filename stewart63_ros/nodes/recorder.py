@@ -144,7 +144,7 @@ class Recorder:
                     from rclpy.impl.implementation_singleton import rclpy_implementation
                     self._rclpy = rclpy_implementation
                     self._build_waitset()
-                except Exception:  # other rclpy versions: the executor path
+                except Exception:  # noqa: BLE001 - other rclpy versions: the executor path
                     self.fast_path = False
             if not self.fast_path:
                 from rclpy.executors import SingleThreadedExecutor
@@ -203,7 +203,7 @@ class Recorder:
         from stewart63_ros.bagio import typestore
         try:
             infos = self._node.get_publishers_info_by_topic(topic)
-        except Exception:
+        except RuntimeError:  # rclpy's RCLError, InvalidHandle: the node is going down
             infos = []
         qos = [qos_to_rosbags(i.qos_profile) for i in infos
                if i.node_name != self._node.get_name() or
@@ -272,7 +272,7 @@ class Recorder:
         for topic, sub in list(self._subs.items()):
             try:
                 infos = node.get_publishers_info_by_topic(topic)
-            except Exception:
+            except RuntimeError:  # rclpy's RCLError, InvalidHandle: the node is going down
                 continue
             infos = [i for i in infos if not (i.node_name == node.get_name() and
                                                i.node_namespace == node.get_namespace())]
@@ -344,7 +344,7 @@ class Recorder:
         def target():
             try:
                 self.run()
-            except BaseException as exc:  # reported by stop()
+            except BaseException as exc:  # noqa: BLE001 - reported by stop()
                 self.error = exc
         self._thread = threading.Thread(target=target, name='recorder', daemon=True)
         self._thread.start()
@@ -357,7 +357,7 @@ class Recorder:
         if guard is not None:
             try:
                 guard.trigger()
-            except Exception:
+            except RuntimeError:  # rclpy's InvalidHandle: already destroyed, run() has returned
                 pass
 
     def stop(self, timeout=10.0):
@@ -379,7 +379,7 @@ class Recorder:
             if self._node is not None and self._writer is not None:
                 try:
                     self._take_all()
-                except Exception:
+                except Exception:  # noqa: BLE001 - the bag is closed whatever the last take met
                     pass
         finally:
             self._teardown(abort=False)

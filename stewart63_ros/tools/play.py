@@ -172,7 +172,7 @@ class Player:
                             continue
                     if self._stop.is_set():
                         return
-            except BaseException as exc:  # re-raised in the publishing thread
+            except BaseException as exc:  # noqa: BLE001 - re-raised in the publishing thread
                 failure.append(exc)
             finally:
                 while True:
@@ -251,7 +251,7 @@ class Player:
                 left = max(0.0, deadline - time.monotonic())
                 try:
                     pub.wait_for_all_acked(Duration(seconds=left))
-                except Exception:
+                except RuntimeError:  # rclpy's RCLError: the context is going down
                     pass
             self._node.destroy_node()
             self._node = None
@@ -335,7 +335,7 @@ def main(argv=None) -> int:
     finally:
         try:
             player.close(ack_timeout=1.0)
-        except Exception:
+        except Exception:  # noqa: BLE001 - the outcome is already decided; tear-down is best effort
             pass
         for s, h in old.items():
             signal.signal(s, h)

@@ -139,7 +139,7 @@ def main(argv=None) -> int:
     finally:
         try:
             rec.close()
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - reported; the signal handlers are restored
             print(f'record: error while closing: {exc}', file=sys.stderr)
         for s, h in old.items():
             signal.signal(s, h)

@@ -41,7 +41,8 @@ def main(argv=None) -> int:
                         help='PD inside the ODE (RK45, as the paper) or sampled and held')
     parser.add_argument('--rate', type=float, default=None,
                         help='sample rate [Hz]: control rate for sampled (default: the '
-                        "plant's sensor_rate), CSV rate for continuous (default 100, the paper's h)")
+                        "plant's sensor_rate), CSV rate for continuous (default 100, "
+                        "the paper's h)")
     parser.add_argument('--no-figure', action='store_true', help='skip figure.png')
     args = parser.parse_args(argv)
     if not (np.isfinite(args.duration) and args.duration > 0):
