@@ -43,3 +43,21 @@ def test_take_direct_take_and_timers_work_in_this_rclpy(ros):
     assert ran is False and len(calls) == 1
     timer.destroy()
     assert run_timer_if_ready(timer) is False      # destroyed: skipped, no exception
+
+
+def test_wait_any_wakes_on_any_of_its_subscriptions(ros):
+    from stewart63_ros.nodes.rclpy_internals import WaitAny
+    node = ros.node('wait_any_probe')
+    subs = [node.create_subscription(JointState, 'wait_any_%d' % i, lambda m: None, 10,
+                                     raw=True) for i in range(2)]
+    pub = node.create_publisher(JointState, 'wait_any_1', 10)
+    assert ros.spin_until(lambda: pub.get_subscription_count() >= 1, timeout=10)
+    waiter = WaitAny(node.context, subs)
+    t0 = time.monotonic()
+    waiter.wait(0.05)                              # nothing: returns after the timeout
+    assert time.monotonic() - t0 >= 0.04
+    pub.publish(JointState(name=['c']))
+    t0 = time.monotonic()
+    waiter.wait(5.0)                               # the second one has a message
+    assert time.monotonic() - t0 < 4.0
+    assert take(subs[1]) is not None and take(subs[0]) is None

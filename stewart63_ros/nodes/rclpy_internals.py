@@ -78,3 +78,24 @@ class DirectTake:
                 return False
         sub.callback(taken[0])
         return True
+
+
+class WaitAny:
+    """Block until one of several subscriptions has a message, without taking it.
+
+    For a loop that serves several nodes' subscriptions in one thread (the
+    composed rig): the caller takes from each afterwards (``take`` or
+    ``DirectTake.poll(0)``). One wait set, rebuilt in place on each wait.
+    """
+
+    def __init__(self, context, subscriptions):
+        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+        self.handles = [s.handle for s in subscriptions]
+        self.wait_set = _rclpy.WaitSet(len(self.handles), 0, 0, 0, 0, 0, context.handle)
+
+    def wait(self, timeout_sec: float) -> None:
+        ws = self.wait_set
+        ws.clear_entities()
+        for handle in self.handles:
+            ws.add_subscription(handle)
+        ws.wait(int(max(0.0, timeout_sec) * 1e9))

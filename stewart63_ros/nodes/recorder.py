@@ -241,6 +241,17 @@ class Recorder:
             self._take_all()
         else:
             self._executor.spin_once(timeout_sec=timeout)
+        self._housekeeping()
+
+    def take_available(self) -> int:
+        """Write what has arrived, without waiting; the periodic flush and
+        discovery as ``spin_once``. For a loop that hosts the recorder with
+        other nodes in one thread (the composed rig): the number written."""
+        n = self._take_all()
+        self._housekeeping()
+        return n
+
+    def _housekeeping(self):
         now = time.monotonic()
         if now >= self._next_discovery:
             self._next_discovery = now + self.discovery_period

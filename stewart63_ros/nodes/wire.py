@@ -210,10 +210,11 @@ def read_joint_state(data: bytes, want: tuple, optional: tuple = ()):
                 o += -(o - 4) & 7     # 8-byte alignment relative to the payload
             if field in want or field in optional:
                 if count == 6:
-                    numbers = np.array(_F64x6.unpack_from(data, o))
-                    if not np.isfinite(numbers).all():
+                    numbers = _F64x6.unpack_from(data, o)
+                    total = sum(numbers)      # inf or nan unless all six are finite
+                    if total - total != 0.0:  # (or the sum overflows: the slow path decides)
                         return None
-                    values[field] = numbers
+                    values[field] = np.array(numbers)
                 elif count or field in want:
                     return None
             o += 8 * count

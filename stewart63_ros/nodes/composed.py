@@ -1,0 +1,208 @@
+"""composed: plant, controller and fk (and the recorder) as nodes of one process.
+
+As a ROS 2 component container does: each is its own node, with its own
+name, parameters (the same ``--params-file`` sections as when run alone) and
+/diagnostics, and every message between them still goes over the DDS topics,
+so a recorder, viewer or ``ros2 topic`` outside the process sees the same
+graph. What changes is who waits: one thread serves all the nodes. After the
+plant publishes a sample, the loop takes it on the controller's subscription
+at once and runs the controller's callback, then takes the answering force
+on the plant's side (the middleware hands a message to a reader in the same
+process before ``publish`` returns), then fk's sample and the recorder's
+share. No process switch and no wake-up between sample and answer.
+
+    composed [--nodes plant,controller,fk] [--record DIR] --ros-args --params-file F ...
+
+``--record DIR`` adds the recorder (``record``) as a fourth node that writes
+what it takes in the same loop. ``--nodes`` hosts a subset; the others run
+elsewhere (another process or host) and reach these over DDS as usual.
+"""
+from __future__ import annotations
+
+import sys
+import time
+
+NODE_NAMES = ('plant', 'controller', 'fk')
+
+
+class Peers:
+    """The subscriptions the composed loop serves, taken in the order a sample travels.
+
+    Stands in for the plant's ``DirectTake`` on ``leg_forces`` (same
+    ``poll``): before looking for a force it serves the nodes that answer the
+    sample, and it waits on all of their subscriptions at once.
+    """
+
+    def __init__(self, context, own, answer_first=(), then=(), recorder=None, period=1e-3):
+        from stewart63_ros.nodes.rclpy_internals import WaitAny
+        self.own = own                          # DirectTake of the plant's leg_forces, or None
+        self.answer_first = list(answer_first)  # (node, DirectTake): the controller
+        self.then = list(then)                  # (node, DirectTake): fk
+        self.recorder = recorder
+        self.period = period
+        subs = [d.sub for _, d in self.answer_first + self.then] + ([own.sub] if own else [])
+        self.waiter = WaitAny(context, subs)
+        self.nodes = [n for n, _ in self.answer_first + self.then]
+        self.next_side = 0.0
+
+    #: s: how often the loop looks at the peers' other subscriptions
+    #: (setpoints), timers and parameter services when they are not due
+    #: earlier: as often as a node running alone does at 1 kHz.
+    #: The recorder's share is taken then too: its subscriptions queue up to
+    #: ten thousand messages each, a few milliseconds' worth.
+    SIDE_PERIOD = 1e-3
+
+    def serve(self, turn_ok: bool = True) -> bool:
+        """One pass without waiting; True if a force was taken for the plant.
+
+        One take per subscription: the middleware has delivered a sample to
+        every reader in this process by the time ``publish`` returned, so a
+        second take would find nothing (what is left is taken on the next
+        pass or by ``drain``).
+        """
+        for _, direct in self.answer_first:
+            direct.poll(0.0)
+        got = self.own.poll(0.0) if self.own is not None else False
+        for _, direct in self.then:
+            direct.poll(0.0)
+        now = time.monotonic()
+        if now >= self.next_side:
+            wake = now + self.SIDE_PERIOD
+            for node in self.nodes:
+                wake = min(wake, node.housekeeping(now, turn_ok))
+            self.next_side = wake
+            if self.recorder is not None:
+                self.recorder.take_available()
+        return got
+
+    def drain(self) -> None:
+        """Serve what is still queued on the peers' subscriptions (at the end)."""
+        for _, direct in self.answer_first + self.then:
+            while direct.poll(0.0):
+                pass
+        if self.recorder is not None:
+            self.recorder.take_available()
+
+    def poll(self, timeout_sec: float) -> bool:
+        """Serve everything; take a force, waiting up to ``timeout_sec`` for
+        one (the plant's DirectTake.poll); False if none came."""
+        deadline = time.monotonic() + timeout_sec
+        turn_ok = timeout_sec > 0.6 * self.period
+        while True:
+            if self.serve(turn_ok):
+                return True
+            now = time.monotonic()
+            if now >= deadline:
+                return False
+            self.waiter.wait(min(deadline, self.next_side) - now)
+
+
+class Composed:
+    """The nodes of one process and the loop that drives them.
+
+    Has the interface ``launcher.run`` drives (``run``, ``close``,
+    ``destroy_node``): a parameter error in any node exits 2, Ctrl-C and
+    SIGTERM stop every node cleanly, an exception in any node's callback
+    ends the process with its traceback and a non-zero exit.
+    """
+
+    def __init__(self, options):
+        import rclpy
+
+        from stewart63_ros.nodes.controller import ControllerNode
+        from stewart63_ros.nodes.fk_node import FKNode
+        from stewart63_ros.nodes.plant import PlantNode
+        names = [n.strip() for n in options.nodes.split(',') if n.strip()]
+        unknown = sorted(set(names) - set(NODE_NAMES))
+        if unknown or not names:
+            raise SystemExit('composed: --nodes takes a comma-separated subset of %s, got %r'
+                             % (','.join(NODE_NAMES), options.nodes))
+        self.nodes = {}
+        self.recorder = None
+        self.loop = None
+        self.closed = False
+        if options.record:
+            from stewart63_ros.nodes.recorder import Recorder
+            # First, so that its subscriptions exist before any node publishes.
+            from stewart63_ros.bagio import BagError
+            self.recorder = Recorder(options.record, context=rclpy.get_default_context())
+            try:
+                self.recorder.open()
+            except BagError as exc:
+                print('composed: error: %s' % exc, file=sys.stderr)
+                raise SystemExit(2) from None
+        classes = {'controller': ControllerNode, 'fk': FKNode, 'plant': PlantNode}
+        for name in ('controller', 'fk', 'plant'):
+            if name in names:
+                self.nodes[name] = classes[name](options)
+
+    def run(self):
+        nodes = self.nodes
+        peers = [nodes[n] for n in ('controller', 'fk') if n in nodes]
+        # Each node waits for its own subscribers (the recorder, with
+        # wait_for_subscribers), as when it runs alone; the plant last.
+        for node in peers:
+            node.wait_for_matches()
+        directs = {n: nodes[n].start_hot_loop(nodes[n].sub_samples)
+                   for n in ('controller', 'fk') if n in nodes}
+        plant = nodes.get('plant')
+        context = next(iter(nodes.values())).context
+
+        def make_peers(own, period):
+            self.loop = Peers(context, own,
+                         [(nodes[n], directs[n]) for n in ('controller',) if n in directs],
+                         [(nodes[n], directs[n]) for n in ('fk',) if n in directs],
+                         self.recorder, period)
+            return self.loop
+        if plant is None:
+            import rclpy
+            loop = make_peers(None, 1e-3)
+            while rclpy.ok():
+                loop.poll(0.1)
+            return 0
+        # The plant's own loops, unchanged, with every take of a force going
+        # through the composed loop (see Peers).
+        start = plant.start_hot_loop
+
+        def start_hot_loop(hot):
+            return make_peers(start(hot), plant.period)
+        plant.start_hot_loop = start_hot_loop
+        return plant.run()
+
+    def close(self):
+        if self.closed:
+            return
+        self.closed = True
+        errors = []
+        if self.loop is not None:
+            self.loop.drain()
+        for node in self.nodes.values():      # final diagnostics, flushed
+            try:
+                node.close()
+            except Exception as exc:  # noqa: BLE001 - close the others all the same
+                errors.append('%s: %s' % (node.get_name(), exc))
+        if self.recorder is not None:
+            self.recorder.close()             # takes what is still queued, then writes the index
+            print(self.recorder.summary(), flush=True)
+        if errors:
+            raise RuntimeError('; '.join(errors))
+
+    def destroy_node(self):
+        for node in self.nodes.values():
+            node.destroy_node()
+
+
+def _options(parser):
+    parser.add_argument('--nodes', default=','.join(NODE_NAMES),
+                        help='the nodes this process hosts, comma-separated (default: %(default)s)')
+    parser.add_argument('--record', metavar='DIR',
+                        help='also record every topic into a new bag DIR, in this process')
+
+
+def main(argv=None):
+    from stewart63_ros.nodes.launcher import run
+    sys.exit(run('composed', __doc__.split('\n\n')[0], Composed, argv, extra_args=_options))
+
+
+if __name__ == '__main__':
+    main()
