@@ -1,4 +1,4 @@
-# Two commands for a new user: `make demo` and `make test` (CONTRACT section 1).
+# Two commands for a new user: `make demo` and `make test` (docs/interface.md).
 # Where rclpy is already importable (a sourced /opt/ros), the venv sees the
 # system packages; elsewhere the ROS 2 wheels come from the package index.
 PYTHON ?= python3

@@ -17,7 +17,7 @@ setup(
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'numba', 'matplotlib', 'pyyaml', 'rosbags',
                       'mcap'],
-    # MuJoCo only for `make bench` and its agreement test (issue 6), never at run time.
+    # MuJoCo only for `make bench` and its agreement test, never at run time.
     extras_require={'bench': ['mujoco>=3.1']},
     zip_safe=True,
     maintainer='stewart63_ros maintainers',

@@ -1,6 +1,6 @@
 """Time the forward kinematics: one tracking solve and one all-modes solve.
 
-Targets: tracking < 50 us (issue 3), < 20 us (issue 6); all modes < 1 ms.
+Targets: tracking < 20 us; all modes < 1 ms.
 Prints medians over many calls (and the 90th percentile, since a shared
 machine is noisy). ``measure()`` returns the figures for bench/bench_all.py.
 Run: .venv/bin/python bench/bench_fk.py [--params FILE] [--count N]

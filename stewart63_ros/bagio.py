@@ -6,7 +6,7 @@ Everything here works without rclpy: ``plot``, the tests and ``play`` use it.
   rosbags' Kilted type store (or the definitions stored in the bag).
 - :func:`read_raw` yields the CDR bytes unchanged, for replay.
 - :func:`trajectory_from_bag` builds the columns of the trajectory CSV
-  (CONTRACT section 5) from a recording.
+  (docs/interface.md) from a recording.
 - :func:`recover_bag` repairs a bag whose recorder was killed hard (no MCAP
   summary/footer, no ``metadata.yaml``).
 

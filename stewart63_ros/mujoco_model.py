@@ -1,13 +1,13 @@
 """The same 6-3 mechanism as a MuJoCo model, built from the same parameter file.
 
-A second, independent engine for ``make bench`` (issue 6): it solves the
+A second, independent engine for ``make bench``: it solves the
 closed chains with constraints instead of our reduced Newton-Euler model, so
 agreement between the two checks both, and its speed is what a team reaching
 for MuJoCo would get. MuJoCo is an optional extra (``pip install
 stewart63_ros[bench]``), never a run-time dependency: nothing else imports
 this module.
 
-The model (CONTRACT section 4, mapped onto MuJoCo elements):
+The model (docs/interface.md, "Frames and conventions"), mapped onto MuJoCo elements:
 
 - platform: a free body; frame = the platform frame, inertial at
   ``platform_com`` with ``fullinertia`` = ``platform_inertia`` (same element
@@ -21,7 +21,7 @@ The model (CONTRACT section 4, mapped onto MuJoCo elements):
 - C_p: damping of the slide joint (exactly -C_p dL/dt);
 - C_u: the moment -C_u W_i with W_i the leg's angular velocity *across* the
   leg (eq. 14). Plain damping on the two hinges would also damp the spin a
-  U-joint leg picks up (FACTS), so the moment is two velocity-feedback
+  U-joint leg picks up (measured), so the moment is two velocity-feedback
   actuators with a site transmission on the cylinder, about its two
   transverse axes;
 - eq. (40): one affine actuator per slide, force = Kp (ctrl - L) - Kv dL/dt,

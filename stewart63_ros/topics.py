@@ -1,6 +1,6 @@
-"""Topic names and QoS profiles of CONTRACT section 2, shared by every node.
+"""Topic names and QoS profiles, shared by every node (docs/interface.md, "Topics").
 
-Why these profiles (README, "Topics and QoS"):
+Why these profiles:
 - State streams (``leg_lengths``, ``leg_forces``, poses, twists, ``/clock``)
   are published RELIABLE with a deep KEEP_LAST history, so a recorder that
   subscribes RELIABLE with a deep queue loses nothing, while the plant and the
@@ -54,7 +54,7 @@ DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                              reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.VOLATILE)
 
-#: Every topic of CONTRACT section 2 with its message type name.
+#: Every topic of the rig with its message type name.
 TOPIC_TYPES = {
     LEG_LENGTHS: 'sensor_msgs/msg/JointState',
     LEG_FORCES: 'sensor_msgs/msg/JointState',
@@ -76,7 +76,7 @@ LATCHED_TOPICS = (LEG_SETPOINT, POSE_SETPOINT)
 
 def _relative(topic: str) -> str:
     """``/rig2/leg_lengths`` and ``leg_lengths`` -> ``leg_lengths`` (absolute
-    contract topics such as ``/clock`` stay as they are)."""
+    rig topics such as ``/clock`` stay as they are)."""
     if topic in (CLOCK, DIAGNOSTICS):
         return topic
     for name in TOPIC_TYPES:
@@ -111,8 +111,8 @@ def wait_for_subscribers(publishers, min_count: int = 1, timeout: float = 10.0,
     matched subscriptions, at most ``timeout`` seconds; True if they all have.
 
     Matching is done by the middleware's own threads, so no spinning is needed.
-    Publishers of a rig call this before their first sample (CONTRACT section 2:
-    "rig and record wait until publishers and subscribers are matched").
+    Publishers of a rig call this before their first sample, so that a
+    recorder started first misses nothing (docs/bags.md, readiness handshake).
     """
     import time
     deadline = time.monotonic() + timeout

@@ -1,4 +1,4 @@
-"""record / play / bagio over real DDS, in separate processes (issue 5).
+"""record / play / bagio over real DDS, in separate processes (docs/bags.md).
 
 One recording (module fixture) feeds most checks: a publisher process sends
 N samples at 1 kHz on four stream topics plus a latched setpoint, while
@@ -415,7 +415,7 @@ def test_player_start_offset_and_loop(recorded, ros):
 
 
 def test_recorder_discovers_late_topic_of_unknown_type(ros, tmp_path):
-    """A topic outside the contract (type unknown in advance) is subscribed once
+    """A topic outside the rig's (type unknown in advance) is subscribed once
     its publisher appears, after the recorder started."""
     from std_msgs.msg import String
 

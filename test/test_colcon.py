@@ -1,4 +1,4 @@
-"""`colcon build` of the package (CONTRACT section 1), in a temporary workspace.
+"""`colcon build` of the package (README), in a temporary workspace.
 
 The package files are copied into ``<tmp>/src/stewart63_ros``; build, install
 and log directories are all under ``<tmp>``, so the checkout is left as it was.

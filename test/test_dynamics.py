@@ -1,6 +1,6 @@
-"""The Newton-Euler dynamics against independent references (issue 2).
+"""The Newton-Euler dynamics against independent references.
 
-References built here, from the contract's model (CONTRACT section 4) and not
+References built here, from the model as documented (docs/interface.md) and not
 from ``stewart63_ros.core.dynamics``:
 
 * kinetic and potential energy of platform, cylinders and pistons, written
@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 from stewart63_ros.core import kinematics as kin
 from stewart63_ros.core.dynamics import Dynamics
 
-# CONTRACT section 3: legs 2k-1 and 2k meet at vertex p_k.
+# Legs 2k-1 and 2k meet at vertex p_k (docs/interface.md).
 VERTEX_OF_LEG = [0, 0, 1, 1, 2, 2]
 
 

@@ -145,9 +145,9 @@ def test_fk_of_ik_returns_the_pose(default_mech, fk):
 
 
 def test_nearest_mode_to_the_initial_pose_is_the_setpoint_pose(default_mech, fk):
-    """The paper's setpoint is a level pose ~7 cm above the start (config comment, FACTS)."""
+    """The paper's setpoint is a level pose ~7 cm above the start (config comment, README)."""
     modes = fk.all_modes(default_mech.setpoint_lengths)
-    assert len(modes) == 8                        # FACTS: 8 real assembly modes
+    assert len(modes) == 8                        # 8 real assembly modes here
     best = modes[0]
     assert abs(best.position[2] - 1.0737) < 1e-3 and np.abs(best.position[:2]).max() < 1e-3
     assert angle_between(best.rotation, np.eye(3)) < 1e-3

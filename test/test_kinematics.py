@@ -1,8 +1,8 @@
-"""Kinematics against independent references (issue 2).
+"""Kinematics against independent references.
 
 Every quantity of ``stewart63_ros.core.kinematics`` (and the orientation
 conventions of ``rotation``) is checked against something computed here from
-first principles: leg vectors from the contract's formula, rates and the
+first principles: leg vectors from the documented formula, rates and the
 Jacobian from central finite differences of the pose moved along a twist,
 accelerations from second differences along a trajectory of constant
 (accel, alpha). Nothing is compared with saved output of the code.
@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from stewart63_ros.core import kinematics as kin
 from stewart63_ros.core import rotation as rotmod
 
-# CONTRACT section 3: legs 2k-1 and 2k meet at vertex p_k.
+# Legs 2k-1 and 2k meet at vertex p_k (docs/interface.md).
 VERTEX_OF_LEG = [0, 0, 1, 1, 2, 2]
 
 
@@ -36,7 +36,7 @@ def rot_z(a):
 
 
 def rot_euler(theta):
-    """CONTRACT section 4: R = Rz(theta_z) Ry(theta_y) Rx(theta_x)."""
+    """R = Rz(theta_z) Ry(theta_y) Rx(theta_x) (docs/interface.md)."""
     return rot_z(theta[2]) @ rot_y(theta[1]) @ rot_x(theta[0])
 
 

@@ -1,4 +1,4 @@
-"""Our Newton-Euler core against MuJoCo on the same mechanism (issue 6).
+"""Our Newton-Euler core against MuJoCo on the same mechanism.
 
 MuJoCo solves the closed chains as a different multibody problem: six legs
 as their own bodies on hinges and slides, tied to a free platform by

@@ -1,4 +1,4 @@
-"""plant, controller and fk as node processes over real DDS (issue 4).
+"""plant, controller and fk as node processes over real DDS.
 
 One module fixture starts, on a private ROS domain, once each:
 

@@ -2,7 +2,7 @@
 
 Bad files are the default file with one change, written to a temporary
 directory. The same files are also handed to ``sim``, which must exit
-non-zero and name the key on stderr (CONTRACT sections 1 and 3).
+non-zero and name the key on stderr (docs/interface.md, "Parameters").
 """
 import copy
 import re
@@ -144,7 +144,7 @@ def test_coincident_platform_points(tmp_path, default_doc):
 
 
 def _initial_lengths(doc):
-    """Leg lengths of the file's initial pose, computed here (CONTRACT section 4)."""
+    """Leg lengths of the file's initial pose, computed here (eqs. 2-5)."""
     raw = doc[SECTION]['ros__parameters']
     rot = Rotation.from_euler('xyz', raw['initial_orientation']).as_matrix()
     plat = np.reshape(raw['platform_points'], (3, 3))[[0, 0, 1, 1, 2, 2]]

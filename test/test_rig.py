@@ -1,4 +1,4 @@
-"""The rig over real DDS, nodes in separate processes (issue 4).
+"""The rig over real DDS, nodes in separate processes.
 
 - lockstep: the distributed loop (plant, controller, fk, record) reproduces
   the offline ``run_sampled(mech, D, 1000)`` sample for sample;
@@ -150,7 +150,7 @@ def test_lockstep_rig_reproduces_offline_sampled_run(ros, monkeypatch, tmp_path,
 
 def test_played_leg_lengths_into_a_fresh_fk_reproduce_the_recorded_truth(
         ros, monkeypatch, tmp_path, mech, warm_kernels):
-    """Issue 5: `play BAG --topics leg_lengths` stands in for the plant; a new
+    """`play BAG --topics leg_lengths` stands in for the plant; a new
     fk process turns the recorded samples back into the recorded ground truth."""
     from geometry_msgs.msg import PoseStamped
 
@@ -274,7 +274,7 @@ def final_published_counts(bag) -> dict:
 
 
 def assert_every_published_message_is_in_the_bag(bag, summary):
-    """Issue 5: per topic, the publisher's count equals the bag's, in stamp order."""
+    """Per topic, the publisher's count equals the bag's, in stamp order."""
     counts = final_published_counts(bag)
     nodes = {name.rsplit('/', 1)[-1] for name, _ in counts}
     assert nodes == {'plant', 'controller', 'fk'}, counts

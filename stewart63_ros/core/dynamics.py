@@ -1,6 +1,6 @@
 """Newton-Euler dynamics of the 6-3 platform with massive legs (paper eqs. 8-38).
 
-Model (CONTRACT section 4): each leg is a cylinder (mass m_d, centre of mass
+Model (docs/interface.md): each leg is a cylinder (mass m_d, centre of mass
 l_d from b_i) on a universal joint at b_i and a piston (mass m_u, centre of
 mass l_u from the platform vertex) sliding in it; both are axisymmetric and
 spin-free, so they share the angular velocity W_i = s_i x dS_i/dt / L_i
@@ -46,7 +46,7 @@ from stewart63_ros.core.rotation import matrix_from_quaternion
 STATE_SIZE = 13
 POS, QUAT, VEL, OMEGA = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 13)
 
-#: End-stop model (CONTRACT section 4): past a stroke limit, a stiff
+#: End-stop model (docs/interface.md): past a stroke limit, a stiff
 #: spring-damper inside the leg pushes it back; override with the parameters
 #: ``endstop_stiffness`` [N/m] and ``endstop_damping`` [N s/m].
 DEFAULT_ENDSTOP_STIFFNESS = 2.0e6

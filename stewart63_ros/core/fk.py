@@ -1,6 +1,6 @@
 """Forward kinematics of the 6-3 platform: the pose from six leg lengths.
 
-Two solvers, one model (CONTRACT section 4: S_i = t + R p_k - b_i, L_i = |S_i|):
+Two solvers, one model (eqs. 2-5: S_i = t + R p_k - b_i, L_i = |S_i|):
 
 * ``ForwardKinematics.all_modes`` finds every real assembly mode (up to 16).
   Legs 2k-1 and 2k meet at vertex P_k, so P_k lies on a circle about the base
@@ -86,7 +86,7 @@ class FKResult:
 
     @property
     def theta(self) -> np.ndarray:
-        """(theta_x, theta_y, theta_z), R = Rz Ry Rx (CONTRACT section 4)."""
+        """(theta_x, theta_y, theta_z), R = Rz Ry Rx (docs/interface.md)."""
         return euler_from_matrix(self.rotation)
 
     @property

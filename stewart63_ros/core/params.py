@@ -1,6 +1,6 @@
 """The mechanism description: read, validate and freeze the parameter file.
 
-The file is a ROS 2 parameter file (CONTRACT section 3): shared keys under
+The file is a ROS 2 parameter file (docs/interface.md): shared keys under
 ``/**: ros__parameters:``, node-specific keys under ``/**/<node>:``. This module
 knows no ROS; the nodes and ``sim`` read the same file through it.
 """

@@ -1,4 +1,4 @@
-"""Orientation conventions of CONTRACT section 4, in one place.
+"""Orientation conventions (docs/interface.md), in one place.
 
 theta = (theta_x, theta_y, theta_z) with R = Rz(theta_z) Ry(theta_y) Rx(theta_x),
 i.e. extrinsic x-y-z ("roll, pitch, yaw about fixed axes"): scipy's ``'xyz'``.

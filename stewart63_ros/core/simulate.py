@@ -61,7 +61,7 @@ class Result:
     rhs_evaluations: int = 0
 
     def table(self, dyn: Dynamics) -> np.ndarray:
-        """Rows of the trajectory CSV (CONTRACT section 5)."""
+        """Rows of the trajectory CSV (docs/interface.md)."""
         rows = np.empty((len(self.times), len(COLUMNS)))
         rows[:, 0] = self.times
         rows[:, 1:4] = self.states[:, POS]

@@ -1,4 +1,4 @@
-"""The trajectory CSV of CONTRACT section 5: one layout for `sim` and `plot`."""
+"""The trajectory CSV (docs/interface.md): one layout for `sim` and `plot`."""
 from __future__ import annotations
 
 import csv
@@ -14,7 +14,7 @@ COLUMNS = (['t', 'x', 'y', 'z', 'theta_x', 'theta_y', 'theta_z',
 
 
 class TrajectoryError(ValueError):
-    """A file that is not a trajectory CSV of CONTRACT section 5."""
+    """A file that is not a trajectory CSV."""
 
 
 def write_csv(path, table: np.ndarray) -> None:

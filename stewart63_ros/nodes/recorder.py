@@ -62,7 +62,7 @@ class Recorder:
     """Records topics into a new bag; usable in-process (tests, ``rig``) and by ``main``.
 
     ``open()`` checks the output path, creates the node and one raw subscription
-    per topic whose type is known (every contract topic), then sets ``ready``:
+    per topic whose type is known (every topic of the rig), then sets ``ready``:
     from then on nothing a matched publisher sends is lost. Topics of unknown
     type named in ``topics`` are subscribed once they appear in the ROS graph.
 

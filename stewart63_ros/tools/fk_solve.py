@@ -2,7 +2,7 @@
 
 Prints the assembly mode nearest the parameter file's initial pose, or with
 ``--all`` every real assembly mode (nearest first). Each pose carries
-position [m], theta [rad] (R = Rz Ry Rx, CONTRACT section 4), quaternion
+position [m], theta [rad] (R = Rz Ry Rx, docs/interface.md), quaternion
 (x, y, z, w), the Jacobian's condition number and whether it is flagged as
 near-singular. Exit status 2 with a one-line reason on stderr when the
 lengths admit no assembly; 1 when the parameter file is unusable.

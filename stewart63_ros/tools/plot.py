@@ -2,8 +2,8 @@
 
     plot SOURCE [--out FILE.png]
 
-SOURCE is a trajectory CSV (CONTRACT section 5) or a rosbag2 directory
-recorded from the rig (CONTRACT section 6).
+SOURCE is a trajectory CSV or a rosbag2 directory recorded from the rig
+(docs/interface.md: "Trajectory CSV", "Bags").
 """
 from __future__ import annotations
 

@@ -35,7 +35,7 @@ def _parser():
                    help='new bag directory (must not exist); with --recover, the bag to repair')
     p.add_argument('-o', '--output', metavar='DIR', help='same as DIR')
     p.add_argument('--topics', nargs='+', metavar='T',
-                   help='topics to record (default: every topic of the contract); relative '
+                   help='topics to record (default: every topic of the rig); relative '
                         'names resolve under the namespace')
     p.add_argument('--namespace', metavar='NS', help='namespace of the rig to record')
     p.add_argument('--duration', type=float, metavar='S', help='stop after S seconds')

@@ -2,7 +2,7 @@
 
     sim --params FILE --duration S --out DIR [--control continuous|sampled] [--rate HZ]
 
-Writes DIR/trajectory.csv (CONTRACT section 5) and DIR/figure.png (Fig. 4),
+Writes DIR/trajectory.csv (docs/interface.md) and DIR/figure.png (Fig. 4),
 prints the final leg-length errors and the positioning error in %.
 """
 from __future__ import annotations
