@@ -171,7 +171,7 @@ def diagnostics_keys() -> dict[str, str]:
 
 def code_spans(text: str) -> list[str]:
     """Everything between backticks, and every indented code line."""
-    spans = re.findall(r'`([^`\n]+)`', text)
+    spans = re.findall(r'`([^`]+)`', text)   # Markdown pairs backticks in order
     spans += [line.strip() for line in text.splitlines() if line.startswith('    ')]
     return spans
 
