@@ -38,6 +38,7 @@ import numpy as np
 
 from stewart63_ros.core._jit import njit, njit_kernel
 from stewart63_ros.core.control import pd_leg
+from stewart63_ros.core.fk import solve_linear
 from stewart63_ros.core.kinematics import LegState, leg_kernel
 from stewart63_ros.core.rotation import matrix_from_quaternion
 
@@ -241,6 +242,27 @@ def _terms(const, base, plat, inertia_body, rot, pos, vel, omega):
                 (vel[0], vel[1], vel[2]), (omega[0], omega[1], omega[2]), out)
     return (out[_J:_J + 6].copy(), out[_ETA].copy(), out[_H:_H + 6].copy(), out[_L].copy(),
             out[_LDOT].copy())
+
+
+@njit
+def inverse_dynamics_forces(const, base, plat, inertia_body, rot, pos, vel, omega, acc):
+    """Piston forces F with H F = J acc + eta at the pose (R, t) and twist (v, omega):
+    eq. (38) solved for F, without external wrench and end stops. ``acc`` is
+    [dd t; alpha] (base frame); with a zero twist and acc = 0 it gives the
+    forces that hold the mechanism against gravity. Compiled; NaN where H is
+    singular."""
+    out = np.empty((_WORK_ROWS, 6))
+    rows = ((rot[0, 0], rot[0, 1], rot[0, 2]), (rot[1, 0], rot[1, 1], rot[1, 2]),
+            (rot[2, 0], rot[2, 1], rot[2, 2]))
+    _terms_into(const, base, plat, inertia_body, rows, (pos[0], pos[1], pos[2]),
+                (vel[0], vel[1], vel[2]), (omega[0], omega[1], omega[2]), out)
+    rhs = np.empty(6)
+    for a in range(6):
+        v = out[_ETA, a]
+        for b in range(6):
+            v += out[_J + a, b] * acc[b]
+        rhs[a] = v
+    return solve_linear(out[_H:_H + 6], rhs)
 
 
 @njit

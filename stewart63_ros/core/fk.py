@@ -186,8 +186,10 @@ def _legs(base, legp, t, rot, lengths, jac, res):
 
 
 @njit
-def _solve(a, b):
-    """x = a^-1 b by Gaussian elimination with partial pivoting; NaN when singular."""
+def solve_linear(a, b):
+    """x = a^-1 b by Gaussian elimination with partial pivoting; NaN when singular.
+
+    Compiled; ``a`` and ``b`` are left untouched. Cheaper than a LAPACK call at 6x6."""
     a = a.copy()
     x = b.copy()
     n = b.shape[0]
@@ -288,7 +290,7 @@ def _newton(base, legp, lengths, t0, rot0, max_iter, step_tol):
             ok = True
             break
         it += 1
-        d = _solve(jac, res)
+        d = solve_linear(jac, res)
         size = 0.0
         for k in range(d.shape[0]):
             size = max(size, abs(d[k]))
@@ -366,11 +368,28 @@ def _track(base, legp, lengths, t_prev, rot_prev, t_cur, rot_cur, extrapolate, m
 
 
 @njit
+def pose_and_twist(base, legp, lengths, rates, t0, rot0, max_iter):
+    """Tracking FK in one compiled call: Newton on the six leg equations from the
+    pose (t0, R0) (the previous estimate), then [v; omega] = J^-1 dL/dt (eq. 13).
+
+    Returns t, R, twist (6,), converged (also: residual down to 1e-9 of the
+    longest leg). A caller falls back on ``ForwardKinematics.nearest`` when it
+    did not converge (a jump, or lengths with no assembly).
+    """
+    t, rot, _, ok, res = _newton(base, legp, lengths, t0, rot0, max_iter, 1e-12)
+    scale = 0.0
+    for i in range(lengths.shape[0]):
+        scale = max(scale, abs(lengths[i]))
+    ok = ok and res <= 1e-9 * scale
+    return t, rot, _twist(base, legp, t, rot, rates), ok
+
+
+@njit
 def _twist(base, legp, t, rot, rates):
     """[v; omega] = J^-1 dL/dt (eq. 13 solved for the twist), base frame."""
     jac = np.empty((6, 6))
     _legs(base, legp, t, rot, np.zeros(6), jac, np.empty(6))
-    return _solve(jac, rates)
+    return solve_linear(jac, rates)
 
 
 # -- all assembly modes --------------------------------------------------------

@@ -47,6 +47,14 @@ def main():
     # The compiled closed loops: scipy's RK45 (dopri), its output samples, the sampled loop.
     run_continuous(mech, 0.02, dyn=dyn)
     run_sampled(mech, 0.002, 1000.0, dyn=dyn)
+    # The control laws and the reference motions.
+    from stewart63_ros.core.laws import LAWS, Controller
+    from stewart63_ros.core.reference import Reference
+    ref = Reference.from_poses(mech, [0.0, 0.5, 1.0], np.zeros((3, 6)) + np.concatenate(
+        [mech.initial_position, mech.initial_orientation]))
+    ref.check(1.0, 1.0)
+    for name in LAWS:
+        Controller(mech, law=name, reference=ref)(lengths, rates, 0.25)
     print('numba kernels ready (%.1f s)' % (time.perf_counter() - start))
 
 

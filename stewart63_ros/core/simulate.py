@@ -20,7 +20,8 @@ from scipy.integrate import solve_ivp
 from stewart63_ros.core import dopri
 from stewart63_ros.core._jit import njit
 from stewart63_ros.core.control import PDController, pd_law
-from stewart63_ros.core.dynamics import (NO_WRENCH, OMEGA, POS, QUAT, STATE_SIZE, VEL, Dynamics,
+from stewart63_ros.core.dynamics import (NO_GAINS, NO_WRENCH, OMEGA, POS, QUAT, STATE_SIZE, VEL,
+                                         Dynamics,
                                          derivative_pd, lengths_rates, rk4)
 from stewart63_ros.core.trajectory import COLUMNS
 from stewart63_ros.core.rotation import (euler_from_quaternion, euler_rate_matrix,
@@ -161,11 +162,13 @@ def run_sampled(mech, duration: float, rate: float, controller=None, y0=None,
     states = np.empty((n + 1, STATE_SIZE))
     forces = np.empty((n + 1, 6))
     contact = 0
+    timed = getattr(controller, 'timed', False)
     for k in range(n + 1):
         lengths, rates = sensor_reading(dyn, y)
         contact += _outside_stroke(mech, lengths)
         states[k] = y
-        forces[k] = controller(lengths, rates)
+        forces[k] = (controller(lengths, rates, k * period) if timed
+                     else controller(lengths, rates))
         if k < n:
             y = dyn.step(y, forces[k], period, steps)
     return Result(np.arange(n + 1) * period, states, forces, contact, 4 * steps * n)
@@ -188,6 +191,8 @@ def run_continuous(mech, duration: float, output_rate: float = 100.0, controller
         raise ValueError("integrator must be 'compiled' or 'scipy', not %r" % (integrator,))
     dyn = dyn or Dynamics(mech)
     controller = controller or PDController(mech)
+    if not _is_pd(controller):
+        return _continuous_law(mech, dyn, duration, output_rate, controller, y0, rtol, atol)
 
     # One compiled call per evaluation: dynamics and eq. (40) from the same L, dL/dt.
     args = dyn.kernel_args()
@@ -216,15 +221,41 @@ def run_continuous(mech, duration: float, output_rate: float = 100.0, controller
             raise RuntimeError('integration failed: %s' % sol.message)
         states, times, nfev = sol.y.T.copy(), sol.t, sol.nfev
     states[:, QUAT] /= np.linalg.norm(states[:, QUAT], axis=1)[:, None]
-    if _is_pd(controller):
-        forces, contact = _pd_samples(dyn.base_points, dyn.leg_points, states, controller.setpoint,
-                                      controller.kp, controller.kv, max_force,
-                                      float(mech.leg_length_min), float(mech.leg_length_max))
-    else:
-        forces = np.empty((len(states), 6))
-        contact = 0
-        for k, yk in enumerate(states):
-            lengths, rates = sensor_reading(dyn, yk)
-            contact += _outside_stroke(mech, lengths)
-            forces[k] = controller(lengths, rates)
+    forces, contact = _pd_samples(dyn.base_points, dyn.leg_points, states, controller.setpoint,
+                                  controller.kp, controller.kv, max_force,
+                                  float(mech.leg_length_min), float(mech.leg_length_max))
     return Result(times, states, forces, int(contact), int(nfev))
+
+
+def _continuous_law(mech, dyn, duration, output_rate, controller, y0, rtol, atol) -> Result:
+    """A law other than plain eq. (40) inside the ODE: scipy's RK45 (``solve_ivp``)
+    on dy/dt = f(y, law(t, L(y), dL/dt(y))). A law with a pose estimate tracks it
+    from evaluation to evaluation (Newton from the previous one). The forces
+    reported at the output times are the law evaluated again there."""
+    args = dyn.kernel_args()
+    base, plat = dyn.base_points, dyn.leg_points
+    timed = getattr(controller, 'timed', False)
+
+    def law(t, y):
+        lengths, rates = lengths_rates(base, plat, y)
+        return controller(lengths, rates, t) if timed else controller(lengths, rates)
+
+    def rhs(t, y):
+        return derivative_pd(*args, y, law(t, y), NO_WRENCH, True, NO_GAINS, 0.0)
+
+    y = initial_state(mech) if y0 is None else np.array(y0, float)
+    n = int(round(duration * output_rate))
+    t_eval = np.arange(n + 1) / output_rate
+    sol = solve_ivp(rhs, (0.0, t_eval[-1]), y, method='RK45', t_eval=t_eval, rtol=rtol,
+                    atol=atol)
+    if not sol.success:
+        raise RuntimeError('integration failed: %s' % sol.message)
+    states = sol.y.T.copy()
+    states[:, QUAT] /= np.linalg.norm(states[:, QUAT], axis=1)[:, None]
+    forces = np.empty((len(states), 6))
+    contact = 0
+    for k, yk in enumerate(states):
+        lengths, rates = lengths_rates(base, plat, yk)
+        contact += _outside_stroke(mech, lengths)
+        forces[k] = controller(lengths, rates, sol.t[k]) if timed else controller(lengths, rates)
+    return Result(sol.t, states, forces, int(contact), int(sol.nfev))

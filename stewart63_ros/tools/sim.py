@@ -1,9 +1,13 @@
 """`sim`: the paper's scenario offline, in one process, without DDS.
 
     sim --params FILE --duration S --out DIR [--control continuous|sampled] [--rate HZ]
+        [--control-law NAME] [--reference CSV]
 
 Writes DIR/trajectory.csv (docs/interface.md) and DIR/figure.png (Fig. 4),
-prints the final leg-length errors and the positioning error in %.
+prints the final leg-length errors and the positioning error in %. With
+--reference, the reference motion is followed from t = 0, DIR/reference.csv
+holds it at the output times, the figure draws it against the actual motion,
+and the tracking error (max and RMS after the first second) is printed.
 """
 from __future__ import annotations
 
@@ -31,6 +35,38 @@ def summarize(mech, dyn, result) -> dict:
     }
 
 
+def format_tracking(err: dict) -> str:
+    """The tracking-error lines `sim` and `rig` print."""
+    if not err:
+        return 'tracking error: the run is shorter than its first second'
+    return ('tracking error after %gs (%d samples): leg length max %.3e m, RMS %.3e m; '
+            'position max %.3e m, RMS %.3e m; orientation max %.3e rad, RMS %.3e rad' % (
+                err['from_s'], err['samples'], err['leg_max_m'], err['leg_rms_m'],
+                err['position_max_m'], err['position_rms_m'], err['orientation_max_rad'],
+                err['orientation_rms_rad']))
+
+
+def make_controller(params_path, law=None, reference_csv=None):
+    """(controller, reference) for a run: None, None for plain eq. (40) towards the
+    setpoint (the compiled paths); else a ``Controller`` with the law (``law`` or
+    the controller's ``control_law`` in the file) and the reference CSV, if any.
+    Raises ParameterError or ReferenceError."""
+    from stewart63_ros.core.params import read_parameter_file
+    from stewart63_ros.core.reference import load_reference
+    params = read_parameter_file(params_path, 'controller')
+    mech = load_mechanism(params_path, node_name='controller')
+    law = law or params.get('control_law', 'pd')
+    reference = None
+    if reference_csv is not None:
+        reference = load_reference(mech, reference_csv,
+                                   float(params.get('max_leg_speed', 0.0)),
+                                   float(params.get('max_leg_acceleration', 0.0)))
+    if law == 'pd' and reference is None:
+        return None, None
+    from stewart63_ros.core.laws import Controller
+    return Controller(mech, params, law=law, reference=reference), reference
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='sim', description=__doc__.split('\n\n')[0])
     parser.add_argument('--params', default=None,
@@ -43,6 +79,11 @@ def main(argv=None) -> int:
                         help='sample rate [Hz]: control rate for sampled (default: the '
                         "plant's sensor_rate), CSV rate for continuous (default 100, "
                         "the paper's h)")
+    parser.add_argument('--control-law', default=None, metavar='NAME',
+                        help='pd (eq. 40), pd_gravity, computed_torque or package.module:Class '
+                        "(default: the controller's control_law in the parameter file, else pd)")
+    parser.add_argument('--reference', default=None, metavar='CSV',
+                        help='reference motion t,x,y,z,theta_x,theta_y,theta_z to follow')
     parser.add_argument('--no-figure', action='store_true', help='skip figure.png')
     args = parser.parse_args(argv)
     if not (np.isfinite(args.duration) and args.duration > 0):
@@ -50,11 +91,14 @@ def main(argv=None) -> int:
     if args.rate is not None and not (np.isfinite(args.rate) and args.rate > 0):
         parser.error('--rate must be a positive number of Hz')
 
+    from stewart63_ros.core.laws import LawError
+    from stewart63_ros.core.reference import ReferenceError
     params_path = args.params or default_params_path()
     try:
         mech = load_mechanism(params_path, node_name='plant')
-    except ParameterError as exc:
-        print('sim: error: %s: %s' % (params_path, exc), file=sys.stderr)
+        controller, reference = make_controller(params_path, args.control_law, args.reference)
+    except (ParameterError, ReferenceError) as exc:
+        print('sim: error: %s' % (exc,), file=sys.stderr)
         return 2
 
     from stewart63_ros.core.dynamics import Dynamics
@@ -63,12 +107,17 @@ def main(argv=None) -> int:
 
     dyn = Dynamics(mech)
     start = time.perf_counter()
-    if args.control == 'sampled':
-        rate = args.rate or float(mech.extra.get('sensor_rate', 1000.0))
-        result = run_sampled(mech, args.duration, rate, dyn=dyn)
-    else:
-        rate = args.rate or 100.0
-        result = run_continuous(mech, args.duration, output_rate=rate, dyn=dyn)
+    try:
+        if args.control == 'sampled':
+            rate = args.rate or float(mech.extra.get('sensor_rate', 1000.0))
+            result = run_sampled(mech, args.duration, rate, dyn=dyn, controller=controller)
+        else:
+            rate = args.rate or 100.0
+            result = run_continuous(mech, args.duration, output_rate=rate, dyn=dyn,
+                                    controller=controller)
+    except LawError as exc:
+        print('sim: error: the control law failed: %s' % exc, file=sys.stderr)
+        return 3
     wall = time.perf_counter() - start
     if not np.all(np.isfinite(result.states)):
         print('sim: error: the simulation diverged (non-finite state)', file=sys.stderr)
@@ -78,19 +127,36 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     table = result.table(dyn)
     write_csv(out / 'trajectory.csv', table)
+    ref_columns = None
+    if reference is not None:
+        from stewart63_ros.core.reference import CSV_COLUMNS, write_reference_csv
+        poses = reference.poses(result.times)
+        write_reference_csv(out / 'reference.csv', result.times, poses)
+        ref_columns = dict(zip(CSV_COLUMNS, np.column_stack([result.times, poses]).T))
+    law = controller.law_name if controller is not None else 'pd'
     if not args.no_figure:
         from stewart63_ros.core.trajectory import COLUMNS
         from stewart63_ros.tools.plot import draw_figure
         draw_figure({name: table[:, i] for i, name in enumerate(COLUMNS)}, out / 'figure.png',
-                    title='sim, %s control, %g Hz' % (args.control, rate))
+                    title='sim, %s, %s control, %g Hz' % (law, args.control, rate),
+                    reference=ref_columns)
     summary = summarize(mech, dyn, result)
-    summary.update(control=args.control, rate_hz=rate, wall_time_s=round(wall, 4),
-                   csv=str(out / 'trajectory.csv'))
+    summary.update(control=args.control, control_law=law, rate_hz=rate,
+                   wall_time_s=round(wall, 4), csv=str(out / 'trajectory.csv'))
+    if reference is not None:
+        from stewart63_ros.core.reference import tracking_errors
+        summary['tracking_error'] = {k: (round(v, 9) if isinstance(v, float) else v) for k, v in
+                                     tracking_errors(mech, reference, result.times,
+                                                     result.states).items()}
     if summary['endstop_samples']:
         print('sim: warning: a leg met an end stop in %d samples' % summary['endstop_samples'],
               file=sys.stderr)
     for key, value in summary.items():
+        if key == 'tracking_error':
+            continue
         print('%-28s %s' % (key, json.dumps(value)))
+    if 'tracking_error' in summary:
+        print(format_tracking(summary['tracking_error']))
     return 0
 
 

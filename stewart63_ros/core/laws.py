@@ -1,0 +1,367 @@
+"""Control laws: six piston forces from the measured leg lengths and rates.
+
+Every law follows one interface, so that ``sim``, the controller node and a
+user's own law are interchangeable:
+
+- constructed once as ``Law(mech, params)``: the ``Mechanism`` (geometry,
+  masses, limits) and the controller's parameter dictionary (every key of
+  the parameter file that applies to the controller, ``mech.extra`` included);
+- called once per sample as ``law(t, lengths, rates, ref)`` with the sample
+  time t [s], the measured L_i [m] and dL_i/dt [m/s] (numpy arrays (6,)) and
+  the reference sample ``ref`` (a ``ReferenceSample``: ``ref.position``,
+  ``ref.rotation``, ``ref.velocity``, ``ref.omega``, ``ref.acceleration``,
+  ``ref.alpha``, ``ref.lengths``, ``ref.rates``; valid during the call only);
+  it returns the six piston forces [N] (positive extends the piston);
+- ``parameters``: the names of the parameters it reads, which the controller
+  lets change at run time through ``set_parameter(name, value)`` (raise
+  ``ValueError`` with the reason to refuse a value; nothing may change then).
+
+The caller saturates the forces at +-max_force. A law that raises, or returns
+anything but six finite numbers, has its forces withheld (``LawError``).
+
+Built-in laws (``LAWS``):
+
+- ``pd``: eq. (40), F = Kp (L_ref - L) - Kv (dL/dt - dL_ref/dt). With a fixed
+  setpoint (dL_ref/dt = 0) it is the paper's law to the bit.
+- ``pd_gravity``: eq. (40) plus the piston forces that hold platform and both
+  parts of every leg against gravity at the measured pose: H F_g = eta(q, 0)
+  (eq. 38 with zero velocity and acceleration), the pose from tracking forward
+  kinematics of the measured lengths.
+- ``computed_torque``: inverse dynamics of eq. (38) with the plant's own model
+  in task space. Pose and twist from tracking FK of the measured lengths and
+  rates; the commanded acceleration is
+  a_c = a_ref + Kd (xdot_ref - xdot) + Kp (x_ref - x)
+  per axis (x, y, z and the rotation vector of R_ref R^T), and
+  F = H^-1 (J a_c + eta). With an exact model the error of each axis obeys
+  e'' + Kd e' + Kp e = 0: natural frequency sqrt(Kp), damping ratio
+  Kd / (2 sqrt(Kp)). Defaults ``ct_kp`` = 2500 1/s^2, ``ct_kd`` = 100 1/s:
+  50 rad/s (8 Hz), critically damped.
+"""
+from __future__ import annotations
+
+import importlib
+
+import numpy as np
+
+from stewart63_ros.core._jit import njit
+from stewart63_ros.core.dynamics import Dynamics, inverse_dynamics_forces
+from stewart63_ros.core.fk import ForwardKinematics, pose_and_twist
+from stewart63_ros.core.params import ParameterError
+from stewart63_ros.core.reference import (R_ACC, R_LEN, R_RATE, SAMPLE_SIZE, Reference,
+                                          ReferenceSample)
+from stewart63_ros.core.rotation import rotation_from_euler
+
+DEFAULT_CT_KP = 2500.0
+DEFAULT_CT_KD = 100.0
+
+
+class LawError(RuntimeError):
+    """A law that raised or returned forces that cannot be applied."""
+
+
+def gain_vector(name, value) -> np.ndarray:
+    """Six finite non-negative gains, or ParameterError with the reason."""
+    try:
+        arr = np.array(value, dtype=float).ravel()
+    except (TypeError, ValueError):
+        raise ParameterError(name, 'expected 6 numbers, got %r' % (value,)) from None
+    if arr.size != 6:
+        raise ParameterError(name, 'expected 6 numbers, got %d' % arr.size)
+    if not np.all(np.isfinite(arr)):
+        raise ParameterError(name, 'NaN or Inf in %s' % arr.tolist())
+    if np.any(arr < 0):
+        raise ParameterError(name, 'gains must be >= 0, got %s' % arr.tolist())
+    return arr
+
+
+# -- compiled kernels -----------------------------------------------------------------------
+@njit
+def _saturate(f, max_force):
+    """Clip f to +-max_force in place; False (f untouched) if any entry is not finite."""
+    for i in range(f.size):
+        if not np.isfinite(f[i]):
+            return False
+    for i in range(f.size):
+        f[i] = min(max(f[i], -max_force), max_force)
+    return True
+
+
+# -- laws as kernels ------------------------------------------------------------------------
+@njit
+def _pd(lengths, rates, ref, kp, kv, max_force):
+    """Eq. (40) towards the reference's lengths and rates, saturated."""
+    out = np.empty(6)
+    for i in range(6):
+        f = kp[i] * (ref[24 + i] - lengths[i]) - kv[i] * (rates[i] - ref[30 + i])
+        out[i] = min(max(f, -max_force), max_force)
+    return out
+
+
+@njit
+def _pd_gravity(const, base, plat, inertia, lengths, rates, pos, rot, ref, kp, kv, max_force):
+    """Eq. (40) plus the holding forces H^-1 eta(q, 0) at the pose (t, R)."""
+    zero = np.zeros(6)
+    hold = inverse_dynamics_forces(const, base, plat, inertia, rot, pos, zero[:3], zero[3:],
+                                   zero)
+    out = np.empty(6)
+    for i in range(6):
+        f = kp[i] * (ref[24 + i] - lengths[i]) - kv[i] * (rates[i] - ref[30 + i]) + hold[i]
+        out[i] = min(max(f, -max_force), max_force)
+    return out
+
+
+@njit
+def rotation_error(r_ref, rot):
+    """Rotation vector of R_ref R^T (base frame): the rotation that takes R to R_ref."""
+    m = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            m[i, j] = r_ref[i, 0] * rot[j, 0] + r_ref[i, 1] * rot[j, 1] + r_ref[i, 2] * rot[j, 2]
+    vx, vy, vz = 0.5 * (m[2, 1] - m[1, 2]), 0.5 * (m[0, 2] - m[2, 0]), 0.5 * (m[1, 0] - m[0, 1])
+    s = np.sqrt(vx * vx + vy * vy + vz * vz)
+    angle = np.arctan2(s, 0.5 * (m[0, 0] + m[1, 1] + m[2, 2] - 1.0))
+    k = angle / s if s > 1e-300 else 1.0
+    return np.array([k * vx, k * vy, k * vz])
+
+
+@njit
+def _computed_torque(const, base, plat, inertia, pos, rot, twist, ref, kp, kd, max_force):
+    """F = H^-1 (J a_c + eta), a_c = a_ref + Kd e' + Kp e (task space)."""
+    r_ref = ref[3:12].copy().reshape(3, 3)
+    e_rot = rotation_error(r_ref, rot)
+    acc = np.empty(6)
+    for a in range(3):
+        acc[a] = (ref[18 + a] + kd[a] * (ref[12 + a] - twist[a])
+                  + kp[a] * (ref[a] - pos[a]))
+        acc[3 + a] = (ref[21 + a] + kd[3 + a] * (ref[15 + a] - twist[3 + a])
+                      + kp[3 + a] * e_rot[a])
+    f = inverse_dynamics_forces(const, base, plat, inertia, rot, pos, twist[:3], twist[3:], acc)
+    for i in range(6):
+        f[i] = min(max(f[i], -max_force), max_force)
+    return f
+
+
+# -- the pose estimate ------------------------------------------------------------------------
+class PoseEstimator:
+    """Tracking FK of the measured lengths and rates (pose and twist): Newton from
+    the previous estimate (``fk.pose_and_twist``, compiled), falling back on the
+    assembly mode nearest the previous estimate when Newton fails."""
+
+    def __init__(self, mech):
+        self.fk = ForwardKinematics(mech)
+        self.position = np.array(mech.initial_position, dtype=float)
+        self.rotation = rotation_from_euler(mech.initial_orientation)
+        self.twist = np.zeros(6)
+
+    def __call__(self, lengths, rates):
+        fk = self.fk
+        t, rot, twist, ok = pose_and_twist(fk.base, fk.legp, lengths, rates, self.position,
+                                           self.rotation, 12)
+        if not ok:
+            mode = fk.nearest(lengths, self.position, self.rotation)   # NoAssemblyError
+            t, rot = mode.position, mode.rotation
+            v, w = fk.twist(t, rot, rates)
+            twist = np.concatenate([v, w])
+        self.position, self.rotation, self.twist = t, rot, twist
+        return t, rot, twist
+
+
+# -- the built-in laws ------------------------------------------------------------------------
+class PDLaw:
+    """``pd``: eq. (40) on every leg, towards the reference's lengths and rates."""
+
+    parameters = ('kp', 'kv')
+
+    def __init__(self, mech, params):
+        self.max_force = float(mech.max_force)
+        self.kp = gain_vector('kp', params.get('kp', mech.kp))
+        self.kv = gain_vector('kv', params.get('kv', mech.kv))
+        self.estimate = None
+
+    def set_parameter(self, name, value):
+        setattr(self, name, gain_vector(name, value))
+
+    def __call__(self, t, lengths, rates, ref):
+        return _pd(lengths, rates, ref.array, self.kp, self.kv, self.max_force)
+
+
+class _ModelLaw:
+    """A law that uses the plant's model at the estimated pose."""
+
+    def __init__(self, mech, params):
+        self.max_force = float(mech.max_force)
+        self.args = Dynamics(mech).kernel_args()
+        self.estimator = PoseEstimator(mech)
+
+    @property
+    def estimate(self):
+        """(position, rotation) of the last estimate."""
+        return self.estimator.position, self.estimator.rotation
+
+
+class PDGravityLaw(_ModelLaw):
+    """``pd_gravity``: eq. (40) plus the forces holding the mechanism against gravity."""
+
+    parameters = ('kp', 'kv')
+
+    def __init__(self, mech, params):
+        super().__init__(mech, params)
+        self.kp = gain_vector('kp', params.get('kp', mech.kp))
+        self.kv = gain_vector('kv', params.get('kv', mech.kv))
+
+    set_parameter = PDLaw.set_parameter
+
+    def holding_forces(self, position, rotation):
+        """H^-1 eta(q, 0): piston forces that hold the mechanism still at this pose."""
+        zero = np.zeros(6)
+        return inverse_dynamics_forces(*self.args, np.asarray(rotation, float),
+                                       np.asarray(position, float), zero[:3], zero[3:], zero)
+
+    def __call__(self, t, lengths, rates, ref):
+        pos, rot, _ = self.estimator(lengths, rates)
+        return _pd_gravity(*self.args, lengths, rates, pos, rot, ref.array, self.kp, self.kv,
+                           self.max_force)
+
+
+class ComputedTorqueLaw(_ModelLaw):
+    """``computed_torque``: inverse dynamics in task space with reference feedforward."""
+
+    parameters = ('ct_kp', 'ct_kd')
+
+    def __init__(self, mech, params):
+        super().__init__(mech, params)
+        self.ct_kp = gain_vector('ct_kp', params.get('ct_kp', [DEFAULT_CT_KP] * 6))
+        self.ct_kd = gain_vector('ct_kd', params.get('ct_kd', [DEFAULT_CT_KD] * 6))
+
+    def set_parameter(self, name, value):
+        setattr(self, name, gain_vector(name, value))
+
+    def __call__(self, t, lengths, rates, ref):
+        pos, rot, twist = self.estimator(lengths, rates)
+        return _computed_torque(*self.args, pos, rot, twist, ref.array, self.ct_kp,
+                                self.ct_kd, self.max_force)
+
+
+LAWS = {'pd': PDLaw, 'pd_gravity': PDGravityLaw, 'computed_torque': ComputedTorqueLaw}
+#: Every parameter a built-in law reads (all tunable at run time).
+LAW_PARAMETERS = ('kp', 'kv', 'ct_kp', 'ct_kd')
+
+
+def law_class(name: str):
+    """The class of a built-in law, or of a user's ``package.module:Class``."""
+    if not isinstance(name, str) or not name:
+        raise ParameterError('control_law', 'expected a law name, got %r' % (name,))
+    if name in LAWS:
+        return LAWS[name]
+    if ':' not in name:
+        raise ParameterError('control_law', 'unknown law %r: one of %s, or package.module:Class'
+                             % (name, ', '.join(LAWS)))
+    module_name, _, attr = name.partition(':')
+    try:
+        module = importlib.import_module(module_name)
+    except Exception as exc:  # noqa: BLE001 - any import failure of user code is refused
+        raise ParameterError('control_law', 'cannot import %s: %s: %s'
+                             % (module_name, type(exc).__name__, exc)) from None
+    cls = getattr(module, attr, None)
+    if cls is None or not callable(cls):
+        raise ParameterError('control_law', '%s has no class %s' % (module_name, attr))
+    return cls
+
+
+def make_law(name: str, mech, params):
+    """Build the law ``name`` (built-in or ``package.module:Class``) from the parameters."""
+    cls = law_class(name)
+    try:
+        law = cls(mech, params)
+    except ParameterError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a user's constructor may raise anything
+        raise ParameterError('control_law', '%s could not be built: %s: %s'
+                             % (name, type(exc).__name__, exc)) from None
+    if not callable(law):
+        raise ParameterError('control_law', '%s is not callable as law(t, lengths, rates, ref)'
+                             % name)
+    return law
+
+
+class Controller:
+    """A law with its reference: ``forces(t, lengths, rates)`` per sample.
+
+    ``reference`` (a ``Reference``; default: hold ``mech.setpoint_lengths``) is
+    sampled at ``t - start`` (``start``: the reference's time 0 on the sample
+    clock; None: the first sample's time). Forces are saturated at max_force;
+    a law that raises or returns anything but six finite numbers raises
+    ``LawError`` (the caller withholds the forces).
+    """
+
+    #: run_sampled passes the sample time: controller(lengths, rates, t)
+    timed = True
+
+    def __init__(self, mech, params=None, law=None, reference=None, start=0.0):
+        self.mech = mech
+        self.params = dict(mech.to_params())
+        self.params.update(params or {})
+        self.max_force = float(mech.max_force)
+        name = law if law is not None else self.params.get('control_law', 'pd')
+        self.law = make_law(name, mech, self.params)
+        self.law_name = name
+        self.reference = reference or Reference.constant_lengths(mech, mech.setpoint_lengths)
+        self.start = start
+        self.sample = ReferenceSample(np.zeros(SAMPLE_SIZE))
+
+    def set_reference(self, reference, start=None):
+        self.reference = reference
+        self.start = start
+
+    def set_law(self, name):
+        """Switch law (a new one built from the current parameters)."""
+        self.law = make_law(name, self.mech, self.params)
+        self.law_name = name
+        self.params['control_law'] = name
+
+    def set_parameter(self, name, value):
+        """A gain of the active law (checked by it); other laws' gains are checked
+        and kept for when they become active. ParameterError to refuse."""
+        if name in getattr(self.law, 'parameters', ()):
+            try:
+                self.law.set_parameter(name, value)
+            except ParameterError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - a user law's refusal
+                raise ParameterError(name, str(exc)) from None
+        elif name in LAW_PARAMETERS:
+            gain_vector(name, value)
+        self.params[name] = value
+
+    def forces(self, t, lengths, rates):
+        if self.start is None:
+            self.start = t
+        ref = self.sample
+        self.reference.sample(t - self.start, ref.array)
+        try:
+            f = self.law(t, lengths, rates, ref)
+            if type(f) is not np.ndarray or f.dtype != np.float64:
+                f = np.asarray(f, dtype=float)
+        except Exception as exc:  # noqa: BLE001 - any failure of the law withholds the forces
+            raise LawError('%s raised %s: %s' % (self.law_name, type(exc).__name__, exc)) from exc
+        if f.shape != (6,) or not _saturate(f, self.max_force):
+            raise LawError('%s returned %s, not six finite forces'
+                           % (self.law_name, np.array2string(np.asarray(f), precision=4)))
+        return f
+
+    def __call__(self, lengths, rates, t=0.0):
+        return self.forces(t, lengths, rates)
+
+    @property
+    def estimate(self):
+        """(position, rotation) the law estimated at the last sample, or None."""
+        return getattr(self.law, 'estimate', None)
+
+    def reference_lengths(self):
+        return self.sample.array[R_LEN]
+
+    def reference_rates(self):
+        return self.sample.array[R_RATE]
+
+    def reference_acceleration(self):
+        return self.sample.array[R_ACC]

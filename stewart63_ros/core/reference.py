@@ -1,0 +1,388 @@
+"""Reference motions of the platform: pose, twist and acceleration against time.
+
+A reference is a piecewise polynomial in the six pose coordinates
+(x, y, z, theta_x, theta_y, theta_z) (CONTRACT section 4: R = Rz Ry Rx):
+
+- from rows of poses (the reference CSV, or a trajectory message without
+  velocities): scipy's ``CubicSpline`` with clamped ends, i.e. C2 (position,
+  velocity and acceleration continuous) between the first and the last row,
+  at rest (zero velocity) at both ends;
+- from poses with velocities and accelerations at every point: quintic
+  Hermite pieces (scipy ``BPoly.from_derivatives``), C2; with velocities only,
+  cubic Hermite, C1;
+- a constant pose or constant leg lengths (a setpoint).
+
+Before the first time the first pose holds, after the last time the last
+pose holds (velocity and acceleration zero). Velocities and accelerations
+come from the interpolant: omega = E(theta) dtheta/dt,
+alpha = E dtheta^2/dt^2 + dE/dt dtheta/dt (base frame), and the desired leg
+lengths and rates from inverse kinematics, eqs. (2)-(5), (13).
+
+A sample is one flat array (``SAMPLE_SIZE``), laid out as ``R_*`` below;
+``ReferenceSample`` names its parts. Evaluation is compiled (a few
+microseconds), so that the controller samples it at 1 kHz.
+"""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from stewart63_ros.core._jit import njit
+from stewart63_ros.core.kinematics import leg_kernel
+
+#: Layout of a reference sample: position t (3), rotation R row-major (9),
+#: velocity v (3), angular velocity omega (3), acceleration (3), angular
+#: acceleration alpha (3), all in the base frame; desired leg lengths (6)
+#: and leg rates (6).
+R_POS, R_ROT, R_VEL, R_OMEGA = slice(0, 3), slice(3, 12), slice(12, 15), slice(15, 18)
+R_ACC, R_ALPHA, R_LEN, R_RATE = slice(18, 21), slice(21, 24), slice(24, 30), slice(30, 36)
+SAMPLE_SIZE = 36
+CSV_COLUMNS = ('t', 'x', 'y', 'z', 'theta_x', 'theta_y', 'theta_z')
+
+
+class ReferenceError(ValueError):
+    """A reference that cannot be used; the message says where and why."""
+
+
+class ReferenceSample:
+    """Named views into one reference sample (a flat array, ``.array``)."""
+
+    __slots__ = ('array',)
+
+    def __init__(self, array=None):
+        self.array = np.zeros(SAMPLE_SIZE) if array is None else array
+
+    @property
+    def position(self):
+        """t_ref [m], base frame."""
+        return self.array[R_POS]
+
+    @property
+    def rotation(self):
+        """R_ref (3, 3), platform to base."""
+        return self.array[R_ROT].reshape(3, 3)
+
+    @property
+    def velocity(self):
+        return self.array[R_VEL]
+
+    @property
+    def omega(self):
+        return self.array[R_OMEGA]
+
+    @property
+    def acceleration(self):
+        return self.array[R_ACC]
+
+    @property
+    def alpha(self):
+        return self.array[R_ALPHA]
+
+    @property
+    def lengths(self):
+        """Desired leg lengths [m] (inverse kinematics of the reference pose)."""
+        return self.array[R_LEN]
+
+    @property
+    def rates(self):
+        """Desired leg rates dL/dt [m/s] (eq. 13 at the reference twist)."""
+        return self.array[R_RATE]
+
+
+@njit
+def _sample_into(breaks, coeffs, base, plat, fixed, use_fixed, t, out):
+    """Evaluate the reference at time t into ``out`` (SAMPLE_SIZE,)."""
+    m = breaks.size - 1
+    k = coeffs.shape[0]
+    if t <= breaks[0]:
+        i, dt, moving = 0, 0.0, False
+    elif t >= breaks[m]:
+        i, dt, moving = m - 1, breaks[m] - breaks[m - 1], False
+    else:
+        i = np.searchsorted(breaks, t, side='right') - 1
+        dt, moving = t - breaks[i], True
+    p = np.zeros(6)
+    d1 = np.zeros(6)
+    d2 = np.zeros(6)
+    for j in range(6):
+        v, a, b = 0.0, 0.0, 0.0
+        for n in range(k):   # Horner with first and second derivative
+            b = b * dt + a
+            a = a * dt + v
+            v = v * dt + coeffs[n, i, j]
+        p[j] = v
+        if moving:
+            d1[j] = a
+            d2[j] = 2.0 * b
+    cx, sx = np.cos(p[3]), np.sin(p[3])
+    cy, sy = np.cos(p[4]), np.sin(p[4])
+    cz, sz = np.cos(p[5]), np.sin(p[5])
+    rot = ((cz * cy, cz * sy * sx - sz * cx, cz * sy * cx + sz * sx),
+           (sz * cy, sz * sy * sx + cz * cx, sz * sy * cx - cz * sx),
+           (-sy, cy * sx, cy * cx))
+    # omega = E(theta) dtheta/dt; alpha = E ddtheta + dE/dt dtheta
+    e = ((cy * cz, -sz, 0.0), (cy * sz, cz, 0.0), (-sy, 0.0, 1.0))
+    ty, tz = d1[4], d1[5]
+    de = ((-sy * ty * cz - cy * sz * tz, -cz * tz, 0.0),
+          (-sy * ty * sz + cy * cz * tz, -sz * tz, 0.0),
+          (-cy * ty, 0.0, 0.0))
+    for r in range(3):
+        out[r] = p[r]
+        out[12 + r] = d1[r]
+        out[18 + r] = d2[r]
+        w = 0.0
+        al = 0.0
+        for c in range(3):
+            out[3 + 3 * r + c] = rot[r][c]
+            w += e[r][c] * d1[3 + c]
+            al += e[r][c] * d2[3 + c] + de[r][c] * d1[3 + c]
+        out[15 + r] = w
+        out[21 + r] = al
+    pos = (p[0], p[1], p[2])
+    vel = (d1[0], d1[1], d1[2])
+    omega = (out[15], out[16], out[17])
+    for leg in range(6):
+        g = leg_kernel(rot, pos, vel, omega, base, plat, leg)
+        out[24 + leg] = fixed[leg] if use_fixed else g[3]
+        out[30 + leg] = g[10]
+
+
+@njit
+def _sample_many(breaks, coeffs, base, plat, fixed, use_fixed, times):
+    out = np.empty((times.size, SAMPLE_SIZE))
+    for n in range(times.size):
+        _sample_into(breaks, coeffs, base, plat, fixed, use_fixed, times[n], out[n])
+    return out
+
+
+def _leg_accelerations(mech, samples):
+    """d2L/dt2 of every leg at each sample (N, 6): s . a_P + (|dS/dt|^2 - (dL/dt)^2) / L,
+    a_P = a + alpha x q + omega x (omega x q) (eqs. 16-22)."""
+    rot = samples[:, R_ROT].reshape(-1, 3, 3)
+    q = np.einsum('nij,kj->nki', rot, mech.leg_platform_points)
+    S = q + samples[:, None, R_POS] - mech.base_points[None]
+    L = np.linalg.norm(S, axis=2)
+    s = S / L[..., None]
+    w = np.broadcast_to(samples[:, None, R_OMEGA], q.shape)
+    sdot = np.cross(w, q) + samples[:, None, R_VEL]
+    alpha = np.broadcast_to(samples[:, None, R_ALPHA], q.shape)
+    a_p = samples[:, None, R_ACC] + np.cross(alpha, q) + np.cross(w, np.cross(w, q))
+    ldot = np.einsum('nki,nki->nk', s, sdot)
+    return np.einsum('nki,nki->nk', s, a_p) + (np.einsum('nki,nki->nk', sdot, sdot) - ldot ** 2) / L
+
+
+class Reference:
+    """A reference motion: ``sample(t)`` gives pose, twist, accelerations and
+    the desired leg lengths and rates at time t [s] (from the reference's own
+    time 0)."""
+
+    def __init__(self, mech, breaks, coeffs, fixed_lengths=None, kind='trajectory'):
+        self.mech = mech
+        self.breaks = np.ascontiguousarray(breaks, dtype=float)
+        self.coeffs = np.ascontiguousarray(coeffs, dtype=float)
+        self._base = np.ascontiguousarray(mech.base_points, dtype=float)
+        self._plat = np.ascontiguousarray(mech.leg_platform_points, dtype=float)
+        self._use_fixed = fixed_lengths is not None
+        self._fixed = (np.array(fixed_lengths, dtype=float) if self._use_fixed else np.zeros(6))
+        self.kind = kind
+        self.constant = kind != 'trajectory'
+
+    @property
+    def duration(self) -> float:
+        """Time of the last pose [s]; the last pose holds after it."""
+        return float(self.breaks[-1]) if not self.constant else 0.0
+
+    def sample(self, t: float, out=None) -> np.ndarray:
+        """The sample (SAMPLE_SIZE,) at time t; written into ``out`` if given."""
+        if out is None:
+            out = np.empty(SAMPLE_SIZE)
+        _sample_into(self.breaks, self.coeffs, self._base, self._plat, self._fixed,
+                     self._use_fixed, float(t), out)
+        return out
+
+    def sample_many(self, times) -> np.ndarray:
+        return _sample_many(self.breaks, self.coeffs, self._base, self._plat, self._fixed,
+                            self._use_fixed, np.ascontiguousarray(times, dtype=float))
+
+    def poses(self, times) -> np.ndarray:
+        """(N, 6) x, y, z, theta_x, theta_y, theta_z at ``times`` (the CSV layout)."""
+        from stewart63_ros.core.rotation import euler_from_matrix
+        s = self.sample_many(times)
+        return np.hstack([s[:, R_POS], euler_from_matrix(s[:, R_ROT].reshape(-1, 3, 3))])
+
+    # -- construction ---------------------------------------------------------
+    @classmethod
+    def constant_pose(cls, mech, position, rotation) -> 'Reference':
+        from stewart63_ros.core.rotation import euler_from_matrix
+        theta = euler_from_matrix(np.asarray(rotation, float))
+        pose = np.concatenate([np.asarray(position, float), theta])
+        return cls(mech, [0.0, 1.0], pose[None, None, :], kind='pose')
+
+    @classmethod
+    def constant_lengths(cls, mech, lengths, near=None) -> 'Reference':
+        """Hold leg lengths (a leg setpoint). The pose is their forward kinematics,
+        the assembly mode nearest ``near`` = (position, rotation) (default: the
+        initial pose); the desired lengths are ``lengths`` exactly."""
+        from stewart63_ros.core.fk import ForwardKinematics
+        fk = ForwardKinematics(mech)
+        lengths = np.array(lengths, dtype=float)
+        try:
+            mode = fk.nearest(lengths, *near) if near is not None else fk.all_modes(lengths)[0]
+            position, rotation = mode.position, mode.rotation
+        except ValueError:      # no assembly: a law that needs the pose gets NaN
+            position, rotation = np.full(3, np.nan), np.eye(3)
+        ref = cls.constant_pose(mech, position, rotation)
+        return cls(mech, ref.breaks, ref.coeffs, fixed_lengths=lengths, kind='lengths')
+
+    @classmethod
+    def from_poses(cls, mech, times, poses, velocities=None, accelerations=None) -> 'Reference':
+        """From (N,) times and (N, 6) poses x, y, z, theta_x, theta_y, theta_z
+        (and optional (N, 6) rates d/dt of the same coordinates, and their second
+        derivatives). Raises ReferenceError on bad times or values."""
+        from scipy.interpolate import BPoly, CubicSpline, PPoly
+        times = np.asarray(times, dtype=float)
+        poses = np.asarray(poses, dtype=float)
+        if times.ndim != 1 or poses.shape != (times.size, 6) or times.size == 0:
+            raise ReferenceError('expected N times and N poses of 6 values, got %s and %s'
+                                 % (times.shape, poses.shape))
+        for name, arr in (('t', times), ('pose', poses), ('velocity', velocities),
+                          ('acceleration', accelerations)):
+            if arr is not None and not np.all(np.isfinite(arr)):
+                raise ReferenceError('%s holds NaN or Inf' % name)
+        if times[0] < 0:
+            raise ReferenceError('t must start at 0 or later, got %g' % times[0])
+        bad = np.flatnonzero(np.diff(times) <= 0)
+        if bad.size:
+            raise ReferenceError('t must increase: %g s follows %g s'
+                                 % (times[bad[0] + 1], times[bad[0]]))
+        if times.size == 1:
+            return cls(mech, [times[0], times[0] + 1.0], poses[None, :1, :])
+        if velocities is None:
+            pp = CubicSpline(times, poses, bc_type='clamped')
+            return cls(mech, pp.x, pp.c)
+        cols = [poses, np.asarray(velocities, float)]
+        if accelerations is not None:
+            cols.append(np.asarray(accelerations, float))
+        pieces = []
+        for j in range(6):
+            derivs = np.stack([c[:, j] for c in cols], axis=1)
+            pieces.append(PPoly.from_bernstein_basis(BPoly.from_derivatives(times, derivs)))
+        return cls(mech, pieces[0].x, np.stack([p.c for p in pieces], axis=2))
+
+    # -- checks ---------------------------------------------------------------
+    def check(self, max_leg_speed: float = 0.0, max_leg_acceleration: float = 0.0,
+              step: float = 1.0e-3) -> None:
+        """Refuse (ReferenceError naming the time and leg) a reference that puts a
+        leg outside the stroke anywhere, or, where the limits are > 0, moves a leg
+        faster than ``max_leg_speed`` [m/s] or accelerates it more than
+        ``max_leg_acceleration`` [m/s^2]. Checked at every pose given and on a
+        grid of ``step`` seconds (at least 10 points between two poses)."""
+        mech = self.mech
+        b = self.breaks
+        if self.constant:
+            grid = b[:1]
+        else:
+            fine = [np.linspace(b[i], b[i + 1], max(10, int(np.ceil((b[i + 1] - b[i]) / step))),
+                                endpoint=False) for i in range(b.size - 1)]
+            grid = np.concatenate(fine + [b[-1:]])
+            if grid.size > 2_000_000:
+                raise ReferenceError('reference too long to check (%d samples)' % grid.size)
+        s = self.sample_many(grid)
+        L = s[:, R_LEN]
+        if not np.all(np.isfinite(L)):
+            raise ReferenceError('the reference pose is not defined (no assembly for these '
+                                 'leg lengths)')
+        checks = [('stroke', (L < mech.leg_length_min) | (L > mech.leg_length_max))]
+        if max_leg_speed > 0:
+            checks.append(('speed', np.abs(s[:, R_RATE]) > max_leg_speed))
+        if max_leg_acceleration > 0:
+            checks.append(('acceleration',
+                           np.abs(_leg_accelerations(mech, s)) > max_leg_acceleration))
+        for what, bad in checks:
+            if not bad.any():
+                continue
+            k, leg = np.argwhere(bad)[0]
+            t = grid[k]
+            if what == 'stroke':
+                why = 'length %.4f m is outside the stroke [%g, %g]' % (
+                    L[k, leg], mech.leg_length_min, mech.leg_length_max)
+            elif what == 'speed':
+                why = 'speed %.4g m/s exceeds max_leg_speed %g' % (
+                    abs(s[k, R_RATE][leg]), max_leg_speed)
+            else:
+                why = 'acceleration exceeds max_leg_acceleration %g m/s^2' % max_leg_acceleration
+            raise ReferenceError('at t = %.4f s, leg_%d %s' % (t, leg + 1, why))
+
+
+def read_reference_csv(path) -> tuple[np.ndarray, np.ndarray]:
+    """(times (N,), poses (N, 6)) from a reference CSV ``t,x,y,z,theta_x,theta_y,theta_z``."""
+    path = Path(path)
+    try:
+        with open(path, newline='') as stream:
+            rows = list(csv.reader(stream))
+    except OSError as exc:
+        raise ReferenceError('cannot read %s: %s' % (path, exc.strerror)) from None
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise ReferenceError('%s is not a reference CSV: %s' % (path, exc)) from None
+    rows = [r for r in rows if r and any(c.strip() for c in r)]
+    if not rows or tuple(c.strip() for c in rows[0]) != CSV_COLUMNS:
+        raise ReferenceError('%s: the header must be %s' % (path, ','.join(CSV_COLUMNS)))
+    if len(rows) < 2:
+        raise ReferenceError('%s holds no poses' % path)
+    try:
+        table = np.array([[float(c) for c in r] for r in rows[1:]])
+    except ValueError:
+        raise ReferenceError('%s: every row must hold 7 numbers' % path) from None
+    if table.ndim != 2 or table.shape[1] != 7:
+        raise ReferenceError('%s: every row must hold 7 numbers' % path)
+    return table[:, 0], table[:, 1:]
+
+
+def load_reference(mech, path, max_leg_speed: float = 0.0,
+                   max_leg_acceleration: float = 0.0) -> Reference:
+    """A checked reference from a CSV file; ReferenceError names the file."""
+    times, poses = read_reference_csv(path)
+    try:
+        ref = Reference.from_poses(mech, times, poses)
+        ref.check(max_leg_speed, max_leg_acceleration)
+    except ReferenceError as exc:
+        raise ReferenceError('%s: %s' % (path, exc)) from None
+    return ref
+
+
+def write_reference_csv(path, times, poses) -> None:
+    with open(path, 'w', newline='') as stream:
+        writer = csv.writer(stream)
+        writer.writerow(CSV_COLUMNS)
+        writer.writerows([[repr(float(t))] + [repr(float(v)) for v in p]
+                          for t, p in zip(times, poses)])
+
+
+def tracking_errors(mech, reference: Reference, times, states, after: float = 1.0) -> dict:
+    """Max and RMS of the leg-length error, the position error |t_ref - t| and
+    the orientation error (angle of R_ref R^T) over the samples at or after
+    ``after`` seconds; ``states`` (N, 13) as in the dynamics."""
+    from scipy.spatial.transform import Rotation
+
+    from stewart63_ros.core.dynamics import POS, QUAT, lengths_rates
+    times = np.asarray(times, float)
+    keep = times >= after - 1e-12
+    if not keep.any():
+        return {}
+    s = reference.sample_many(times[keep])
+    st = np.asarray(states, float)[keep]
+    base = np.ascontiguousarray(mech.base_points, float)
+    plat = np.ascontiguousarray(mech.leg_platform_points, float)
+    legs = np.array([lengths_rates(base, plat, y)[0] for y in st])
+    dl = np.abs(legs - s[:, R_LEN])
+    dp = np.linalg.norm(st[:, POS] - s[:, R_POS], axis=1)
+    rel = Rotation.from_matrix(s[:, R_ROT].reshape(-1, 3, 3)) * Rotation.from_quat(
+        st[:, QUAT]).inv()
+    da = np.linalg.norm(rel.as_rotvec(), axis=1)
+    return {'from_s': after, 'samples': int(keep.sum()),
+            'leg_max_m': float(dl.max()), 'leg_rms_m': float(np.sqrt(np.mean(dl ** 2))),
+            'position_max_m': float(dp.max()), 'position_rms_m': float(np.sqrt(np.mean(dp ** 2))),
+            'orientation_max_rad': float(da.max()),
+            'orientation_rms_rad': float(np.sqrt(np.mean(da ** 2)))}

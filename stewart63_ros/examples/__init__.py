@@ -1,0 +1,1 @@
+"""Examples for users of the package (a control law of one's own)."""
