@@ -304,3 +304,31 @@ def test_quaternion_helper_consistency(mech):
     q = quaternion_from_euler(mech.initial_orientation)
     assert np.allclose(Rotation.from_quat(q).as_matrix(),
                        rotation_from_euler(mech.initial_orientation))
+
+
+# -- sim and plot ---------------------------------------------------------------------------------
+def test_sim_follows_a_reference_and_plot_draws_it(mech, tmp_path, capsys):
+    from stewart63_ros.tools import plot, sim
+    ref_csv = tmp_path / 'ref.csv'
+    write_reference_csv(ref_csv, *six_axis_reference(mech, duration=3.0))
+    out = tmp_path / 'out'
+    assert sim.main(['--duration', '2', '--out', str(out), '--control', 'sampled',
+                     '--control-law', 'computed_torque', '--reference', str(ref_csv)]) == 0
+    text = capsys.readouterr().out
+    line = [ln for ln in text.splitlines() if ln.startswith('tracking error after 1s')]
+    assert line, text
+    print('\n' + line[0])
+    assert (out / 'reference.csv').is_file() and (out / 'figure.png').is_file()
+    assert plot.main([str(out / 'trajectory.csv'), '--out', str(tmp_path / 'fig.png')]) == 0
+    assert (tmp_path / 'fig.png').stat().st_size > 10000
+
+
+def test_sim_refuses_a_bad_reference_in_one_line(mech, tmp_path, capsys):
+    from stewart63_ros.tools import sim
+    ref_csv = tmp_path / 'ref.csv'
+    centre = np.concatenate([mech.initial_position, mech.initial_orientation])
+    write_reference_csv(ref_csv, [0.0, 1.0], [centre, centre + [0, 0, 2.0, 0, 0, 0]])
+    assert sim.main(['--duration', '1', '--out', str(tmp_path / 'o'),
+                     '--reference', str(ref_csv)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count('\n') == 0 and 'outside the stroke' in err and 'leg_' in err, err
