@@ -193,7 +193,7 @@ def test_reference_derivatives_and_inverse_kinematics(mech):
     assert np.allclose(fd(R_LEN), s[:, R_RATE], atol=1e-8)
     for k in range(len(times)):
         rot = s[k, R_ROT].reshape(3, 3)
-        # rows are the interpolated poses, rotation as CONTRACT: R = Rz Ry Rx
+        # rows are the interpolated poses, R = Rz Ry Rx
         theta = Rotation.from_matrix(rot).as_euler('xyz')
         assert np.allclose(rotation_from_euler(theta), rot, atol=1e-14)
         assert np.allclose(leg_lengths(mech, s[k, R_POS], rot), s[k, R_LEN], atol=1e-14)

@@ -1,7 +1,7 @@
 """Reference motions of the platform: pose, twist and acceleration against time.
 
 A reference is a piecewise polynomial in the six pose coordinates
-(x, y, z, theta_x, theta_y, theta_z) (CONTRACT section 4: R = Rz Ry Rx):
+(x, y, z, theta_x, theta_y, theta_z) (R = Rz Ry Rx, docs/interface.md):
 
 - from rows of poses (the reference CSV, or a trajectory message without
   velocities): scipy's ``CubicSpline`` with clamped ends, i.e. C2 (position,
