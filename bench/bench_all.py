@@ -39,6 +39,15 @@ FIGURES = {
     'loop_missed_fraction': ('', 0.001, '<', '  cycles whose force came after the next sample'),
     'lockstep_samples_per_s': ('1/s', 5000.0, '>', 'lockstep rig throughput'),
     'machine_wake_late_fraction': ('', None, '<', '1 kHz sleep loop alone: wake-ups > 0.5 ms late'),
+    'loop_missed_over_machine_late': ('', None, '<',
+                                      '  loop_missed_fraction / machine_wake_late_fraction'),
+    'lockstep_record_samples_per_s': ('1/s', 2000.0, '>', 'lockstep rig, recording everything'),
+    'lockstep_composed_samples_per_s': ('1/s', 10000.0, '>',
+                                        'lockstep, nodes composed in one process'),
+    'lockstep_composed_record_samples_per_s': ('1/s', 5000.0, '>',
+                                               '  the same, recording everything'),
+    'loop_composed_p99_us': ('us', 500.0, '<', 'realtime 1 kHz, composed: latency p99'),
+    'loop_composed_missed_fraction': ('', 0.001, '<', '  the same, missed cycles'),
     'record_msgs_per_s': ('1/s', None, '>', 'recording throughput with nothing lost'),
 }
 
@@ -116,6 +125,9 @@ def main(argv=None) -> int:
              duration=2.0 if args.quick else 5.0, repeat=1 if args.quick else 3,
              realtime_priority=10).items() if k.startswith('loop_')}
          if os.geteuid() == 0 else {}),
+        ('composed rig, and the rig recording',
+         lambda: bench_loop.measure_variants(duration=2.0 if args.quick else 5.0,
+                                             repeat=1 if args.quick else 3)),
         ('recording', lambda: bench_bags.measure(seconds=2.0 if args.quick else 3.0,
                                                  repeat=1 if args.quick else 3)),
     ]
@@ -126,6 +138,11 @@ def main(argv=None) -> int:
         except Exception as exc:  # noqa: BLE001 - one failed section must not hide the others
             print('%s failed: %s: %s' % (title, type(exc).__name__, exc), flush=True)
 
+    missed, floor = results.get('loop_missed_fraction'), results.get('machine_wake_late_fraction')
+    if missed is not None and floor is not None:
+        # The separate-process realtime rig against the machine's own floor,
+        # both measured in this run (None: the floor was 0 in this run).
+        results['loop_missed_over_machine_late'] = missed / floor if floor else None
     print('\n%-24s %14s  %-8s %s' % ('figure', 'median', '', 'what'))
     for key, (unit, _, _, what) in FIGURES.items():
         value = results.get(key)

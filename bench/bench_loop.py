@@ -4,10 +4,11 @@
   of the answering force (p50, p99, max) and missed cycles (the answer came
   after the next sample);
 - lockstep: samples per second.
-Each run: plant + controller (+ fk) as separate processes on a private domain.
+Each run: plant + controller (+ fk) as separate processes on a private domain;
+``--variants``: the composed rig (one process) and recording.
 
     bench_loop.py [--duration S] [--repeat N] [--nodes full|both] [--realtime-priority P]
-                  [--json]
+                  [--json] [--variants]
 
 ``measure(duration, repeat)`` returns the medians over ``repeat`` runs of the
 full rig (plant + controller + fk) as a dict, for bench/bench_all.py.
@@ -49,11 +50,15 @@ def lease_domain() -> tuple[int, int]:
     raise RuntimeError('no free ROS domain id on this machine')
 
 
-def run(mode, duration, nodes, realtime_priority=0):
-    """One rig run; the plant's summary (plus total_wall_s), or None if it failed."""
+def run(mode, duration, nodes, realtime_priority=0, compose=False, record=False):
+    """One rig run; the plant's summary (plus total_wall_s), or None if it failed.
+    ``compose``: the nodes in one process (``rig --compose``); ``record``:
+    recording every topic into a bag in a temporary folder."""
     extra = {'realtime_priority': realtime_priority} if realtime_priority else {}
-    rig = Rig(default_params_path(), mode, duration, nodes=nodes,
-              log_dir=tempfile.mkdtemp(prefix='bench_loop_'), **extra)
+    log_dir = tempfile.mkdtemp(prefix='bench_loop_')
+    bag = os.path.join(log_dir, 'bag') if record else None
+    rig = Rig(default_params_path(), mode, duration, nodes=nodes, log_dir=log_dir,
+              record=bag, compose=compose, **extra)
     start = time.monotonic()
     try:
         rig.start()
@@ -68,6 +73,9 @@ def run(mode, duration, nodes, realtime_priority=0):
         print('%s run failed; logs in %s' % (mode, rig.log_dir))
         return None
     summary['total_wall_s'] = time.monotonic() - start
+    if bag:
+        import shutil
+        shutil.rmtree(bag, ignore_errors=True)
     return summary
 
 
@@ -162,6 +170,55 @@ def measure(duration: float = 5.0, repeat: int = 3, realtime_priority: int = 0) 
     return result
 
 
+def measure_variants(duration: float = 5.0, repeat: int = 3) -> dict:
+    """Medians over ``repeat`` runs of each variant of the full rig, taken
+    in turn (so a busy spell of the machine hits them alike):
+
+    - ``lockstep_composed_samples_per_s``: ``rig --compose`` (one process);
+    - ``lockstep_composed_record_samples_per_s``: the same with ``--record``;
+    - ``lockstep_record_samples_per_s``: separate processes with ``--record``;
+    - ``loop_composed_p50_us``, ``loop_composed_p99_us``,
+      ``loop_composed_missed_fraction``: ``rig --compose --mode realtime``.
+
+    Samples per second are the plant loop's (start-up excluded)."""
+    domain, fd = lease_domain()
+    saved = {k: os.environ.get(k) for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')}
+    os.environ['ROS_DOMAIN_ID'] = str(domain)
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    runs = {'composed': [], 'composed_record': [], 'record': [], 'composed_rt': []}
+    try:
+        for _ in range(repeat):
+            for key, mode, compose, record in (('composed', 'lockstep', True, False),
+                                               ('composed_record', 'lockstep', True, True),
+                                               ('record', 'lockstep', False, True),
+                                               ('composed_rt', 'realtime', True, False)):
+                s = run(mode, duration, FULL, compose=compose, record=record)
+                if not s:
+                    continue
+                label = ('composed' if compose else 'separate') + (' + record' if record
+                                                                   else '')
+                if mode == 'lockstep':
+                    runs[key].append(lockstep_figures(s))
+                    print_lockstep((label,), runs[key][-1])
+                else:
+                    runs[key].append(realtime_figures(s))
+                    print_realtime((label,), runs[key][-1])
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+        os.close(fd)
+    return {'lockstep_composed_samples_per_s': _median(runs['composed'], 'samples_per_s'),
+            'lockstep_composed_record_samples_per_s': _median(runs['composed_record'],
+                                                              'samples_per_s'),
+            'lockstep_record_samples_per_s': _median(runs['record'], 'samples_per_s'),
+            'loop_composed_p50_us': _median(runs['composed_rt'], 'p50_us'),
+            'loop_composed_p99_us': _median(runs['composed_rt'], 'p99_us'),
+            'loop_composed_missed_fraction': _median(runs['composed_rt'], 'missed_fraction')}
+
+
 def _fmt(value, form='%.0f'):
     return 'n/a' if value is None else form % value
 
@@ -176,9 +233,16 @@ def main():
                         help='realtime runs: plant and controller SCHED_FIFO at priority P, '
                         'fk P-1 (rig --realtime-priority; needs root); default 0: normal '
                         'scheduling')
+    parser.add_argument('--variants', action='store_true',
+                        help='instead: the composed rig (lockstep, with and without '
+                        'recording; realtime) and the separate rig with recording')
     parser.add_argument('--json', action='store_true',
                         help='end with one line: JSON of the medians per node set')
     args = parser.parse_args()
+    if args.variants:
+        result = measure_variants(args.duration, args.repeat)
+        print(json.dumps(result, indent=1))
+        return
     node_sets = (FULL,) if args.nodes == 'full' else (PAIR, FULL)
     runs = collect(args.duration, args.repeat, node_sets,
                    realtime_priority=args.realtime_priority)
