@@ -32,6 +32,7 @@ setup(
             'record = stewart63_ros.tools.record:main',
             'play = stewart63_ros.tools.play:main',
             'rig = stewart63_ros.tools.rig:main',
+            'composed = stewart63_ros.nodes.composed:main',
             'sim = stewart63_ros.tools.sim:main',
             'plot = stewart63_ros.tools.plot:main',
         ],
