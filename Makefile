@@ -19,7 +19,7 @@ TEST_DEPS  := pytest ruff colcon-core colcon-ros colcon-package-information
 
 DEMO_OUT ?= out/demo
 
-.PHONY: demo test lint bench venv clean
+.PHONY: demo test test-fast lint bench venv clean
 
 venv: $(KERNELS)
 
@@ -49,6 +49,10 @@ demo: $(KERNELS)
 # The MuJoCo agreement test must run here, not skip: make installed the extra.
 test: $(KERNELS)
 	STEWART63_REQUIRE_MUJOCO=1 $(BIN)/python -m pytest -q test
+
+# The numerics only: no DDS, no processes (markers in setup.cfg, test/conftest.py).
+test-fast: $(KERNELS)
+	$(BIN)/python -m pytest -q -m "not slow" test
 
 # pyflakes, pycodestyle, bugbear, blind except (ruff.toml).
 lint: $(STAMP)

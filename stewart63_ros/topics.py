@@ -74,7 +74,7 @@ TOPIC_TYPES = {
 LATCHED_TOPICS = (LEG_SETPOINT, POSE_SETPOINT)
 
 
-def _relative(topic: str) -> str:
+def relative_name(topic: str) -> str:
     """``/rig2/leg_lengths`` and ``leg_lengths`` -> ``leg_lengths`` (absolute
     rig topics such as ``/clock`` stay as they are)."""
     if topic in (CLOCK, DIAGNOSTICS):
@@ -87,7 +87,7 @@ def _relative(topic: str) -> str:
 
 def publisher_qos(topic: str) -> QoSProfile:
     """The profile a publisher of ``topic`` (relative or fully qualified) uses."""
-    name = _relative(topic)
+    name = relative_name(topic)
     if name in LATCHED_TOPICS:
         return SETPOINT_QOS
     if name == DIAGNOSTICS:
@@ -98,7 +98,7 @@ def publisher_qos(topic: str) -> QoSProfile:
 def recorder_qos(topic: str) -> QoSProfile:
     """The profile a recorder subscribes ``topic`` with: RECORD_SUB, and
     TRANSIENT_LOCAL for latched topics so their last sample is recorded too."""
-    if _relative(topic) in LATCHED_TOPICS:
+    if relative_name(topic) in LATCHED_TOPICS:
         return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=RECORD_SUB.depth,
                           reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)

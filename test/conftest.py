@@ -11,6 +11,16 @@ from ros_harness import ros  # noqa: F401  (the DDS fixture: a domain id, child 
 REPO = Path(__file__).resolve().parents[1]
 
 
+def pytest_collection_modifyitems(items):
+    """Every test on DDS (it uses the ``ros`` fixture, directly or through
+    another fixture) is marked ``dds`` and ``slow``: ``make test-fast`` leaves
+    it out. Tests that spawn processes without DDS carry ``slow`` themselves."""
+    for item in items:
+        if 'ros' in item.fixturenames:
+            item.add_marker(pytest.mark.dds)
+            item.add_marker(pytest.mark.slow)
+
+
 @pytest.fixture(scope='session')
 def default_params_file() -> Path:
     """The packaged parameter file, read from the checkout."""

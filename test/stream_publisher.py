@@ -90,7 +90,7 @@ def main(argv=None) -> int:
     import rclpy
     from rclpy.node import Node
     from stewart63_ros import topics as T
-    from stewart63_ros.tools.record import message_class
+    from stewart63_ros.nodes.recorder import message_class
 
     rclpy.init()
     node = Node('stream_publisher', namespace=a.namespace)

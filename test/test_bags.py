@@ -334,7 +334,7 @@ def test_recorder_class_in_namespace_then_player(ros, tmp_path, fast_path):
 
     from stewart63_ros import topics as T
     from stewart63_ros.tools.play import Player
-    from stewart63_ros.tools.record import Recorder
+    from stewart63_ros.nodes.recorder import Recorder
     bag = tmp_path / 'nsbag'
     rec = Recorder(bag, namespace='rig2', domain_id=ros.domain_id, fast_path=fast_path).start()
     try:
@@ -419,7 +419,7 @@ def test_recorder_discovers_late_topic_of_unknown_type(ros, tmp_path):
     its publisher appears, after the recorder started."""
     from std_msgs.msg import String
 
-    from stewart63_ros.tools.record import Recorder
+    from stewart63_ros.nodes.recorder import Recorder
     bag = tmp_path / 'late'
     rec = Recorder(bag, ['leg_lengths', 'extra'], domain_id=ros.domain_id,
                    discovery_period=0.1).start()

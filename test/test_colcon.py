@@ -23,6 +23,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow      # a colcon build in processes
 PACKAGE = 'stewart63_ros'
 EXECUTABLES = ('plant', 'controller', 'fk', 'record', 'play', 'rig', 'sim', 'plot')
 PACKAGE_FILES = ('package.xml', 'setup.py', 'setup.cfg', 'README.md')

@@ -440,6 +440,7 @@ def test_cli_bad_arguments_are_argparse_errors(argv, capsys):
     assert 'usage' in capsys.readouterr().err
 
 
+@pytest.mark.slow      # a fresh interpreter
 def test_cli_runs_as_a_module_without_ros():
     code = ('import sys, runpy; sys.argv = ["fk", "--solve", "1.9", "1.9", "1.6", "1.6", '
             '"1.6", "1.6"]\n'

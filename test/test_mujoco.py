@@ -33,6 +33,8 @@ from stewart63_ros.core.dynamics import POS, QUAT, Dynamics  # noqa: E402
 from stewart63_ros.core.simulate import run_continuous  # noqa: E402
 from stewart63_ros.mujoco_model import MujocoPlatform, Settings, build_xml  # noqa: E402
 
+pytestmark = pytest.mark.slow      # seconds of simulation at tight tolerances, twice
+
 
 def _ours(mech, duration):
     """Our core, continuous PD (as MuJoCo's actuators are), tight tolerances."""

@@ -272,6 +272,7 @@ def _run_sim(params, out):
         capture_output=True, text=True, timeout=120)
 
 
+@pytest.mark.slow      # a sim process per case
 @pytest.mark.parametrize('case', SIM_CASES, ids=[c[0] for c in SIM_CASES])
 def test_sim_refuses_bad_file(tmp_path, default_doc, case):
     _, change, remove, key = case
@@ -283,6 +284,7 @@ def test_sim_refuses_bad_file(tmp_path, default_doc, case):
     assert not (tmp_path / 'out' / 'trajectory.csv').exists()
 
 
+@pytest.mark.slow
 def test_sim_refuses_non_yaml(tmp_path):
     path = tmp_path / 'bad.yaml'
     path.write_text('base_points: [1.0, 2.0\n')

@@ -288,14 +288,6 @@ def _endstop_leg(const, L, Ldot):
     return 0.0
 
 
-@njit
-def _endstop(const, L, Ldot):
-    out = np.empty(6)
-    for i in range(6):
-        out[i] = _endstop_leg(const, L[i], Ldot[i])
-    return out
-
-
 @njit_kernel
 def _solve_spd_into(A, b, k, n):
     """Cholesky solve of the n x n symmetric positive definite J = A[:n, :n] in
@@ -321,14 +313,6 @@ def _solve_spd_into(A, b, k, n):
         for m in range(i + 1, n):
             v -= A[m, i] * b[k + m]
         b[k + i] = v / A[i, i]
-
-
-@njit
-def _solve_spd(A, b):
-    """x with A x = b for a symmetric positive definite A (A, b untouched)."""
-    x = b.copy()
-    _solve_spd_into(A.copy(), x, 0, A.shape[0])
-    return x
 
 
 @njit_kernel
@@ -512,10 +496,6 @@ class Dynamics:
         gains = np.vstack([controller.setpoint, controller.kp, controller.kv])
         return derivative_pd(*self.kernel_args(), np.asarray(y, float), np.zeros(6),
                               wrench6(wrench), True, gains, controller.max_force)
-
-    def endstop_forces(self, lengths, rates):
-        """Extra piston force from the end stops (zero inside the stroke) [N]."""
-        return _endstop(self.constants, np.asarray(lengths, float), np.asarray(rates, float))
 
     def legs(self, y) -> LegState:
         quat = y[QUAT] / np.linalg.norm(y[QUAT])

@@ -778,15 +778,6 @@ class ForwardKinematics:
         return _pose_distance(_arr(position), _arr(rotation), _arr(ref_position),
                               _arr(ref_rotation), self.size)
 
-    def refine(self, lengths, position, rotation, max_iter: int = 30) -> FKResult | None:
-        """Newton from a pose; None when it does not converge."""
-        t, rot, it, ok, res = _newton(self.base, self.legp, self.check_lengths(lengths),
-                                      _arr(position), _arr(rotation), int(max_iter), 1e-12)
-        if not ok or res > 1e-9 * self.scale:
-            return None
-        cond = self.condition(t, rot)
-        return FKResult(t, rot, cond, cond > self.cond_threshold, res, it)
-
     # -- all assembly modes ---------------------------------------------------
     def circles(self, lengths):
         """Centre (3, 3) and radius (3,) of each vertex's circle; NoAssemblyError if none."""

@@ -28,7 +28,7 @@ def wait_until(node, executor, predicate, timeout: float) -> bool:
 class RigNode(Node):
     """Loads the mechanism from the node's parameters and owns the diagnostics.
 
-    Node-specific keys shared by all nodes (README, "Parameters"):
+    Node-specific keys shared by all nodes (docs/interface.md, "Parameters"):
     ``wait_for_subscribers`` (int, 0): before its first message, wait until
     every data publisher of this node has that many matched subscriptions
     (``rig --record`` sets 1 so that the recorder misses nothing);

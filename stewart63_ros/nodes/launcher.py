@@ -13,7 +13,7 @@ def make_parser(prog: str, description: str) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=prog, description=description,
         epilog='ROS arguments follow --ros-args, e.g. --ros-args --params-file '
-        'config/stewart63.yaml -r __ns:=/rig2 -p name:=value (README: parameters).')
+        'config/stewart63.yaml -r __ns:=/rig2 -p name:=value (docs/interface.md).')
     return parser
 
 

@@ -142,7 +142,7 @@ class Recorder:
             self._guard = self._node.create_guard_condition(lambda: None)
             for name in self.requested:
                 full = self._node.resolve_topic_name(name)
-                type_name = T.TOPIC_TYPES.get(name) or T.TOPIC_TYPES.get(T._relative(full))
+                type_name = T.TOPIC_TYPES.get(name) or T.TOPIC_TYPES.get(T.relative_name(full))
                 if type_name:
                     self._subscribe(full, type_name)
                 else:

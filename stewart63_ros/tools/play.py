@@ -99,7 +99,7 @@ class Player:
         import rclpy
         from rclpy.node import Node
 
-        from stewart63_ros.tools.record import message_class
+        from stewart63_ros.nodes.recorder import message_class
         classes = {}
         for name in names:
             try:

@@ -19,8 +19,7 @@ import time
 from pathlib import Path
 
 from stewart63_ros.bagio import BagError
-from stewart63_ros.nodes.recorder import (MATCHED_LINE, READY_LINE, Recorder,  # noqa: F401
-                                          message_class)
+from stewart63_ros.nodes.recorder import MATCHED_LINE, READY_LINE, Recorder
 
 # ---------------------------------------------------------------- command line
 def _parser():
