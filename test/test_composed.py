@@ -21,7 +21,8 @@ import pytest
 
 from ros_harness import PYTHON, wait_line, wait_until
 from test_rig import (assert_every_published_message_is_in_the_bag, by_stamp, children_of,
-                      ended, rig_command, warm_kernels)  # noqa: F401 (a fixture)
+                      ended, kill_leftovers, read_log, rig_command,
+                      warm_kernels)  # noqa: F401 (a fixture)
 
 from stewart63_ros.core.dynamics import POS, Dynamics
 from stewart63_ros.core.params import load_mechanism
@@ -123,21 +124,12 @@ def composed_rig(ros, tmp_path):
         assert wait_until(lambda: len(children_of(proc.pid)) == 1, 10), children_of(proc.pid)
         children = children_of(proc.pid)
         log = log_dir / 'composed.log'
-        assert wait_until(lambda: 'realtime at' in _read(log), 90), proc.describe() + _read(log)
+        assert wait_until(lambda: 'realtime at' in read_log(log), 90), (
+            proc.describe() + read_log(log))
         yield proc, children, log
     finally:
         ros.stop(proc)
-        for pid, cmd in children.items():
-            if not ended(pid, cmd):
-                with contextlib.suppress(ProcessLookupError):
-                    os.kill(pid, signal.SIGKILL)
-
-
-def _read(path):
-    try:
-        return Path(path).read_text(errors='replace')
-    except OSError:
-        return ''
+        kill_leftovers(children)
 
 
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
@@ -149,7 +141,7 @@ def test_composed_rig_signal_stops_cleanly(ros, tmp_path, sig):
         assert code == 0, proc.describe()
         assert 'stopped by %s' % sig.name in proc.stdout(), proc.describe()
         assert wait_until(lambda: all(ended(p, c) for p, c in children.items()), 10)
-        text = _read(log)
+        text = read_log(log)
         assert 'composed: stopped (exit 0' in text, text[-2000:]
         assert 'Traceback' not in text, text[-3000:]
         print('\ncomposed rig stopped by %s: exit %d' % (sig.name, code))

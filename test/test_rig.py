@@ -365,17 +365,22 @@ def rig_process(ros, tmp_path):
         # The plant is past discovery and in its loop: stop the rig mid-run.
         plant_log = log_dir / 'plant.log'
         assert wait_until(lambda: plant_log.exists() and 'realtime at' in plant_log.read_text(),
-                          60), proc.describe() + '\n' + _read(plant_log)
+                          60), proc.describe() + '\n' + read_log(plant_log)
         yield proc, pids, children, log_dir
     finally:
         ros.stop(proc)
-        for pid, cmd in children.items():
-            if not ended(pid, cmd):
-                with contextlib.suppress(ProcessLookupError):
-                    os.kill(pid, signal.SIGKILL)
+        kill_leftovers(children)
 
 
-def _read(path):
+def kill_leftovers(children: dict) -> None:
+    """SIGKILL every child of a stopped rig that is still alive."""
+    for pid, cmd in children.items():
+        if not ended(pid, cmd):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+
+
+def read_log(path) -> str:
     try:
         return Path(path).read_text(errors='replace')
     except OSError:
@@ -403,7 +408,7 @@ def test_rig_exits_nonzero_when_a_node_dies(ros, tmp_path, warm_kernels):
         assert wait_until(lambda: all(ended(p, c) for p, c in children.items()), 10), (
             {p: c for p, c in children.items() if not ended(p, c)})
         assert 'controller exited with -9' in proc.stderr(), proc.describe()
-        summary = _read(log_dir / 'plant_summary.json')
+        summary = read_log(log_dir / 'plant_summary.json')
         print('\nrig after SIGKILL of its controller: exit %d; plant, fk ended; %s'
               % (code, 'plant summary written' if summary else 'no plant summary'))
         if summary:
@@ -419,8 +424,8 @@ def test_rig_sigterm_while_starting_stops_at_once(ros, tmp_path, warm_kernels):
     children: dict[int, str] = {}
     try:
         record_log = log_dir / 'record.log'
-        assert wait_until(lambda: 'READY' in _read(record_log).split(), 60), (
-            proc.describe() + '\n' + _read(record_log))
+        assert wait_until(lambda: 'READY' in read_log(record_log).split(), 60), (
+            proc.describe() + '\n' + read_log(record_log))
         assert wait_until(lambda: len(children_of(proc.pid)) >= 2, 10), children_of(proc.pid)
         children = children_of(proc.pid)
         os.kill(proc.pid, signal.SIGTERM)
@@ -435,7 +440,4 @@ def test_rig_sigterm_while_starting_stops_at_once(ros, tmp_path, warm_kernels):
               % (took, code, len(children)))
     finally:
         ros.stop(proc)
-        for pid, cmd in children.items():
-            if not ended(pid, cmd):
-                with contextlib.suppress(ProcessLookupError):
-                    os.kill(pid, signal.SIGKILL)
+        kill_leftovers(children)
