@@ -28,6 +28,8 @@ from stewart63_ros.core.trajectory import COLUMNS
 from stewart63_ros.bagio import BagError
 
 HERE = Path(__file__).resolve().parent
+#: Node processes over DDS: `make test-fast` leaves this file out.
+pytestmark = [pytest.mark.dds, pytest.mark.slow]
 PUBLISHER = str(HERE / 'stream_publisher.py')
 N = 2000
 RATE = 1000.0

@@ -35,7 +35,7 @@ RATE = 1000.0
 DURATION = 0.5              # simulated s: 501 samples
 RUN_TIMEOUT = 150.0
 #: The numba kernels compiled once, into the cache the nodes load.
-pytestmark = pytest.mark.usefixtures('warm_kernels')
+pytestmark = [pytest.mark.usefixtures('warm_kernels'), pytest.mark.dds, pytest.mark.slow]
 
 
 @pytest.fixture(scope='module')

@@ -10,6 +10,7 @@ without documenting it fails here, with its name and where it is read.
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from pathlib import Path
 
@@ -22,9 +23,11 @@ DOC = ROOT / 'docs' / 'interface.md'
 ROS_OWN = {'use_sim_time'}
 
 
-def _sources():
-    for path in sorted(PACKAGE.rglob('*.py')):
-        yield path, ast.parse(path.read_text(), filename=str(path))
+@functools.lru_cache(maxsize=1)
+def _sources() -> tuple:
+    """(path, syntax tree) of every module of the package, parsed once."""
+    return tuple((path, ast.parse(path.read_text(), filename=str(path)))
+                 for path in sorted(PACKAGE.rglob('*.py')))
 
 
 def _const_str(node):

@@ -36,6 +36,8 @@ from stewart63_ros.core.rotation import (euler_rate_matrix, quaternion_from_eule
                                          rotation_from_euler)
 
 PARAMS = REPO / 'config' / 'stewart63.yaml'
+#: Node processes over DDS: `make test-fast` leaves this file out.
+pytestmark = [pytest.mark.dds, pytest.mark.slow]
 LEGS = ['leg_%d' % i for i in range(1, 7)]
 OK, WARN, ERROR = 0, 1, 2
 POSE_TOL = 1e-9          # m, rad

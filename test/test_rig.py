@@ -31,6 +31,8 @@ from stewart63_ros.core.simulate import run_sampled, sensor_reading
 from stewart63_ros.tools.rig import Rig
 
 REPO = Path(__file__).resolve().parents[1]
+#: Node processes over DDS: `make test-fast` leaves this file out.
+pytestmark = [pytest.mark.dds, pytest.mark.slow]
 PARAMS = REPO / 'config' / 'stewart63.yaml'
 RATE = 1000.0
 LOCKSTEP_DURATION = 0.5      # simulated s: 501 samples
