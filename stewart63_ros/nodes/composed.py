@@ -161,12 +161,22 @@ class Composed:
                 loop.poll(0.1)
             return 0
         # The plant's own loops, unchanged, with every take of a force going
-        # through the composed loop (see Peers).
-        start = plant.start_hot_loop
+        # through the composed loop (see Peers), and the plant's housekeeping
+        # (its other subscriptions, timers, executor) at the pace of the
+        # others', not after every sample: at ten thousand samples a second
+        # that pass would cost more than the controller's work.
+        start, housekeeping = plant.start_hot_loop, plant.housekeeping
+        due = [0.0]
 
         def start_hot_loop(hot):
             return make_peers(start(hot), plant.period)
+
+        def paced_housekeeping(now, turn_ok=True):
+            if now >= due[0]:
+                due[0] = min(housekeeping(now, turn_ok), now + Peers.SIDE_PERIOD)
+            return due[0]
         plant.start_hot_loop = start_hot_loop
+        plant.housekeeping = paced_housekeeping
         return plant.run()
 
     def close(self):
