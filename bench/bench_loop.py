@@ -50,11 +50,17 @@ def lease_domain() -> tuple[int, int]:
     raise RuntimeError('no free ROS domain id on this machine')
 
 
+#: Node parameters of every run (``--control-law``: the controller's law).
+EXTRA_PARAMS = {}
+
+
 def run(mode, duration, nodes, realtime_priority=0, compose=False, record=False):
     """One rig run; the plant's summary (plus total_wall_s), or None if it failed.
     ``compose``: the nodes in one process (``rig --compose``); ``record``:
     recording every topic into a bag in a temporary folder."""
     extra = {'realtime_priority': realtime_priority} if realtime_priority else {}
+    if EXTRA_PARAMS:
+        extra['extra_params'] = EXTRA_PARAMS
     log_dir = tempfile.mkdtemp(prefix='bench_loop_')
     bag = os.path.join(log_dir, 'bag') if record else None
     rig = Rig(default_params_path(), mode, duration, nodes=nodes, log_dir=log_dir,
@@ -236,9 +242,15 @@ def main():
     parser.add_argument('--variants', action='store_true',
                         help='instead: the composed rig (lockstep, with and without '
                         'recording; realtime) and the separate rig with recording')
+    parser.add_argument('--control-law', metavar='NAME', default=None,
+                        help="the controller's law (rig --control-law), e.g. computed_torque "
+                        'to compare its loop figures with pd (the default)')
     parser.add_argument('--json', action='store_true',
                         help='end with one line: JSON of the medians per node set')
     args = parser.parse_args()
+    if args.control_law:
+        from stewart63_ros.tools.rig import control_params
+        EXTRA_PARAMS.update(control_params(args.control_law))
     if args.variants:
         result = measure_variants(args.duration, args.repeat)
         print(json.dumps(result, indent=1))

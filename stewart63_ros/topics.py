@@ -7,8 +7,17 @@ Why these profiles:
   controller subscribe RELIABLE with depth 1 and so always act on the newest
   sample, never on a backlog. A BEST_EFFORT subscriber (a driver, rviz) also
   matches these publishers.
-- Setpoints are TRANSIENT_LOCAL depth 1 ("latched"): a setpoint published
-  before the controller starts still reaches it.
+- Commands (``leg_setpoint``, ``pose_setpoint``, ``pose_trajectory``,
+  ``external_wrench``) are published TRANSIENT_LOCAL depth 1 ("latched") by
+  the package's tools. A node receives a command through two subscriptions
+  (``nodes/commands.py``): a VOLATILE one, which matches every reliable
+  publisher (``ros2 topic pub`` with its defaults included), and a
+  TRANSIENT_LOCAL one, which receives the command a latched publisher sent
+  before the node started; a sample that comes through both is used once.
+  rmw's BEST_AVAILABLE durability is not enough on its own: a subscription
+  resolves it once, when it is created, and with no publisher yet it becomes
+  TRANSIENT_LOCAL, which a later volatile publisher never matches (checked
+  with rclpy 9.1.2 and Fast DDS).
 """
 from __future__ import annotations
 
@@ -24,6 +33,7 @@ PLATFORM_TWIST = 'platform_twist'
 TRUE_POSE = 'ground_truth/pose'
 TRUE_TWIST = 'ground_truth/twist'
 EXTERNAL_WRENCH = 'external_wrench'
+POSE_TRAJECTORY = 'pose_trajectory'
 CLOCK = '/clock'
 DIAGNOSTICS = '/diagnostics'
 
@@ -46,10 +56,15 @@ EVERY_SUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
 RECORD_SUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH * 10,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
-#: User commands: latched.
+#: User commands: latched (publishers; and the subscription that receives a
+#: command published before the node started).
 SETPOINT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                           reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: User commands, the subscription that matches volatile publishers too.
+COMMAND_VOLATILE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                                  reliability=ReliabilityPolicy.RELIABLE,
+                                  durability=DurabilityPolicy.VOLATILE)
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                              reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.VOLATILE)
@@ -65,13 +80,16 @@ TOPIC_TYPES = {
     TRUE_POSE: 'geometry_msgs/msg/PoseStamped',
     TRUE_TWIST: 'geometry_msgs/msg/TwistStamped',
     EXTERNAL_WRENCH: 'geometry_msgs/msg/WrenchStamped',
+    POSE_TRAJECTORY: 'trajectory_msgs/msg/MultiDOFJointTrajectory',
     CLOCK: 'rosgraph_msgs/msg/Clock',
     DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray',
 }
 
 #: Topics whose publishers are latched (TRANSIENT_LOCAL): a recorder asks for
 #: their history, so a setpoint published before recording started is in the bag.
-LATCHED_TOPICS = (LEG_SETPOINT, POSE_SETPOINT)
+LATCHED_TOPICS = (LEG_SETPOINT, POSE_SETPOINT, POSE_TRAJECTORY)
+#: Command inputs: each node subscribes them volatile and latched (see above).
+COMMAND_TOPICS = (LEG_SETPOINT, POSE_SETPOINT, POSE_TRAJECTORY, EXTERNAL_WRENCH)
 
 
 def relative_name(topic: str) -> str:

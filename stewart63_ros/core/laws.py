@@ -44,6 +44,7 @@ import importlib
 import numpy as np
 
 from stewart63_ros.core._jit import njit
+from stewart63_ros.core.control import pd_law
 from stewart63_ros.core.dynamics import Dynamics, inverse_dynamics_forces
 from stewart63_ros.core.fk import ForwardKinematics, pose_and_twist
 from stewart63_ros.core.params import ParameterError
@@ -305,13 +306,18 @@ class Controller:
         name = law if law is not None else self.params.get('control_law', 'pd')
         self.law = make_law(name, mech, self.params)
         self.law_name = name
-        self.reference = reference or Reference.constant_lengths(mech, mech.setpoint_lengths)
-        self.start = start
         self.sample = ReferenceSample(np.zeros(SAMPLE_SIZE))
+        self.set_reference(reference or Reference.constant_lengths(mech, mech.setpoint_lengths),
+                           start)
 
     def set_reference(self, reference, start=None):
+        """Follow ``reference`` from ``start`` on the sample clock (None: the next sample)."""
         self.reference = reference
         self.start = start
+        # Towards fixed lengths, eq. (40) needs no reference sample per call.
+        self._fixed = reference.kind == 'lengths'
+        if self._fixed:
+            reference.sample(0.0, self.sample.array)
 
     def set_law(self, name):
         """Switch law (a new one built from the current parameters)."""
@@ -337,6 +343,10 @@ class Controller:
         if self.start is None:
             self.start = t
         ref = self.sample
+        if self._fixed and type(self.law) is PDLaw:
+            # eq. (40) as compiled for the paper's scenario (the same numbers as _pd)
+            law = self.law
+            return pd_law(lengths, rates, ref.array[R_LEN], law.kp, law.kv, self.max_force)
         self.reference.sample(t - self.start, ref.array)
         try:
             f = self.law(t, lengths, rates, ref)

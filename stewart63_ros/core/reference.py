@@ -360,6 +360,48 @@ def write_reference_csv(path, times, poses) -> None:
                           for t, p in zip(times, poses)])
 
 
+@njit
+def accumulate_tracking(acc, lengths, ref, pos, rot, with_pose):
+    """Add one sample's tracking error to ``acc`` (8,): count, max and sum of
+    squares of the leg-length error, of |t_ref - t| and of the angle of R_ref R^T
+    (the last two with ``with_pose``)."""
+    acc[0] += 1.0
+    e = 0.0
+    for i in range(6):
+        d = abs(ref[24 + i] - lengths[i])
+        e = max(e, d)
+        acc[2] += d * d
+    acc[1] = max(acc[1], e)
+    if with_pose:
+        d = np.sqrt((ref[0] - pos[0]) ** 2 + (ref[1] - pos[1]) ** 2 + (ref[2] - pos[2]) ** 2)
+        acc[3] = max(acc[3], d)
+        acc[4] += d * d
+        m = np.empty((3, 3))            # R_ref R^T
+        for i in range(3):
+            for j in range(3):
+                m[i, j] = (ref[3 + 3 * i] * rot[j, 0] + ref[4 + 3 * i] * rot[j, 1]
+                           + ref[5 + 3 * i] * rot[j, 2])
+        sin = 0.5 * np.sqrt((m[2, 1] - m[1, 2]) ** 2 + (m[0, 2] - m[2, 0]) ** 2
+                            + (m[1, 0] - m[0, 1]) ** 2)
+        angle = np.arctan2(sin, 0.5 * (m[0, 0] + m[1, 1] + m[2, 2] - 1.0))
+        acc[5] = max(acc[5], angle)
+        acc[6] += angle * angle
+        acc[7] += 1.0
+
+
+def tracking_summary(acc) -> dict:
+    """Max and RMS from an ``accumulate_tracking`` array (empty dict: no sample)."""
+    if acc[0] == 0:
+        return {}
+    out = {'samples': int(acc[0]), 'leg_max_m': float(acc[1]),
+           'leg_rms_m': float(np.sqrt(acc[2] / (6 * acc[0])))}
+    if acc[7]:
+        out.update(position_max_m=float(acc[3]), position_rms_m=float(np.sqrt(acc[4] / acc[7])),
+                   orientation_max_rad=float(acc[5]),
+                   orientation_rms_rad=float(np.sqrt(acc[6] / acc[7])))
+    return out
+
+
 def tracking_errors(mech, reference: Reference, times, states, after: float = 1.0) -> dict:
     """Max and RMS of the leg-length error, the position error |t_ref - t| and
     the orientation error (angle of R_ref R^T) over the samples at or after

@@ -1,10 +1,18 @@
-"""controller: the PD law of eq. (40) on every leg_lengths sample.
+"""controller: a control law on every leg_lengths sample (eq. 40 by default).
 
-F_i = Kp_i ((L_i)_0 - L_i) - Kv_i dL_i/dt, saturated at max_force, published
-on ``leg_forces`` with the stamp of the sample it answers. Setpoint: the
-parameter ``setpoint_lengths``, then the newest ``leg_setpoint`` or
-``pose_setpoint`` (turned into lengths by inverse kinematics; a pose outside
-the stroke is rejected and reported).
+The law (parameter ``control_law``: ``pd``, eq. (40); ``pd_gravity``;
+``computed_torque``; or ``package.module:Class``, a user's own) turns each
+sample into six piston forces, saturated at max_force, published on
+``leg_forces`` with the stamp of the sample it answers. It follows a
+reference: the parameter ``setpoint_lengths``, then the newest
+``leg_setpoint`` or ``pose_setpoint`` (turned into lengths by inverse
+kinematics; a pose outside the stroke is rejected and reported), or a
+reference motion: ``reference_file`` (a reference CSV, time 0 = the first
+sample) or the newest ``pose_trajectory`` (its header.stamp is its time 0;
+zero: the next sample). A reference that leaves the stroke is refused whole
+and the previous one goes on. Gains and law change at run time
+(``ros2 param set``). A law that raises or returns NaN: forces withheld,
+ERROR on /diagnostics, the node stays up.
 
 Watchdog: when no valid sample has arrived for ``watchdog_timeout`` seconds
 (wall clock; default 0.1 s, 2 s in lockstep) after the first one, the
@@ -23,31 +31,127 @@ import time
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from stewart63_ros import topics
-from stewart63_ros.core.control import PDController
 from stewart63_ros.core.kinematics import leg_lengths
+from stewart63_ros.core.laws import LAW_PARAMETERS, LAWS, Controller, LawError
+from stewart63_ros.core.params import ParameterError
+from stewart63_ros.core.reference import (Reference, ReferenceError, accumulate_tracking,
+                                          load_reference, tracking_summary)
+from stewart63_ros.core.rotation import euler_rate_matrix
 from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
-from stewart63_ros.nodes.checks import Rejected, StampGate, finite_vector, leg_vector
+from stewart63_ros.nodes.checks import Rejected, StampGate, finite_vector, leg_vector, stamp_ns
+from stewart63_ros.nodes.commands import CommandInput
 from stewart63_ros.nodes.launcher import run
+
+#: The one joint of a pose_trajectory.
+PLATFORM_JOINT = 'platform'
+_NO_ROTATION = np.eye(3)
+
+
+def _unit_quaternion(q, field):
+    quat = finite_vector([q.x, q.y, q.z, q.w], 4, field)
+    norm = np.linalg.norm(quat)
+    if not 0.9 < norm < 1.1:
+        raise Rejected('bad_quaternion', '%s is not a unit quaternion (norm %.3g)' % (field, norm))
+    return quat / norm
+
+
+def reference_from_trajectory(mech, msg, max_leg_speed=0.0, max_leg_acceleration=0.0):
+    """(Reference, start stamp in ns or None for "the next sample") from a
+    ``MultiDOFJointTrajectory`` of the one joint ``platform``; Rejected otherwise.
+
+    Points: ``transforms[0]`` (base frame), ``time_from_start``; velocities
+    (twist, base frame) and accelerations used when every point has them
+    (quintic Hermite pieces with both, cubic Hermite with velocities only),
+    otherwise the poses are splined as a reference CSV is (clamped cubic)."""
+    from scipy.spatial.transform import Rotation
+    if list(msg.joint_names) != [PLATFORM_JOINT]:
+        raise Rejected('unknown_joint_names', 'joint_names must be [%r], got %s'
+                       % (PLATFORM_JOINT, list(msg.joint_names)))
+    points = msg.points
+    if not points:
+        raise Rejected('empty_trajectory', 'the trajectory has no points')
+    n = len(points)
+    times = np.empty(n)
+    poses = np.empty((n, 6))
+    quats = np.empty((n, 4))
+    twists = np.empty((n, 6)) if all(len(p.velocities) == 1 for p in points) else None
+    accels = (np.empty((n, 6)) if twists is not None
+              and all(len(p.accelerations) == 1 for p in points) else None)
+    for k, p in enumerate(points):
+        if len(p.transforms) != 1:
+            raise Rejected('wrong_size', 'point %d has %d transforms, expected 1'
+                           % (k, len(p.transforms)))
+        tr = p.transforms[0]
+        times[k] = p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec
+        poses[k, :3] = finite_vector([tr.translation.x, tr.translation.y, tr.translation.z], 3,
+                                     'point %d translation' % k)
+        quats[k] = _unit_quaternion(tr.rotation, 'point %d rotation' % k)
+        for arr, items in ((twists, p.velocities), (accels, p.accelerations)):
+            if arr is not None:
+                lin, ang = items[0].linear, items[0].angular
+                arr[k] = finite_vector([lin.x, lin.y, lin.z, ang.x, ang.y, ang.z], 6,
+                                       'point %d twist' % k)
+    # theta continuous from point to point (no 2 pi jumps)
+    poses[:, 3:] = np.unwrap(Rotation.from_quat(quats).as_euler('xyz'), axis=0)
+    rates = accs = None
+    if twists is not None:
+        # dtheta/dt = E^-1 omega; ddtheta = E^-1 (alpha - dE/dt dtheta), per point
+        rates = twists.copy()
+        accs = accels.copy() if accels is not None else None
+        for k in range(n):
+            e = euler_rate_matrix(poses[k, 3:])
+            rates[k, 3:] = np.linalg.solve(e, twists[k, 3:])
+            if accs is not None:
+                h = 1e-7
+                de = (euler_rate_matrix(poses[k, 3:] + h * rates[k, 3:]) - e) / h
+                accs[k, 3:] = np.linalg.solve(e, accels[k, 3:] - de @ rates[k, 3:])
+    try:
+        ref = Reference.from_poses(mech, times, poses, rates, accs)
+        ref.check(max_leg_speed, max_leg_acceleration)
+    except ReferenceError as exc:
+        raise Rejected('unreachable_trajectory' if 'leg_' in str(exc) else 'bad_trajectory',
+                       str(exc)) from None
+    start = stamp_ns(msg.header.stamp)
+    return ref, (start or None)
 
 
 class ControllerNode(RigNode):
     def __init__(self, options):
         super().__init__('controller')
-        self.law = PDController(self.mech)
-        # Load the compiled law now (0.7-1.7 s measured), not on the first sample: a
+        mech = self.mech
+        self.max_leg_speed = self.nonnegative('max_leg_speed', 0.0)
+        self.max_leg_acceleration = self.nonnegative('max_leg_acceleration', 0.0)
+        self.control = Controller(mech, self.params)        # ParameterError: exit 2
+        # Load the compiled laws now (0.7-1.7 s measured), not on the first sample: a
         # realtime plant would integrate that long without forces.
-        self.law(np.array(self.law.setpoint), np.zeros(6))
+        self._warm_up()
+        self.ref_start_ns = None        # the reference's time 0 on the sample clock
+        self.reference_name = 'setpoint_lengths'
+        reference_file = str(self.param('reference_file', '') or '')
+        if reference_file:
+            try:
+                reference = load_reference(mech, reference_file, self.max_leg_speed,
+                                           self.max_leg_acceleration)
+            except ReferenceError as exc:
+                raise ParameterError('reference_file', str(exc)) from None
+            self.control.set_reference(reference, 0.0)
+            self.reference_name = reference_file
         # Lockstep pauses are the plant's choice, not a failure: longer default.
         lockstep = self.param('clock_mode', 'realtime') == 'lockstep'
         self.watchdog_timeout = self.positive('watchdog_timeout', 2.0 if lockstep else 0.1)
         self.sample_gate = StampGate()
         self.setpoint_gate = StampGate()
         self.pose_gate = StampGate()
+        self.trajectory_gate = StampGate()
         self.last_sample_wall = None
         self.tripped = False
+        self.law_fault = ''
+        self.law_failures = 0
+        self.tracking = np.zeros(8)
         self.pub_forces = self.publisher(JointState, topics.LEG_FORCES, topics.STREAM_PUB)
         self.forces_out = wire.JointStateTemplates(('effort',))
         self.forces_out.get('base')             # made now, not on the first sample
@@ -55,12 +159,62 @@ class ControllerNode(RigNode):
         # Serialized samples in, serialized forces out: see nodes/wire.py.
         self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
                                                     self.on_sample, topics.LATEST_SUB, raw=True)
-        self.create_subscription(JointState, topics.LEG_SETPOINT, self.on_leg_setpoint,
-                                 topics.SETPOINT_QOS)
-        self.create_subscription(PoseStamped, topics.POSE_SETPOINT, self.on_pose_setpoint,
-                                 topics.SETPOINT_QOS)
+        self.commands = [
+            CommandInput(self, JointState, topics.LEG_SETPOINT, self.on_leg_setpoint),
+            CommandInput(self, PoseStamped, topics.POSE_SETPOINT, self.on_pose_setpoint),
+            CommandInput(self, MultiDOFJointTrajectory, topics.POSE_TRAJECTORY,
+                         self.on_trajectory)]
         self.create_timer(min(self.watchdog_timeout / 2, 0.05), self.watchdog)
+        # Run-time tuning: the law, every built-in law's gains, the active law's own.
+        self.tunable('control_law', self.set_law)
+        for name in LAW_PARAMETERS:
+            self.tunable(name, self._gain_setter(name))
+        self._register_law_parameters()
+        self.health.values['control_law'] = self.control.law_name
+        self.health.values['reference'] = self.reference_name
 
+    def nonnegative(self, name, default) -> float:
+        try:
+            value = float(self.param(name, default))
+        except (TypeError, ValueError):
+            raise ParameterError(name, 'expected a number, got %r'
+                                 % (self.param(name, default),)) from None
+        if not (value >= 0 and np.isfinite(value)):
+            raise ParameterError(name, 'must be a finite number >= 0, got %r' % value)
+        return value
+
+    def _warm_up(self):
+        from stewart63_ros.core.rotation import rotation_from_euler
+        mech = self.mech
+        rot = rotation_from_euler(mech.initial_orientation)
+        lengths = leg_lengths(mech, mech.initial_position, rot)
+        still = Reference.constant_pose(mech, mech.initial_position, rot)
+        for name in LAWS:
+            for reference in (None, still):
+                try:
+                    Controller(mech, self.params, law=name, reference=reference)(
+                        lengths, np.zeros(6), 0.0)
+                except (LawError, ParameterError):
+                    pass            # a law that cannot run here is refused when chosen
+
+    # -- run-time tuning -----------------------------------------------------------------
+    def _gain_setter(self, name):
+        def apply(value):
+            self.control.set_parameter(name, value)
+        return apply
+
+    def _register_law_parameters(self):
+        for name in getattr(self.control.law, 'parameters', ()):
+            if name not in LAW_PARAMETERS:
+                self.tunable(name, self._gain_setter(name))
+
+    def set_law(self, value):
+        self.control.set_law(value)          # ParameterError refuses it
+        self._register_law_parameters()
+        self.health.values['control_law'] = self.control.law_name
+        self.get_logger().info('control law: %s' % value)
+
+    # -- the 1 kHz path --------------------------------------------------------------------
     def on_sample(self, data: bytes):
         """A serialized leg_lengths sample in; its forces out, with its stamp."""
         self.health.received[topics.LEG_LENGTHS] += 1
@@ -74,20 +228,74 @@ class ControllerNode(RigNode):
         self.last_sample_wall = time.monotonic()
         if self.tripped:
             self.tripped = False
-            self.health.fault = ''
+            self.health.fault = self.law_fault
             self.get_logger().info('samples are back: control resumed')
-        force = self.law(values['position'], values['velocity'])
+        if self.ref_start_ns is None:
+            self.ref_start_ns = ns
+        lengths, rates = values['position'], values['velocity']
+        try:
+            force = self.control.forces((ns - self.ref_start_ns) * 1e-9, lengths, rates)
+        except LawError as exc:
+            self.on_law_error(exc)
+            return
         self.pub_forces.publish(self.forces_out.get(frame_id).fill(sec, nanosec, effort=force))
         self.health.published[topics.LEG_FORCES] += 1
+        estimate = self.control.estimate
+        if estimate is None:
+            accumulate_tracking(self.tracking, lengths, self.control.sample.array, lengths,
+                                _NO_ROTATION, False)
+        else:
+            accumulate_tracking(self.tracking, lengths, self.control.sample.array, estimate[0],
+                                estimate[1], True)
+        if self.law_fault:
+            self.get_logger().info('the control law works again: forces resumed')
+            self.law_fault = ''
+            self.health.fault = ''
 
-    def set_setpoint(self, lengths, source):
+    def on_law_error(self, exc):
+        self.law_failures += 1
+        self.health.values['law_failures'] = self.law_failures
+        if not self.law_fault:
+            self.law_fault = 'control law failed, forces withheld: %s' % exc
+            self.health.fault = self.law_fault
+            self.get_logger().error(self.law_fault)
+            self.health.report()
+
+    def report(self):
+        summary = tracking_summary(self.tracking)
+        for key in ('leg_max_m', 'leg_rms_m', 'position_max_m', 'position_rms_m',
+                    'orientation_max_rad', 'orientation_rms_rad'):
+            if key in summary:
+                self.health.values['tracking/' + key] = '%.4g' % summary[key]
+            else:
+                self.health.values.pop('tracking/' + key, None)
+        self.tracking[:] = 0.0
+        super().report()
+
+    # -- commands ---------------------------------------------------------------------------
+    def check_stroke(self, lengths, source):
         mech = self.mech
         bad = np.flatnonzero((lengths < mech.leg_length_min) | (lengths > mech.leg_length_max))
         if bad.size:
             raise Rejected('unreachable_setpoint', '%s: leg_%d length %.4f m is outside the '
                            'stroke [%g, %g]' % (source, bad[0] + 1, lengths[bad[0]],
                                                 mech.leg_length_min, mech.leg_length_max))
-        self.law.setpoint = lengths
+
+    def follow(self, reference, start_ns, name):
+        """From now on: ``reference`` from ``start_ns`` (None: the next sample)."""
+        self.control.set_reference(reference, 0.0)
+        self.ref_start_ns = start_ns
+        self.reference_name = name
+        self.health.values['reference'] = name
+
+    def set_setpoint(self, lengths, source, pose=None):
+        self.check_stroke(lengths, source)
+        if pose is not None:
+            reference = Reference.constant_pose(self.mech, *pose)
+        else:
+            estimate = self.control.estimate
+            reference = Reference.constant_lengths(self.mech, lengths, near=estimate)
+        self.follow(reference, None, source)
         self.health.values['setpoint'] = np.round(lengths, 6).tolist()
         self.get_logger().info('setpoint from %s: %s' % (source, np.round(lengths, 4).tolist()))
 
@@ -104,21 +312,34 @@ class ControllerNode(RigNode):
     def on_pose_setpoint(self, msg: PoseStamped):
         from scipy.spatial.transform import Rotation
         self.health.received[topics.POSE_SETPOINT] += 1
-        p, q = msg.pose.position, msg.pose.orientation
+        p = msg.pose.position
         try:
             ns = self.pose_gate.check(msg.header.stamp)
             position = finite_vector([p.x, p.y, p.z], 3, 'pose.position')
-            quat = finite_vector([q.x, q.y, q.z, q.w], 4, 'pose.orientation')
-            norm = np.linalg.norm(quat)
-            if not 0.9 < norm < 1.1:
-                raise Rejected('bad_quaternion', 'orientation is not a unit quaternion '
-                               '(norm %.3g)' % norm)
-            rot = Rotation.from_quat(quat / norm).as_matrix()
-            self.set_setpoint(leg_lengths(self.mech, position, rot), topics.POSE_SETPOINT)
+            rot = Rotation.from_quat(_unit_quaternion(msg.pose.orientation,
+                                                      'pose.orientation')).as_matrix()
+            self.set_setpoint(leg_lengths(self.mech, position, rot), topics.POSE_SETPOINT,
+                              pose=(position, rot))
         except Rejected as exc:
             self.health.reject(topics.POSE_SETPOINT, exc)
             return
         self.pose_gate.accept(ns)
+
+    def on_trajectory(self, msg: MultiDOFJointTrajectory):
+        self.health.received[topics.POSE_TRAJECTORY] += 1
+        try:
+            ns = self.trajectory_gate.check(msg.header.stamp)
+            reference, start = reference_from_trajectory(self.mech, msg, self.max_leg_speed,
+                                                         self.max_leg_acceleration)
+        except Rejected as exc:
+            self.health.reject(topics.POSE_TRAJECTORY, exc)
+            self.get_logger().error('pose_trajectory refused, the previous motion goes on: %s'
+                                    % exc)
+            return
+        self.trajectory_gate.accept(ns)
+        self.follow(reference, start, '%s (%d points, %.3f s)' % (
+            topics.POSE_TRAJECTORY, len(msg.points), reference.duration))
+        self.get_logger().info('following %s' % self.reference_name)
 
     def run(self):
         self.run_on(self.sub_samples)

@@ -33,7 +33,12 @@ from stewart63_ros.core.simulate import initial_state, substeps_for
 from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
 from stewart63_ros.nodes.checks import Rejected, StampGate, finite_vector, ros_time
+from stewart63_ros.nodes.commands import CommandInput
 from stewart63_ros.nodes.launcher import run
+
+#: The tracking error in the summary counts samples from this time [s] on.
+TRACKING_FROM = 1.0
+
 
 class PlantNode(RigNode):
     def __init__(self, options):
@@ -52,6 +57,18 @@ class PlantNode(RigNode):
         # (rig: controller + fk + recorder).
         self.lengths_subscribers = int(self.param('lengths_subscribers', 0))
         self.sensor = SensorModel(self.params)
+        # The reference motion the controller follows (rig --reference), read
+        # here only to report the true tracking error in the summary.
+        self.reference = None
+        reference_file = str(self.param('reference_file', '') or '')
+        if reference_file:
+            from stewart63_ros.core.reference import ReferenceError, load_reference
+            try:
+                self.reference = load_reference(self.mech, reference_file)
+            except ReferenceError as exc:
+                raise ParameterError('reference_file', str(exc)) from None
+        self.tracking = np.zeros(8)
+        self.ref_sample = np.empty(36)
 
         self.dyn = Dynamics(self.mech)
         self.period = 1.0 / self.rate
@@ -86,8 +103,7 @@ class PlantNode(RigNode):
         wire.warm_up(('effort',))
         self.sub_forces = self.create_subscription(JointState, topics.LEG_FORCES,
                                                    self.on_forces, topics.LATEST_SUB, raw=True)
-        self.create_subscription(WrenchStamped, topics.EXTERNAL_WRENCH, self.on_wrench,
-                                 topics.LATEST_SUB)
+        self.wrench_in = CommandInput(self, WrenchStamped, topics.EXTERNAL_WRENCH, self.on_wrench)
         self.t0_wall = None
         self.t0_mono = None         # realtime: monotonic time of sample 0
         self.t_phys = 0.0           # realtime: simulated time the state is at
@@ -137,6 +153,8 @@ class PlantNode(RigNode):
         ns = int(round(self.sample_time(self.k) * 1e9))
         sec, nanosec = divmod(ns, 1_000_000_000)
         lengths, rates = self.dyn.lengths_and_rates(self.y)
+        if self.reference is not None and self.k * self.period >= TRACKING_FROM - 1e-12:
+            self.add_tracking(lengths)
         if lengths.min() < self.mech.leg_length_min or lengths.max() > self.mech.leg_length_max:
             self.endstop_samples += 1
             self.health.warning = ('a leg is at an end stop (%d samples so far)'
@@ -289,6 +307,15 @@ class PlantNode(RigNode):
             raise RuntimeError('the simulation diverged (non-finite state)')
         self.t_phys = t
 
+    def add_tracking(self, lengths):
+        """The true tracking error of this sample (reference time = k / rate)."""
+        from stewart63_ros.core.reference import accumulate_tracking
+        from stewart63_ros.core.rotation import matrix_from_quaternion
+        self.reference.sample(self.k * self.period, self.ref_sample)
+        quat = self.y[QUAT] / np.sqrt(self.y[QUAT] @ self.y[QUAT])
+        accumulate_tracking(self.tracking, lengths, self.ref_sample, self.y[POS],
+                            matrix_from_quaternion(quat), True)
+
     def write_summary(self):
         lengths, _ = self.dyn.lengths_and_rates(self.y)
         setpoint = self.mech.setpoint_lengths
@@ -304,6 +331,10 @@ class PlantNode(RigNode):
             'late_cycles': self.late, 'endstop_samples': self.endstop_samples,
             'wall_time_s': time.time() - self.t0_wall,
         }
+        if self.reference is not None:
+            from stewart63_ros.core.reference import tracking_summary
+            summary['tracking_error'] = dict(from_s=TRACKING_FROM,
+                                             **tracking_summary(self.tracking))
         if self.summary_file:
             with open(self.summary_file, 'w') as stream:
                 json.dump(summary, stream, indent=1)

@@ -2,6 +2,7 @@
 
     rig [--params FILE] [--mode realtime|lockstep] [--duration S] [--record DIR]
         [--namespace NS] [--realtime-priority P] [--compose]
+        [--control-law NAME] [--reference CSV]
 
 One parameter file and one namespace for all. Every node waits until its
 peers are matched before the first sample, so a short run loses nothing at
@@ -9,7 +10,10 @@ its start. Ctrl-C or SIGTERM stops every process cleanly; the exit status is
 non-zero if a node died or failed. With --duration the run ends after S
 simulated seconds (the plant stops itself) and a summary is printed.
 With --compose the nodes (and the recorder) run as nodes of one process
-(``composed``), still over the DDS topics.
+(``composed``), still over the DDS topics. --control-law sets the
+controller's ``control_law``; --reference hands a reference CSV to the
+controller (``reference_file``, time 0 = the first sample) and to the plant,
+which reports the true tracking error in its summary.
 """
 from __future__ import annotations
 
@@ -219,6 +223,19 @@ def _wait_all(procs, timeout):
             pass
 
 
+def control_params(control_law=None, reference=None) -> dict:
+    """Node parameters (for ``Rig(extra_params=...)``) that run ``control_law``
+    on the reference CSV ``reference`` (plant: the tracking error in its summary)."""
+    extra = {'controller': {}}
+    if control_law:
+        extra['controller']['control_law'] = str(control_law)
+    if reference:
+        path = str(Path(reference).resolve())
+        extra['controller']['reference_file'] = path
+        extra['plant'] = {'reference_file': path}
+    return extra
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='rig', description=__doc__.split('\n\n')[0])
     parser.add_argument('--params', help='parameter file (default: the packaged one)')
@@ -232,6 +249,12 @@ def main(argv=None) -> int:
                         'own node on the DDS topics: many times faster in lockstep, and the '
                         'controller answers in the same wake-up in realtime (README: when to '
                         'use which)')
+    parser.add_argument('--control-law', metavar='NAME',
+                        help="the controller's law: pd (eq. 40), pd_gravity, computed_torque "
+                        'or package.module:Class (default: control_law of the file, else pd)')
+    parser.add_argument('--reference', metavar='CSV',
+                        help='reference motion t,x,y,z,theta_x,theta_y,theta_z to follow from '
+                        'the first sample; the summary prints the tracking error')
     parser.add_argument('--realtime-priority', type=int, default=0, metavar='P',
                         help='run plant and controller SCHED_FIFO at priority P (1-99), fk '
                         'at P-1 (needs root or CAP_SYS_NICE, else a warning): keeps other '
@@ -246,6 +269,16 @@ def main(argv=None) -> int:
         return 2
     if args.duration is not None and not args.duration > 0:
         parser.error('--duration must be positive')
+    extra = {}
+    if args.control_law or args.reference:
+        from stewart63_ros.core.reference import ReferenceError
+        from stewart63_ros.tools.sim import make_controller
+        try:     # fail here, with the reason, not in the controller
+            make_controller(params, args.control_law, args.reference)
+        except (ParameterError, ReferenceError) as exc:
+            print('rig: error: %s' % exc, file=sys.stderr)
+            return 2
+        extra = control_params(args.control_law, args.reference)
     if args.record and os.path.exists(args.record):
         print('rig: error: %s exists; record writes a new bag' % args.record, file=sys.stderr)
         return 2
@@ -253,7 +286,8 @@ def main(argv=None) -> int:
     if not 0 <= args.realtime_priority <= 99:
         parser.error('--realtime-priority must be from 0 to 99')
     rig = Rig(params, args.mode, args.duration, args.record, args.namespace, args.log_dir,
-              realtime_priority=args.realtime_priority, compose=args.compose)
+              realtime_priority=args.realtime_priority, compose=args.compose,
+              extra_params=extra)
     stopping = []
 
     def on_sigterm(*_):
@@ -305,6 +339,9 @@ def main(argv=None) -> int:
                   'max %.3f ms' % (lat['p50_ms'], lat['p99_ms'], lat['max_ms']))
         print('  missed cycles %d, force timeouts %d, end-stop samples %d' % (
             summary['missed_cycles'], summary['force_timeouts'], summary['endstop_samples']))
+        if 'tracking_error' in summary:
+            from stewart63_ros.tools.sim import format_tracking
+            print('  ' + format_tracking(summary['tracking_error']))
     if args.record:
         print('  bag: %s' % args.record)
     if died or not ok:

@@ -37,7 +37,7 @@ def summarize(mech, dyn, result) -> dict:
 
 def format_tracking(err: dict) -> str:
     """The tracking-error lines `sim` and `rig` print."""
-    if not err:
+    if not err.get('samples'):
         return 'tracking error: the run is shorter than its first second'
     return ('tracking error after %gs (%d samples): leg length max %.3e m, RMS %.3e m; '
             'position max %.3e m, RMS %.3e m; orientation max %.3e rad, RMS %.3e rad' % (
