@@ -192,7 +192,8 @@ def bag_info(bag_dir) -> dict:
         reader.close()
 
 
-def _stamp_ns(msg) -> int:
+def header_stamp_ns(msg) -> int:
+    """A stamped message's ``header.stamp`` in integer nanoseconds."""
     return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
 
 
@@ -237,7 +238,7 @@ def trajectory_from_bag(bag_dir, *, relative_time: bool = True,
             for conn, _, raw in reader.messages(connections=conns):
                 msg = reader.deserialize(raw, conn.msgtype)
                 topic = conn.topic
-                stamp = _stamp_ns(msg)
+                stamp = header_stamp_ns(msg)
                 if topic == pose_t:
                     p, q = msg.pose.position, msg.pose.orientation
                     data[topic][stamp] = (p.x, p.y, p.z, q.x, q.y, q.z, q.w)

@@ -130,7 +130,7 @@ def test_record_counts_and_order(recorded):
     """Every published sample is in the bag, once, in order; the latched setpoint too."""
     stamps = {t: [] for t in STREAMS + ['leg_setpoint']}
     for topic, _, msg in bagio.read_messages(recorded['bag']):
-        stamps[topic.lstrip('/')].append(bagio._stamp_ns(msg))
+        stamps[topic.lstrip('/')].append(bagio.header_stamp_ns(msg))
     for t in STREAMS:
         assert stamps[t] == [SP.stamp_ns(k, RATE) for k in range(N)], t
     assert stamps['leg_setpoint'] == [0]
@@ -249,7 +249,7 @@ def test_hard_kill_then_recover(ros, tmp_path):
     info = bagio.bag_info(bag)
     assert {t: n for t, (_, n) in info['topics'].items()} == {'/' + t: 1000 for t in STREAMS}
     assert (bag / 'bag.mcap.orig').exists()
-    stamps = [bagio._stamp_ns(m) for _, _, m in bagio.read_messages(bag, ['leg_lengths'])]
+    stamps = [bagio.header_stamp_ns(m) for _, _, m in bagio.read_messages(bag, ['leg_lengths'])]
     assert stamps == [SP.stamp_ns(k, RATE) for k in range(1000)]
     from ruamel.yaml import YAML
     meta = YAML(typ='safe').load((bag / 'metadata.yaml').read_text())
@@ -351,7 +351,7 @@ def test_recorder_class_in_namespace_then_player(ros, tmp_path, fast_path):
     info = bagio.bag_info(bag)
     assert info['namespace'] == '/rig2' and list(info['topics']) == ['/rig2/leg_lengths']
     # relative names resolve under the recorded namespace; --namespace re-roots
-    assert [bagio._stamp_ns(m) for _, _, m in bagio.read_messages(bag, ['leg_lengths'])] \
+    assert [bagio.header_stamp_ns(m) for _, _, m in bagio.read_messages(bag, ['leg_lengths'])] \
         == list(range(300))
 
     got = []

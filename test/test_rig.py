@@ -25,6 +25,7 @@ import pytest
 from ros_harness import PYTHON, wait_line, wait_until
 
 from stewart63_ros import bagio
+from stewart63_ros.bagio import header_stamp_ns as stamp_ns
 from stewart63_ros.core.dynamics import POS, Dynamics
 from stewart63_ros.core.params import load_mechanism
 from stewart63_ros.core.simulate import run_sampled, sensor_reading
@@ -62,10 +63,6 @@ def warm_kernels(mech):
     tracker.solve(lengths, np.zeros(6))
     tracker.fk.all_modes(lengths)
     run_sampled(mech, 0.002, RATE)
-
-
-def stamp_ns(msg) -> int:
-    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
 
 
 def by_stamp(bag, topic) -> tuple[dict, int]:
