@@ -9,6 +9,7 @@ from rclpy.node import Node
 
 from stewart63_ros.core.params import ParameterError, mechanism_from_params
 from stewart63_ros.nodes.diagnostics import Health
+from stewart63_ros.nodes.launcher import STOP
 from stewart63_ros.nodes.parameters import node_parameters
 from stewart63_ros.nodes.rclpy_internals import DirectTake, run_timer_if_ready, take
 from stewart63_ros.nodes.realtime import realtime_scheduling
@@ -47,6 +48,9 @@ class RigNode(Node):
         self.wait_for_subscribers = int(self.param('wait_for_subscribers', 0))
         self.discovery_timeout = self.positive('discovery_timeout', 20.0)
         self.health = Health(self, name)
+        #: where close() writes the node's summary as JSON ('' : nowhere)
+        self.summary_file = str(self.param('summary_file', ''))
+        self.summary_written = False
         self.realtime_priority = self._realtime_priority()
         self._executor = None       # made on first use: see executor_
         self.data_publishers = []
@@ -158,6 +162,79 @@ class RigNode(Node):
         self.wait_for_matches()
         self.executor_.spin()
 
+    # -- sources of the 1 kHz input ---------------------------------------------
+    #: s: how often the number of publishers on the watched input is checked
+    SOURCE_CHECK_PERIOD = 0.25
+    #: s: a collision ends once the input has had one source for this long
+    COLLISION_CLEAR_AFTER = 1.0
+
+    def watch_source(self, subscription, topic: str, gate) -> None:
+        """Watch the sources of the 1 kHz input ``subscription`` (its StampGate: ``gate``).
+
+        More than one publisher on it, or samples interleaving from two
+        publishers (the gate's ``interleaved``), is a collision: ERROR on
+        /diagnostics naming the publishers (two rigs in one domain under one
+        namespace feed each other) until the input has had a single source
+        for ``COLLISION_CLEAR_AFTER``. New runs of the source (a restarted
+        plant, a bag played again) are counted as ``source_restarts``.
+        """
+        self._watched = (subscription, topic, gate)
+        self._interleaved_seen = 0
+        self._single_since = None
+        self.collisions = 0
+        self.health.values['source_restarts'] = 0
+        self.health.values['collisions'] = 0
+        self.create_timer(self.SOURCE_CHECK_PERIOD, self.check_sources)
+
+    def publisher_names(self, topic: str) -> list:
+        """'/ns/node (gid ...)' of each publisher the graph knows on ``topic``."""
+        try:
+            infos = self.get_publishers_info_by_topic(self.resolve_topic_name(topic))
+        except Exception:   # noqa: BLE001 - naming is a courtesy; the count is the finding
+            return []
+        return ['%s/%s (gid %s)' % (i.node_namespace.rstrip('/'), i.node_name,
+                                    bytes(i.endpoint_gid[:12]).hex()) for i in infos]
+
+    def check_sources(self) -> None:
+        sub, topic, gate = self._watched
+        h = self.health
+        count = sub.get_publisher_count()
+        interleaved = gate.interleaved - self._interleaved_seen
+        self._interleaved_seen = gate.interleaved
+        h.values['source_restarts'] = gate.restarts
+        if count > 1 or interleaved:
+            self._single_since = None
+            if not h.collision:
+                self.collisions += 1
+                h.values['collisions'] = self.collisions
+                names = self.publisher_names(topic)
+                if interleaved and len(names) < 2 and gate.other_source is not None:
+                    names.append('another publisher (gid %s)' % gate.other_source[:12].hex())
+                h.collision = ('collision: %d publishers on %s: %s; two rigs in one domain '
+                               'under one namespace? samples of a second source refused'
+                               % (max(count, len(names), 2), sub.topic_name,
+                                  ', '.join(names) or 'unnamed'))
+                if getattr(self, 'WITHHOLDS_ON_COLLISION', False):
+                    h.collision += '; forces withheld'
+                self.get_logger().error(h.collision)
+                if self.started:
+                    h.report()
+        elif h.collision:
+            now = time.monotonic()
+            if self._single_since is None:
+                self._single_since = now
+            elif now - self._single_since >= self.COLLISION_CLEAR_AFTER:
+                self.get_logger().info('collision over: one publisher on %s again'
+                                       % sub.topic_name)
+                h.collision = ''
+
+    def accept_sample(self, gate, ns: int, source, topic: str) -> None:
+        """Accept a checked sample; a new run of its source is logged (and counted)."""
+        if gate.new_run:
+            self.get_logger().warn('%s: a new run of its source (%s): accepted, %d so far'
+                                   % (topic, gate.new_run, gate.restarts + 1))
+        gate.accept(ns, source)
+
     # -- hot loops -----------------------------------------------------------
     #: s: the longest a node in a hot loop (run_on, the plant's loops) goes
     #: without an executor turn, for what only the executor serves: parameter
@@ -178,6 +255,10 @@ class RigNode(Node):
         """
         gc.collect()
         gc.freeze()
+        # From here a stop signal is a flag the loop checks (see StopSignals).
+        STOP.interruptible = False
+        if STOP.requested:
+            raise KeyboardInterrupt
         self._side_subs = [s for s in self.subscriptions if s is not hot]
         self._next_turn = 0.0
         self._next_executor_turn = 0.0
@@ -223,19 +304,47 @@ class RigNode(Node):
         import rclpy
         self.wait_for_matches()
         direct = self.start_hot_loop(subscription)
-        while rclpy.ok():
+        while rclpy.ok() and not STOP.requested:
             wake = self.housekeeping(time.monotonic())
             direct.poll(wake - time.monotonic())
 
     def flush(self, timeout: float = 2.0) -> None:
-        """Let reliable subscribers (the recorder) receive everything before exiting."""
+        """Let reliable subscribers (the recorder) receive everything before exiting.
+
+        One deadline for all publishers: a subscriber acknowledges only at
+        the writer's next heartbeat (Fast DDS: every 3 s), long after it has
+        the data, and a stop must stay well inside a launcher's 5 s.
+        """
         from rclpy.duration import Duration
+        deadline = time.monotonic() + timeout
         for pub in self.data_publishers + [self.health.pub]:
             try:
-                pub.wait_for_all_acked(Duration(seconds=timeout))
+                if pub.get_subscription_count():
+                    left = max(0.0, deadline - time.monotonic())
+                    pub.wait_for_all_acked(Duration(seconds=left))
             except RuntimeError:     # a publisher already destroyed: nothing left to send
                 pass
+
+    def summary(self) -> dict:
+        """What the node did: counters, latency, its last status."""
+        h = self.health
+        return {'node': self.get_fully_qualified_name(), 'received': dict(h.received),
+                'published': dict(h.published), 'rejected': dict(h.rejected),
+                'rejected_total': sum(h.rejected.values()),
+                'loop_latency': h.latency.summary(),
+                'status': '; '.join(m for m in (h.collision, h.fault) if m) or h.warning or 'ok',
+                'values': {k: v if isinstance(v, (int, float, list)) else str(v)
+                           for k, v in h.values.items()}}
+
+    def write_summary_file(self, summary: dict) -> None:
+        self.summary_written = True
+        if self.summary_file:
+            import json
+            with open(self.summary_file, 'w') as stream:
+                json.dump(summary, stream, indent=1)
 
     def close(self):
         self.report()
         self.flush()
+        if not self.summary_written:
+            self.write_summary_file(self.summary())

@@ -6,6 +6,8 @@ by the same code. Rejection reasons are listed in docs/interface.md.
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from stewart63_ros.core.params import LEG_NAMES
@@ -50,23 +52,92 @@ def leg_vector(names, values, field: str) -> np.ndarray:
     return arr
 
 
+def source_of(info) -> bytes | None:
+    """The sending publisher's GID from a take's message info (None if not given)."""
+    gid = info.get('publisher_gid') if info else None
+    return bytes(gid['data']) if gid else None
+
+
+#: s: a 1 kHz input quiet this long, whose stamps then jump back, starts a new run
+RESTART_PAUSE = 0.5
+
+
 class StampGate:
-    """Rejects a sample whose stamp is older than the last accepted one on its topic."""
+    """Stamps of one topic in order, within each run of its source.
 
-    def __init__(self):
+    Rejects a sample older than the last accepted one (``stamp_from_past``),
+    except when it starts a new run of the source: a restarted sensor driver
+    or plant, a bag replayed again. A new run is recognised, and accepted, by
+
+    - a new publisher (``source``: its GID) after the old one went quiet, or
+    - the stamps jumping back after the topic was quiet for ``restart_pause``
+      seconds (wall clock), as ROS time handles a clock jumping back.
+
+    ``restart_pause`` None (setpoints, wrenches: rare messages whose order
+    matters however far apart) turns new runs off: every older stamp is
+    refused.
+
+    A second publisher whose samples come while the first one still sends
+    (two rigs on one topic) is no new run: its samples are refused
+    (``second_source``) and counted in ``interleaved``. Out-of-order samples
+    within a run stay refused. ``restarts`` counts the new runs accepted;
+    ``new_run`` says why the last checked sample starts one ('' if not).
+    """
+
+    def __init__(self, restart_pause: float | None = None, clock=time.monotonic):
+        self.restart_pause = restart_pause
+        self.clock = clock
         self.last_ns = None
+        self.source = None          # GID of the publisher of the current run
+        self.last_wall = None       # when the last sample was accepted
+        self.restarts = 0
+        self.interleaved = 0
+        self.other_source = None    # GID of the last refused second publisher
+        self.new_run = ''
+        self.second = False
 
-    def check(self, stamp) -> int:
-        return self.check_ns(stamp_ns(stamp))
+    def check(self, stamp, source=None) -> int:
+        return self.check_ns(stamp_ns(stamp), source)
 
-    def check_ns(self, ns: int) -> int:
-        if self.last_ns is not None and ns < self.last_ns:
-            raise Rejected('stamp_from_past', 'stamp %.9f s is older than the last accepted %.9f s'
-                           % (ns * 1e-9, self.last_ns * 1e-9))
+    def check_ns(self, ns: int, source=None) -> int:
+        """The stamp checked (Rejected if from the past); a sample of a second
+        publisher passes here and is refused by ``check_source``, which the
+        caller runs after the content checks (so bad content is reported as
+        such, whoever sent it)."""
+        self.new_run = ''
+        self.second = False
+        if self.last_ns is None:
+            return ns
+        quiet = (self.restart_pause is not None
+                 and self.clock() - self.last_wall > self.restart_pause)
+        if source is not None and self.source is not None and source != self.source:
+            if quiet:
+                self.new_run = 'a new publisher'
+                return ns
+            self.second = True
+        if ns < self.last_ns:
+            if not quiet:
+                raise Rejected('stamp_from_past', 'stamp %.9f s is older than the last '
+                               'accepted %.9f s' % (ns * 1e-9, self.last_ns * 1e-9))
+            self.new_run = 'stamps jumped back by %.3f s' % ((self.last_ns - ns) * 1e-9)
         return ns
 
-    def accept(self, ns: int) -> None:
+    def check_source(self, source=None) -> None:
+        """Rejected if the sample just checked comes from a second publisher
+        while the first one still sends."""
+        if self.second:
+            self.interleaved += 1
+            self.other_source = source
+            raise Rejected('second_source', 'a sample from a second publisher while the '
+                           'first one still sends (two rigs on one topic?)')
+
+    def accept(self, ns: int, source=None) -> None:
+        if self.new_run:
+            self.restarts += 1
         self.last_ns = ns
+        self.last_wall = self.clock()
+        if source is not None:
+            self.source = source
 
 
 def finite_vector(values, size: int, field: str) -> np.ndarray:

@@ -156,8 +156,10 @@ class Composed:
             return self.loop
         if plant is None:
             import rclpy
+
+            from stewart63_ros.nodes.launcher import STOP
             loop = make_peers(None, 1e-3)
-            while rclpy.ok():
+            while rclpy.ok() and not STOP.requested:
                 loop.poll(0.1)
             return 0
         # The plant's own loops, unchanged, with every take of a force going

@@ -42,7 +42,8 @@ from stewart63_ros.core.reference import (Reference, ReferenceError, accumulate_
 from stewart63_ros.core.rotation import euler_rate_matrix
 from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
-from stewart63_ros.nodes.checks import Rejected, StampGate, finite_vector, leg_vector, stamp_ns
+from stewart63_ros.nodes.checks import (RESTART_PAUSE, Rejected, StampGate, finite_vector,
+                                         leg_vector, source_of, stamp_ns)
 from stewart63_ros.nodes.commands import CommandInput
 from stewart63_ros.nodes.launcher import run
 
@@ -120,6 +121,8 @@ def reference_from_trajectory(mech, msg, max_leg_speed=0.0, max_leg_acceleration
 
 
 class ControllerNode(RigNode):
+    WITHHOLDS_ON_COLLISION = True
+
     def __init__(self, options):
         super().__init__('controller')
         mech = self.mech
@@ -143,7 +146,7 @@ class ControllerNode(RigNode):
         # Lockstep pauses are the plant's choice, not a failure: longer default.
         lockstep = self.param('clock_mode', 'realtime') == 'lockstep'
         self.watchdog_timeout = self.positive('watchdog_timeout', 2.0 if lockstep else 0.1)
-        self.sample_gate = StampGate()
+        self.sample_gate = StampGate(RESTART_PAUSE)
         self.setpoint_gate = StampGate()
         self.pose_gate = StampGate()
         self.trajectory_gate = StampGate()
@@ -172,6 +175,8 @@ class ControllerNode(RigNode):
         self._register_law_parameters()
         self.health.values['control_law'] = self.control.law_name
         self.health.values['reference'] = self.reference_name
+        self.withheld = 0
+        self.watch_source(self.sub_samples, topics.LEG_LENGTHS, self.sample_gate)
 
     def nonnegative(self, name, default) -> float:
         try:
@@ -215,21 +220,29 @@ class ControllerNode(RigNode):
         self.get_logger().info('control law: %s' % value)
 
     # -- the 1 kHz path --------------------------------------------------------------------
-    def on_sample(self, data: bytes):
+    def on_sample(self, data: bytes, info):
         """A serialized leg_lengths sample in; its forces out, with its stamp."""
         self.health.received[topics.LEG_LENGTHS] += 1
+        source = source_of(info)
         try:
             ns, sec, nanosec, frame_id, values = wire.joint_state_sample(
-                data, self.sample_gate, ('position', 'velocity'))
+                data, self.sample_gate, ('position', 'velocity'), source=source)
         except Rejected as exc:
             self.health.reject(topics.LEG_LENGTHS, exc)
             return
-        self.sample_gate.accept(ns)
+        self.accept_sample(self.sample_gate, ns, source, topics.LEG_LENGTHS)
+        if self.sample_gate.new_run:
+            self.ref_start_ns = None        # a new run: the reference starts again
         self.last_sample_wall = time.monotonic()
         if self.tripped:
             self.tripped = False
             self.health.fault = self.law_fault
             self.get_logger().info('samples are back: control resumed')
+        if self.health.collision:
+            # Samples from mixed sources: no force rather than a wrong one.
+            self.withheld += 1
+            self.health.values['forces_withheld'] = self.withheld
+            return
         if self.ref_start_ns is None:
             self.ref_start_ns = ns
         lengths, rates = values['position'], values['velocity']

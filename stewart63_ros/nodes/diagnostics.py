@@ -38,7 +38,7 @@ class LatencyStats:
 class Health:
     """Counters behind a node's /diagnostics status, published at about 1 Hz.
 
-    State: ERROR when the node says so (``fault``), WARN when inputs were
+    State: ERROR when the node says so (``fault``, ``collision``), WARN when inputs were
     rejected or cycles were late in the last period, else OK.
     """
 
@@ -56,6 +56,7 @@ class Health:
         self.last_rejection = ''
         self.latency = LatencyStats()
         self.fault = ''
+        self.collision = ''     # more than one source on the 1 kHz input (see RigNode)
         self.warning = ''
         self.values = {}
         self._last_report = time.monotonic()
@@ -76,8 +77,9 @@ class Health:
         period = max(now - self._last_report, 1e-9)
         rejected_total = sum(self.rejected.values())
         fresh_rejections = rejected_total - self._rejected_at_report
-        if self.fault:
-            level, message = DiagnosticStatus.ERROR, self.fault
+        if self.fault or self.collision:
+            level = DiagnosticStatus.ERROR
+            message = '; '.join(m for m in (self.collision, self.fault) if m)
         elif fresh_rejections or self.warning:
             level = DiagnosticStatus.WARN
             message = self.warning or 'rejected %d inputs (last: %s)' % (

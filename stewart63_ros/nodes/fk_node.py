@@ -23,7 +23,7 @@ from stewart63_ros.core.kinematics import leg_lengths
 from stewart63_ros.core.rotation import rotation_from_euler
 from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
-from stewart63_ros.nodes.checks import Rejected, StampGate
+from stewart63_ros.nodes.checks import RESTART_PAUSE, Rejected, StampGate, source_of
 from stewart63_ros.nodes.launcher import run
 
 
@@ -33,7 +33,7 @@ class FKNode(RigNode):
         threshold = self.positive('singularity_threshold', DEFAULT_COND_THRESHOLD)
         self.tracker = FKTracker(self.mech, cond_threshold=threshold)
         self.warm_up()
-        self.gate = StampGate()
+        self.gate = StampGate(RESTART_PAUSE)
         self.singular = 0
         self.no_assembly = 0
         self.pub_pose = self.publisher(PoseStamped, topics.PLATFORM_POSE, topics.STREAM_PUB)
@@ -49,6 +49,7 @@ class FKNode(RigNode):
         self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
                                                     self.on_sample, topics.EVERY_SUB,
                                                     raw=True)
+        self.watch_source(self.sub_samples, topics.LEG_LENGTHS, self.gate)
 
     def warm_up(self):
         """Compile / load the solver kernels now, not on the first sample."""
@@ -59,15 +60,20 @@ class FKNode(RigNode):
         self.tracker.fk.all_modes(lengths)
         self.tracker.reset(mech.initial_position, rotation_from_euler(mech.initial_orientation))
 
-    def on_sample(self, data):
+    def on_sample(self, data, info):
         self.health.received[topics.LEG_LENGTHS] += 1
+        source = source_of(info)
         try:
             ns, sec, nanosec, frame_id, values = wire.joint_state_sample(
-                data, self.gate, ('position',), ('velocity',))
+                data, self.gate, ('position',), ('velocity',), source=source)
         except Rejected as exc:
             self.health.reject(topics.LEG_LENGTHS, exc)
             return
-        self.gate.accept(ns)
+        if self.gate.new_run:
+            # Another run (a bag played again): track from the pose it starts at.
+            self.tracker.reset(self.mech.initial_position,
+                               rotation_from_euler(self.mech.initial_orientation))
+        self.accept_sample(self.gate, ns, source, topics.LEG_LENGTHS)
         rates = values.get('velocity')
         try:
             result = self.tracker.solve(values['position'], rates)

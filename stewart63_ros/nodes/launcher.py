@@ -17,8 +17,42 @@ def make_parser(prog: str, description: str) -> argparse.ArgumentParser:
     return parser
 
 
-def _interrupt(*_):
-    raise KeyboardInterrupt
+class StopSignals:
+    """SIGINT and SIGTERM: the first one stops the node, every later one only counts.
+
+    A terminal's Ctrl-C under ``ros2 launch`` reaches a node twice (from the
+    terminal's process group and forwarded by launch), then comes launch's
+    SIGTERM: a second KeyboardInterrupt inside ``close()`` would cut the
+    flush to the recorder short and end the process with a traceback.
+
+    Outside a hot loop the first signal raises KeyboardInterrupt (start-up,
+    compiling kernels, waiting for peers). A hot loop sets ``interruptible``
+    False and checks ``requested`` once per message instead: interrupted
+    between publishing a message and counting it, a node would report one
+    message fewer than the recorder got.
+    """
+
+    def __init__(self):
+        self.received = []
+        self.requested = False
+        self.interruptible = True
+        self.armed = True       # False once the node is closing: nothing to interrupt
+
+    def install(self):
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self)
+        return self
+
+    def __call__(self, signum, frame):
+        self.received.append(signal.Signals(signum).name)
+        self.requested = True
+        if self.armed and self.interruptible:
+            self.armed = False
+            raise KeyboardInterrupt
+
+
+#: This process's stop signals (one per process, like the handlers).
+STOP = StopSignals()
 
 
 def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> int:
@@ -41,9 +75,8 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
     # Our own handlers: Ctrl-C and SIGTERM raise KeyboardInterrupt, so the
     # node flushes its last messages to the recorder before rclpy shuts down.
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    # SIGTERM (from rig, systemd, docker) ends the node like Ctrl-C does.
-    signal.signal(signal.SIGTERM, _interrupt)
-    signal.signal(signal.SIGINT, _interrupt)
+    # SIGTERM (from rig, systemd, docker, launch) ends the node like Ctrl-C does.
+    signals = STOP.install()
     node = None
     code = 0
     try:
@@ -55,6 +88,7 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
     except (KeyboardInterrupt, ExternalShutdownException):
         code = 0
     finally:
+        signals.armed = False
         if node is not None:
             started = time.monotonic()
             try:
@@ -63,8 +97,10 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
                 print('%s: while closing: %s' % (prog, exc), file=sys.stderr)
             node.destroy_node()
             # In the node's log, so that a slow stop shows where it went.
-            print('%s: stopped (exit %d, close took %.2f s)'
-                  % (prog, code, time.monotonic() - started), flush=True)
+            print('%s: stopped (exit %d, close took %.2f s%s)'
+                  % (prog, code, time.monotonic() - started,
+                     ', signals: %s' % ' '.join(signals.received) if signals.received else ''),
+                  flush=True)
         if rclpy.ok():
             rclpy.shutdown()
     return code

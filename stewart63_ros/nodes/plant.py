@@ -16,7 +16,6 @@ cycle, counted and reported.
 """
 from __future__ import annotations
 
-import json
 import sys
 import time
 
@@ -32,9 +31,10 @@ from stewart63_ros.core.sensor import SensorModel
 from stewart63_ros.core.simulate import initial_state, substeps_for
 from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
-from stewart63_ros.nodes.checks import Rejected, StampGate, finite_vector, ros_time
+from stewart63_ros.nodes.checks import (RESTART_PAUSE, Rejected, StampGate, finite_vector,
+                                         ros_time, source_of)
 from stewart63_ros.nodes.commands import CommandInput
-from stewart63_ros.nodes.launcher import run
+from stewart63_ros.nodes.launcher import STOP, run
 
 #: The tracking error in the summary counts samples from this time [s] on.
 TRACKING_FROM = 1.0
@@ -52,7 +52,6 @@ class PlantNode(RigNode):
         if not np.isfinite(self.duration) or self.duration < 0:
             raise ParameterError('duration', 'must be >= 0 seconds')
         self.force_timeout = self.positive('force_timeout', 1.0)
-        self.summary_file = str(self.param('summary_file', ''))
         # Matched leg_lengths subscriptions to wait for before the first sample
         # (rig: controller + fk + recorder).
         self.lengths_subscribers = int(self.param('lengths_subscribers', 0))
@@ -83,7 +82,7 @@ class PlantNode(RigNode):
         self.force_ns = None            # stamp of the sample the held force answers
         self.wrench = None
         self.sent_wall = {}             # sample stamp -> wall time it was published
-        self.force_gate = StampGate()
+        self.force_gate = StampGate(RESTART_PAUSE)
         self.wrench_gate = StampGate()
         self.timeouts = 0
         self.missed = 0
@@ -104,23 +103,26 @@ class PlantNode(RigNode):
         self.sub_forces = self.create_subscription(JointState, topics.LEG_FORCES,
                                                    self.on_forces, topics.LATEST_SUB, raw=True)
         self.wrench_in = CommandInput(self, WrenchStamped, topics.EXTERNAL_WRENCH, self.on_wrench)
+        self.watch_source(self.sub_forces, topics.LEG_FORCES, self.force_gate)
         self.t0_wall = None
         self.t0_mono = None         # realtime: monotonic time of sample 0
         self.t_phys = 0.0           # realtime: simulated time the state is at
         self.forces_in = None       # DirectTake, made when the loop starts
 
     # -- inputs ---------------------------------------------------------------
-    def on_forces(self, data: bytes):
+    def on_forces(self, data: bytes, info):
         """A serialized leg_forces message: the newest force, from now on."""
         received = time.perf_counter()      # the loop latency ends here, at the take
         self.health.received[topics.LEG_FORCES] += 1
+        source = source_of(info)
         try:
-            ns, _, _, _, values = wire.joint_state_sample(data, self.force_gate, ('effort',))
+            ns, _, _, _, values = wire.joint_state_sample(data, self.force_gate, ('effort',),
+                                                          source=source)
         except Rejected as exc:
             self.health.reject(topics.LEG_FORCES, exc)
             return
         force = values['effort']
-        self.force_gate.accept(ns)
+        self.accept_sample(self.force_gate, ns, source, topics.LEG_FORCES)
         if self.t0_mono is not None:
             # Realtime: the old force acted until now; the new one from now on.
             self.advance_to(min(time.monotonic() - self.t0_mono, (self.k + 1) * self.period))
@@ -224,8 +226,15 @@ class PlantNode(RigNode):
             self.run_lockstep(n_samples)
         else:
             self.run_realtime(n_samples)
-        self.write_summary()
+        self.write_summary(stopped=STOP.requested)
         return 0
+
+    def close(self):
+        # Stopped by a signal mid-run: the summary of the part it ran.
+        if self.t0_wall is not None and not self.summary_written:
+            self.write_summary(stopped=True)
+        self.summary_written = True     # stopped before its first sample: no summary
+        super().close()
 
     def wait_for_answer(self, ns, timeout, until=None, housekeeping=True) -> bool:
         """Take leg_forces until the answer to sample ``ns`` is in, or time is up.
@@ -236,7 +245,7 @@ class PlantNode(RigNode):
         deadline = time.monotonic() + timeout if until is None else until
         while self.force_ns != ns:
             now = time.monotonic()
-            if now >= deadline:
+            if now >= deadline or STOP.requested:
                 return False
             wake = deadline
             if housekeeping:
@@ -256,6 +265,8 @@ class PlantNode(RigNode):
             timeout = self.force_timeout if self.k else max(self.force_timeout,
                                                               self.discovery_timeout)
             if not self.wait_for_answer(ns, timeout):
+                if STOP.requested:
+                    return
                 self.timeouts += 1
                 self.health.warning = 'no force for sample %d within %.3f s' % (
                     self.k, timeout)
@@ -273,7 +284,7 @@ class PlantNode(RigNode):
         """
         self.t0_mono = time.monotonic()
         self.t0_wall = time.time()
-        while True:
+        while not STOP.requested:
             ns = self.publish_sample()
             if n_samples is not None and self.k >= n_samples:
                 self.wait_for_answer(ns, 0.1)
@@ -290,6 +301,8 @@ class PlantNode(RigNode):
             # still take the forces that came in, or it would never apply one.
             while self.force_ns != ns and self.forces_in.poll(0.0):
                 pass
+            if STOP.requested:
+                return
             if not answered and self.force_ns != ns:
                 self.missed += 1
             self.advance_to((self.k + 1) * self.period)
@@ -316,7 +329,7 @@ class PlantNode(RigNode):
         accumulate_tracking(self.tracking, lengths, self.ref_sample, self.y[POS],
                             matrix_from_quaternion(quat), True)
 
-    def write_summary(self):
+    def write_summary(self, stopped=False):
         lengths, _ = self.dyn.lengths_and_rates(self.y)
         setpoint = self.mech.setpoint_lengths
         errors = 100.0 * np.abs(lengths - setpoint) / setpoint
@@ -330,14 +343,13 @@ class PlantNode(RigNode):
             'force_timeouts': self.timeouts, 'missed_cycles': self.missed,
             'late_cycles': self.late, 'endstop_samples': self.endstop_samples,
             'wall_time_s': time.time() - self.t0_wall,
+            'stopped_by_signal': stopped,
         }
         if self.reference is not None:
             from stewart63_ros.core.reference import tracking_summary
             summary['tracking_error'] = dict(from_s=TRACKING_FROM,
                                              **tracking_summary(self.tracking))
-        if self.summary_file:
-            with open(self.summary_file, 'w') as stream:
-                json.dump(summary, stream, indent=1)
+        self.write_summary_file(summary)
         self.get_logger().info('done: %d samples, final error %.3f %%, latency %s' % (
             summary['samples'], summary['positioning_error_percent'], summary['loop_latency']))
 

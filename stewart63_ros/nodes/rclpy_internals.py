@@ -56,8 +56,17 @@ class DirectTake:
     """
 
     def __init__(self, node, subscription):
+        import inspect
+
         from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
         self.sub = subscription
+        # A callback of two arguments gets the message info too (the
+        # publisher's GID, the timestamps), as the executor gives it.
+        try:
+            inspect.signature(subscription.callback).bind(object(), object())
+            self.with_info = True
+        except TypeError:
+            self.with_info = False
         self.wait_set = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, node.context.handle)
 
     def poll(self, timeout_sec: float) -> bool:
@@ -76,7 +85,10 @@ class DirectTake:
             taken = handle.take_message(sub.msg_type, sub.raw)
             if taken is None:
                 return False
-        sub.callback(taken[0])
+        if self.with_info:
+            sub.callback(taken[0], taken[1])
+        else:
+            sub.callback(taken[0])
         return True
 
 

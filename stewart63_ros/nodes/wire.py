@@ -254,27 +254,31 @@ def deserialize(data: bytes, msg_type):
         return None
 
 
-def joint_state_sample(data: bytes, gate, want: tuple, optional: tuple = ()):
+def joint_state_sample(data: bytes, gate, want: tuple, optional: tuple = (), source=None):
     """A serialized leg JointState, checked: (stamp ns, sec, nanosec, frame_id,
     {field: array of 6}), or Rejected exactly as for a message object:
-    the stamp against ``gate`` first (not accepted here), then the fields in
+    the stamp against ``gate`` first (not accepted here; ``source``: the
+    sending publisher, see StampGate), then the fields in
     order with ``leg_vector``; an ``optional`` field may be empty (absent)."""
     fast = read_joint_state(data, want, optional)
     if fast is not None:
         sec, nanosec, frame_id, values = fast
-        return gate.check_ns(sec * 1_000_000_000 + nanosec), sec, nanosec, frame_id, values
+        ns = gate.check_ns(sec * 1_000_000_000 + nanosec, source)
+        gate.check_source(source)
+        return ns, sec, nanosec, frame_id, values
     from sensor_msgs.msg import JointState
     msg = deserialize(data, JointState)
     if msg is None:
         raise Rejected('undecodable', 'not a serialized sensor_msgs/JointState')
     stamp = msg.header.stamp
-    ns = gate.check(stamp)
+    ns = gate.check(stamp, source)
     values = {}
     for field in want:
         values[field] = leg_vector(msg.name, getattr(msg, field), field)
     for field in optional:
         if len(getattr(msg, field)):
             values[field] = leg_vector(msg.name, getattr(msg, field), field)
+    gate.check_source(source)
     return ns, stamp.sec, stamp.nanosec, msg.header.frame_id, values
 
 

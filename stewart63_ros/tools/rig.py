@@ -1,14 +1,16 @@
 """`rig`: plant, controller and fk (and `record`) as separate processes over DDS.
 
     rig [--params FILE] [--mode realtime|lockstep] [--duration S] [--record DIR]
-        [--namespace NS] [--realtime-priority P] [--compose]
-        [--control-law NAME] [--reference CSV]
+        [--namespace NS] [--nodes plant,controller,fk] [--realtime-priority P]
+        [--compose] [--control-law NAME] [--reference CSV]
 
 One parameter file and one namespace for all. Every node waits until its
 peers are matched before the first sample, so a short run loses nothing at
-its start. Ctrl-C or SIGTERM stops every process cleanly; the exit status is
-non-zero if a node died or failed. With --duration the run ends after S
-simulated seconds (the plant stops itself) and a summary is printed.
+its start. Ctrl-C or SIGTERM (any number of them) stops every process
+cleanly; the exit status is non-zero if a node died or failed. With
+--duration the run ends after S simulated seconds (the plant stops itself).
+A summary is printed either way, for the part that ran. ``--nodes`` runs a
+part of the rig (one host's share of a rig split across machines).
 With --compose the nodes (and the recorder) run as nodes of one process
 (``composed``), still over the DDS topics. --control-law sets the
 controller's ``control_law``; --reference hands a reference CSV to the
@@ -81,6 +83,11 @@ class Rig:
                 shared, realtime_priority=self.realtime_priority)}
             doc['/**/fk'] = {'ros__parameters': dict(
                 shared, realtime_priority=max(1, self.realtime_priority - 1))}
+        for node in ('controller', 'fk'):
+            if node in self.nodes:
+                section = doc.setdefault('/**/%s' % node, {'ros__parameters': dict(shared)})
+                section['ros__parameters']['summary_file'] = str(
+                    self.log_dir / ('%s_summary.json' % node))
         for node, values in self.extra_params.items():
             section = doc.setdefault('/**/%s' % node, {'ros__parameters': dict(shared)})
             section['ros__parameters'].update(values)
@@ -118,8 +125,13 @@ class Rig:
             self.spawn('composed', argv + self.ros_args('composed'))
             return
         downstream = [n for n in self.nodes if n != 'plant']
+        # What the recorder waits for: the publishers of the nodes run here.
+        wanted = [t for n, t in (('controller', 'leg_forces'), ('fk', 'platform_pose'))
+                  if n in self.nodes]
         if self.record:
-            argv = [str(self.record), '--wait-for-publishers', 'leg_forces', 'platform_pose',
+            argv = [str(self.record)]
+            if wanted:
+                argv += ['--wait-for-publishers'] + wanted + [
                     '--wait-timeout', '%g' % START_TIMEOUT]
             if self.namespace:
                 argv += ['--namespace', self.namespace]
@@ -127,7 +139,7 @@ class Rig:
             self.wait_for_line('record', 'READY', 30)
         for name in downstream:
             self.spawn(name, self.ros_args(name))
-        if self.record:
+        if self.record and wanted:
             self.wait_for_line('record', 'MATCHED', START_TIMEOUT + 10)
         if 'plant' in self.nodes:
             self.spawn('plant', self.ros_args('plant'))
@@ -206,9 +218,11 @@ class Rig:
         return {n: 0 if n in interrupted and p.returncode == -signal.SIGINT else p.returncode
                 for n, p in self.procs.items()}
 
-    def summary(self):
+    def summary(self, node='plant'):
+        """The summary JSON a node wrote when it ended (None if it wrote none)."""
+        path = self.summary_file if node == 'plant' else self.log_dir / ('%s_summary.json' % node)
         try:
-            return json.loads(self.summary_file.read_text())
+            return json.loads(path.read_text())
         except (OSError, ValueError):
             return None
 
@@ -255,6 +269,12 @@ def main(argv=None) -> int:
     parser.add_argument('--reference', metavar='CSV',
                         help='reference motion t,x,y,z,theta_x,theta_y,theta_z to follow from '
                         'the first sample; the summary prints the tracking error')
+    parser.add_argument('--nodes', default=','.join(NODES), metavar='LIST',
+                        help='the nodes this rig runs, a subset of plant,controller,fk '
+                        '(default: all three), e.g. the plant on the platform\'s computer '
+                        'and controller,fk on a workstation, with the same parameter file '
+                        'and namespace; without the plant the rig runs until Ctrl-C or '
+                        'SIGTERM')
     parser.add_argument('--realtime-priority', type=int, default=0, metavar='P',
                         help='run plant and controller SCHED_FIFO at priority P (1-99), fk '
                         'at P-1 (needs root or CAP_SYS_NICE, else a warning): keeps other '
@@ -283,21 +303,37 @@ def main(argv=None) -> int:
         print('rig: error: %s exists; record writes a new bag' % args.record, file=sys.stderr)
         return 2
 
+    nodes = tuple(n.strip() for n in args.nodes.split(',') if n.strip())
+    unknown = [n for n in nodes if n not in NODES]
+    if unknown or not nodes or len(set(nodes)) != len(nodes):
+        parser.error('--nodes takes a comma-separated subset of %s, got %r'
+                     % (','.join(NODES), args.nodes))
+    nodes = tuple(n for n in NODES if n in nodes)
+    if args.duration is not None and 'plant' not in nodes:
+        parser.error('--duration ends the plant\'s run: it needs plant in --nodes (the '
+                     'other nodes run until Ctrl-C or SIGTERM)')
     if not 0 <= args.realtime_priority <= 99:
         parser.error('--realtime-priority must be from 0 to 99')
     rig = Rig(params, args.mode, args.duration, args.record, args.namespace, args.log_dir,
-              realtime_priority=args.realtime_priority, compose=args.compose,
+              nodes=nodes, realtime_priority=args.realtime_priority, compose=args.compose,
               extra_params=extra)
+    # The first SIGINT or SIGTERM stops the rig (KeyboardInterrupt wherever it
+    # waits, also in start()); later ones, and any once the rig is stopping
+    # its nodes anyway, are only noted: a terminal's Ctrl-C under a launcher
+    # arrives twice, then a SIGTERM, and must not cut the stop short.
     stopping = []
+    armed = [True]
 
-    def on_sigterm(*_):
-        # Like Ctrl-C, also while start() waits for the nodes to come up.
-        stopping.append('SIGTERM')
-        raise KeyboardInterrupt
-    signal.signal(signal.SIGTERM, on_sigterm)
-    # Explicitly: a rig started as a background job of a script inherits
-    # SIGINT ignored, and `kill -INT` must stop it all the same.
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    def on_signal(signum, frame):
+        if not stopping:
+            stopping.append(signal.Signals(signum).name)
+        if armed[0]:
+            armed[0] = False
+            raise KeyboardInterrupt
+    # Explicitly for SIGINT too: a rig started as a background job of a
+    # script inherits SIGINT ignored, and `kill -INT` must stop it all the same.
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
     ok = False
     start = time.monotonic()
     try:
@@ -309,11 +345,11 @@ def main(argv=None) -> int:
                     p.poll() is not None for n, p in rig.procs.items() if n != rig.runner()):
                 break
     except KeyboardInterrupt:
-        if not stopping:
-            stopping.append('SIGINT')
+        pass
     except RuntimeError as exc:
         print('rig: error: %s' % exc, file=sys.stderr)
     finally:
+        armed[0] = False
         # Who had failed before the stop: a node interrupted while it was still
         # starting (importing, compiling) ends with whatever code that gives.
         failed_before = set(rig.failed())
@@ -325,13 +361,26 @@ def main(argv=None) -> int:
         print('rig: %s %s with %s: %s' % (name, how, died[name], rig.log_tail(name)),
               file=sys.stderr)
     if stopping:
-        print('rig: stopped by %s' % stopping[0])
+        print('rig: stopped by %s after %.2f s wall' % (stopping[0], wall))
+    print_summary(rig, wall)
+    if args.record:
+        print('  bag: %s' % args.record)
+    if stopping:
         return 1 if failed_before else 0
+    if died or not ok:
+        return 1
+    return 0
+
+
+def print_summary(rig, wall):
+    """The plant's summary (error, latency, missed cycles), then what the
+    other nodes of this rig saw: for a timed run and for a stopped one alike."""
     summary = rig.summary()
     if summary:
         lat = summary['loop_latency']
-        print('rig summary: %d samples in %.2f s wall (%s, %g Hz)' % (
-            summary['samples'], wall, summary['clock_mode'], summary['rate_hz']))
+        print('rig summary: %d samples in %.2f s wall (%s, %g Hz%s)' % (
+            summary['samples'], wall, summary['clock_mode'], summary['rate_hz'],
+            ', stopped early' if summary.get('stopped_by_signal') else ''))
         print('  final positioning error: %.4f %% (max over legs of |L - L0| / L0)'
               % summary['positioning_error_percent'])
         if lat.get('count'):
@@ -342,11 +391,24 @@ def main(argv=None) -> int:
         if 'tracking_error' in summary:
             from stewart63_ros.tools.sim import format_tracking
             print('  ' + format_tracking(summary['tracking_error']))
-    if args.record:
-        print('  bag: %s' % args.record)
-    if died or not ok:
-        return 1
-    return 0
+    for node in ('controller', 'fk'):
+        if node not in rig.nodes:
+            continue
+        s = rig.summary(node)
+        if not s:
+            print('  %s: no summary' % node)
+            continue
+        values = s.get('values', {})
+        extra = ''.join(', %s %s' % (k.replace('_', ' '), values[k]) for k in (
+            'source_restarts', 'collisions', 'forces_withheld') if values.get(k))
+        print('  %s: received %s, published %s, rejected %d%s' % (
+            node, _counts(s['received']), _counts(s['published']), s['rejected_total'],
+            extra))
+
+
+def _counts(counter):
+    return ', '.join('%s %d' % (t.lstrip('/'), n) for t, n in sorted(counter.items())
+                     if t != '/diagnostics') or 'nothing'
 
 
 if __name__ == '__main__':

@@ -1,0 +1,134 @@
+"""Every node and ``rig`` stop cleanly on any number of SIGINT / SIGTERM.
+
+A terminal's Ctrl-C under ``ros2 launch`` reaches each process twice (from
+the terminal's process group and forwarded by launch), then launch sends
+SIGTERM after its 5 s timeout. Here each of plant, controller, fk and record
+(and a whole ``rig``, recording) gets SIGINT twice 50 ms apart, or SIGINT then
+SIGTERM: exit 0, no traceback, within 5 s; the plant writes its summary; the
+rig prints its summary and its bag holds every message the nodes published.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from pathlib import Path
+
+import pytest
+
+from ros_harness import PYTHON, wait_until
+
+from stewart63_ros import bagio
+
+REPO = Path(__file__).resolve().parents[1]
+SEQUENCES = {'SIGINT-SIGINT': (signal.SIGINT, signal.SIGINT),
+             'SIGINT-SIGTERM': (signal.SIGINT, signal.SIGTERM)}
+STOP_WITHIN = 5.0       # s: launch's SIGTERM timeout
+
+
+def exe(name):
+    path = Path(PYTHON).parent / name
+    return [str(path)] if path.exists() else [PYTHON, '-m', {
+        'plant': 'stewart63_ros.nodes.plant', 'controller': 'stewart63_ros.nodes.controller',
+        'fk': 'stewart63_ros.nodes.fk_node', 'record': 'stewart63_ros.tools.record',
+        'rig': 'stewart63_ros.tools.rig'}[name]]
+
+
+def _text(proc):
+    return proc.stdout() + proc.stderr()
+
+
+def send(proc, sequence):
+    first, second = SEQUENCES[sequence]
+    os.kill(proc.pid, first)
+    time.sleep(0.05)
+    if proc.returncode is None:
+        os.kill(proc.pid, second)
+
+
+@pytest.mark.parametrize('sequence', list(SEQUENCES))
+def test_each_node_stops_cleanly_on_repeated_signals(ros, tmp_path, sequence):
+    summary = tmp_path / 'plant_summary.json'
+    ros_args = ['--ros-args', '-r', '__ns:=/stops']
+    procs = {
+        # realtime with nobody answering: the plant runs on its own
+        'plant': ros.spawn(exe('plant') + ros_args + [
+            '-p', 'clock_mode:=realtime', '-p', 'summary_file:=%s' % summary], name='plant'),
+        'controller': ros.spawn(exe('controller') + ros_args, name='controller'),
+        'fk': ros.spawn(exe('fk') + ros_args, name='fk'),
+        'record': ros.spawn(exe('record') + [str(tmp_path / 'bag'), '--namespace', '/stops'],
+                            name='record'),
+    }
+    ready = {'plant': 'realtime at', 'controller': 'matched after', 'fk': 'matched after',
+             'record': 'READY'}
+    for name, proc in procs.items():
+        assert wait_until(lambda p=proc, n=name: ready[n] in _text(p) or p.returncode is not None,
+                          120), proc.describe()
+        assert proc.returncode is None, proc.describe()
+    time.sleep(0.5)     # the plant in its loop, the others in theirs
+    took, codes = {}, {}
+    for name, proc in procs.items():
+        t0 = time.monotonic()
+        send(proc, sequence)
+        codes[name] = proc.wait(STOP_WITHIN + 5)
+        took[name] = time.monotonic() - t0
+    for name, proc in procs.items():
+        assert codes[name] == 0, proc.describe()
+        assert took[name] < STOP_WITHIN, (name, took[name], proc.describe())
+        assert 'Traceback' not in _text(proc), proc.describe()
+        assert 'KeyboardInterrupt' not in _text(proc), proc.describe()
+    # the plant's summary of the part it ran; the bag is complete and readable
+    data = json.loads(summary.read_text())
+    assert data['stopped_by_signal'] and data['samples'] > 100, data
+    assert (tmp_path / 'bag' / 'metadata.yaml').exists()
+    assert sum(1 for _ in bagio.read_messages(tmp_path / 'bag', ['/diagnostics'])) > 0
+    print('\n%s: %s' % (sequence, ', '.join('%s exit %d in %.2f s' % (n, codes[n], took[n])
+                                           for n in procs)))
+
+
+def published_counts(bag) -> dict:
+    """{topic: count} that the nodes say they published (their last status in the bag)."""
+    last = {}
+    for _, _, msg in bagio.read_messages(bag, ['/diagnostics']):
+        for status in msg.status:
+            last[status.name] = {kv.key[len('published/'):]: int(kv.value)
+                                 for kv in status.values if kv.key.startswith('published/')}
+    out = {}
+    for counts in last.values():
+        for topic, n in counts.items():
+            if topic != '/diagnostics':
+                out[topic] = out.get(topic, 0) + n
+    return out
+
+
+@pytest.mark.parametrize('sequence', list(SEQUENCES))
+def test_rig_stops_cleanly_on_repeated_signals_and_loses_nothing(ros, tmp_path, sequence):
+    log_dir, bag = tmp_path / 'logs', tmp_path / 'bag'
+    proc = ros.spawn(exe('rig') + ['--mode', 'realtime', '--record', str(bag),
+                                   '--log-dir', str(log_dir)], name='rig')
+    plant_log = log_dir / 'plant.log'
+    assert wait_until(lambda: proc.returncode is not None or (
+        plant_log.exists() and 'realtime at' in plant_log.read_text()), 180), proc.describe()
+    time.sleep(2.0)
+    t0 = time.monotonic()
+    send(proc, sequence)
+    code = proc.wait(30)
+    took = time.monotonic() - t0
+    out = proc.stdout()
+    assert code == 0, proc.describe()
+    assert 'Traceback' not in _text(proc), proc.describe()
+    for name in ('plant', 'controller', 'fk', 'record'):
+        assert 'Traceback' not in (log_dir / ('%s.log' % name)).read_text(), name
+    # the same summary as a timed run, for the part it ran
+    assert 'stopped by SIGINT' in out, out
+    for text in ('rig summary:', 'final positioning error', 'loop latency', 'missed cycles',
+                 'controller: received', 'fk: received'):
+        assert text in out, out
+    published = published_counts(bag)
+    for topic in ('leg_lengths', 'leg_forces', 'platform_pose'):
+        n = sum(1 for _ in bagio.read_messages(bag, ['/' + topic]))
+        assert published.get(topic) and n == published[topic], (topic, n, published)
+    print('\nrig, %s: exit 0 in %.2f s (nodes flush, then the recorder); bag holds all %s'
+          % (sequence, took, published))
+    assert took < 2 * STOP_WITHIN, took
