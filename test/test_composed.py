@@ -153,11 +153,11 @@ import sys
 from stewart63_ros.nodes import composed, fk_node
 calls = []
 original = fk_node.FKNode.on_sample
-def on_sample(self, data):
+def on_sample(self, data, info):
     calls.append(1)
     if len(calls) == 100:
         raise ZeroDivisionError('injected fault in fk at sample 100')
-    return original(self, data)
+    return original(self, data, info)
 fk_node.FKNode.on_sample = on_sample
 composed.main(['composed', '--ros-args', '--params-file', sys.argv[1],
                '-p', 'clock_mode:=lockstep', '-p', 'duration:=2.0',

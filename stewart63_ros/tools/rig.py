@@ -69,8 +69,13 @@ class Rig:
         user's file, so it wins over the user's node sections (a ``-p`` does not)."""
         wait = 1 if self.record else 0
         shared = {'clock_mode': self.mode, 'wait_for_subscribers': wait}
+        # The plant starts once its local peers (and the recorder) have matched
+        # its samples; a plant whose controller runs elsewhere (--nodes) waits
+        # for that one too, or a realtime run would start without control.
+        remote = 0 if 'controller' in self.nodes else 1
         plant = dict(shared, summary_file=str(self.summary_file),
-                     lengths_subscribers=sum(n in self.nodes for n in ('controller', 'fk')) + wait)
+                     lengths_subscribers=sum(n in self.nodes for n in ('controller', 'fk'))
+                     + wait + remote)
         if self.duration:
             plant['duration'] = float(self.duration)
         doc = {'/**': {'ros__parameters': shared}, '/**/plant': {'ros__parameters': plant}}
