@@ -297,3 +297,48 @@ def test_two_rigs_in_one_namespace_report_the_collision_and_withhold_forces(ros,
           'published counts while colliding %s' % (delay, first[3][:160], withheld,
                                                     sorted(published)))
     assert delay <= 1.0, delay
+
+
+def test_four_rigs_in_four_namespaces_each_equal_sim_sample_for_sample(ros, tmp_path):
+    """Four lockstep rigs in one domain (one process each: --compose, with its
+    recorder), under /r1 .. /r4: each bag equals the offline sampled run, no
+    cross-talk, no collision reported."""
+    from stewart63_ros import bagio
+    from stewart63_ros.core.dynamics import Dynamics
+    from stewart63_ros.core.params import load_mechanism
+    from stewart63_ros.core.simulate import run_sampled, sensor_reading
+    duration, names = 0.3, ['r1', 'r2', 'r3', 'r4']
+    rigs = {ns: ros.spawn(exe('rig') + [
+        '--mode', 'lockstep', '--duration', str(duration), '--compose', '--namespace', '/' + ns,
+        '--record', str(tmp_path / ns), '--log-dir', str(tmp_path / ('log_' + ns))], name=ns)
+        for ns in names}
+    for proc in rigs.values():
+        assert proc.wait(300) == 0, proc.describe()
+    mech = load_mechanism(PARAMS)
+    ref = run_sampled(mech, duration, 1000.0)
+    dyn = Dynamics(mech)
+    expected = [sensor_reading(dyn, ref.states[k]) for k in range(len(ref.times))]
+    n = len(expected)
+    worst = {}
+    for ns in names:
+        samples = {}
+        for topic, _, msg in bagio.read_messages(tmp_path / ns):
+            if topic.endswith('/leg_lengths'):
+                assert topic == '/%s/leg_lengths' % ns, topic   # no other rig's samples
+                stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+                assert stamp not in samples, 'two samples stamped %d in /%s' % (stamp, ns)
+                samples[stamp] = msg
+        assert sorted(samples) == [k * 1_000_000 for k in range(n)], (ns, len(samples))
+        dl = max(float(np.max(np.abs(np.asarray(samples[k * 1_000_000].position)
+                                     - expected[k][0]))) for k in range(n))
+        worst[ns] = dl
+        assert dl <= 1e-9, (ns, dl)
+        statuses = [s for _, _, m in bagio.read_messages(tmp_path / ns, ['/diagnostics'])
+                    for s in m.status if s.name.startswith('stewart63/%s/' % ns)]
+        assert statuses
+        for s in statuses:
+            values = {kv.key: kv.value for kv in s.values}
+            assert values.get('collisions', '0') == '0', (ns, s.name, s.message)
+            assert not s.message.startswith('collision'), (ns, s.name, s.message)
+    print('\nfour lockstep rigs in one domain, /r1../r4: each %d samples, max |dL| vs sim %s'
+          % (n, ', '.join('%s %.2g m' % kv for kv in worst.items())))

@@ -1,0 +1,137 @@
+"""Faults while a realtime rig runs, each with the behaviour the README states.
+
+The rig's nodes run here as separate processes (not under ``rig``, which
+stops everything when a node dies) in one namespace, with a recorder:
+
+- the controller hangs (SIGSTOP) for 1 s and comes back (SIGCONT): the plant
+  counts the missed cycles, control resumes;
+- the controller is killed (SIGKILL) and started again: the plant misses
+  cycles meanwhile, then takes the new controller's forces (a new source,
+  counted); the bag shows a gap in ``leg_forces`` and none in ``leg_lengths``;
+- fk is killed and started again: a gap in ``platform_pose`` only;
+- the plant is killed and started again: the controller's watchdog trips and
+  recovers on the new plant's samples (a new source, counted); the bag shows
+  a gap in ``leg_lengths``.
+Nobody else exits; everything stops with exit 0 at the end.
+"""
+from __future__ import annotations
+
+import os
+import signal
+from pathlib import Path
+
+from ros_harness import PYTHON, wait_until
+
+from stewart63_ros import bagio
+
+NS = '/faults'
+ERROR = 2
+
+
+def exe(name):
+    path = Path(PYTHON).parent / name
+    return [str(path)] if path.exists() else [PYTHON, '-m', {
+        'plant': 'stewart63_ros.nodes.plant', 'controller': 'stewart63_ros.nodes.controller',
+        'fk': 'stewart63_ros.nodes.fk_node', 'record': 'stewart63_ros.tools.record'}[name]]
+
+
+def _text(proc):
+    return proc.stdout() + proc.stderr()
+
+
+def gaps(stamps, at_least_ns):
+    """(start, length) of every gap between consecutive stamps longer than ``at_least_ns``."""
+    stamps = sorted(stamps)
+    return [(a, b - a) for a, b in zip(stamps, stamps[1:]) if b - a > at_least_ns]
+
+
+def test_hang_kill_and_restart_of_nodes_in_a_realtime_rig(ros, tmp_path):
+    from test_sources import Diagnostics
+    diags = Diagnostics(ros)
+    args = ['--ros-args', '-r', '__ns:=%s' % NS, '-p', 'clock_mode:=realtime']
+    record = ros.spawn(exe('record') + [str(tmp_path / 'bag'), '--namespace', NS],
+                       name='record')
+    assert wait_until(lambda: 'READY' in record.stdout(), 60), record.describe()
+    procs = {}
+
+    def start(name, *extra):
+        proc = ros.spawn(exe(name) + args + list(extra), name=name)
+        procs[name] = proc
+        ready = 'realtime at' if name == 'plant' else 'matched after'
+        assert wait_until(lambda: ready in _text(proc) or proc.returncode is not None, 120), \
+            proc.describe()
+        assert proc.returncode is None, proc.describe()
+        return proc
+    start('controller')
+    start('fk')
+    start('plant', '-p', 'lengths_subscribers:=3')
+    plant_name, ctl_name = 'stewart63%s/plant' % NS, 'stewart63%s/controller' % NS
+
+    def missed():
+        return diags.value(plant_name, 'missed_cycles')
+
+    def settle(seconds):
+        diags.wait(lambda: False, seconds)
+
+    settle(2.0)
+    events = []
+    # 1. the controller hangs for a second
+    before = missed()
+    os.kill(procs['controller'].pid, signal.SIGSTOP)
+    settle(1.0)
+    os.kill(procs['controller'].pid, signal.SIGCONT)
+    settle(2.5)
+    events.append(('controller SIGSTOP 1 s', missed() - before))
+    assert missed() - before >= 500, events
+    # 2. the controller killed and started again
+    before = missed()
+    restarts = diags.value(plant_name, 'source_restarts')
+    procs['controller'].popen.kill()
+    procs['controller'].wait(5)
+    settle(1.0)
+    start('controller')
+    assert diags.wait(lambda: diags.value(plant_name, 'source_restarts') > restarts, 10), \
+        diags.last(plant_name)
+    settle(1.5)
+    events.append(('controller SIGKILL + restart', missed() - before))
+    # 3. fk killed and started again
+    procs['fk'].popen.kill()
+    procs['fk'].wait(5)
+    settle(1.0)
+    start('fk')
+    settle(1.5)
+    # 4. the plant killed and started again
+    ctl_restarts = diags.value(ctl_name, 'source_restarts')
+    procs['plant'].popen.kill()
+    procs['plant'].wait(5)
+    assert diags.wait(lambda: any(d[1] == ctl_name and d[2] == ERROR and 'watchdog' in d[3]
+                                  for d in diags.seen[-20:]), 5), diags.last(ctl_name)
+    start('plant', '-p', 'lengths_subscribers:=3')
+    assert diags.wait(lambda: diags.value(ctl_name, 'source_restarts') > ctl_restarts, 10), \
+        diags.last(ctl_name)
+    settle(2.0)
+    last = diags.last(ctl_name)
+    assert last[2] != ERROR, last           # the watchdog recovered
+    # everybody else ran on; now stop them all cleanly
+    for name in ('plant', 'controller', 'fk'):
+        assert procs[name].returncode is None, procs[name].describe()
+    for proc in list(procs.values()) + [record]:
+        os.kill(proc.pid, signal.SIGINT)
+        assert proc.wait(10) == 0, proc.describe()
+        assert 'Traceback' not in _text(proc), proc.describe()
+    # what the bag shows
+    stamps = {}
+    for topic, _, msg in bagio.read_messages(tmp_path / 'bag'):
+        if hasattr(msg, 'header') and topic.startswith(NS + '/'):
+            stamps.setdefault(topic[len(NS) + 1:], []).append(
+                msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
+    found = {topic: gaps(stamps.get(topic, []), 300_000_000)
+             for topic in ('leg_lengths', 'leg_forces', 'platform_pose')}
+    # the hang and the kill of the controller: two gaps in the forces; fk's
+    # restart: one in the poses; the plant's restart: one in everything
+    assert len(found['leg_forces']) >= 2, found
+    assert len(found['platform_pose']) >= 2, found
+    assert len(found['leg_lengths']) == 1, found
+    print('\nfaults in a realtime rig: %s; gaps > 0.3 s in the bag: %s' % (
+        ', '.join('%s: %d missed cycles' % e for e in events),
+        {t: ['%.2f s' % (g[1] * 1e-9) for g in v] for t, v in found.items()}))
