@@ -64,6 +64,13 @@ def children(pid: int) -> dict[str, int]:
     return out
 
 
+def _read(path) -> str:
+    try:
+        return Path(path).read_text(errors='replace')
+    except OSError:
+        return ''
+
+
 def growth_per_hour(samples) -> float:
     """MB per hour: slope of RSS over the second half of the samples."""
     if len(samples) < 4:
@@ -99,7 +106,7 @@ def from_bag(bag) -> dict:
                 topic = key[len('published/'):]
                 published[topic] = published.get(topic, 0) + int(value)
     in_bag = {}
-    for topic, _, _ in bagio.read_raw(bag):
+    for topic, _, _, _ in bagio.read_raw(bag):
         in_bag[topic] = in_bag.get(topic, 0) + 1
     counts = {}
     for topic, n in sorted(published.items()):
@@ -136,8 +143,8 @@ def main(argv=None) -> int:
     try:
         while rig.poll() is None:
             procs = dict(children(rig.pid), rig=rig.pid)
-            if 'plant' in procs and start is None:
-                start = time.monotonic()
+            if start is None and 'realtime at' in _read(logs / 'plant.log'):
+                start = time.monotonic()      # the run begins: memory from here
             now = time.monotonic() - (start or time.monotonic())
             for name, pid in procs.items():
                 kb = rss_kb(pid)
