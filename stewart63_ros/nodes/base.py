@@ -171,20 +171,25 @@ class RigNode(Node):
     def watch_source(self, subscription, topic: str, gate) -> None:
         """Watch the sources of the 1 kHz input ``subscription`` (its StampGate: ``gate``).
 
-        More than one publisher on it, or samples interleaving from two
-        publishers (the gate's ``interleaved``), is a collision: ERROR on
+        Two publishers that both sent samples within ``COLLISION_WINDOW``
+        (interleaved, or alternating in runs) are a collision: ERROR on
         /diagnostics naming the publishers (two rigs in one domain under one
-        namespace feed each other) until the input has had a single source
-        for ``COLLISION_CLEAR_AFTER``. New runs of the source (a restarted
-        plant, a bag played again) are counted as ``source_restarts``.
+        namespace feed each other) until the input has had a single sender
+        for ``COLLISION_CLEAR_AFTER``. More than one publisher matched while
+        only one sends is a warning: a killed source's endpoint stays in the
+        graph until its lease runs out, a ``play`` may not have started yet.
+        New runs of the source (a restarted plant, a bag played again) are
+        counted as ``source_restarts``.
         """
         self._watched = (subscription, topic, gate)
-        self._interleaved_seen = 0
         self._single_since = None
         self.collisions = 0
         self.health.values['source_restarts'] = 0
         self.health.values['collisions'] = 0
         self.create_timer(self.SOURCE_CHECK_PERIOD, self.check_sources)
+
+    #: s: two publishers sending within this window of each other collide
+    COLLISION_WINDOW = 1.0
 
     def publisher_names(self, topic: str) -> list:
         """'/ns/node (gid ...)' of each publisher the graph knows on ``topic``."""
@@ -199,32 +204,35 @@ class RigNode(Node):
         sub, topic, gate = self._watched
         h = self.health
         count = sub.get_publisher_count()
-        interleaved = gate.interleaved - self._interleaved_seen
-        self._interleaved_seen = gate.interleaved
+        senders = gate.senders(self.COLLISION_WINDOW)
         h.values['source_restarts'] = gate.restarts
-        if count > 1 or interleaved:
+        h.source_warning = ''
+        if len(senders) > 1:
             self._single_since = None
             if not h.collision:
                 self.collisions += 1
                 h.values['collisions'] = self.collisions
                 names = self.publisher_names(topic)
-                if interleaved and len(names) < 2 and gate.other_source is not None:
-                    names.append('another publisher (gid %s)' % gate.other_source[:12].hex())
-                h.collision = ('collision: %d publishers on %s: %s; two rigs in one domain '
-                               'under one namespace? samples of a second source refused'
-                               % (max(count, len(names), 2), sub.topic_name,
-                                  ', '.join(names) or 'unnamed'))
+                if len(names) < len(senders):
+                    names += ['gid %s' % g[:12].hex() for g in senders]
+                h.collision = ('collision: %d publishers send on %s: %s; two rigs in one '
+                               'domain under one namespace? samples of the second source '
+                               'refused' % (len(senders), sub.topic_name, ', '.join(names)))
                 if getattr(self, 'WITHHOLDS_ON_COLLISION', False):
                     h.collision += '; forces withheld'
                 self.get_logger().error(h.collision)
                 if self.started:
                     h.report()
-        elif h.collision:
+            return
+        if count > 1:
+            h.source_warning = ('%d publishers matched on %s, one sends: %s' % (
+                count, sub.topic_name, ', '.join(self.publisher_names(topic))))
+        if h.collision:
             now = time.monotonic()
             if self._single_since is None:
                 self._single_since = now
             elif now - self._single_since >= self.COLLISION_CLEAR_AFTER:
-                self.get_logger().info('collision over: one publisher on %s again'
+                self.get_logger().info('collision over: one publisher sends on %s again'
                                        % sub.topic_name)
                 h.collision = ''
 

@@ -93,6 +93,9 @@ class StampGate:
         self.restarts = 0
         self.interleaved = 0
         self.other_source = None    # GID of the last refused second publisher
+        self.other_wall = None      # when it sent
+        self.previous_source = None     # the source of the run before this one
+        self.previous_wall = None       # its last accepted sample
         self.new_run = ''
         self.second = False
 
@@ -122,18 +125,33 @@ class StampGate:
             self.new_run = 'stamps jumped back by %.3f s' % ((self.last_ns - ns) * 1e-9)
         return ns
 
+    def senders(self, window: float) -> set:
+        """GIDs of the publishers that sent a sample in the last ``window``
+        seconds: two or more is a collision (two rigs feeding one input),
+        whether their samples interleave or alternate in runs."""
+        now = self.clock()
+        found = set()
+        for gid, wall in ((self.source, self.last_wall), (self.other_source, self.other_wall),
+                          (self.previous_source, self.previous_wall)):
+            if gid is not None and wall is not None and now - wall <= window:
+                found.add(gid)
+        return found
+
     def check_source(self, source=None) -> None:
         """Rejected if the sample just checked comes from a second publisher
         while the first one still sends."""
         if self.second:
             self.interleaved += 1
             self.other_source = source
+            self.other_wall = self.clock()
             raise Rejected('second_source', 'a sample from a second publisher while the '
                            'first one still sends (two rigs on one topic?)')
 
     def accept(self, ns: int, source=None) -> None:
         if self.new_run:
             self.restarts += 1
+            if source is not None and source != self.source:
+                self.previous_source, self.previous_wall = self.source, self.last_wall
         self.last_ns = ns
         self.last_wall = self.clock()
         if source is not None:

@@ -57,6 +57,7 @@ class Health:
         self.latency = LatencyStats()
         self.fault = ''
         self.collision = ''     # more than one source on the 1 kHz input (see RigNode)
+        self.source_warning = ''    # a second publisher matched, silent (see RigNode)
         self.warning = ''
         self.values = {}
         self._last_report = time.monotonic()
@@ -80,9 +81,9 @@ class Health:
         if self.fault or self.collision:
             level = DiagnosticStatus.ERROR
             message = '; '.join(m for m in (self.collision, self.fault) if m)
-        elif fresh_rejections or self.warning:
+        elif fresh_rejections or self.warning or self.source_warning:
             level = DiagnosticStatus.WARN
-            message = self.warning or 'rejected %d inputs (last: %s)' % (
+            message = self.warning or self.source_warning or 'rejected %d inputs (last: %s)' % (
                 fresh_rejections, self.last_rejection)
         else:
             level, message = DiagnosticStatus.OK, 'ok'
