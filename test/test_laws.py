@@ -307,6 +307,7 @@ def test_quaternion_helper_consistency(mech):
 
 
 # -- sim and plot ---------------------------------------------------------------------------------
+@pytest.mark.slow      # sim and plot end to end: a run, two CSVs and a figure
 def test_sim_follows_a_reference_and_plot_draws_it(mech, tmp_path, capsys):
     from stewart63_ros.tools import plot, sim
     ref_csv = tmp_path / 'ref.csv'
