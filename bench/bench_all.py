@@ -23,6 +23,7 @@ sys.path.insert(0, str(HERE))
 import bench_bags  # noqa: E402
 import bench_core  # noqa: E402
 import bench_fk  # noqa: E402
+import bench_laws  # noqa: E402
 import bench_loop  # noqa: E402
 import bench_mujoco  # noqa: E402
 
@@ -49,7 +50,25 @@ FIGURES = {
     'loop_composed_p99_us': ('us', 500.0, '<', 'realtime 1 kHz, composed: latency p99'),
     'loop_composed_missed_fraction': ('', 0.001, '<', '  the same, missed cycles'),
     'record_msgs_per_s': ('1/s', None, '>', 'recording throughput with nothing lost'),
+    'law_pd_setpoint_us': ('us', None, '<', 'controller per sample: pd towards a setpoint'),
+    'law_pd_gravity_us': ('us', None, '<', '  pd_gravity on a reference motion'),
+    'law_computed_torque_us': ('us', 50.0, '<', '  computed_torque on a reference motion'),
+    'ct_loop_latency_p99_us': ('us', 1000.0, '<',
+                               'realtime 1 kHz rig with computed_torque: latency p99'),
+    'ct_loop_missed_fraction': ('', 0.001, '<', '  the same, missed cycles'),
 }
+
+
+def computed_torque_loop(duration, repeat) -> dict:
+    """bench_loop.measure with the controller running computed_torque ('ct_' keys)."""
+    from stewart63_ros.tools.rig import control_params
+    bench_loop.EXTRA_PARAMS.update(control_params('computed_torque'))
+    try:
+        return {'ct_' + k: v for k, v in bench_loop.measure(duration=duration,
+                                                            repeat=repeat).items()
+                if k.startswith('loop_')}
+    finally:
+        bench_loop.EXTRA_PARAMS.clear()
 
 
 def machine() -> dict:
@@ -117,6 +136,8 @@ def main(argv=None) -> int:
         ('physics core', lambda: bench_core.measure(repeat=repeat)),
         ('MuJoCo side by side', lambda: bench_mujoco.measure(repeat=repeat)),
         ('forward kinematics', lambda: bench_fk.measure(count=2000 if args.quick else 5000)),
+        ('control laws, per sample as the controller runs them',
+         lambda: bench_laws.measure(count=2000 if args.quick else 5000)),
         ('machine floor: 1 kHz wake-up jitter', lambda: wake_jitter(2.0 if args.quick else 5.0)),
         ('rig over DDS', lambda: bench_loop.measure(duration=2.0 if args.quick else 5.0,
                                                      repeat=1 if args.quick else 3)),
@@ -125,6 +146,8 @@ def main(argv=None) -> int:
              duration=2.0 if args.quick else 5.0, repeat=1 if args.quick else 3,
              realtime_priority=10).items() if k.startswith('loop_')}
          if os.geteuid() == 0 else {}),
+        ('rig over DDS, controller running computed_torque',
+         lambda: computed_torque_loop(2.0 if args.quick else 5.0, 1 if args.quick else 3)),
         ('composed rig, and the rig recording',
          lambda: bench_loop.measure_variants(duration=2.0 if args.quick else 5.0,
                                              repeat=1 if args.quick else 3)),
