@@ -497,7 +497,7 @@ def test_bad_inputs_give_one_line_errors_and_touch_nothing(recorded, ros, tmp_pa
     procs['recover-notbag'] = ros.spawn(cli('record') + ['--recover', str(bad['notbag'])],
                                         name='recover-notbag')
     for kind, proc in procs.items():
-        assert proc.wait(60) == 1, proc.describe()
+        assert proc.wait(60) == 2, proc.describe()   # an input error
         err = [line for line in proc.stderr().splitlines() if line.strip()]
         assert len(err) == 1 and ': error: ' in err[0], (kind, proc.describe())
     assert 'exists already' in procs['rec-dir'].stderr()

@@ -7,6 +7,7 @@ knows no ROS; the nodes and ``sim`` read the same file through it.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import os
 from pathlib import Path
 from typing import Any, Mapping
@@ -60,10 +61,13 @@ def _section_applies(key: str, node_name: str | None) -> int:
     return 0
 
 
-def read_parameter_file(path: str | os.PathLike, node_name: str | None = None) -> dict:
+def read_parameter_file(path: str | os.PathLike, node_name: str | None = None,
+                        allow_empty: bool = False) -> dict:
     """Flatten a ROS 2 parameter file into {name: value} for one node.
 
     Wildcard ``/**`` keys first, then the node's own section overrides them.
+    ``allow_empty``: a file with no section for this node gives {} (a second
+    file that only adds another node's keys) instead of an error.
     """
     path = Path(path)
     try:
@@ -85,7 +89,7 @@ def read_parameter_file(path: str | os.PathLike, node_name: str | None = None) -
             if not isinstance(section, dict) or 'ros__parameters' not in section:
                 raise ParameterError(str(key), 'section has no ros__parameters')
             merged.update(section['ros__parameters'] or {})
-    if not merged:
+    if not merged and not allow_empty:
         raise ParameterError('params file', '%s has no "/**: ros__parameters:" section' % path)
     return merged
 
@@ -203,9 +207,97 @@ class Mechanism:
 
 _KNOWN = {f.name for f in dataclasses.fields(Mechanism)} - {'extra'}
 
+#: Every parameter an executable reads besides the mechanism (the fields of
+#: ``Mechanism``), by the node that reads it; 'all' are read by every node.
+#: This is the one list of known keys: a key found nowhere here or in
+#: ``Mechanism`` is reported as unknown (a typo?) by every executable that
+#: reads parameter files. A node that reads a new parameter: add its name
+#: here, under that node, and document it in docs/interface.md. A user's
+#: control law (``control_law: package.module:Class``) adds the keys its
+#: class lists in ``parameters``.
+NODE_KEYS: dict[str, set[str]] = {
+    'all': {'wait_for_subscribers', 'discovery_timeout', 'discovery_settle',
+            'realtime_priority', 'strict_parameters', 'use_sim_time', 'summary_file'},
+    'plant': {'sensor_rate', 'clock_mode', 'duration', 'force_timeout',
+              'lengths_subscribers', 'sensor_noise', 'sensor_rate_noise', 'sensor_resolution',
+              'sensor_delay', 'sensor_seed', 'endstop_stiffness', 'endstop_damping',
+              'reference_file'},
+    'controller': {'watchdog_timeout', 'clock_mode', 'control_law', 'ct_kp', 'ct_kd',
+                   'max_leg_speed', 'max_leg_acceleration', 'reference_file'},
+    'fk': {'singularity_threshold'},
+}
+
+
+def known_keys(params: Mapping[str, Any] | None = None) -> set[str]:
+    """Every key some executable reads: the mechanism's and every node's, and
+    those of the user's control law that ``params`` names, if any."""
+    keys = set(_KNOWN).union(*NODE_KEYS.values())
+    law = (params or {}).get('control_law')
+    if isinstance(law, str) and ':' in law:
+        try:
+            from stewart63_ros.core.laws import law_class
+            keys |= set(getattr(law_class(law), 'parameters', ()) or ())
+        except Exception:  # noqa: BLE001 - a law that cannot load is the controller's error
+            pass
+    return keys
+
+
+def unknown_keys(params) -> list[str]:
+    """One message per key of ``params`` (a mapping, or just the keys) that no
+    executable reads, with the nearest known key when one is close
+    ("sensor_rat: unknown parameter (did you mean sensor_rate?)"), in order."""
+    known = known_keys(params if isinstance(params, Mapping) else None)
+    keys = params
+    out = []
+    for key in keys:
+        key = str(key)
+        if key in known:
+            continue
+        close = difflib.get_close_matches(key, sorted(known), n=1, cutoff=0.75)
+        out.append('%s: unknown parameter%s' % (
+            key, ' (did you mean %s?)' % close[0] if close else ', read by no executable'))
+    return out
+
+
+def file_parameters(path: str | os.PathLike) -> dict:
+    """Every key of every ``ros__parameters`` section of a parameter file,
+    once each, in file order, with its last value (for a check of the whole
+    file)."""
+    doc = yaml.safe_load(Path(path).read_text())
+    params: dict = {}
+    if isinstance(doc, dict):
+        for section in doc.values():
+            if isinstance(section, dict) and isinstance(section.get('ros__parameters'), dict):
+                params.update(section['ros__parameters'])
+    return params
+
+
+def _missing_hint(key: str, params: Mapping[str, Any]) -> str:
+    """For a missing key: the unknown key in ``params`` that looks like it."""
+    known = known_keys(params)
+    strangers = [str(k) for k in params if str(k) not in known]
+    close = difflib.get_close_matches(key, strangers, n=1, cutoff=0.75)
+    return ' (the file has the unknown key %s: a typo?)' % close[0] if close else ''
+
 
 def mechanism_from_params(params: Mapping[str, Any]) -> Mechanism:
-    """Validate a flat parameter dictionary; every error names its key."""
+    """Validate a flat parameter dictionary; every error names its key.
+
+    A missing key that looks like an unknown key of ``params`` says so
+    (``platform_mass: missing (the file has the unknown key platfrom_mass:
+    a typo?)``).
+    """
+    try:
+        return _mechanism_from_params(params)
+    except ParameterError as exc:
+        if exc.problem == 'missing':
+            hint = _missing_hint(exc.key, params)
+            if hint:
+                raise ParameterError(exc.key, exc.problem + hint) from None
+        raise
+
+
+def _mechanism_from_params(params: Mapping[str, Any]) -> Mechanism:
     base = _vector(params, 'base_points', 18).reshape(6, 3)
     plat = _vector(params, 'platform_points', 9).reshape(3, 3)
     _check_geometry(base, plat)

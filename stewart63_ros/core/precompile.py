@@ -9,6 +9,7 @@ file that defines a kernel, so a kernel that inlines one from another file
 (dopri's RK45 calls the dynamics) would otherwise keep the old physics after
 an edit of that other file.
 """
+import os
 import time
 from pathlib import Path
 
@@ -22,6 +23,32 @@ def clear_cache() -> int:
     for path in stale:
         path.unlink(missing_ok=True)
     return len(stale)
+
+
+#: What a program prints when it is about to compile the kernels.
+COMPILE_NOTICE = ('compiling the numba kernels (first start after an install or a change '
+                  'of stewart63_ros/core: up to a few minutes); later starts load them '
+                  'from the cache')
+
+
+def kernel_cache_cold() -> bool:
+    """True when some module's compiled kernels are not in numba's cache (or
+    are older than the module): the first call will compile, for a minute or
+    more. A cheap look at the cache index files, without importing numba's
+    internals; where the cache lives elsewhere than beside the modules or in
+    NUMBA_CACHE_DIR it errs on "cold"."""
+    core = Path(__file__).resolve().parent
+    places = [core / '__pycache__']
+    if os.environ.get('NUMBA_CACHE_DIR'):
+        places.append(Path(os.environ['NUMBA_CACHE_DIR']))
+    for source in sorted(core.glob('*.py')):
+        if '\n@njit' not in source.read_text():    # no compiled kernel here
+            continue
+        index = [p for place in places if place.is_dir()
+                 for p in place.rglob(source.stem + '.*.nbi')]
+        if not index or max(p.stat().st_mtime for p in index) < source.stat().st_mtime:
+            return True
+    return False
 
 
 def main():

@@ -7,23 +7,13 @@ import time
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
-from stewart63_ros.core.params import ParameterError, mechanism_from_params
+from stewart63_ros.core.precompile import COMPILE_NOTICE, kernel_cache_cold
+from stewart63_ros.core.params import ParameterError, mechanism_from_params, unknown_keys
 from stewart63_ros.nodes.diagnostics import Health
 from stewart63_ros.nodes.launcher import STOP
-from stewart63_ros.nodes.parameters import node_parameters
+from stewart63_ros.nodes.parameters import load_parameters, ros_parameters
 from stewart63_ros.nodes.rclpy_internals import DirectTake, run_timer_if_ready, take
 from stewart63_ros.nodes.realtime import realtime_scheduling
-
-
-def wait_until(node, executor, predicate, timeout: float) -> bool:
-    """Spin until ``predicate()`` or ``timeout`` seconds; True if it held."""
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        remaining = deadline - time.monotonic()
-        if remaining <= 0:
-            return False
-        executor.spin_once(timeout_sec=min(0.05, remaining))
-    return True
 
 
 class RigNode(Node):
@@ -41,12 +31,26 @@ class RigNode(Node):
     """
 
     def __init__(self, name: str):
-        super().__init__(name, automatically_declare_parameters_from_overrides=True,
+        # Parameters as nodes/parameters.py reads them (a -p wins over the
+        # files; a file given is the whole model), declared as the node's
+        # ROS parameters so that ros2 param shows what the node runs with.
+        self._created = time.monotonic()       # the graph's discovery starts about now
+        _, params = load_parameters(name)
+        super().__init__(name, parameter_overrides=ros_parameters(params),
+                         automatically_declare_parameters_from_overrides=True,
                          allow_undeclared_parameters=True)
-        self.params = node_parameters(self, name)
+        self.params = params
+        self._check_unknown_keys()
         self.mech = mechanism_from_params(self.params)
+        if kernel_cache_cold():
+            self.get_logger().info(COMPILE_NOTICE)
         self.wait_for_subscribers = int(self.param('wait_for_subscribers', 0))
         self.discovery_timeout = self.positive('discovery_timeout', 20.0)
+        self.discovery_settle = float(self.param('discovery_settle', 2.0))
+        if not 0 <= self.discovery_settle <= self.discovery_timeout:
+            raise ParameterError('discovery_settle', 'must be from 0 to discovery_timeout '
+                                 '(%g s), got %r' % (self.discovery_timeout,
+                                                     self.discovery_settle))
         self.health = Health(self, name)
         #: where close() writes the node's summary as JSON ('' : nowhere)
         self.summary_file = str(self.param('summary_file', ''))
@@ -102,6 +106,19 @@ class RigNode(Node):
         return self._executor
 
     # -- parameters ---------------------------------------------------------
+    def _check_unknown_keys(self) -> None:
+        """Name every key no executable reads (a typo?): a warning, or with
+        the parameter ``strict_parameters: true`` a ParameterError."""
+        strict = self.params.get('strict_parameters', False)
+        if not isinstance(strict, bool):
+            raise ParameterError('strict_parameters', 'must be true or false, got %r' % (strict,))
+        problems = unknown_keys(self.params)
+        if problems and strict:
+            raise ParameterError(problems[0].partition(':')[0], problems[0].partition(': ')[2]
+                                 + ' (strict_parameters is true)')
+        for problem in problems:
+            self.get_logger().warn('%s; ignored' % problem)
+
     def param(self, name, default):
         return self.params.get(name, default)
 
@@ -135,24 +152,73 @@ class RigNode(Node):
         self.data_publishers.append(pub)
         return pub
 
+    #: s: how often a node still waiting for its peers says what it waits for.
+    WAIT_REPORT_PERIOD = 5.0
+
+    def graph_subscriptions(self, pub) -> int:
+        """How many subscriptions the ROS graph shows on ``pub``'s topic that
+        can match it (same type, compatible QoS): a recorder, viewer or driver
+        started before this node."""
+        from rclpy.qos import QoSCompatibility, qos_check_compatible
+        cls = pub.msg_type
+        type_name = '%s/msg/%s' % (cls.__module__.split('.')[0], cls.__name__)
+        count = 0
+        for info in self.get_subscriptions_info_by_topic(pub.topic_name):
+            if info.topic_type != type_name:
+                continue
+            compatibility, _ = qos_check_compatible(pub.qos_profile, info.qos_profile)
+            if compatibility != QoSCompatibility.ERROR:
+                count += 1
+        return count
+
     def wait_for_matches(self, extra=None) -> bool:
-        """Bounded wait until the configured subscribers (and ``extra()``) are matched."""
-        need = self.wait_for_subscribers
+        """Bounded wait (``discovery_timeout``) before the first message until
+        every data publisher has matched ``wait_for_subscribers``
+        subscriptions and every subscription the ROS graph shows on its topic
+        (so a recorder started before the rig gets everything from the first
+        message), and ``extra()`` (a list of what else is missing) is empty.
+        The graph is given ``discovery_settle`` s from the node's start to
+        show what already runs. Says at once what it waits for, and again
+        every few s."""
         pubs = self.data_publishers + [self.health.pub]
 
-        def ready():
-            ok = all(p.get_subscription_count() >= need for p in pubs)
-            return ok and (extra is None or extra())
+        def missing():
+            out = []
+            # Discovery of what already runs takes a moment (seconds, loaded):
+            # until then the graph may not show a subscriber started before us.
+            age = time.monotonic() - self._created
+            if age < self.discovery_settle:
+                out.append('discovery of the ROS graph (%.1f of %g s, discovery_settle)'
+                           % (age, self.discovery_settle))
+            for pub in pubs:
+                want = max(self.wait_for_subscribers, self.graph_subscriptions(pub))
+                have = pub.get_subscription_count()
+                if have < want:
+                    out.append('%s: %d of %d subscriptions matched'
+                               % (pub.topic_name, have, want))
+            return out + (list(extra()) if extra is not None else [])
+
+        log = self.get_logger()
         start = time.monotonic()
-        ok = wait_until(self, self.executor_, ready, self.discovery_timeout)
+        deadline = start + self.discovery_timeout
+        next_report = start
+        waiting = missing()
+        while waiting and time.monotonic() < deadline:
+            now = time.monotonic()
+            if now >= next_report:
+                log.info('waiting (at most %.1f s more, discovery_timeout) for: %s'
+                         % (deadline - now, '; '.join(waiting)))
+                next_report = now + self.WAIT_REPORT_PERIOD
+            self.executor_.spin_once(timeout_sec=min(0.05, max(0.0, deadline - now)))
+            waiting = missing()
         self.started = True
-        if ok:
-            self.get_logger().info('matched after %.2f s' % (time.monotonic() - start))
-        else:
-            self.get_logger().warn('discovery: not all peers matched after %.1f s; starting anyway'
-                                   % self.discovery_timeout)
-            self.health.warning = 'started before all subscribers matched'
-        return ok
+        if not waiting:
+            log.info('matched after %.2f s' % (time.monotonic() - start))
+            return True
+        log.warn('discovery: still missing after %.1f s: %s; starting anyway'
+                 % (self.discovery_timeout, '; '.join(waiting)))
+        self.health.warning = 'started before all subscribers matched'
+        return False
 
     def report(self):
         if self.started:

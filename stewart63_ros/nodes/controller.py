@@ -168,6 +168,14 @@ class ControllerNode(RigNode):
             CommandInput(self, MultiDOFJointTrajectory, topics.POSE_TRAJECTORY,
                          self.on_trajectory)]
         self.create_timer(min(self.watchdog_timeout / 2, 0.05), self.watchdog)
+        # The plant says on /diagnostics when its run is over ("run: ended"):
+        # the silence that follows is then the end of a run, not a lost sensor.
+        from diagnostic_msgs.msg import DiagnosticArray
+        namespace = self.get_namespace().rstrip('/')
+        self.plant_status = 'stewart63%s/plant' % namespace
+        self.source_ended = False
+        self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics,
+                                 topics.DIAGNOSTICS_QOS)
         # Run-time tuning: the law, every built-in law's gains, the active law's own.
         self.tunable('control_law', self.set_law)
         for name in LAW_PARAMETERS:
@@ -234,6 +242,7 @@ class ControllerNode(RigNode):
         if self.sample_gate.new_run:
             self.ref_start_ns = None        # a new run: the reference starts again
         self.last_sample_wall = time.monotonic()
+        self.source_ended = False        # a run goes on (or a new one began)
         if self.tripped:
             self.tripped = False
             self.health.fault = self.law_fault
@@ -354,6 +363,12 @@ class ControllerNode(RigNode):
             topics.POSE_TRAJECTORY, len(msg.points), reference.duration))
         self.get_logger().info('following %s' % self.reference_name)
 
+    def on_diagnostics(self, msg):
+        for status in msg.status:
+            if status.name == self.plant_status and any(
+                    kv.key == 'run' and kv.value == 'ended' for kv in status.values):
+                self.source_ended = True
+
     def run(self):
         self.run_on(self.sub_samples)
 
@@ -363,6 +378,12 @@ class ControllerNode(RigNode):
         silent = time.monotonic() - self.last_sample_wall
         if silent > self.watchdog_timeout:
             self.tripped = True
+            if self.source_ended:
+                # Forces are withheld all the same (none without a sample).
+                self.source_ended = False
+                self.get_logger().info('the plant ended its run: no more leg_lengths; '
+                                       'forces withheld until samples return')
+                return
             self.health.fault = ('watchdog: no leg_lengths for %.3f s; forces withheld '
                                  'until samples return' % silent)
             self.get_logger().error(self.health.fault)

@@ -55,6 +55,11 @@ class StopSignals:
 STOP = StopSignals()
 
 
+def _first_line(exc) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
 def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> int:
     """Parse --help / own options, start rclpy, run the node until shutdown.
 
@@ -66,15 +71,33 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
     parser = make_parser(prog, description)
     if extra_args:
         extra_args(parser)
+    from stewart63_ros.nodes.parameters import check_params_files, ros_arguments, set_arguments
+    set_arguments(argv)
+    try:
+        # rcl would end in a traceback on a missing file or a bad -p.
+        check_params_files(argv)
+        ros_arguments(argv)
+    except ParameterError as exc:
+        print('%s: parameter error: %s' % (prog, exc), file=sys.stderr)
+        return 2
     import rclpy
     from rclpy.utilities import remove_ros_args
-    options = parser.parse_args(remove_ros_args(argv)[1:])
+    try:
+        own_args = remove_ros_args(argv)[1:]
+    except Exception as exc:  # noqa: BLE001 - rcl's refusal of the ROS arguments
+        print('%s: error: bad ROS arguments: %s' % (prog, _first_line(exc)), file=sys.stderr)
+        return 2
+    options = parser.parse_args(own_args)
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
     reduce_timer_slack()
     # Our own handlers: Ctrl-C and SIGTERM raise KeyboardInterrupt, so the
     # node flushes its last messages to the recorder before rclpy shuts down.
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as exc:  # noqa: BLE001 - rcl's refusal of the ROS arguments
+        print('%s: error: bad ROS arguments: %s' % (prog, _first_line(exc)), file=sys.stderr)
+        return 2
     # SIGTERM (from rig, systemd, docker, launch) ends the node like Ctrl-C does.
     signals = STOP.install()
     node = None

@@ -1,20 +1,125 @@
-"""A node's parameters as the core's flat dictionary."""
+"""A node's parameters as the core's flat dictionary, from its ROS arguments.
+
+The nodes read their parameters the way ``sim`` does, with the precedence a
+user expects rather than rcl's (where a file's ``/**/plant:`` entry beats a
+``-p`` on the command line):
+
+1. the ``--params-file`` files in the order given, each one's ``/**``
+   section, then its section for this node; a later file wins. The files
+   given are the whole model: nothing falls back to the packaged file. No
+   file given: the packaged ``config/stewart63.yaml``;
+2. then every ``-p name:=value`` (value read as YAML, as rcl does).
+
+The result is also what the node declares as its ROS parameters, so
+``ros2 param get`` shows what the node runs with.
+"""
 from __future__ import annotations
 
+import dataclasses
+import os
+import sys
 
-def node_parameters(node, node_name: str) -> dict:
-    """The flat parameter dictionary: packaged defaults, then the node's ROS parameters.
+import yaml
 
-    Nodes start with ``automatically_declare_parameters_from_overrides``, so
-    ``--params-file`` and ``-p name:=value`` arrive as declared parameters.
-    """
-    from stewart63_ros.core.params import default_params_path, read_parameter_file
-    params = read_parameter_file(default_params_path(), node_name)
-    for name, param in node.get_parameters_by_prefix('').items():
-        if name == 'use_sim_time':
+from stewart63_ros.core.params import (ParameterError, default_params_path,
+                                       read_parameter_file)
+
+#: ROS arguments (after --ros-args) that take a value.
+_WITH_VALUE = {'-p', '--param', '--params-file', '-r', '--remap', '--log-level',
+               '--log-config-file', '-e', '--enclave', '--log-file-name'}
+
+_argv: list[str] | None = None
+
+
+def set_arguments(argv) -> None:
+    """The process's command line, as the launcher got it (default: sys.argv)."""
+    global _argv
+    _argv = list(argv)
+
+
+@dataclasses.dataclass
+class RosArguments:
+    params_files: list[str] = dataclasses.field(default_factory=list)
+    #: (node name or None for every node, key, value text), in order
+    overrides: list[tuple] = dataclasses.field(default_factory=list)
+    node_name: str | None = None     # from -r __node:=NAME
+
+
+def ros_arguments(argv) -> RosArguments:
+    """The parameter-related ROS arguments of a command line (what follows
+    each ``--ros-args``, up to ``--``). Raises ParameterError for a ``-p``
+    without ``:=``."""
+    out = RosArguments()
+    inside = False
+    args = list(argv)
+    i = 0
+    while i < len(args):
+        arg = args[i]
+        if arg == '--ros-args':
+            inside = True
+        elif arg == '--' and inside:
+            inside = False
+        elif inside and arg in _WITH_VALUE:
+            value = args[i + 1] if i + 1 < len(args) else ''
+            i += 1
+            if arg in ('-p', '--param'):
+                name, sep, text = value.partition(':=')
+                if not sep or not name:
+                    raise ParameterError('-p %s' % value, 'expected -p name:=value')
+                node, _, key = name.rpartition(':')
+                out.overrides.append((node or None, key, text))
+            elif arg == '--params-file':
+                out.params_files.append(value)
+            elif arg in ('-r', '--remap'):
+                target, _, name = value.partition(':=')
+                if target.rpartition(':')[2] in ('__node', '__name'):
+                    out.node_name = name
+        i += 1
+    return out
+
+
+def check_params_files(argv) -> None:
+    """Every ``--params-file`` exists and is readable, or ParameterError
+    (before rclpy.init, which would end in a traceback)."""
+    for path in ros_arguments(argv).params_files:
+        if not os.path.isfile(path):
+            raise ParameterError('params file', 'cannot read %s (%s)' % (
+                path, 'no such file' if not os.path.exists(path) else 'not a file'))
+        if not os.access(path, os.R_OK):
+            raise ParameterError('params file', 'cannot read %s (permission denied)' % path)
+
+
+def load_parameters(node_name: str, argv=None) -> tuple[str, dict]:
+    """(node name after remapping, {key: value}) as described in the module."""
+    argv = list((_argv if _argv is not None else sys.argv) if argv is None else argv)
+    args = ros_arguments(argv)
+    name = args.node_name or node_name
+    params: dict = {}
+    files = args.params_files or [str(default_params_path())]
+    for i, path in enumerate(files):
+        params.update(read_parameter_file(path, name, allow_empty=i > 0))
+    for node, key, text in args.overrides:
+        if node is not None and node.strip('/').rpartition('/')[2] != name:
             continue
-        value = param.value
-        if value is not None:
-            params[name] = list(value) if not isinstance(value, (str, bool, int, float)) else value
-    return params
+        try:
+            params[key] = yaml.safe_load(text) if text else ''
+        except yaml.YAMLError:
+            raise ParameterError(key, 'cannot read the value %r of -p %s:=%s'
+                                 % (text, key, text)) from None
+    return name, params
 
+
+def ros_parameters(params: dict) -> list:
+    """rclpy Parameters for ``params`` (values ROS cannot hold are left out:
+    the node still uses them, but ``ros2 param`` does not show them)."""
+    from rclpy.parameter import Parameter
+    out = []
+    for key, value in params.items():
+        if isinstance(value, list) and any(isinstance(v, float) for v in value) and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+            value = [float(v) for v in value]      # [1, 2.5]: a double array
+        try:
+            out.append(Parameter(str(key), value=value))
+        except (TypeError, ValueError):
+            continue
+    return out

@@ -214,9 +214,18 @@ class PlantNode(RigNode):
     def run(self):
         # Lockstep cannot start before the controller is there to answer.
         need_forces = 1 if self.mode == 'lockstep' else 0
-        self.wait_for_matches(lambda: (
-            self.sub_forces.get_publisher_count() >= need_forces
-            and self.pub_lengths.get_subscription_count() >= self.lengths_subscribers))
+
+        def missing():
+            out = []
+            if self.sub_forces.get_publisher_count() < need_forces:
+                out.append('a %s publisher (a controller: lockstep steps only on its '
+                           'answers)' % self.sub_forces.topic_name)
+            have = self.pub_lengths.get_subscription_count()
+            if have < self.lengths_subscribers:
+                out.append('%s: %d of %d subscriptions matched (lengths_subscribers)'
+                           % (self.pub_lengths.topic_name, have, self.lengths_subscribers))
+            return out
+        self.wait_for_matches(missing)
         self.forces_in = self.start_hot_loop(self.sub_forces)
         self.t0_wall = time.time()
         n_samples = int(round(self.duration * self.rate)) if self.duration > 0 else None
@@ -226,10 +235,21 @@ class PlantNode(RigNode):
             self.run_lockstep(n_samples)
         else:
             self.run_realtime(n_samples)
+        self.announce_end()
         self.write_summary(stopped=STOP.requested)
         return 0
 
+    def announce_end(self):
+        """Tell the controller, on /diagnostics (``run: ended``), that no more
+        samples come because the run is over: its watchdog then says so
+        instead of reporting a lost sensor."""
+        if self.health.values.get('run') != 'ended':
+            self.health.values['run'] = 'ended'
+            if self.started:
+                self.report()
+
     def close(self):
+        self.announce_end()       # stopped by a signal: the run is over too
         # Stopped by a signal mid-run: the summary of the part it ran.
         if self.t0_wall is not None and not self.summary_written:
             self.write_summary(stopped=True)

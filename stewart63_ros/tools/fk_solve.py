@@ -4,8 +4,10 @@ Prints the assembly mode nearest the parameter file's initial pose, or with
 ``--all`` every real assembly mode (nearest first). Each pose carries
 position [m], theta [rad] (R = Rz Ry Rx, docs/interface.md), quaternion
 (x, y, z, w), the Jacobian's condition number and whether it is flagged as
-near-singular. Exit status 2 with a one-line reason on stderr when the
-lengths admit no assembly; 1 when the parameter file is unusable.
+near-singular. Lengths outside the stroke [leg_length_min, leg_length_max]
+are named in ``outside_stroke`` beside the pose (and on stderr). Exit status
+2 with a one-line reason on stderr when the lengths admit no assembly or the
+parameter file is unusable.
 """
 from __future__ import annotations
 
@@ -16,7 +18,7 @@ import os
 import sys
 
 from stewart63_ros.core.fk import ForwardKinematics, NoAssemblyError
-from stewart63_ros.core.params import ParameterError, load_mechanism
+from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked
 
 
 def _length(text: str) -> float:
@@ -50,26 +52,35 @@ def build_parser() -> argparse.ArgumentParser:
                         help='ROS 2 parameter file (default: the packaged config/stewart63.yaml)')
     parser.add_argument('--all', action='store_true',
                         help='print every assembly mode, nearest the initial pose first')
+    parser.add_argument('--strict', action='store_true', help=STRICT_HELP)
     return parser
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        mech = load_mechanism(args.params)
-    except (ParameterError, FileNotFoundError) as exc:
-        print('fk: %s' % exc, file=sys.stderr)
-        return 1
+    mech = load_checked('fk', args.params, node_name='fk', strict=args.strict)
+    if mech is None:
+        return 2
+    announce_compile('fk')
     try:
         modes = ForwardKinematics(mech).all_modes(args.solve)
     except NoAssemblyError as exc:
         print('fk: no assembly: %s' % exc, file=sys.stderr)
         return 2
+    outside = ['leg_%d: %.6g m is outside the stroke [%g, %g]' % (
+        i + 1, value, mech.leg_length_min, mech.leg_length_max)
+        for i, value in enumerate(args.solve)
+        if not mech.leg_length_min <= value <= mech.leg_length_max]
+    for line in outside:
+        print('fk: warning: %s (the pose is geometric only: the legs cannot reach it)' % line,
+              file=sys.stderr)
     if args.all:
         out = {'lengths': list(args.solve), 'count': len(modes),
                'modes': [_pose(m) for m in modes]}
     else:
         out = _pose(modes[0])
+    if outside:
+        out['outside_stroke'] = outside
     try:
         print(json.dumps(out, indent=2), flush=True)
     except BrokenPipeError:      # `fk --solve ... | head`: the reader left; no traceback

@@ -331,7 +331,7 @@ def main(argv=None) -> int:
         return 0
     except BagError as exc:
         print(f'play: error: {exc}', file=sys.stderr)
-        return 1
+        return 2
     finally:
         try:
             player.close(ack_timeout=1.0)

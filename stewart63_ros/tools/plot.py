@@ -1,12 +1,14 @@
 """`plot`: the paper's Fig. 4 (leg lengths, position, orientation against time).
 
-    plot SOURCE [--out FILE.png] [--reference CSV]
+    plot SOURCE [--out FILE.png] [--reference CSV] [--params FILE] [--title TEXT]
 
-SOURCE is a trajectory CSV or a rosbag2 directory recorded from the rig
-(docs/interface.md: "Trajectory CSV", "Bags"). With a reference motion
-(--reference, or a reference.csv beside the source, as `sim --reference`
-writes it; time 0 = the first sample), the reference is drawn dashed against
-the actual motion and a fourth panel shows the error.
+SOURCE is a trajectory CSV, a folder holding one (``sim --out DIR``), or a
+rosbag2 directory recorded from the rig (docs/interface.md: "Trajectory CSV",
+"Bags"). The title names the run; the setpoint lengths of the parameter file
+(``--params``, default the packaged one) are drawn as dashed lines. With a
+reference motion (--reference, or a reference.csv beside the source, as `sim
+--reference` writes it; time 0 = the first sample), the reference is drawn
+dashed against the actual motion and a fourth panel shows the error.
 """
 from __future__ import annotations
 
@@ -16,11 +18,18 @@ from pathlib import Path
 
 import numpy as np
 
+#: Line styles of the six legs: legs with equal lengths (1 and 2, 3 to 6 in
+#: the paper's scenario) stay told apart where their curves lie on each other.
+LEG_STYLES = ('-', (0, (6, 2)), '-.', (0, (1, 1.5)), (0, (8, 2, 1, 2, 1, 2)), (0, (3, 3)))
 
-def draw_figure(columns: dict, out_path, title: str = '', reference: dict | None = None) -> Path:
+
+def draw_figure(columns: dict, out_path, title: str = '', reference: dict | None = None,
+                setpoint=None) -> Path:
     """Write Fig. 4 from {column: array} (the CSV layout) to ``out_path``; with
     ``reference`` ({t, x, y, z, theta_x, theta_y, theta_z: array}) also the
-    reference (dashed) and the error actual - reference."""
+    reference (dashed) and the error actual - reference. ``setpoint``: the six
+    desired lengths (L_i)_0, drawn as thin dashed black lines, so the final
+    sag of the legs below or above them shows."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -28,8 +37,23 @@ def draw_figure(columns: dict, out_path, title: str = '', reference: dict | None
     t = columns['t']
     panels = 3 if reference is None else 4
     fig, axes = plt.subplots(panels, 1, figsize=(8, 3 * panels), sharex=True)
+    colors = plt.rcParams['axes.prop_cycle'].by_key()['color']
     for i in range(1, 7):
-        axes[0].plot(t, columns['L%d' % i], label='$L_%d$' % i)
+        axes[0].plot(t, columns['L%d' % i], label='$L_%d$' % i,
+                     color=colors[(i - 1) % len(colors)], linestyle=LEG_STYLES[i - 1],
+                     linewidth=1.6)
+    if setpoint is not None and len(t):
+        levels = sorted(set(round(float(v), 12) for v in setpoint))
+        for k, value in enumerate(levels):
+            axes[0].axhline(value, color='black', linestyle='--', linewidth=0.8,
+                            label='setpoint $(L_i)_0$' if k == 0 else None)
+        # axhline does not widen the axis: keep the setpoints inside it.
+        lengths = np.concatenate([np.asarray(columns['L%d' % i], float) for i in range(1, 7)])
+        lengths = lengths[np.isfinite(lengths)]
+        lo = min(levels + ([float(lengths.min())] if lengths.size else []))
+        hi = max(levels + ([float(lengths.max())] if lengths.size else []))
+        pad = 0.05 * max(hi - lo, 1e-3)
+        axes[0].set_ylim(lo - pad, hi + pad)
     axes[0].set_ylabel('leg length [m]')
     for name, label in (('x', '$t_x$'), ('y', '$t_y$'), ('z', '$t_z$')):
         axes[1].plot(t, columns[name], label=label)
@@ -57,7 +81,8 @@ def draw_figure(columns: dict, out_path, title: str = '', reference: dict | None
     for ax in axes:
         ax.grid(True, alpha=0.3)
         ax.legend(loc='best', fontsize='small', ncol=3)
-    fig.suptitle(title or '6-3 Stewart platform, PD control (Yurt & Ozkol, Fig. 4)')
+    fig.suptitle('6-3 Stewart platform, PD control (Yurt & Ozkol, Fig. 4)'
+                 + ('\n' + title if title else ''))
     fig.tight_layout()
     out_path = Path(out_path)
     fig.savefig(out_path, dpi=100)
@@ -66,25 +91,44 @@ def draw_figure(columns: dict, out_path, title: str = '', reference: dict | None
 
 
 def load_columns(source) -> dict:
-    """Trajectory columns from a CSV file or a bag directory."""
+    """Trajectory columns from a CSV file, a bag directory, or a folder that
+    holds a ``trajectory.csv`` (what ``sim --out DIR`` writes)."""
     source = Path(source)
     if source.is_dir():
-        from stewart63_ros.bagio import trajectory_from_bag
-        return trajectory_from_bag(source)
+        if (source / 'trajectory.csv').is_file() and not (source / 'metadata.yaml').exists():
+            source = source / 'trajectory.csv'
+        else:
+            from stewart63_ros.bagio import trajectory_from_bag
+            return trajectory_from_bag(source)
     from stewart63_ros.core.trajectory import read_csv
     return read_csv(source)
 
 
+def run_title(source: Path, columns: dict) -> str:
+    """What the figure shows: the run's folder (or file) and its length."""
+    t = columns['t']
+    finite = t[np.isfinite(t)]
+    span = float(finite[-1] - finite[0]) if finite.size else 0.0
+    source = Path(source)
+    kind = 'bag' if source.is_dir() and not (source / 'trajectory.csv').is_file() else 'trajectory'
+    return '%s (%s, %.3g s, %d samples)' % (source, kind, span, len(t))
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='plot', description=__doc__.split('\n\n')[0])
-    parser.add_argument('source', help='trajectory CSV or rosbag2 directory')
+    parser.add_argument('source', help="trajectory CSV, rosbag2 directory, or sim's --out folder")
     parser.add_argument('--out', help='PNG to write (default: figure.png beside the source)')
     parser.add_argument('--reference', metavar='CSV', help='reference motion to draw against '
                         'the actual one (default: reference.csv beside the source, if any)')
+    parser.add_argument('--params', metavar='FILE',
+                        help='parameter file whose setpoint_lengths are drawn (default: the '
+                        'packaged one)')
+    parser.add_argument('--title', help='figure title (default: the source and its length)')
     args = parser.parse_args(argv)
     source = Path(args.source)
     if not source.exists():
         parser.exit(2, 'plot: error: %s does not exist\n' % source)
+    from stewart63_ros.bagio import BagError
     reference = None
     ref_path = Path(args.reference) if args.reference else (
         source / 'reference.csv' if source.is_dir() else source.with_name('reference.csv'))
@@ -94,16 +138,23 @@ def main(argv=None) -> int:
             from stewart63_ros.core.reference import CSV_COLUMNS, read_reference_csv
             times, poses = read_reference_csv(ref_path)
             reference = dict(zip(CSV_COLUMNS, np.column_stack([times, poses]).T))
-    except (ValueError, OSError) as exc:  # TrajectoryError, BagError, ReferenceError
-        parser.exit(2, 'plot: error: %s\n' % exc)
+    except (ValueError, OSError, BagError) as exc:  # TrajectoryError, BagError, ReferenceError
+        text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        parser.exit(2, 'plot: error: %s\n' % text)
     if len(columns['t']) == 0 or not np.all(np.isfinite(columns['t'])):
         parser.exit(2, 'plot: error: %s holds no samples\n' % source)
+    from stewart63_ros.core.params import ParameterError, load_mechanism
+    try:
+        setpoint = load_mechanism(args.params, node_name='controller').setpoint_lengths
+    except ParameterError as exc:
+        parser.exit(2, 'plot: parameter error: %s\n' % exc)
     out = Path(args.out) if args.out else (
         source / 'figure.png' if source.is_dir() else source.with_name('figure.png'))
     if reference is not None and len(columns['t']):
         # a bag's times are stamps: the reference's time 0 is the first sample
         reference = dict(reference, t=reference['t'] + columns['t'][0])
-    draw_figure(columns, out, title=source.name, reference=reference)
+    draw_figure(columns, out, title=args.title or run_title(source, columns),
+                reference=reference, setpoint=setpoint)
     print(out)
     return 0
 

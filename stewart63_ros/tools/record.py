@@ -91,7 +91,7 @@ def main(argv=None) -> int:
             counts = recover_bag(bag)
         except BagError as exc:
             print(f'record: error: {exc}', file=sys.stderr)
-            return 1
+            return 2
         total = sum(counts.values())
         print(f'record: recovered {bag}: {total} messages ('
               + ', '.join(f'{t} {n}' for t, n in counts.items()) + ')', flush=True)
@@ -111,7 +111,7 @@ def main(argv=None) -> int:
             rec.open()
         except BagError as exc:
             print(f'record: error: {exc}', file=sys.stderr)
-            return 1
+            return 2
         print(READY_LINE, flush=True)
         print(f'record: recording {len(rec._subs)} topics into {bag}', file=sys.stderr,
               flush=True)

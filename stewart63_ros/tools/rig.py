@@ -25,11 +25,11 @@ import os
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
-from stewart63_ros.core.params import ParameterError, default_params_path, load_mechanism
+from stewart63_ros.core.params import ParameterError, default_params_path
+from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked
 
 NODES = ('plant', 'controller', 'fk')
 #: Bound on the nodes' start-up until the recorder has matched them [s]. It
@@ -39,6 +39,18 @@ START_TIMEOUT = 180.0
 MODULES = {'plant': 'stewart63_ros.nodes.plant', 'controller': 'stewart63_ros.nodes.controller',
            'fk': 'stewart63_ros.nodes.fk_node', 'record': 'stewart63_ros.tools.record',
            'composed': 'stewart63_ros.nodes.composed'}
+
+
+def default_log_dir(record=None, namespace='') -> Path:
+    """Where the nodes' logs go without --log-dir: beside the bag (``DIR.logs``)
+    with --record DIR, else one reused folder per namespace under ROS_HOME
+    (default ~/.ros): ``stewart63/rig_logs/<namespace or default>``."""
+    if record:
+        record = Path(record)
+        return record.with_name(record.name + '.logs')
+    home = Path(os.environ.get('ROS_HOME') or Path.home() / '.ros')
+    name = (namespace or '').strip('/').replace('/', '_') or 'default'
+    return home / 'stewart63' / 'rig_logs' / name
 
 
 class Rig:
@@ -52,9 +64,10 @@ class Rig:
         self.duration = duration
         self.record = record
         self.namespace = namespace or ''
-        self.log_dir = Path(log_dir or tempfile.mkdtemp(prefix='stewart63_rig_'))
+        self.log_dir = Path(log_dir or default_log_dir(record, namespace))
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.summary_file = self.log_dir / 'plant_summary.json'
+        self.summary_file.unlink(missing_ok=True)    # a reused folder: not last run's
         self.extra_params = dict(extra_params or {})
         self.nodes = tuple(nodes)
         #: SCHED_FIFO priority for the plant and the controller (fk one
@@ -255,14 +268,34 @@ def control_params(control_law=None, reference=None) -> dict:
     return extra
 
 
+class _DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Every option's default in --help; an option without one (None) says in
+    its own help what happens when it is left out."""
+
+    def _get_help_string(self, action):
+        if action.default is None or action.default is False or action.default == '':
+            # said in the help, or a plain flag
+            return action.help
+        return super()._get_help_string(action)
+
+
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog='rig', description=__doc__.split('\n\n')[0])
-    parser.add_argument('--params', help='parameter file (default: the packaged one)')
-    parser.add_argument('--mode', choices=('realtime', 'lockstep'), default='lockstep')
-    parser.add_argument('--duration', type=float, help='simulated seconds, then stop')
-    parser.add_argument('--record', metavar='DIR', help='record every topic into a new bag DIR')
-    parser.add_argument('--namespace', default='', help='namespace of this rig, e.g. /rig2')
-    parser.add_argument('--log-dir', help='where node logs go (default: a temp directory)')
+    parser = argparse.ArgumentParser(prog='rig', description=__doc__.split('\n\n')[0],
+                                     formatter_class=_DefaultsFormatter)
+    parser.add_argument('--params', metavar='FILE',
+                        help='parameter file (default: the packaged %s)' % default_params_path())
+    parser.add_argument('--mode', choices=('realtime', 'lockstep'), default='lockstep',
+                        help='clock mode of the plant')
+    parser.add_argument('--duration', type=float, metavar='S',
+                        help='simulated seconds, then stop (default: run until Ctrl-C)')
+    parser.add_argument('--record', metavar='DIR',
+                        help='record every topic into a new bag DIR (default: no recording)')
+    parser.add_argument('--namespace', default='', metavar='NS',
+                        help='namespace of this rig, e.g. /rig2 (default: the root namespace)')
+    parser.add_argument('--log-dir', metavar='DIR',
+                        help="where the nodes' logs go (default: DIR.logs beside the bag "
+                        'with --record DIR, else $ROS_HOME/stewart63/rig_logs/<namespace>, '
+                        '~/.ros without ROS_HOME; reused, overwritten by the next run)')
     parser.add_argument('--compose', action='store_true',
                         help='run the nodes (and the recorder) in one process, each still its '
                         'own node on the DDS topics: many times faster in lockstep, and the '
@@ -283,15 +316,13 @@ def main(argv=None) -> int:
     parser.add_argument('--realtime-priority', type=int, default=0, metavar='P',
                         help='run plant and controller SCHED_FIFO at priority P (1-99), fk '
                         'at P-1 (needs root or CAP_SYS_NICE, else a warning): keeps other '
-                        'work on the machine from delaying the loop (default 0: normal '
-                        'scheduling)')
+                        'work on the machine from delaying the loop (0: normal scheduling)')
+    parser.add_argument('--strict', action='store_true', help=STRICT_HELP)
     args = parser.parse_args(argv)
     params = args.params or str(default_params_path())
-    try:
-        load_mechanism(params)   # fail here, not in three processes
-    except ParameterError as exc:
-        print('rig: parameter error: %s: %s' % (params, exc), file=sys.stderr)
-        return 2
+    if load_checked('rig', params, strict=args.strict) is None:
+        return 2      # fail here, not in three processes
+    announce_compile('rig', 'the nodes start by ')
     if args.duration is not None and not args.duration > 0:
         parser.error('--duration must be positive')
     extra = {}

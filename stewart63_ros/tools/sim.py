@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from stewart63_ros.core.params import ParameterError, default_params_path, load_mechanism
+from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked
 
 
 def summarize(mech, dyn, result) -> dict:
@@ -85,6 +86,7 @@ def main(argv=None) -> int:
     parser.add_argument('--reference', default=None, metavar='CSV',
                         help='reference motion t,x,y,z,theta_x,theta_y,theta_z to follow')
     parser.add_argument('--no-figure', action='store_true', help='skip figure.png')
+    parser.add_argument('--strict', action='store_true', help=STRICT_HELP)
     args = parser.parse_args(argv)
     if not (np.isfinite(args.duration) and args.duration > 0):
         parser.error('--duration must be a positive number of seconds')
@@ -94,13 +96,16 @@ def main(argv=None) -> int:
     from stewart63_ros.core.laws import LawError
     from stewart63_ros.core.reference import ReferenceError
     params_path = args.params or default_params_path()
+    mech = load_checked('sim', params_path, node_name='plant', strict=args.strict)
+    if mech is None:
+        return 2
     try:
-        mech = load_mechanism(params_path, node_name='plant')
         controller, reference = make_controller(params_path, args.control_law, args.reference)
     except (ParameterError, ReferenceError) as exc:
         print('sim: error: %s' % (exc,), file=sys.stderr)
         return 2
 
+    announce_compile('sim')
     from stewart63_ros.core.dynamics import Dynamics
     from stewart63_ros.core.simulate import run_continuous, run_sampled
     from stewart63_ros.core.trajectory import write_csv
@@ -138,11 +143,15 @@ def main(argv=None) -> int:
         from stewart63_ros.core.trajectory import COLUMNS
         from stewart63_ros.tools.plot import draw_figure
         draw_figure({name: table[:, i] for i, name in enumerate(COLUMNS)}, out / 'figure.png',
-                    title='sim, %s, %s control, %g Hz' % (law, args.control, rate),
-                    reference=ref_columns)
+                    title='sim %s: %s, %s control, %g Hz, %g s, %s' % (
+                        out, law, args.control, rate, args.duration,
+                        Path(args.params).name if args.params else 'packaged parameters'),
+                    reference=ref_columns, setpoint=mech.setpoint_lengths)
     summary = summarize(mech, dyn, result)
     summary.update(control=args.control, control_law=law, rate_hz=rate,
                    wall_time_s=round(wall, 4), csv=str(out / 'trajectory.csv'))
+    if not args.no_figure:
+        summary['figure'] = str(out / 'figure.png')
     if reference is not None:
         from stewart63_ros.core.reference import tracking_errors
         summary['tracking_error'] = {k: (round(v, 9) if isinstance(v, float) else v) for k, v in

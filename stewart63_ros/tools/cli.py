@@ -1,0 +1,42 @@
+"""What the command lines share: loading a parameter file, naming its unknown keys."""
+from __future__ import annotations
+
+import sys
+
+from stewart63_ros.core.params import (ParameterError, default_params_path, file_parameters,
+                                       load_mechanism, unknown_keys)
+
+STRICT_HELP = ('refuse (exit 2) a parameter file with a key no executable reads, instead '
+               'of a warning')
+
+
+def load_checked(prog: str, path=None, node_name=None, strict=False):
+    """The validated mechanism of ``path`` (default: the packaged file), or
+    None after a one-line error on stderr (the caller exits 2). Every key no
+    executable reads is named first: a warning, an error with ``strict``."""
+    path = str(path or default_params_path())
+    try:
+        problems = unknown_keys(file_parameters(path))
+    except Exception:  # noqa: BLE001 - unreadable or not YAML: load_mechanism says how
+        problems = []
+    for problem in problems:
+        print('%s: %s: %s: %s' % (prog, 'error' if strict else 'warning', path, problem),
+              file=sys.stderr)
+    try:
+        mech = load_mechanism(path, node_name=node_name)
+    except ParameterError as exc:
+        print('%s: parameter error: %s: %s' % (prog, path, exc), file=sys.stderr)
+        return None
+    if strict and problems:
+        print('%s: parameter error: %s: unknown keys refused (--strict)' % (prog, path),
+              file=sys.stderr)
+        return None
+    return mech
+
+
+def announce_compile(prog: str, who: str = '') -> None:
+    """One line on stderr when the numba kernels are about to be compiled
+    (a cold cache): otherwise a minute of silence."""
+    from stewart63_ros.core.precompile import COMPILE_NOTICE, kernel_cache_cold
+    if kernel_cache_cold():
+        print('%s: %s%s' % (prog, who, COMPILE_NOTICE), file=sys.stderr, flush=True)
