@@ -13,9 +13,9 @@ unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE
 
 ROS_WHEELS := ros-rclpy ros-rmw-fastrtps-cpp ros-std-msgs ros-geometry-msgs \
               ros-sensor-msgs ros-diagnostic-msgs ros-rosgraph-msgs ros-builtin-interfaces \
-              ros-trajectory-msgs
-PY_DEPS    := numpy scipy numba matplotlib pyyaml rosbags mcap mcap-ros2-support
-TEST_DEPS  := pytest ruff colcon-core colcon-ros colcon-package-information
+              ros-trajectory-msgs ros-visualization-msgs
+PY_DEPS    := numpy scipy numba matplotlib pyyaml rosbags mcap mcap-ros2-support viser
+TEST_DEPS  := pytest ruff colcon-core colcon-ros colcon-package-information playwright
 
 DEMO_OUT ?= out/demo
 

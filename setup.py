@@ -12,11 +12,11 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml']),
-        ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
+        ('share/' + PACKAGE + '/config', glob('config/*.yaml') + glob('config/*.rviz')),
         ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'numba', 'matplotlib', 'pyyaml', 'rosbags',
-                      'mcap'],
+                      'mcap', 'viser'],
     # MuJoCo only for `make bench` and its agreement test, never at run time.
     extras_require={'bench': ['mujoco>=3.1']},
     zip_safe=True,

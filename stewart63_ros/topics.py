@@ -36,6 +36,7 @@ EXTERNAL_WRENCH = 'external_wrench'
 POSE_TRAJECTORY = 'pose_trajectory'
 CLOCK = '/clock'
 DIAGNOSTICS = '/diagnostics'
+MARKERS = 'markers'
 
 #: Publisher history: 1 s of samples at 1 kHz, so a reliable recorder that
 #: falls briefly behind is re-sent what it missed instead of losing it.
@@ -65,6 +66,11 @@ SETPOINT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 COMMAND_VOLATILE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                                   reliability=ReliabilityPolicy.RELIABLE,
                                   durability=DurabilityPolicy.VOLATILE)
+#: ``markers`` (20-60 Hz): reliable with a short history, so a recorder gets
+#: every array and RViz2's and Foxglove's default subscriptions match.
+MARKERS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                              reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.VOLATILE)
@@ -83,6 +89,7 @@ TOPIC_TYPES = {
     POSE_TRAJECTORY: 'trajectory_msgs/msg/MultiDOFJointTrajectory',
     CLOCK: 'rosgraph_msgs/msg/Clock',
     DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray',
+    MARKERS: 'visualization_msgs/msg/MarkerArray',
 }
 
 #: Topics whose publishers are latched (TRANSIENT_LOCAL): a recorder asks for
@@ -110,6 +117,8 @@ def publisher_qos(topic: str) -> QoSProfile:
         return SETPOINT_QOS
     if name == DIAGNOSTICS:
         return DIAGNOSTICS_QOS
+    if name == MARKERS:
+        return MARKERS_QOS
     return STREAM_PUB
 
 

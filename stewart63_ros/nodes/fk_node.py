@@ -6,6 +6,10 @@ stamped with the sample's stamp. Lengths with no assembly, or a pose whose
 Jacobian condition number exceeds ``singularity_threshold``, are reported on
 /diagnostics and nothing is published for that sample.
 
+``markers`` (RViz2, Foxglove): at ``marker_rate`` Hz (default 30; 0: off)
+a timer draws the newest sample, its pose and the newest ``leg_forces``
+(nodes/markers.py); the sample path only stores references for it.
+
 ``fk --solve L1 .. L6 [--params FILE] [--all]`` solves once and prints JSON,
 without DDS.
 """
@@ -20,6 +24,7 @@ from sensor_msgs.msg import JointState
 from stewart63_ros import topics
 from stewart63_ros.core.fk import DEFAULT_COND_THRESHOLD, FKTracker, NoAssemblyError
 from stewart63_ros.core.kinematics import leg_lengths
+from stewart63_ros.core.params import ParameterError
 from stewart63_ros.core.rotation import rotation_from_euler
 from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
@@ -44,6 +49,14 @@ class FKNode(RigNode):
         for out in (self.pose_out, self.twist_out):     # made now, not on sample 1
             out.get('base')
         wire.warm_up(('position',), ('velocity',))
+        self.markers = None
+        rate = self.param('marker_rate', 30.0)
+        if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0 <= rate <= 200:
+            raise ParameterError('marker_rate', 'must be a number of Hz from 0 (no markers) '
+                                 'to 200, got %r' % (rate,))
+        if rate:
+            from stewart63_ros.nodes.markers import MarkerPublisher
+            self.markers = MarkerPublisher(self, self.mech, float(rate), self.tracker.fk)
         # Every sample gets a pose: a short queue rather than newest-only.
         # Serialized samples in, serialized poses out: see nodes/wire.py.
         self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
@@ -89,6 +102,9 @@ class FKNode(RigNode):
         self.pub_pose.publish(self.pose_out.get(frame_id).fill(
             sec, nanosec, position=result.position, orientation=result.quaternion))
         self.health.published[topics.PLATFORM_POSE] += 1
+        if self.markers is not None:       # references only: drawn by its timer
+            self.markers.sample = (sec, nanosec, values['position'], result.position,
+                                   result.rotation)
         if rates is not None:
             self.pub_twist.publish(self.twist_out.get(frame_id).fill(
                 sec, nanosec, linear=result.velocity, angular=result.omega))
@@ -97,9 +113,16 @@ class FKNode(RigNode):
     def run(self):
         self.run_on(self.sub_samples)
 
+    def flush(self, timeout: float = 2.0) -> None:
+        super().flush(timeout)
+        if self.markers is not None:
+            self.markers.flush(timeout)
+
     def report(self):
         self.health.values.update(singular_samples=self.singular,
                                   no_assembly_samples=self.no_assembly)
+        if self.markers is not None:
+            self.health.published[topics.MARKERS] = self.markers.published
         super().report()
         if self.started:
             self.health.warning = ''

@@ -1,0 +1,209 @@
+"""``markers``: the rig as a ``visualization_msgs/MarkerArray`` for RViz2 and Foxglove.
+
+A ``MarkerPublisher`` lives in the ``fk`` node, which already has the newest
+measured leg lengths and the pose estimated from them at every sample. The
+sample path only stores references to them (no work); a timer of the node,
+at ``marker_rate`` Hz (default 30, 0 turns markers off), draws the newest
+state once (``core.markers.Scene``) and publishes it. It publishes only when a
+new sample came since the last array, so marker stamps (the sample's stamp)
+strictly increase, in simulated or recorded time alike.
+
+Forces for the colours come from ``leg_forces`` (the newest one, taken as
+bytes and read only when drawn); the ghost is the setpoint: the
+``setpoint_lengths`` parameter, then the newest ``pose_setpoint`` or
+``leg_setpoint`` (turned into a pose by forward kinematics, the assembly
+mode nearest the platform), a setpoint outside the stroke ignored, as the
+controller refuses it. Where ``tf2_msgs`` is importable (a ROS install) the
+same timer broadcasts the ``base`` -> ``platform`` transform on ``/tf``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from stewart63_ros import topics
+from stewart63_ros.core import markers as shapes_mod
+from stewart63_ros.core.kinematics import leg_lengths
+from stewart63_ros.nodes import wire
+
+FRAME = 'base'
+PLATFORM_FRAME = 'platform'
+
+_KIND = {}
+
+
+def _kinds():
+    if not _KIND:
+        from visualization_msgs.msg import Marker
+        _KIND.update({shapes_mod.CYLINDER: Marker.CYLINDER, shapes_mod.SPHERE: Marker.SPHERE,
+                      shapes_mod.SPHERE_LIST: Marker.SPHERE_LIST,
+                      shapes_mod.TRIANGLE_LIST: Marker.TRIANGLE_LIST,
+                      shapes_mod.LINE_LIST: Marker.LINE_LIST})
+    return _KIND
+
+
+class MarkerArrayBuilder:
+    """Shapes -> one MarkerArray, its Marker objects made once and refilled."""
+
+    def __init__(self, frame_id: str = FRAME):
+        self.frame_id = frame_id
+        self.msg = None
+
+    def build(self, shape_list, sec: int, nanosec: int):
+        from builtin_interfaces.msg import Time
+        from geometry_msgs.msg import Point
+        from std_msgs.msg import ColorRGBA
+        from visualization_msgs.msg import Marker, MarkerArray
+        kinds = _kinds()
+        if self.msg is None or len(self.msg.markers) != len(shape_list):
+            self.msg = MarkerArray(markers=[Marker() for _ in shape_list])
+        stamp = Time(sec=int(sec), nanosec=int(nanosec))
+        for marker, shape in zip(self.msg.markers, shape_list):
+            marker.header.frame_id = self.frame_id
+            marker.header.stamp = stamp
+            marker.ns = shape.ns
+            marker.id = shape.id
+            marker.type = kinds[shape.kind]
+            marker.action = Marker.ADD
+            r, g, b, a = (float(c) for c in shape.color)
+            marker.color = ColorRGBA(r=r, g=g, b=b, a=a)
+            marker.scale.x, marker.scale.y, marker.scale.z = (float(v) for v in shape.scale)
+            pose = marker.pose
+            if shape.position is not None and shape.kind in (shapes_mod.CYLINDER,
+                                                              shapes_mod.SPHERE):
+                pose.position.x, pose.position.y, pose.position.z = (
+                    float(v) for v in shape.position)
+                q = shape.orientation
+                pose.orientation.x, pose.orientation.y = float(q[0]), float(q[1])
+                pose.orientation.z, pose.orientation.w = float(q[2]), float(q[3])
+                marker.points = []
+            else:
+                pose.orientation.w = 1.0
+                marker.points = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2]))
+                                 for p in shape.points]
+        return self.msg
+
+
+class MarkerPublisher:
+    """The ``markers`` timer of a node that sees every sample (see module doc)."""
+
+    def __init__(self, node, mech, rate: float, fk=None):
+        from geometry_msgs.msg import PoseStamped
+        from sensor_msgs.msg import JointState
+        from visualization_msgs.msg import MarkerArray
+        self.node = node
+        self.mech = mech
+        self.fk = fk
+        self.scene = shapes_mod.Scene(mech)
+        self.builder = MarkerArrayBuilder()
+        self.pub = node.create_publisher(MarkerArray, topics.MARKERS, topics.MARKERS_QOS)
+        self.tf_pub = self._tf_publisher(node)
+        self.sample = None            # (sec, nanosec, lengths, position, rotation)
+        self.drawn = None             # the sample last drawn
+        self.forces_data = None
+        self.ghost = None
+        self.published = 0
+        self.set_ghost_lengths(np.asarray(mech.setpoint_lengths, dtype=float))
+        # The newest force only: taken as bytes, read when drawn.
+        node.create_subscription(JointState, topics.LEG_FORCES, self.on_forces,
+                                 topics.LATEST_SUB, raw=True)
+        node.create_subscription(PoseStamped, topics.POSE_SETPOINT, self.on_pose_setpoint,
+                                 topics.SETPOINT_QOS)
+        node.create_subscription(JointState, topics.LEG_SETPOINT, self.on_leg_setpoint,
+                                 topics.SETPOINT_QOS)
+        self.timer = node.create_timer(1.0 / rate, self.publish)
+
+    @staticmethod
+    def _tf_publisher(node):
+        try:
+            from tf2_msgs.msg import TFMessage
+        except ImportError:        # the Python wheels have no tf2_msgs: markers only
+            return None
+        return node.create_publisher(TFMessage, '/tf', 10)
+
+    # -- inputs (cheap: they only store) ---------------------------------------
+    def on_sample(self, sec, nanosec, lengths, position, rotation):
+        self.sample = (sec, nanosec, lengths, position, rotation)
+
+    def on_forces(self, data):
+        self.forces_data = data
+
+    def in_stroke(self, lengths) -> bool:
+        return bool(np.all((lengths >= self.mech.leg_length_min)
+                           & (lengths <= self.mech.leg_length_max)))
+
+    def set_ghost_lengths(self, lengths):
+        if lengths is None or self.fk is None or not self.in_stroke(lengths):
+            return
+        from stewart63_ros.core.fk import NoAssemblyError
+        ref = (self.ghost if self.ghost is not None else
+               (self.sample[3], self.sample[4]) if self.sample is not None else
+               self.fk.reference)
+        try:
+            result = self.fk.nearest(lengths, *ref)
+        except NoAssemblyError:
+            return
+        self.ghost = (np.asarray(result.position), np.asarray(result.rotation))
+
+    def on_pose_setpoint(self, msg):
+        from scipy.spatial.transform import Rotation
+        p, q = msg.pose.position, msg.pose.orientation
+        position = np.array([p.x, p.y, p.z])
+        quat = np.array([q.x, q.y, q.z, q.w])
+        norm = np.linalg.norm(quat)
+        if not (np.all(np.isfinite(position)) and np.isfinite(norm) and 0.9 < norm < 1.1):
+            return
+        rot = Rotation.from_quat(quat / norm).as_matrix()
+        if self.in_stroke(leg_lengths(self.mech, position, rot)):
+            self.ghost = (position, rot)
+
+    def on_leg_setpoint(self, msg):
+        values = np.asarray(msg.position, dtype=float)
+        if values.shape == (6,) and np.all(np.isfinite(values)):
+            self.set_ghost_lengths(values)
+
+    # -- the timer ---------------------------------------------------------------
+    def forces(self):
+        data = self.forces_data
+        if data is None:
+            return None
+        fast = wire.read_joint_state(data, ('effort',))
+        if fast is not None:
+            return fast[3]['effort']
+        from sensor_msgs.msg import JointState
+        msg = wire.deserialize(data, JointState)    # None if malformed: drawn grey
+        if msg is None or len(msg.effort) != 6:
+            return None
+        return np.asarray(msg.effort, dtype=float)
+
+    def publish(self):
+        sample = self.sample
+        if sample is None or sample is self.drawn:
+            return
+        self.drawn = sample
+        sec, nanosec, lengths, position, rotation = sample
+        shape_list = self.scene.shapes(position, rotation, lengths, self.forces(), self.ghost)
+        self.pub.publish(self.builder.build(shape_list, sec, nanosec))
+        self.published += 1
+        if self.tf_pub is not None:
+            self.tf_pub.publish(self._transform(sec, nanosec, position, rotation))
+
+    def _transform(self, sec, nanosec, position, rotation):
+        from geometry_msgs.msg import TransformStamped
+        from scipy.spatial.transform import Rotation
+        from tf2_msgs.msg import TFMessage
+        tf = TransformStamped()
+        tf.header.frame_id = FRAME
+        tf.header.stamp.sec, tf.header.stamp.nanosec = int(sec), int(nanosec)
+        tf.child_frame_id = PLATFORM_FRAME
+        tr = tf.transform
+        tr.translation.x, tr.translation.y, tr.translation.z = (float(v) for v in position)
+        q = Rotation.from_matrix(rotation).as_quat()
+        tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w = (float(v) for v in q)
+        return TFMessage(transforms=[tf])
+
+    def flush(self, timeout: float = 2.0):
+        from rclpy.duration import Duration
+        try:
+            self.pub.wait_for_all_acked(Duration(seconds=timeout))
+        except RuntimeError:
+            pass
