@@ -35,6 +35,7 @@ setup(
             'composed = stewart63_ros.nodes.composed:main',
             'sim = stewart63_ros.tools.sim:main',
             'plot = stewart63_ros.tools.plot:main',
+            'view = stewart63_ros.tools.view:main',
         ],
     },
 )

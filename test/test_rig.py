@@ -272,6 +272,14 @@ def final_published_counts(bag) -> dict:
             if topic != '/diagnostics'}    # a status cannot count itself
 
 
+def message_stamp_ns(m) -> int:
+    if hasattr(m, 'markers'):                   # MarkerArray: its markers' stamp
+        m = m.markers[0]
+    if hasattr(m, 'header'):
+        return stamp_ns(m)
+    return int(m.clock.sec) * 1_000_000_000 + int(m.clock.nanosec)
+
+
 def assert_every_published_message_is_in_the_bag(bag, summary):
     """Per topic, the publisher's count equals the bag's, in stamp order."""
     counts = final_published_counts(bag)
@@ -286,9 +294,7 @@ def assert_every_published_message_is_in_the_bag(bag, summary):
         assert topics_of.get(topic), (topic, counts)
     assert topics_of['leg_lengths'] == summary['samples']
     for topic, published in topics_of.items():
-        stamps = [stamp_ns(m) if hasattr(m, 'header') else
-                  int(m.clock.sec) * 1_000_000_000 + int(m.clock.nanosec)
-                  for _, _, m in bagio.read_messages(bag, [topic])]
+        stamps = [message_stamp_ns(m) for _, _, m in bagio.read_messages(bag, [topic])]
         assert len(stamps) == published, '%s: published %d, bag has %d' % (
             topic, published, len(stamps))
         assert all(a < b for a, b in zip(stamps, stamps[1:])), '%s out of order' % topic

@@ -1,0 +1,635 @@
+"""``view``: the platform in 3D in a web browser, live from a rig or from a bag.
+
+    view [--port P] [--host H] [--namespace NS] [--params FILE] [BAG]
+
+Serves ``http://localhost:P/`` (default port 8080) with viser: a page the
+package serves itself, no network needed. The scene is the one of the
+``markers`` topic (core/markers.py): base, U-joints, legs coloured by force,
+platform, setpoint ghost.
+
+Live (no BAG): follows ``platform_pose``, ``leg_lengths`` and ``leg_forces``
+of the rig in NS, redrawn at 30 Hz from the newest message of each (taken
+directly, no callback per message; best-effort depth-1 subscriptions, so the
+rig's publishers never wait for the page); the panel shows the tracking
+error, the loop latency and every node's /diagnostics state. Drag the ghost's
+handle to move the setpoint: the pose is published on ``pose_setpoint``
+(a pose outside the stroke is refused on the page and not sent; one the
+controller refuses is shown as refused). With no rig in NS the page says so
+and keeps waiting.
+
+With BAG: the recorded run, with play/pause and a time slider (poses from
+``ground_truth/pose`` or else ``platform_pose``; the ghost from the bag's
+``markers`` or setpoints).
+"""
+from __future__ import annotations
+
+import argparse
+import errno
+import socket
+import sys
+import threading
+import time
+
+import numpy as np
+
+from stewart63_ros.core import markers as shapes_mod
+from stewart63_ros.core.params import LEG_NAMES, ParameterError, default_params_path, \
+    load_mechanism
+
+#: Browser update rate [Hz]: viser pushes every change over a websocket; at
+#: 1 kHz the page stops following, at 30 Hz it follows (measured).
+FRAME_RATE = 30.0
+PANEL_PERIOD = 0.25          # s between updates of the numbers on the page
+NO_RIG_AFTER = 3.0           # s without a pose before the page says "no rig"
+REFUSED = (0.85, 0.1, 0.1)
+
+
+def rgb(color) -> tuple:
+    return tuple(int(round(255 * c)) for c in color[:3])
+
+
+# ------------------------------------------------------------------ the 3D scene
+class ViewScene:
+    """The rig's shapes as viser scene nodes, made once and moved per frame."""
+
+    def __init__(self, server, mech):
+        self.server = server
+        self.mech = mech
+        self.scene = shapes_mod.Scene(mech)
+        sc = server.scene
+        sc.set_up_direction('+z')
+        server.initial_camera.position = (3.6, -3.2, 2.4)
+        server.initial_camera.look_at = (0.0, 0.0, 0.75)
+        sc.add_grid('/grid', width=6.0, height=6.0, cell_size=0.5, position=(0, 0, -0.025))
+        shapes = self.scene.shapes(mech.initial_position, np.eye(3))
+        by = {(s.ns, s.id): s for s in shapes}
+        base = by[('base', 0)]
+        sc.add_cylinder('/base', radius=base.scale[0] / 2, height=base.scale[2],
+                        color=rgb(base.color), position=tuple(base.position))
+        for i, p in enumerate(mech.base_points):
+            sc.add_icosphere('/ujoint_%d' % (i + 1), radius=self.scene.joint_d / 2,
+                             color=rgb(by[('ujoints', 0)].color), position=tuple(p))
+        plat = np.asarray(mech.platform_points, dtype=float)
+        faces = np.array([[0, 1, 2]])
+        self.platform = sc.add_frame('/platform', show_axes=True, axes_length=0.25,
+                                     axes_radius=0.01)
+        sc.add_mesh_simple('/platform/plate', plat, faces, side='double',
+                           color=rgb(by[('platform', 0)].color))
+        for k, p in enumerate(plat):
+            sc.add_icosphere('/platform/joint_%d' % (k + 1), radius=self.scene.joint_d / 2,
+                             color=rgb(by[('platform_joints', 0)].color), position=tuple(p))
+        self.ghost = sc.add_frame('/ghost', show_axes=False, visible=False)
+        self.ghost_mesh = sc.add_mesh_simple('/ghost/plate', plat, faces, side='double',
+                                             color=rgb(shapes_mod.ENDSTOP), opacity=0.35)
+        self.cylinders, self.pistons, self.status = [], [], []
+        for i in range(6):
+            c, p, s = by[('cylinder', i)], by[('piston', i)], by[('leg_status', i)]
+            self.cylinders.append(sc.add_cylinder(
+                '/cylinder_%d' % (i + 1), radius=c.scale[0] / 2, height=c.scale[2],
+                color=rgb(c.color), position=tuple(c.position), wxyz=_wxyz(c.orientation)))
+            self.pistons.append(sc.add_cylinder(
+                '/piston_%d' % (i + 1), radius=p.scale[0] / 2, height=p.scale[2],
+                color=rgb(p.color), position=tuple(p.position), wxyz=_wxyz(p.orientation)))
+            self.status.append(sc.add_icosphere(
+                '/leg_status_%d' % (i + 1), radius=s.scale[0] / 2, color=rgb(shapes_mod.ENDSTOP),
+                position=tuple(s.position), visible=False))
+        self._ghost_pose = None
+
+    def update(self, position, rot, lengths=None, forces=None):
+        """Move everything to one state (call at most FRAME_RATE times a second)."""
+        from scipy.spatial.transform import Rotation
+        shapes = self.scene.shapes(position, rot, lengths, forces)
+        by = {(s.ns, s.id): s for s in shapes}
+        with self.server.atomic():
+            self.platform.position = tuple(np.asarray(position, dtype=float))
+            self.platform.wxyz = _wxyz(Rotation.from_matrix(rot).as_quat())
+            for i in range(6):
+                for handle, shape in ((self.cylinders[i], by[('cylinder', i)]),
+                                      (self.pistons[i], by[('piston', i)])):
+                    handle.position = tuple(shape.position)
+                    handle.wxyz = _wxyz(shape.orientation)
+                    handle.height = float(shape.scale[2])
+                    color = rgb(shape.color)
+                    if tuple(handle.color) != color:
+                        handle.color = color
+                status = by[('leg_status', i)]
+                shown = status.color[3] > 0
+                self.status[i].position = tuple(status.position)
+                if shown:
+                    self.status[i].color = rgb(status.color)
+                if self.status[i].visible != shown:
+                    self.status[i].visible = shown
+
+    def set_ghost(self, pose, refused=False):
+        """The setpoint pose (position, rot), or None to hide it."""
+        from scipy.spatial.transform import Rotation
+        key = None if pose is None else (tuple(np.round(pose[0], 9)),
+                                         tuple(np.round(np.ravel(pose[1]), 9)), refused)
+        if key == self._ghost_pose:
+            return
+        self._ghost_pose = key
+        if pose is None:
+            self.ghost.visible = False
+            return
+        self.ghost.position = tuple(np.asarray(pose[0], dtype=float))
+        self.ghost.wxyz = _wxyz(Rotation.from_matrix(pose[1]).as_quat())
+        self.ghost_mesh.color = rgb(REFUSED if refused else shapes_mod.ENDSTOP)
+        self.ghost.visible = True
+
+
+def _wxyz(quat_xyzw) -> tuple:
+    x, y, z, w = (float(v) for v in quat_xyzw)
+    return (w, x, y, z)
+
+
+def _quat_xyzw(wxyz) -> np.ndarray:
+    w, x, y, z = (float(v) for v in wxyz)
+    return np.array([x, y, z, w])
+
+
+# ------------------------------------------------------------------ live rig
+class LiveSource:
+    """The newest state of a rig over DDS, taken without an executor."""
+
+    def __init__(self, namespace: str, mech):
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseStamped
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import JointState
+
+        from stewart63_ros import topics
+        from stewart63_ros.core.fk import ForwardKinematics
+        self.mech = mech
+        self.fk = ForwardKinematics(mech)
+        rclpy.init(args=['view'])
+        ns = namespace.strip('/')
+        self.namespace = '/' + ns if ns else '/'
+        self.node = rclpy.create_node('view', namespace=self.namespace,
+                                      start_parameter_services=False)
+        newest = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+        noop = lambda _msg: None  # noqa: E731 - taken directly, never called back
+        mk = self.node.create_subscription
+        self.subs = {
+            'pose': mk(PoseStamped, topics.PLATFORM_POSE, noop, newest),
+            'lengths': mk(JointState, topics.LEG_LENGTHS, noop, newest, raw=True),
+            'forces': mk(JointState, topics.LEG_FORCES, noop, newest, raw=True),
+            'diagnostics': mk(DiagnosticArray, topics.DIAGNOSTICS, noop, topics.DIAGNOSTICS_QOS),
+        }
+        self.pose_topic = self.subs['pose'].topic_name
+        self.setpoint_pub = self.node.create_publisher(PoseStamped, topics.POSE_SETPOINT,
+                                                       topics.SETPOINT_QOS)
+        self.pose = None            # (position, rot, stamp)
+        self.lengths = None
+        self.forces = None
+        self.last_pose_wall = None
+        self.statuses = {}          # name -> (level, message, {key: value})
+        self.setpoint_lengths = np.asarray(mech.setpoint_lengths, dtype=float)
+        self.ghost = self._fk(self.setpoint_lengths, None)
+        self.started = time.monotonic()
+
+    def _fk(self, lengths, near):
+        from stewart63_ros.core.fk import NoAssemblyError
+        try:
+            ref = near if near is not None else self.fk.reference
+            r = self.fk.nearest(lengths, *ref)
+        except NoAssemblyError:
+            return None
+        return (np.asarray(r.position), np.asarray(r.rotation))
+
+    def _newest(self, name):
+        from stewart63_ros.nodes.rclpy_internals import take
+        sub, last = self.subs[name], None
+        while True:
+            msg = take(sub)
+            if msg is None:
+                return last
+            last = msg
+
+    def poll(self):
+        """Take what came in since the last call."""
+        from scipy.spatial.transform import Rotation
+
+        from stewart63_ros.nodes import rclpy_internals, wire
+        msg = self._newest('pose')
+        if msg is not None:
+            p, q = msg.pose.position, msg.pose.orientation
+            quat = np.array([q.x, q.y, q.z, q.w])
+            if np.all(np.isfinite(quat)) and np.linalg.norm(quat) > 0.5:
+                self.pose = (np.array([p.x, p.y, p.z]), Rotation.from_quat(quat).as_matrix())
+                self.last_pose_wall = time.monotonic()
+        for name, field in (('lengths', 'position'), ('forces', 'effort')):
+            data = self._newest(name)
+            if data is not None:
+                fast = wire.read_joint_state(data, (field,))
+                if fast is not None:
+                    setattr(self, name, fast[3][field])
+        while True:
+            msg = rclpy_internals.take(self.subs['diagnostics'])
+            if msg is None:
+                break
+            for status in msg.status:
+                if self._mine(status.name):
+                    self.statuses[status.name] = (
+                        int.from_bytes(status.level, 'little') if isinstance(
+                            status.level, bytes) else int(status.level),
+                        status.message, {kv.key: kv.value for kv in status.values})
+        self._setpoint_from_controller()
+
+    def _mine(self, status_name: str) -> bool:
+        """A status of a node of this rig ('stewart63' + node's full name)."""
+        if not status_name.startswith('stewart63/'):
+            return False
+        node_ns = status_name[len('stewart63'):].rsplit('/', 1)[0] or '/'
+        return node_ns == self.namespace
+
+    def _setpoint_from_controller(self):
+        for name, (_, _, values) in self.statuses.items():
+            if name.endswith('/controller') and 'setpoint' in values:
+                try:
+                    lengths = np.array([float(v) for v in
+                                        values['setpoint'].strip('[]').split(',')])
+                except ValueError:
+                    return
+                if lengths.shape == (6,) and not np.allclose(lengths, self.setpoint_lengths):
+                    self.setpoint_lengths = lengths
+                    ghost = self._fk(lengths, self.ghost)
+                    if ghost is not None:
+                        self.ghost = ghost
+
+    def rig_present(self) -> bool:
+        return self.node.count_publishers(self.pose_topic) > 0
+
+    def controller_rejections(self) -> tuple:
+        """(count of refused pose setpoints, the controller's message)."""
+        for name, (_, message, values) in self.statuses.items():
+            if name.endswith('/controller'):
+                n = sum(int(v) for k, v in values.items()
+                        if k.startswith('rejected/pose_setpoint/'))
+                return n, message
+        return 0, ''
+
+    def publish_setpoint(self, position, quat_xyzw):
+        from geometry_msgs.msg import PoseStamped
+        msg = PoseStamped()
+        msg.header.frame_id = 'base'
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (
+            float(v) for v in position)
+        o = msg.pose.orientation
+        o.x, o.y, o.z, o.w = (float(v) for v in quat_xyzw)
+        self.setpoint_pub.publish(msg)
+
+    def close(self):
+        import rclpy
+        self.node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+
+
+LEVELS = {0: 'OK', 1: 'WARN', 2: 'ERROR', 3: 'STALE'}
+
+
+def live_panel(src: LiveSource) -> str:
+    """The numbers on the page, as markdown."""
+    lines = []
+    if src.pose is None or time.monotonic() - (src.last_pose_wall or 0) > NO_RIG_AFTER:
+        waited = time.monotonic() - src.started
+        if not src.rig_present():
+            lines.append('**No rig in namespace `%s`**: nothing publishes `%s` yet. '
+                         'Waiting (%.0f s)…' % (src.namespace, src.pose_topic, waited))
+        else:
+            lines.append('**Rig found in `%s`, no pose for %.0f s** (stopped or paused?). '
+                         'Waiting…' % (src.namespace, time.monotonic() - (
+                             src.last_pose_wall or src.started)))
+    else:
+        p = src.pose[0]
+        lines.append('**Live** `%s`: platform at x %.3f, y %.3f, z %.3f m'
+                     % (src.namespace, p[0], p[1], p[2]))
+    if src.lengths is not None:
+        err = src.lengths - src.setpoint_lengths
+        worst = int(np.argmax(np.abs(err)))
+        lines.append('Tracking error: max |L − L0| = %.1f mm (%s), %.3f %% of L0'
+                     % (1e3 * abs(err[worst]), LEG_NAMES[worst],
+                        100 * np.max(np.abs(err) / src.setpoint_lengths)))
+    if src.forces is not None:
+        lines.append('Forces [N]: ' + ', '.join('%.0f' % f for f in src.forces))
+    for name, (level, message, values) in sorted(src.statuses.items()):
+        short = name.rsplit('/', 1)[-1]
+        extra = ''
+        if 'latency/p99_ms' in values:
+            extra = ' — loop latency p50 %s ms, p99 %s ms' % (
+                values.get('latency/p50_ms', '?'), values['latency/p99_ms'])
+        lines.append('`%s` **%s** %s%s' % (short, LEVELS.get(level, level), message, extra))
+    return '\n\n'.join(lines)
+
+
+# ------------------------------------------------------------------ bag
+class BagRun:
+    """A recorded run: poses, lengths, forces and the ghost against time."""
+
+    def __init__(self, bag, mech):
+        from stewart63_ros import bagio
+        from stewart63_ros.core.rotation import rotation_from_euler
+        cols = bagio.trajectory_from_bag(bag, hold_forces=True)
+        t = cols['t']
+        have = np.all(np.isfinite(np.column_stack([cols[c] for c in (
+            'x', 'y', 'z', 'theta_x', 'theta_y', 'theta_z')])), axis=1) if len(t) else \
+            np.zeros(0, bool)
+        if not have.any():
+            info = bagio.bag_info(bag)
+            topics = sorted(info.get('topics', {})) if isinstance(info, dict) else []
+            raise bagio.BagError(
+                '%s: no platform poses (neither ground_truth/pose nor platform_pose); '
+                'the bag has: %s' % (bag, ', '.join(topics) or 'no messages'))
+        self.t = t[have]
+        self.position = np.column_stack([cols[c][have] for c in ('x', 'y', 'z')])
+        theta = np.column_stack([cols[c][have] for c in ('theta_x', 'theta_y', 'theta_z')])
+        self.rot = np.array([rotation_from_euler(th) for th in theta])
+        lengths = np.column_stack([cols['L%d' % i][have] for i in range(1, 7)])
+        self.lengths = lengths if np.all(np.isfinite(lengths)) else None
+        forces = np.column_stack([cols['F%d' % i][have] for i in range(1, 7)])
+        self.forces = forces
+        self.ghost_t, self.ghost = self._ghosts(bag, mech, cols)
+
+    def _ghosts(self, bag, mech, cols):
+        """Ghost poses against time from the bag's markers (their 'ghost'
+        triangle), else one from its setpoints, else the parameter file's."""
+        from stewart63_ros import bagio
+        from stewart63_ros.core.fk import ForwardKinematics, NoAssemblyError
+        t0 = None
+        times, poses = [], []
+        try:
+            for _, _, msg in bagio.read_messages(bag, ['markers']):
+                for m in msg.markers:
+                    if m.ns == 'ghost' and m.color.a > 0 and len(m.points) >= 3:
+                        verts = np.array([[p.x, p.y, p.z] for p in m.points[:3]])
+                        stamp = m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec
+                        times.append(stamp)
+                        poses.append(_pose_from_vertices(verts, mech))
+        except bagio.BagError:
+            pass
+        if times:
+            # same clock as the samples: the trajectory's t is stamp - first stamp
+            first = self._first_stamp(bag)
+            t0 = first if first is not None else times[0]
+            return np.array(times) - t0, poses
+        fk = ForwardKinematics(mech)
+        try:
+            r = fk.nearest(np.asarray(mech.setpoint_lengths), self.position[0], self.rot[0])
+            return np.array([0.0]), [(np.asarray(r.position), np.asarray(r.rotation))]
+        except NoAssemblyError:
+            return np.array([0.0]), [None]
+
+    @staticmethod
+    def _first_stamp(bag):
+        from stewart63_ros import bagio
+        for topic in ('leg_lengths', 'ground_truth/pose', 'platform_pose'):
+            try:
+                for _, _, msg in bagio.read_messages(bag, [topic]):
+                    return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+            except bagio.BagError:
+                continue
+        return None
+
+    def index(self, t: float) -> int:
+        return int(np.clip(np.searchsorted(self.t, t, side='right') - 1, 0, len(self.t) - 1))
+
+    def ghost_at(self, t: float):
+        k = int(np.searchsorted(self.ghost_t, t, side='right') - 1)
+        return self.ghost[max(k, 0)]
+
+
+def _pose_from_vertices(verts, mech):
+    """(t, R) with R p_k + t = v_k (least squares: Kabsch)."""
+    plat = np.asarray(mech.platform_points, dtype=float)
+    pc, vc = plat.mean(axis=0), verts.mean(axis=0)
+    u, _, vt = np.linalg.svd((plat - pc).T @ (verts - vc))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return (vc - rot @ pc, rot)
+
+
+# ------------------------------------------------------------------ serving
+def port_free(host: str, port: int) -> str:
+    """'' if ``host:port`` can be bound now, else why not."""
+    if port == 0:
+        return ''
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                return 'port %d is in use (another view or server?); choose one with --port' % port
+            return 'cannot listen on %s:%d: %s' % (host, port, exc.strerror)
+    return ''
+
+
+def start_server(host: str, port: int):
+    import logging
+
+    import viser
+    logging.getLogger('websockets').setLevel(logging.ERROR)
+    server = viser.ViserServer(host=host, port=port, label='stewart63', verbose=False)
+    if port and server.get_port() != port:       # viser moves on to the next free port
+        server.stop()
+        raise OSError('port %d is in use (another view or server?); choose one with --port'
+                      % port)
+    return server
+
+
+def url_of(host: str, port: int) -> str:
+    shown = 'localhost' if host in ('0.0.0.0', '127.0.0.1', 'localhost', '::') else host
+    return 'http://%s:%d/' % (shown, port)
+
+
+def run_live(server, mech, namespace, stop):
+    view = ViewScene(server, mech)
+    src = LiveSource(namespace, mech)
+    gui = server.gui
+    with gui.add_folder('Rig'):
+        panel = gui.add_markdown('Starting…')
+    with gui.add_folder('Setpoint'):
+        gui.add_markdown('Drag the handle at the ghost (yellow) to move the setpoint; '
+                         'it is published on `pose_setpoint`.')
+        setpoint_note = gui.add_markdown('')
+    handle = server.scene.add_transform_controls('/setpoint_handle', scale=0.4,
+                                                 depth_test=False)
+    dragged = {}
+    lock = threading.Lock()
+
+    @handle.on_update
+    def _(_event):
+        with lock:
+            dragged['pose'] = (np.array(handle.position), _quat_xyzw(handle.wxyz))
+
+    from scipy.spatial.transform import Rotation
+
+    from stewart63_ros.core.kinematics import leg_lengths
+    last_panel = 0.0
+    last_sent = 0.0
+    sent = None             # (time, controller rejections before)
+    refused_local = False
+    period = 1.0 / FRAME_RATE
+    handle_at = None
+    while not stop.is_set():
+        tick = time.monotonic()
+        src.poll()
+        if src.pose is not None:
+            view.update(src.pose[0], src.pose[1], src.lengths, src.forces)
+        with lock:
+            pose = dragged.pop('pose', None)
+        if pose is not None and tick - last_sent > 0.1:
+            rot = Rotation.from_quat(pose[1]).as_matrix()
+            lengths = leg_lengths(mech, pose[0], rot)
+            bad = np.flatnonzero((lengths < mech.leg_length_min) |
+                                 (lengths > mech.leg_length_max))
+            if bad.size:
+                refused_local = True
+                setpoint_note.content = (
+                    '**Refused**: %s would need %.3f m, outside the stroke [%g, %g] m; '
+                    'not sent.' % (LEG_NAMES[bad[0]], lengths[bad[0]],
+                                   mech.leg_length_min, mech.leg_length_max))
+                view.set_ghost((pose[0], rot), refused=True)
+            else:
+                refused_local = False
+                src.publish_setpoint(pose[0], pose[1])
+                sent = (tick, src.controller_rejections()[0])
+                setpoint_note.content = 'Sent: x %.3f, y %.3f, z %.3f m' % tuple(pose[0])
+                view.set_ghost((pose[0], rot))
+            last_sent = tick
+        elif pose is None and not refused_local:
+            view.set_ghost(src.ghost)
+            if src.ghost is not None and handle_at is None:
+                handle.position = tuple(src.ghost[0])
+                handle.wxyz = _wxyz(Rotation.from_matrix(src.ghost[1]).as_quat())
+                handle_at = src.ghost
+        if sent is not None:
+            count, message = src.controller_rejections()
+            if count > sent[1]:
+                setpoint_note.content = '**Refused by the controller**: %s' % message
+                view.set_ghost(src.ghost, refused=True)
+                sent = None
+            elif tick - sent[0] > 3.0:
+                sent = None
+        if tick - last_panel > PANEL_PERIOD:
+            panel.content = live_panel(src)
+            last_panel = tick
+        stop.wait(max(0.0, period - (time.monotonic() - tick)))
+    src.close()
+
+
+def run_bag(server, mech, bag_run: BagRun, stop):
+    view = ViewScene(server, mech)
+    gui = server.gui
+    end = float(bag_run.t[-1])
+    step = max(1e-3, round(end / 1000.0, 3)) if end > 0 else 1e-3
+    with gui.add_folder('Bag'):
+        info = gui.add_markdown('')
+        play = gui.add_checkbox('Play', initial_value=False)
+        speed = gui.add_dropdown('Speed', ('0.25', '0.5', '1', '2', '4'), initial_value='1')
+        slider = gui.add_slider('Time [s]', min=0.0, max=max(end, step), step=step,
+                                initial_value=0.0)
+    state = {'t': 0.0, 'set_by_us': None}
+
+    @slider.on_update
+    def _(_event):
+        if state['set_by_us'] is None or abs(slider.value - state['set_by_us']) > 1e-9:
+            state['t'] = float(slider.value)
+
+    period = 1.0 / FRAME_RATE
+    last = time.monotonic()
+    shown = None
+    while not stop.is_set():
+        now = time.monotonic()
+        if play.value:
+            state['t'] += (now - last) * float(speed.value)
+            if state['t'] >= end:
+                state['t'] = end
+                play.value = False
+            state['set_by_us'] = round(state['t'] / step) * step
+            slider.value = state['set_by_us']
+        last = now
+        k = bag_run.index(state['t'])
+        if k != shown:
+            shown = k
+            view.update(bag_run.position[k], bag_run.rot[k],
+                        None if bag_run.lengths is None else bag_run.lengths[k],
+                        bag_run.forces[k])
+            view.set_ghost(bag_run.ghost_at(bag_run.t[k]))
+            f = bag_run.forces[k]
+            info.content = ('t = %.3f s of %.3f s\n\nplatform z %.4f m\n\nforces [N]: %s'
+                            % (bag_run.t[k], end, bag_run.position[k][2],
+                               ', '.join('%.0f' % v for v in f) if np.all(np.isfinite(f))
+                               else 'not recorded'))
+        stop.wait(max(0.0, period - (time.monotonic() - now)))
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(
+        prog='view', description=__doc__.split('\n\n')[0],
+        epilog='Open the printed URL in a browser. Live: Ctrl-C stops the page; the rig '
+               'runs on. The page works offline (served by the package).')
+    parser.add_argument('bag', nargs='?', metavar='BAG', help='a recorded bag directory to '
+                        'replay (default: live from the rig)')
+    parser.add_argument('--port', type=int, default=8080,
+                        help='HTTP port (default 8080; 0: any free port)')
+    parser.add_argument('--host', default='127.0.0.1',
+                        help='address to listen on (default 127.0.0.1, this machine only; '
+                        '0.0.0.0 for every interface)')
+    parser.add_argument('--namespace', default='', help='namespace of the rig, e.g. /rig2')
+    parser.add_argument('--params', help='parameter file of the mechanism (default: the '
+                        'packaged one)')
+    args = parser.parse_args(argv)
+    if not 0 <= args.port <= 65535:
+        print('view: error: --port must be from 0 to 65535', file=sys.stderr)
+        return 2
+    if args.bag and args.namespace:
+        print('view: error: --namespace is for a live rig, not with a BAG', file=sys.stderr)
+        return 2
+    try:
+        mech = load_mechanism(args.params or default_params_path())
+    except ParameterError as exc:
+        print('view: parameter error: %s' % exc, file=sys.stderr)
+        return 2
+    bag_run = None
+    if args.bag:
+        from stewart63_ros.bagio import BagError
+        try:
+            bag_run = BagRun(args.bag, mech)
+        except BagError as exc:
+            print('view: error: %s' % exc, file=sys.stderr)
+            return 2
+    problem = port_free(args.host, args.port)
+    if problem:
+        print('view: error: %s' % problem, file=sys.stderr)
+        return 2
+    try:
+        server = start_server(args.host, args.port)
+    except OSError as exc:
+        print('view: error: %s' % exc, file=sys.stderr)
+        return 2
+    print('view: %s (%s); Ctrl-C stops' % (
+        url_of(args.host, server.get_port()),
+        'bag %s' % args.bag if args.bag else 'live, namespace %s' % (args.namespace or '/')),
+        flush=True)
+    stop = threading.Event()
+    import signal
+
+    def on_signal(*_):
+        stop.set()
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    try:
+        if bag_run is not None:
+            run_bag(server, mech, bag_run, stop)
+        else:
+            run_live(server, mech, args.namespace, stop)
+    finally:
+        server.stop()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
