@@ -67,6 +67,13 @@ def quaternion_z_to(direction) -> np.ndarray:
     return q / np.linalg.norm(q)
 
 
+def _quaternions_z_to(directions) -> np.ndarray:
+    """``quaternion_z_to`` for (N, 3) unit vectors (none pointing straight down)."""
+    d = np.asarray(directions, dtype=float)
+    q = np.column_stack([-d[:, 1], d[:, 0], np.zeros(len(d)), 1.0 + d[:, 2]])
+    return q / np.linalg.norm(q, axis=1)[:, None]
+
+
 def force_color(force: float, max_force: float) -> tuple:
     """Grey at 0, towards PUSH (F > 0) or PULL (F < 0), full at |F| = max_force."""
     if force is None or not np.isfinite(force):
@@ -162,6 +169,73 @@ class Scene:
         out.extend(self.ghost_shapes(ghost))
         return out
 
+    def flat(self, position, rot, lengths=None, forces=None, ghost=None):
+        """``flatten(self.shapes(...))``, vectorized: what a 30 Hz marker
+        timer can afford in a process that also serves a 1 kHz loop."""
+        f8, f4 = self._flat_static()
+        mech = self.mech
+        base, s, tip = self.legs(position, rot, lengths)
+        verts = self.vertices(position, rot)
+        o = self._offsets
+        f8[o['platform']:o['platform'] + 18] = _two_sided(verts).ravel()
+        f8[o['platform_joints']:o['platform_joints'] + 9] = verts.ravel()
+        L = np.linalg.norm(tip - base, axis=1)
+        body_end = base + np.minimum(self.body, L)[:, None] * s
+        rod_start = base + np.maximum(L - self.rod, 0.0)[:, None] * s
+        quat = _quaternions_z_to(s)
+        leg = f8[o['legs']:o['legs'] + 6 * 30].reshape(6, 30)
+        leg[:, 0:3] = 0.5 * (base + body_end)
+        leg[:, 3:7] = quat
+        leg[:, 9] = np.maximum(np.linalg.norm(body_end - base, axis=1), 1e-6)
+        leg[:, 10:13] = 0.5 * (rod_start + tip)
+        leg[:, 13:17] = quat
+        leg[:, 19] = np.maximum(np.linalg.norm(tip - rod_start, axis=1), 1e-6)
+        leg[:, 20:23] = body_end
+        colors = f4[16:16 + 6 * 12].reshape(6, 12)
+        if forces is None:
+            colors[:, 4:8] = GREY + (1.0,)
+            force = np.full(6, np.nan)
+        else:
+            force = np.asarray(forces, dtype=float)
+            a = np.minimum(np.abs(force) / mech.max_force, 1.0)
+            target = np.where((force > 0)[:, None], PUSH, PULL)
+            colors[:, 4:7] = np.asarray(GREY) + a[:, None] * (target - np.asarray(GREY))
+            colors[:, 7] = 1.0
+            bad = ~np.isfinite(force)
+            colors[bad, 4:8] = GREY + (1.0,)
+        status = np.tile(np.asarray(HIDDEN, dtype=np.float32), (6, 1))
+        saturated = np.abs(np.nan_to_num(force)) >= mech.max_force * (1.0 - 1e-9)
+        status[saturated] = SATURATED
+        if lengths is not None:
+            endstop = ~((mech.leg_length_min < L) & (L < mech.leg_length_max))
+            status[endstop] = ENDSTOP
+        colors[:, 8:12] = status
+        if ghost is not self._ghost_key:        # changes seldom: flattened once
+            self._ghost_key = ghost
+            self._ghost_flat = flatten(self.ghost_shapes(ghost))
+        g8, g4 = self._ghost_flat
+        f8[o['ghost']:] = g8
+        f4[-8:] = g4
+        return f8, f4
+
+    def _flat_static(self):
+        """Copies of the numbers that never change, and where the rest go."""
+        if not hasattr(self, '_static'):
+            rot = np.eye(3)
+            sample = self.shapes(self.mech.initial_position, rot)
+            f8, f4 = flatten(sample)
+            o, at = {}, 0
+            for shape in sample:
+                key = shape.ns if shape.ns not in ('cylinder', 'piston', 'leg_status') else 'legs'
+                o.setdefault(key, at + 10)      # the points (or, for legs, the first pose)
+                at += 10 + (0 if shape.kind in (CYLINDER, SPHERE) else shape.points.size)
+            o['legs'] -= 10
+            o['ghost'] -= 10
+            self._offsets = o
+            self._static = (f8, f4)
+            self._ghost_key = self._ghost_flat = False
+        return self._static[0].copy(), self._static[1].copy()
+
     def ghost_shapes(self, ghost) -> list[Shape]:
         """The setpoint pose: a translucent triangle and thin legs to it."""
         if ghost is None:
@@ -178,6 +252,22 @@ class Scene:
                       points=_two_sided(verts)),
                 Shape('ghost_legs', 0, LINE_LIST, (0.95, 0.75, 0.20, 0.5),
                       (0.006, 1.0, 1.0), points=legs)]
+
+
+def flatten(shape_list):
+    """The numbers of ``shape_list`` in marker order: (float64 vector, float32
+    colours). Per shape: position (3), orientation (4), scale (3), then the
+    points of a list kind; colours r, g, b, a per shape. ``Scene.flat``
+    computes the same numbers directly, without Shape objects."""
+    f8, f4 = [], []
+    for shape in shape_list:
+        if shape.kind in (CYLINDER, SPHERE):
+            f8 += [*shape.position, *shape.orientation, *shape.scale]
+        else:
+            f8 += [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, *shape.scale]
+            f8 += list(np.ravel(shape.points))
+        f4 += list(shape.color)
+    return np.array(f8, dtype=float), np.array(f4, dtype=np.float32)
 
 
 def _two_sided(verts) -> np.ndarray:
