@@ -38,7 +38,7 @@ NODES = ('plant', 'controller', 'fk')
 START_TIMEOUT = 180.0
 MODULES = {'plant': 'stewart63_ros.nodes.plant', 'controller': 'stewart63_ros.nodes.controller',
            'fk': 'stewart63_ros.nodes.fk_node', 'record': 'stewart63_ros.tools.record',
-           'composed': 'stewart63_ros.nodes.composed'}
+           'composed': 'stewart63_ros.nodes.composed', 'view': 'stewart63_ros.tools.view'}
 
 
 def default_log_dir(record=None, namespace='') -> Path:
@@ -179,6 +179,28 @@ class Rig:
                 raise RuntimeError('%s did not print %s within %g s' % (name, line, timeout))
             time.sleep(0.02)
 
+    def start_view(self, port: int, timeout: float = 60.0) -> str:
+        """Start ``view`` on this rig; its URL once it serves."""
+        argv = ['--port', str(port), '--params', self.params]
+        if self.namespace:
+            argv += ['--namespace', self.namespace]
+        proc = self.spawn('view', argv)
+        log = self.log_dir / 'view.log'
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                for line in log.read_text().splitlines():
+                    if line.startswith('view: http'):
+                        return line.split()[1]
+            except OSError:
+                pass
+            if proc.poll() is not None:
+                raise RuntimeError('view exited (%d): %s' % (proc.returncode,
+                                                             self.log_tail('view')))
+            if time.monotonic() > deadline:
+                raise RuntimeError('view did not start within %g s' % timeout)
+            time.sleep(0.05)
+
     def log_tail(self, name, lines=5):
         try:
             return ' | '.join((self.log_dir / ('%s.log' % name)).read_text().splitlines()[-lines:])
@@ -217,7 +239,8 @@ class Rig:
         stopped as asked: 0.
         """
         interrupted = set()
-        order = [n for n in ('composed', 'plant', 'controller', 'fk') if n in self.procs] + (
+        order = [n for n in ('composed', 'plant', 'controller', 'fk', 'view')
+                 if n in self.procs] + (
             ['record'] if 'record' in self.procs else [])
         # The nodes together, then the recorder; each group on one deadline,
         # so stopping takes at most grace + 3 s a group, however many hang.
@@ -318,8 +341,20 @@ def main(argv=None) -> int:
                         'at P-1 (needs root or CAP_SYS_NICE, else a warning): keeps other '
                         'work on the machine from delaying the loop (0: normal scheduling)')
     parser.add_argument('--strict', action='store_true', help=STRICT_HELP)
+    parser.add_argument('--view', action='store_true',
+                        help='also serve the live 3D view of this rig in a web browser '
+                        '(`view`) and print its URL')
+    parser.add_argument('--view-port', type=int, default=8080, metavar='P',
+                        help='port of --view (default 8080; 0: any free port)')
     args = parser.parse_args(argv)
     params = args.params or str(default_params_path())
+    if args.view:
+        from stewart63_ros.tools.view import port_free
+        problem = port_free('127.0.0.1', args.view_port) if 0 <= args.view_port <= 65535 \
+            else '--view-port must be from 0 to 65535'
+        if problem:
+            print('rig: error: --view: %s' % problem, file=sys.stderr)
+            return 2
     if load_checked('rig', params, strict=args.strict) is None:
         return 2      # fail here, not in three processes
     announce_compile('rig', 'the nodes start by ')
@@ -374,6 +409,8 @@ def main(argv=None) -> int:
     start = time.monotonic()
     try:
         rig.start()
+        if args.view:
+            print('rig: live view at %s' % rig.start_view(args.view_port), flush=True)
         print('rig: %s, logs in %s' % (', '.join(rig.procs), rig.log_dir), flush=True)
         while not stopping:
             ok = rig.wait(timeout=0.2)

@@ -58,8 +58,8 @@ class ViewScene:
         self.scene = shapes_mod.Scene(mech)
         sc = server.scene
         sc.set_up_direction('+z')
-        server.initial_camera.position = (3.6, -3.2, 2.4)
-        server.initial_camera.look_at = (0.0, 0.0, 0.75)
+        server.initial_camera.position = (2.6, -2.4, 3.0)
+        server.initial_camera.look_at = (0.0, 0.0, 0.7)
         sc.add_grid('/grid', width=6.0, height=6.0, cell_size=0.5, position=(0, 0, -0.025))
         shapes = self.scene.shapes(mech.initial_position, np.eye(3))
         by = {(s.ns, s.id): s for s in shapes}
@@ -71,8 +71,9 @@ class ViewScene:
                              color=rgb(by[('ujoints', 0)].color), position=tuple(p))
         plat = np.asarray(mech.platform_points, dtype=float)
         faces = np.array([[0, 1, 2]])
+        # Hidden until the first state: a page with no rig shows the base only.
         self.platform = sc.add_frame('/platform', show_axes=True, axes_length=0.25,
-                                     axes_radius=0.01)
+                                     axes_radius=0.01, visible=False)
         sc.add_mesh_simple('/platform/plate', plat, faces, side='double',
                            color=rgb(by[('platform', 0)].color))
         for k, p in enumerate(plat):
@@ -86,14 +87,17 @@ class ViewScene:
             c, p, s = by[('cylinder', i)], by[('piston', i)], by[('leg_status', i)]
             self.cylinders.append(sc.add_cylinder(
                 '/cylinder_%d' % (i + 1), radius=c.scale[0] / 2, height=c.scale[2],
-                color=rgb(c.color), position=tuple(c.position), wxyz=_wxyz(c.orientation)))
+                color=rgb(c.color), position=tuple(c.position), wxyz=_wxyz(c.orientation),
+                visible=False))
             self.pistons.append(sc.add_cylinder(
                 '/piston_%d' % (i + 1), radius=p.scale[0] / 2, height=p.scale[2],
-                color=rgb(p.color), position=tuple(p.position), wxyz=_wxyz(p.orientation)))
+                color=rgb(p.color), position=tuple(p.position), wxyz=_wxyz(p.orientation),
+                visible=False))
             self.status.append(sc.add_icosphere(
                 '/leg_status_%d' % (i + 1), radius=s.scale[0] / 2, color=rgb(shapes_mod.ENDSTOP),
                 position=tuple(s.position), visible=False))
         self._ghost_pose = None
+        self.shown = False
 
     def update(self, position, rot, lengths=None, forces=None):
         """Move everything to one state (call at most FRAME_RATE times a second)."""
@@ -119,6 +123,10 @@ class ViewScene:
                     self.status[i].color = rgb(status.color)
                 if self.status[i].visible != shown:
                     self.status[i].visible = shown
+            if not self.shown:
+                self.shown = True
+                for handle in [self.platform] + self.cylinders + self.pistons:
+                    handle.visible = True
 
     def set_ghost(self, pose, refused=False):
         """The setpoint pose (position, rot), or None to hide it."""
@@ -337,11 +345,14 @@ class BagRun:
             'x', 'y', 'z', 'theta_x', 'theta_y', 'theta_z')])), axis=1) if len(t) else \
             np.zeros(0, bool)
         if not have.any():
-            info = bagio.bag_info(bag)
-            topics = sorted(info.get('topics', {})) if isinstance(info, dict) else []
+            reader = bagio.open_reader(bag)
+            try:
+                topics = sorted({c.topic for c in reader.connections})
+            finally:
+                reader.close()
             raise bagio.BagError(
-                '%s: no platform poses (neither ground_truth/pose nor platform_pose); '
-                'the bag has: %s' % (bag, ', '.join(topics) or 'no messages'))
+                '%s: no platform poses (neither ground_truth/pose nor platform_pose) in the '
+                'bag (it has: %s)' % (bag, ', '.join(topics) or 'no topics'))
         self.t = t[have]
         self.position = np.column_stack([cols[c][have] for c in ('x', 'y', 'z')])
         theta = np.column_stack([cols[c][have] for c in ('theta_x', 'theta_y', 'theta_z')])
