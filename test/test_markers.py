@@ -177,7 +177,7 @@ def test_rig_publishes_markers_that_follow_a_pose_setpoint(ros):
     got.clear()
     window = 3.0
     ros.spin_until(lambda: False, timeout=window)
-    (t0, first), (t1, last) = got[0], got[-1]
+    first, last = got[0][1], got[-1][1]
     rate = len(got) / window
     print('\nmarkers: %d arrays in %.1f s: %.1f Hz (stamps span %.2f s), %d markers each'
           % (len(got), window, rate, stamp(last) - stamp(first), len(last.markers)))
