@@ -59,6 +59,12 @@ def main(argv=None) -> int:
              '; the loop alone %.1f s (%.2fx)' % (loop, args.duration / loop) if loop else ''))
     print('demo: bag    %s' % bag.resolve())
     print('demo: figure %s' % figure.resolve())
+    print('demo: where to look:')
+    print('  the run in 3D in a browser:   .venv/bin/view %s   then open '
+          'http://localhost:8080/' % bag)
+    print('  a live rig in the browser:    .venv/bin/rig --mode realtime --view')
+    print('  an animation of the run:      .venv/bin/plot --animate %s' % bag)
+    print('  RViz2 / Foxglove: the bag has the markers topic (README, "Seeing the platform")')
     return 0
 
 

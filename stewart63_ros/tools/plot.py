@@ -1,6 +1,7 @@
 """`plot`: the paper's Fig. 4 (leg lengths, position, orientation against time).
 
     plot SOURCE [--out FILE.png] [--reference CSV] [--params FILE] [--title TEXT]
+    plot --animate SOURCE [--out FILE.gif|FILE.mp4] [--fps N] [--params FILE]
 
 SOURCE is a trajectory CSV, a folder holding one (``sim --out DIR``), or a
 rosbag2 directory recorded from the rig (docs/interface.md: "Trajectory CSV",
@@ -9,6 +10,8 @@ rosbag2 directory recorded from the rig (docs/interface.md: "Trajectory CSV",
 reference motion (--reference, or a reference.csv beside the source, as `sim
 --reference` writes it; time 0 = the first sample), the reference is drawn
 dashed against the actual motion and a fourth panel shows the error.
+``--animate`` writes an animation of the run instead: the platform in 3D
+beside the leg lengths (tools/animate.py).
 """
 from __future__ import annotations
 
@@ -124,10 +127,21 @@ def main(argv=None) -> int:
                         help='parameter file whose setpoint_lengths are drawn (default: the '
                         'packaged one)')
     parser.add_argument('--title', help='figure title (default: the source and its length)')
+    parser.add_argument('--animate', action='store_true',
+                        help='write an animation (GIF, or MP4 where ffmpeg is installed) of '
+                        'the platform in 3D beside the leg lengths instead of the figure '
+                        '(default --out: animation.gif beside the source)')
+    parser.add_argument('--fps', type=float, default=15.0,
+                        help='--animate: frames per second (default 15; a run longer than '
+                        '300 frames plays faster)')
     args = parser.parse_args(argv)
     source = Path(args.source)
     if not source.exists():
         parser.exit(2, 'plot: error: %s does not exist\n' % source)
+    if args.animate:
+        return animate_main(parser, args, source)
+    if args.fps != 15.0:
+        parser.exit(2, 'plot: error: --fps goes with --animate\n')
     from stewart63_ros.bagio import BagError
     reference = None
     ref_path = Path(args.reference) if args.reference else (
@@ -156,6 +170,30 @@ def main(argv=None) -> int:
     draw_figure(columns, out, title=args.title or run_title(source, columns),
                 reference=reference, setpoint=setpoint)
     print(out)
+    return 0
+
+
+def animate_main(parser, args, source) -> int:
+    from stewart63_ros.core.params import ParameterError, default_params_path, load_mechanism
+    from stewart63_ros.tools.animate import Animator
+    if not 0 < args.fps <= 60:
+        parser.exit(2, 'plot: error: --fps must be in (0, 60]\n')
+    out = Path(args.out) if args.out else (
+        source / 'animation.gif' if source.is_dir() else source.with_name('animation.gif'))
+    if out.suffix.lower() not in ('.gif', '.mp4'):
+        parser.exit(2, 'plot: error: %s: --animate writes a .gif or an .mp4\n' % out)
+    try:
+        mech = load_mechanism(args.params or default_params_path())
+        columns = load_columns(source)
+        if len(columns['t']) == 0:
+            raise ValueError('%s holds no samples' % source)
+        path, frames, speed = Animator(columns, mech, title=source.name).save(out, args.fps)
+    except ParameterError as exc:
+        parser.exit(2, 'plot: parameter error: %s\n' % exc)
+    except (ValueError, OSError) as exc:  # TrajectoryError, BagError, no poses, no ffmpeg
+        parser.exit(2, 'plot: error: %s\n' % exc)
+    print('%s (%d frames at %g fps%s)' % (path, frames, args.fps,
+                                          ', %.1fx real time' % speed if speed > 1 else ''))
     return 0
 
 
