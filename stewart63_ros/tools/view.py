@@ -1,4 +1,4 @@
-"""``view``: the platform in 3D in a web browser, live from a rig or from a bag.
+"""view: the platform in 3D in a web browser, live from a rig or from a bag.
 
     view [--port P] [--host H] [--namespace NS] [--params FILE] [BAG]
 
