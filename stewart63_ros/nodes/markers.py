@@ -186,10 +186,10 @@ class MarkerPublisher:
         # The newest force only: taken as bytes, read when drawn.
         node.create_subscription(JointState, topics.LEG_FORCES, self.on_forces,
                                  topics.LATEST_SUB, raw=True)
-        node.create_subscription(PoseStamped, topics.POSE_SETPOINT, self.on_pose_setpoint,
-                                 topics.SETPOINT_QOS)
-        node.create_subscription(JointState, topics.LEG_SETPOINT, self.on_leg_setpoint,
-                                 topics.SETPOINT_QOS)
+        # The setpoints as the controller takes them: volatile and latched publishers.
+        from stewart63_ros.nodes.commands import CommandInput
+        CommandInput(node, PoseStamped, topics.POSE_SETPOINT, self.on_pose_setpoint)
+        CommandInput(node, JointState, topics.LEG_SETPOINT, self.on_leg_setpoint)
         self.timer = node.create_timer(1.0 / rate, self.publish)
 
     @staticmethod
