@@ -188,8 +188,9 @@ class MarkerPublisher:
                                  topics.LATEST_SUB, raw=True)
         # The setpoints as the controller takes them: volatile and latched publishers.
         from stewart63_ros.nodes.commands import CommandInput
-        self.commands = [CommandInput(node, PoseStamped, topics.POSE_SETPOINT, self.on_pose_setpoint),
-                         CommandInput(node, JointState, topics.LEG_SETPOINT, self.on_leg_setpoint)]
+        self.commands = [
+            CommandInput(node, PoseStamped, topics.POSE_SETPOINT, self.on_pose_setpoint),
+            CommandInput(node, JointState, topics.LEG_SETPOINT, self.on_leg_setpoint)]
         self.timer = node.create_timer(1.0 / rate, self.publish)
 
     @staticmethod
