@@ -6,12 +6,15 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from stewart63_ros.core.kinematics import leg_lengths
 from stewart63_ros.core.params import load_mechanism
 from stewart63_ros.core.trajectory import COLUMNS, write_csv
 
 REPO = Path(__file__).resolve().parents[1]
+#: every test here spawns a process (view, rig, plot, a browser)
+pytestmark = pytest.mark.slow
 
 
 def rising_csv(path, mech, seconds=1.0, rate=50):

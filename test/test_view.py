@@ -30,6 +30,8 @@ import pytest
 from ros_harness import PYTHON, wait_until
 
 REPO = Path(__file__).resolve().parents[1]
+#: every test here spawns a process (view, rig, plot, a browser)
+pytestmark = pytest.mark.slow
 CHROMIUM = '/usr/bin/chromium'
 CHROMIUM_ARGS = ['--no-sandbox', '--enable-unsafe-swiftshader', '--use-angle=swiftshader',
                  '--disable-background-networking', '--disable-component-update',
