@@ -66,9 +66,10 @@ SETPOINT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 COMMAND_VOLATILE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                                   reliability=ReliabilityPolicy.RELIABLE,
                                   durability=DurabilityPolicy.VOLATILE)
-#: ``markers`` (20-60 Hz): reliable with a short history, so a recorder gets
-#: every array and RViz2's and Foxglove's default subscriptions match.
-MARKERS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+#: ``markers`` (20-60 Hz): reliable, with a history of some 3 s of arrays, so
+#: a recorder that falls behind is re-sent what it missed; RViz2's and
+#: Foxglove's default subscriptions match.
+MARKERS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                          reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
