@@ -196,19 +196,24 @@ class ControllerNode(RigNode):
             raise ParameterError(name, 'must be a finite number >= 0, got %r' % value)
         return value
 
-    def _warm_up(self):
+    def _warm_up(self, name=None):
+        """Load the compiled kernels of law ``name`` (default: the active one), on a
+        throwaway copy: the first sample must not wait for them."""
         from stewart63_ros.core.rotation import rotation_from_euler
         mech = self.mech
         rot = rotation_from_euler(mech.initial_orientation)
         lengths = leg_lengths(mech, mech.initial_position, rot)
         still = Reference.constant_pose(mech, mech.initial_position, rot)
-        for name in LAWS:
+        # The active law only (another one loads when chosen at run time): loading
+        # every law's kernels costs a restarted controller CPU the plant needs.
+        name = name or self.control.law_name
+        if name in LAWS:
             for reference in (None, still):
                 try:
                     Controller(mech, self.params, law=name, reference=reference)(
                         lengths, np.zeros(6), 0.0)
                 except (LawError, ParameterError):
-                    pass            # a law that cannot run here is refused when chosen
+                    pass            # a law that cannot run here fails on its first sample
 
     # -- run-time tuning -----------------------------------------------------------------
     def _gain_setter(self, name):
@@ -223,6 +228,7 @@ class ControllerNode(RigNode):
 
     def set_law(self, value):
         self.control.set_law(value)          # ParameterError refuses it
+        self._warm_up(value)
         self._register_law_parameters()
         self.health.values['control_law'] = self.control.law_name
         self.get_logger().info('control law: %s' % value)
