@@ -49,8 +49,10 @@ STREAM_PUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH,
 LATEST_SUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
-#: Consumers that must see every sample (fk): a short queue absorbs jitter.
-EVERY_SUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+#: Consumers that must see every sample (fk): a queue of 1 s at 1 kHz absorbs a
+#: process starved of CPU for that long (100 lost replayed samples on a loaded
+#: two-core machine).
+EVERY_SUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                        reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.VOLATILE)
 #: Recording: keep everything.

@@ -417,8 +417,13 @@ class RigNode(Node):
             with open(self.summary_file, 'w') as stream:
                 json.dump(summary, stream, indent=1)
 
+    #: s: the flush's bound when the node was stopped by a signal (a launcher
+    #: escalates after 5 s) and at the normal end of a run, when a recorder
+    #: that lags on a loaded machine is given longer to take the last messages.
+    FLUSH_ON_SIGNAL, FLUSH_AT_END = 2.0, 6.0
+
     def close(self):
         self.report()
-        self.flush()
+        self.flush(self.FLUSH_ON_SIGNAL if STOP.requested else self.FLUSH_AT_END)
         if not self.summary_written:
             self.write_summary_file(self.summary())
