@@ -6,17 +6,12 @@ ROS 2 installs that have `launch`. Recording: `ros2 bag record` or our
 `record`, see README. Importing this file needs no ROS package: the launch
 imports happen inside generate_launch_description().
 """
-import os
 
 
 def default_params():
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        return os.path.join(get_package_share_directory('stewart63_ros'), 'config',
-                            'stewart63.yaml')
-    except Exception:  # noqa: BLE001 - a checkout without an install
-        return os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                            'config', 'stewart63.yaml')
+    """The packaged parameter file (installed share folder, or the checkout's)."""
+    from stewart63_ros.core.params import default_params_path
+    return str(default_params_path())
 
 
 def generate_launch_description():

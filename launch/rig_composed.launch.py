@@ -8,17 +8,12 @@ DDS topics, served by one loop (README: "One process or several").
 ``record:=DIR`` adds the recorder to that process. Importing this file needs
 no ROS package: the launch imports happen inside generate_launch_description().
 """
-import os
 
 
 def default_params():
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        return os.path.join(get_package_share_directory('stewart63_ros'), 'config',
-                            'stewart63.yaml')
-    except Exception:  # noqa: BLE001 - a checkout without an install
-        return os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                            'config', 'stewart63.yaml')
+    """The packaged parameter file (installed share folder, or the checkout's)."""
+    from stewart63_ros.core.params import default_params_path
+    return str(default_params_path())
 
 
 def _composed(context, *args, **kwargs):
