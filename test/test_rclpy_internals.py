@@ -61,3 +61,24 @@ def test_wait_any_wakes_on_any_of_its_subscriptions(ros):
     waiter.wait(5.0)                               # the second one has a message
     assert time.monotonic() - t0 < 4.0
     assert take(subs[1]) is not None and take(subs[0]) is None
+
+
+def test_wait_any_wakes_on_a_guard_condition_and_take_with_info_gives_the_info(ros):
+    """The recorder's wait: its subscriptions plus a guard condition (its stop)."""
+    from stewart63_ros.nodes.rclpy_internals import WaitAny, take_with_info
+    node = ros.node('guard_probe')
+    sub = node.create_subscription(JointState, 'guarded', lambda _m: None, 10, raw=True)
+    pub = node.create_publisher(JointState, 'guarded', 10)
+    assert ros.spin_until(lambda: pub.get_subscription_count() >= 1, timeout=10)
+    guard = node.create_guard_condition(lambda: None)
+    waiter = WaitAny(node.context, [sub], [guard])
+    guard.trigger()
+    start = time.monotonic()
+    waiter.wait(5.0)
+    assert time.monotonic() - start < 2.5, 'a triggered guard condition must end the wait'
+    pub.publish(JointState(name=['c']))
+    waiter.wait(5.0)
+    taken = take_with_info(sub)
+    assert taken is not None
+    data, info = taken
+    assert isinstance(data, bytes) and info['received_timestamp'] > 0

@@ -23,6 +23,12 @@ def take(subscription):
     return None if taken is None else taken[0]
 
 
+def take_with_info(subscription):
+    """(message, info) of the next message of ``subscription``, or None; ``info``
+    is rclpy's dict (``received_timestamp``, ``publisher_gid``, ...)."""
+    return subscription.handle.take_message(subscription.msg_type, subscription.raw)
+
+
 def run_timer_if_ready(timer) -> bool:
     """Call ``timer``'s callback if it is due, as the executor would; True if it was.
 
@@ -100,14 +106,18 @@ class WaitAny:
     ``DirectTake.poll(0)``). One wait set, rebuilt in place on each wait.
     """
 
-    def __init__(self, context, subscriptions):
+    def __init__(self, context, subscriptions, guard_conditions=()):
         from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
         self.handles = [s.handle for s in subscriptions]
-        self.wait_set = _rclpy.WaitSet(len(self.handles), 0, 0, 0, 0, 0, context.handle)
+        self.guards = [g.handle for g in guard_conditions]
+        self.wait_set = _rclpy.WaitSet(len(self.handles), len(self.guards), 0, 0, 0, 0,
+                                       context.handle)
 
     def wait(self, timeout_sec: float) -> None:
         ws = self.wait_set
         ws.clear_entities()
         for handle in self.handles:
             ws.add_subscription(handle)
+        for handle in self.guards:
+            ws.add_guard_condition(handle)
         ws.wait(int(max(0.0, timeout_sec) * 1e9))

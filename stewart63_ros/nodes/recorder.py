@@ -14,6 +14,7 @@ from pathlib import Path
 
 from stewart63_ros import topics as T
 from stewart63_ros.bagio import NAMESPACE_KEY, BagError
+from stewart63_ros.nodes.rclpy_internals import WaitAny, take_with_info
 
 READY_LINE = 'READY'
 MATCHED_LINE = 'MATCHED'
@@ -149,8 +150,6 @@ class Recorder:
                     self._pending[full] = name
             if self.fast_path:
                 try:
-                    from rclpy.impl.implementation_singleton import rclpy_implementation
-                    self._rclpy = rclpy_implementation
                     self._build_waitset()
                 except Exception:  # noqa: BLE001 - other rclpy versions: the executor path
                     self.fast_path = False
@@ -186,7 +185,7 @@ class Recorder:
 
     def _build_waitset(self):
         subs = list(self._subs.values())
-        self._waitset = self._rclpy.WaitSet(len(subs), 1, 0, 0, 0, 0, self._context.handle)
+        self._waitset = WaitAny(self._context, subs, [self._guard])
         self._waitset_subs = subs
 
     # -------------------------------------------------------------- recording
@@ -226,9 +225,8 @@ class Recorder:
     def _take_all(self):
         n = 0
         for topic, sub in list(self._subs.items()):
-            handle = sub.handle
             while True:
-                got = handle.take_message(sub.msg_type, True)
+                got = take_with_info(sub)
                 if got is None:
                     break
                 self._on_message(topic, got[0], got[1])
@@ -240,12 +238,7 @@ class Recorder:
         if self.fast_path:
             if self._waitset_subs is None:
                 self._build_waitset()
-            ws = self._waitset
-            ws.clear_entities()
-            for sub in self._waitset_subs:
-                ws.add_subscription(sub.handle)
-            ws.add_guard_condition(self._guard.handle)
-            ws.wait(int(timeout * 1e9))
+            self._waitset.wait(timeout)
             if self._take_all() and self.batch_period > 0 and not self._stop.is_set():
                 # Let the next messages gather in the subscriptions' queues
                 # (the middleware receives and acknowledges them meanwhile):
