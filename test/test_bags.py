@@ -439,6 +439,37 @@ def test_recorder_discovers_late_topic_of_unknown_type(ros, tmp_path):
     assert msgs == [f'm{k}' for k in range(20)]
 
 
+def test_commands_from_volatile_and_latched_publishers_are_recorded_once_each(ros, tmp_path):
+    """``ros2 topic pub`` publishes volatile: a latched-only subscription would
+    never match it. The recorder takes every command, once, from either kind."""
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+
+    from stewart63_ros import topics as T
+    from stewart63_ros.nodes.recorder import Recorder
+    bag = tmp_path / 'commands'
+    rec = Recorder(bag, ['pose_setpoint'], domain_id=ros.domain_id).start()
+    try:
+        node = ros.node('commander')
+        volatile = node.create_publisher(
+            PoseStamped, 'pose_setpoint',
+            QoSProfile(depth=10, durability=DurabilityPolicy.VOLATILE))
+        latched = node.create_publisher(PoseStamped, 'pose_setpoint', T.SETPOINT_QOS)
+        assert wait_until(lambda: volatile.get_subscription_count() >= 1
+                          and latched.get_subscription_count() >= 2, 15)
+        for k, pub in enumerate((volatile, latched, volatile, latched)):
+            msg = PoseStamped()
+            msg.header.stamp.sec = k
+            msg.pose.orientation.w = 1.0
+            pub.publish(msg)
+        assert wait_until(lambda: rec.counts.get('/pose_setpoint') == 4, 15), rec.counts
+        time.sleep(0.5)          # a duplicate would come within this
+    finally:
+        rec.stop()
+    stamps = [bagio.header_stamp_ns(m) for _, _, m in bagio.read_messages(bag, ['pose_setpoint'])]
+    assert stamps == [k * 1_000_000_000 for k in range(4)]
+
+
 # ------------------------------------------------------------------ bad input
 
 

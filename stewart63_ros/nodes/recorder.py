@@ -5,6 +5,7 @@ and the tests use the ``Recorder`` class in-process. See docs/bags.md.
 """
 from __future__ import annotations
 
+import collections
 import importlib
 import os
 import sys
@@ -99,6 +100,11 @@ class Recorder:
         self._node = None
         self._writer = None
         self._subs: dict[str, object] = {}     # full topic -> Subscription
+        # Latched command topics are subscribed twice (see _subscribe): the
+        # second, volatile subscription per topic, and the last message
+        # written per topic, to drop the copy that comes through both.
+        self._volatile_subs: dict[str, object] = {}
+        self._recent_commands: dict[str, collections.deque] = {}
         self._types: dict[str, str] = {}       # full topic -> type name
         self._pending: dict[str, str] = {}     # full topic -> requested name (type unknown)
         self._conns: dict[str, object] = {}    # full topic -> rosbags Connection
@@ -167,29 +173,52 @@ class Recorder:
         return self
 
     def _subscribe(self, full, type_name, qos=None):
+        """A raw subscription to ``full``; for a latched command topic also a
+        volatile one: the TRANSIENT_LOCAL subscription receives the command a
+        latched publisher sent before recording started, but matches no
+        volatile publisher (``ros2 topic pub`` by default); the VOLATILE one
+        matches both, and a latched sample that comes through both is
+        written once (``_on_message``)."""
+        from rclpy.qos import DurabilityPolicy, QoSProfile
         cls = message_class(type_name)
         qos = qos or T.recorder_qos(full)
 
-        def callback(data, info, topic=full):
-            self._on_message(topic, data, info)
-        # rclpy inspects the signature: give it exactly (msg, info)
-        cb = lambda data, info: callback(data, info)  # noqa: E731
-        sub = self._node.create_subscription(cls, full, cb, qos, raw=True)
+        def make_callback(tag):
+            # rclpy inspects the signature: give it exactly (msg, info)
+            return lambda data, info: self._on_message(full, data, info, tag)
+        sub = self._node.create_subscription(cls, full, make_callback('main'), qos, raw=True)
         old = self._subs.get(full)
         self._subs[full] = sub
         self._types[full] = type_name
         self.counts.setdefault(full, 0)
         if old is not None:
             self._node.destroy_subscription(old)
+        if (T.relative_name(full) in T.LATCHED_TOPICS and full not in self._volatile_subs
+                and qos.durability == DurabilityPolicy.TRANSIENT_LOCAL):
+            volatile = QoSProfile(history=qos.history, depth=qos.depth,
+                                  reliability=qos.reliability,
+                                  durability=DurabilityPolicy.VOLATILE)
+            self._volatile_subs[full] = self._node.create_subscription(
+                cls, full, make_callback('volatile'), volatile, raw=True)
         self._waitset_subs = None
 
     def _build_waitset(self):
-        subs = list(self._subs.values())
+        subs = list(self._subs.values()) + list(self._volatile_subs.values())
         self._waitset = WaitAny(self._context, subs, [self._guard])
         self._waitset_subs = subs
 
     # -------------------------------------------------------------- recording
-    def _on_message(self, topic, data, info):
+    def _on_message(self, topic, data, info, tag='main'):
+        if topic in self._volatile_subs:
+            # A latched publisher's sample arrives through both subscriptions:
+            # the copy through the other one, within a second, is not written.
+            now = time.monotonic()
+            recent = self._recent_commands.setdefault(topic, collections.deque(maxlen=32))
+            for i, (other, seen, when) in enumerate(recent):
+                if other != tag and seen == data and now - when < 1.0:
+                    del recent[i]
+                    return
+            recent.append((tag, bytes(data), now))
         conn = self._conns.get(topic)
         if conn is None:
             conn = self._add_connection(topic)
@@ -225,11 +254,28 @@ class Recorder:
     def _take_all(self):
         n = 0
         for topic, sub in list(self._subs.items()):
-            while True:
-                got = take_with_info(sub)
-                if got is None:
-                    break
-                self._on_message(topic, got[0], got[1])
+            volatile = self._volatile_subs.get(topic)
+            if volatile is None:
+                while True:
+                    got = take_with_info(sub)
+                    if got is None:
+                        break
+                    self._on_message(topic, got[0], got[1])
+                    n += 1
+                continue
+            # A latched command topic: both subscriptions' messages in the
+            # order they were received, so duplicates meet and the bag's
+            # order is the publishers'.
+            taken = []
+            for tag, each in (('main', sub), ('volatile', volatile)):
+                while True:
+                    got = take_with_info(each)
+                    if got is None:
+                        break
+                    taken.append((got[1].get('received_timestamp', 0), tag, got[0], got[1]))
+            taken.sort(key=lambda item: (item[0], item[1]))
+            for _, tag, data, info in taken:
+                self._on_message(topic, data, info, tag)
                 n += 1
         return n
 
