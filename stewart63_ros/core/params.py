@@ -224,7 +224,7 @@ NODE_KEYS: dict[str, set[str]] = {
               'reference_file'},
     'controller': {'watchdog_timeout', 'clock_mode', 'control_law', 'ct_kp', 'ct_kd',
                    'max_leg_speed', 'max_leg_acceleration', 'reference_file'},
-    'fk': {'singularity_threshold'},
+    'fk': {'singularity_threshold', 'marker_rate'},
 }
 
 
