@@ -18,8 +18,8 @@ from scipy.spatial.transform import Rotation
 
 from stewart63_ros.core import rotation as rotation_mod
 from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.fk import (FKResult, FKTracker,
-                                   ForwardKinematics, NoAssemblyError, _cond, _real_angles)
+from stewart63_ros.core.fk import (FKResult, FKTracker, ForwardKinematics, NoAssemblyError,
+                                   condition_number, real_angles)
 from stewart63_ros.core.kinematics import jacobian, leg_lengths, leg_rates
 from stewart63_ros.core.rotation import rotation_from_euler
 from stewart63_ros.tools import fk_solve
@@ -199,12 +199,12 @@ def test_resultant_roots_keep_multiple_and_infinite_roots():
     complex_pairs = [0.3 + 1.1j, -1.0 + 0.5j, 2.0 + 3.0j, 0.5 + 0.2j, -0.4 + 2.0j]
     roots = real + complex_pairs + [np.conj(z) for z in complex_pairs]
     coeffs = np.poly(roots)[::-1].real            # 16 roots, lowest power first
-    phis = _real_angles(np.ascontiguousarray(coeffs))
+    phis = real_angles(np.ascontiguousarray(coeffs))
     assert len(coeffs) == 17
     for t in (0.7, -2.0, 0.1, 3.0):
         assert np.min(np.abs(phis - 2 * np.arctan(t))) < 1e-4
     assert len(phis) <= len(real)                 # the complex roots are not taken
-    phis = _real_angles(np.r_[np.poly(roots[1:])[::-1].real, 0.0])    # degree 15
+    phis = real_angles(np.r_[np.poly(roots[1:])[::-1].real, 0.0])    # degree 15
     assert np.min(np.abs(np.abs(phis) - np.pi)) < 1e-12
 
 
@@ -277,7 +277,7 @@ def test_condition_number_matches_numpy():
         u, s, vt = np.linalg.svd(a)
         s[-1] = scale * s[0]               # prescribed conditioning
         a = u @ np.diag(s) @ vt
-        assert _cond(a) == pytest.approx(np.linalg.cond(a), rel=1e-6)
+        assert condition_number(a) == pytest.approx(np.linalg.cond(a), rel=1e-6)
 
 
 def test_singular_pose_is_flagged_and_tracked_through(default_mech):

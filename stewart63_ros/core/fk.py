@@ -223,7 +223,7 @@ def solve_linear(a, b):
 
 
 @njit
-def _cond(jac):
+def condition_number(jac):
     """2-norm condition number sigma_max / sigma_min of a square matrix.
 
     One-sided Jacobi (Hestenes 1958): rotate pairs of columns until all are
@@ -364,7 +364,7 @@ def _track(base, legp, lengths, t_prev, rot_prev, t_cur, rot_cur, extrapolate, m
     t, rot, it, ok, res = _newton(base, legp, lengths, t0, r0, max_iter, 1e-12)
     jac = np.empty((6, 6))
     _legs(base, legp, t, rot, lengths, jac, np.empty(6))
-    return t, rot, it, ok, res, _pose_distance(t, rot, t0, r0, size), _cond(jac), t0, r0
+    return t, rot, it, ok, res, _pose_distance(t, rot, t0, r0, size), condition_number(jac), t0, r0
 
 
 @njit
@@ -456,7 +456,7 @@ def _resultant_coefficients(q12, q23, q31):
 
 
 @njit
-def _real_angles(coeffs):
+def real_angles(coeffs):
     """Angles phi = 2 atan(t) of the (nearly) real roots t of sum_k coeffs[k] t^k.
 
     Roots are the eigenvalues of the companion matrix. A vanishing leading
@@ -629,7 +629,7 @@ def _side_matrices(centre, radius, e1, e2, sides):
 def _mode_vertices(centre, radius, e1, e2, sides):
     """Candidate vertex triples (n, 3, 3) from the real roots of the degree-16 resultant."""
     mats, qs = _side_matrices(centre, radius, e1, e2, sides)
-    phi1 = _real_angles(_resultant_coefficients(qs[0], qs[1], qs[2]))
+    phi1 = real_angles(_resultant_coefficients(qs[0], qs[1], qs[2]))
     angles = _angle_candidates(phi1, qs[0], qs[2].T.copy(), mats[1], sides[1])
     out = np.empty((angles.shape[0], 3, 3))
     for n in range(angles.shape[0]):
@@ -699,7 +699,7 @@ def _polish_modes(base, legp, lengths, vertices, plat, size, res_tol):
                 break
         if new:
             _legs(base, legp, t, r, lengths, jac, np.empty(6))
-            conds[count] = _cond(jac)
+            conds[count] = condition_number(jac)
             for i in range(3):
                 ts[count, i] = t[i]
                 for j in range(3):
@@ -766,7 +766,7 @@ class ForwardKinematics:
 
     def condition(self, position, rotation) -> float:
         """2-norm condition number of the Jacobian at a pose."""
-        return float(_cond(self.jacobian(position, rotation)))
+        return float(condition_number(self.jacobian(position, rotation)))
 
     def twist(self, position, rotation, rates):
         """(v, omega), base frame, from leg rates: J [v; omega] = dL/dt (eq. 13)."""
