@@ -104,8 +104,15 @@ def main(argv=None) -> int:
 
     def on_signal(signum, frame):
         stop.set()
-        rec.request_stop()
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            rec.request_stop()
+        except RuntimeError:     # already closed: nothing left to stop
+            pass
+    # Kept until the process ends: a second signal (Ctrl-C twice, SIGINT then
+    # SIGTERM from a launcher) while the bag is closed and rclpy shuts down
+    # must not kill the process half way.
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
     try:
         try:
             rec.open()
@@ -146,10 +153,8 @@ def main(argv=None) -> int:
     finally:
         try:
             rec.close()
-        except Exception as exc:  # noqa: BLE001 - reported; the signal handlers are restored
+        except Exception as exc:  # noqa: BLE001 - reported, the process ends anyway
             print(f'record: error while closing: {exc}', file=sys.stderr)
-        for s, h in old.items():
-            signal.signal(s, h)
 
 
 if __name__ == '__main__':
