@@ -115,13 +115,15 @@ def test_flat_equals_the_shapes(mech):
 
 def test_serialized_template_equals_the_message_built_field_by_field(mech):
     """The bytes the fk node publishes decode to the MarkerArray that rclpy
-    builds from the same shapes field by field."""
+    builds from the same shapes field by field, however many templates the
+    process made before (the serializer's padding holds earlier bytes)."""
     from rclpy.serialization import deserialize_message, serialize_message
     from visualization_msgs.msg import MarkerArray
 
     from stewart63_ros.nodes.markers import MarkerArrayBuilder, MarkerTemplate
     scene = M.Scene(mech)
-    template = MarkerTemplate(scene.shapes(mech.initial_position, np.eye(3)))
+    for _ in range(100):      # one in 14 templates failed while lone sentinels were searched
+        template = MarkerTemplate(scene.shapes(mech.initial_position, np.eye(3)))
     rot = Rotation.from_euler('xyz', [0.02, 0.04, -0.1]).as_matrix()
     t = np.array([0.03, 0.0, 1.1])
     shapes = scene.shapes(t, rot, None, np.array([100.0, -200, 3000, 0, 0, 5]), (t, rot))
