@@ -113,11 +113,6 @@ class FKNode(RigNode):
     def run(self):
         self.run_on(self.sub_samples)
 
-    def flush(self, timeout: float = 2.0) -> None:
-        super().flush(timeout)
-        if self.markers is not None:
-            self.markers.flush(timeout)
-
     def report(self):
         self.health.values.update(singular_samples=self.singular,
                                   no_assembly_samples=self.no_assembly)

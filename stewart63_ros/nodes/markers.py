@@ -197,7 +197,10 @@ class MarkerPublisher:
         self.fk = fk
         self.scene = shapes_mod.Scene(mech)
         self.template = MarkerTemplate(self.scene.shapes(mech.initial_position, np.eye(3)))
-        self.pub = node.create_publisher(MarkerArray, topics.MARKERS, topics.MARKERS_QOS)
+        # A data publisher of the node: waited for before the first sample like
+        # the 1 kHz topics (a recorder started first gets every array), flushed
+        # at the end.
+        self.pub = node.publisher(MarkerArray, topics.MARKERS, topics.MARKERS_QOS)
         self.tf_pub = self._tf_publisher(node)
         self.sample = None            # (sec, nanosec, lengths, position, rotation)
         self.drawn = None             # the sample last drawn
@@ -303,10 +306,3 @@ class MarkerPublisher:
         q = Rotation.from_matrix(rotation).as_quat()
         tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w = (float(v) for v in q)
         return TFMessage(transforms=[tf])
-
-    def flush(self, timeout: float = 2.0):
-        from rclpy.duration import Duration
-        try:
-            self.pub.wait_for_all_acked(Duration(seconds=timeout))
-        except RuntimeError:
-            pass
