@@ -19,7 +19,7 @@ TEST_DEPS  := pytest ruff colcon-core colcon-ros colcon-package-information play
 
 DEMO_OUT ?= out/demo
 
-.PHONY: demo test test-fast lint bench venv clean
+.PHONY: demo test test-fast lint bench bench-view venv clean
 
 venv: $(KERNELS)
 
@@ -61,6 +61,10 @@ lint: $(STAMP)
 # Every figure, medians of repeated runs, into bench/results.json (README, Performance).
 bench: $(KERNELS)
 	$(BIN)/python bench/bench_all.py
+
+# The realtime loop without and with the live view open (a client, a browser).
+bench-view: $(KERNELS)
+	$(BIN)/python bench/bench_view.py
 
 clean:
 	rm -rf $(VENV) build install log out *.egg-info
