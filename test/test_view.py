@@ -298,6 +298,79 @@ def test_bag_page_at_two_slider_positions(browser, tmp_path):
             proc.wait(10)
 
 
+class PageClient:
+    """A client of the page over its websocket, as the browser is: it reads
+    every update the view pushes (viser's frames: 16-byte sizes, then
+    zstd-compressed msgpack) and sends what the page sends when the ghost's
+    handle is dragged (viser's TransformControlsUpdateMessage)."""
+
+    def __init__(self, url: str):
+        import threading
+
+        import viser
+        from websockets.sync.client import connect
+        self.ws = connect(url.replace('http://', 'ws://'),
+                          subprotocols=['viser-v' + viser.__version__])
+        self.texts = []
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self):
+        import msgspec
+        import zstandard
+        try:
+            for frame in self.ws:
+                size, packed = (int.from_bytes(frame[k:k + 8], 'little') for k in (0, 8))
+                inner = zstandard.ZstdDecompressor().decompress(frame[16:16 + packed],
+                                                                max_output_size=size)
+                for message in msgspec.msgpack.decode(inner)['messages']:
+                    self.texts.append(str(message))
+        except Exception:  # noqa: BLE001 - the view closed the connection: reading ends
+            pass
+
+    def drag(self, position, wxyz=(1.0, 0.0, 0.0, 0.0)):
+        import msgspec
+        from viser import _messages
+        message = _messages.TransformControlsUpdateMessage(
+            name='/setpoint_handle', wxyz=tuple(wxyz), position=tuple(position))
+        self.ws.send(msgspec.msgpack.encode(message.as_serializable_dict()))
+
+    def said(self, text: str) -> bool:
+        return any(text in t for t in list(self.texts))
+
+
+def test_dragging_the_ghost_publishes_a_pose_setpoint(ros, tmp_path):
+    """The handle at the ghost, dragged on the page, sends ``pose_setpoint``;
+    a pose outside the stroke is refused on the page and not sent."""
+    from geometry_msgs.msg import PoseStamped
+
+    from ros_harness import wait_matched
+    from stewart63_ros import topics
+    from stewart63_ros.core.params import load_mechanism
+    mech = load_mechanism()
+    got = []
+    node = ros.node('probe')
+    sub = node.create_subscription(PoseStamped, 'pose_setpoint', got.append,
+                                   topics.SETPOINT_QOS)
+    proc = ros.python('-m', 'stewart63_ros.tools.view', '--port', str(free_port()),
+                      name='view')
+    page = PageClient(view_url(proc))
+    assert wait_matched(sub, 1, timeout=60)
+    target = np.asarray(mech.initial_position) + [0.02, -0.01, 0.05]
+    page.drag(target)
+    assert ros.spin_until(lambda: got, timeout=30), page.texts[-3:]
+    p = got[-1].pose.position
+    assert np.allclose([p.x, p.y, p.z], target, atol=1e-9) and got[-1].header.frame_id == 'base'
+    assert wait_until(lambda: page.said('Sent: x %.3f' % target[0]), 10)
+    # far above the stroke: refused on the page, nothing sent
+    page.drag((0.0, 0.0, 3.0))
+    assert wait_until(lambda: page.said('Refused'), 30), page.texts[-3:]
+    assert page.said('outside the stroke')
+    ros.spin_until(lambda: len(got) > 1, timeout=2.0)
+    assert len(got) == 1, [m.pose.position for m in got]
+    assert proc.returncode is None, proc.describe()
+    assert ros.stop(proc) == 0
+
+
 def test_page_says_when_there_is_no_rig(ros, browser, tmp_path):
     proc = ros.python('-m', 'stewart63_ros.tools.view', '--port', str(free_port()),
                       '--namespace', '/nobody_here', name='view')
