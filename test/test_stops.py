@@ -85,6 +85,8 @@ def test_each_node_stops_cleanly_on_repeated_signals(ros, tmp_path, sequence):
     assert sum(1 for _ in bagio.read_messages(tmp_path / 'bag', ['/diagnostics'])) > 0
     print('\n%s: %s' % (sequence, ', '.join('%s exit %d in %.2f s' % (n, codes[n], took[n])
                                            for n in procs)))
+    for proc in procs.values():     # each node's flush: confirmed by the recorder, or not
+        print('  ' + ' | '.join(line for line in _text(proc).splitlines() if 'stopped (' in line))
 
 
 def published_counts(bag) -> dict:
@@ -131,4 +133,4 @@ def test_rig_stops_cleanly_on_repeated_signals_and_loses_nothing(ros, tmp_path, 
         assert published.get(topic) and n == published[topic], (topic, n, published)
     print('\nrig, %s: exit 0 in %.2f s (nodes flush, then the recorder); bag holds all %s'
           % (sequence, took, published))
-    assert took < 2 * STOP_WITHIN, took
+    assert took < STOP_WITHIN, took

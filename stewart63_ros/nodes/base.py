@@ -65,6 +65,17 @@ class RigNode(Node):
         self._tunable = {}
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.create_timer(1.0, self.report)
+        self.closing = False         # the next report is the last one (see close)
+        self._recorded = False      # a recorder confirmed it holds everything (see flush)
+        self.flushed = ''           # how the flush at close ended, for the node's log
+        #: called while flush waits: a recorder in the same thread takes its messages
+        self.while_flushing = None
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        from stewart63_ros import topics
+        self._confirmations = self.create_subscription(
+            DiagnosticArray, topics.DIAGNOSTICS, self._on_confirmation, topics.DIAGNOSTICS_QOS,
+            raw=True)
 
     # -- run-time parameter changes --------------------------------------------
     def tunable(self, name: str, apply) -> None:
@@ -222,7 +233,7 @@ class RigNode(Node):
 
     def report(self):
         if self.started:
-            self.health.report()
+            self.health.report(final=self.closing)
 
     def run(self):
         self.wait_for_matches()
@@ -382,22 +393,67 @@ class RigNode(Node):
             wake = self.housekeeping(time.monotonic())
             direct.poll(wake - time.monotonic())
 
-    def flush(self, timeout: float = 2.0) -> None:
+    def flush_publishers(self) -> list:
+        """What ``flush`` waits for: every publisher of the node."""
+        return self.data_publishers + [self.health.pub]
+
+    def _on_confirmation(self, data) -> None:
+        """A /diagnostics message while the node stops: a recorder's status
+        that names this node under ``confirms`` holds all it published."""
+        if not self.closing or self._recorded:
+            return
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.serialization import deserialize_message
+        try:
+            msg = deserialize_message(bytes(data), DiagnosticArray)
+        except Exception:   # noqa: BLE001 - not a status we can read: not a confirmation
+            return
+        me = self.health.status_name
+        for status in msg.status:
+            for kv in status.values:
+                if kv.key == 'confirms' and me in kv.value.split(','):
+                    self._recorded = True
+
+    #: s: how often flush looks at the acknowledgements and confirmations
+    FLUSH_POLL = 0.005
+
+    def flush(self, timeout: float = 2.0) -> str:
         """Let reliable subscribers (the recorder) receive everything before exiting.
 
-        One deadline for all publishers: a subscriber acknowledges only at
-        the writer's next heartbeat (Fast DDS: every 3 s), long after it has
-        the data, and a stop must stay well inside a launcher's 5 s.
+        Done when the package's recorder confirms on /diagnostics that it
+        holds every message the node's last status says it published (a few
+        ms after that status), or when every subscriber has acknowledged
+        everything, or at ``timeout``. The acknowledgements alone are slow: a
+        subscriber acknowledges at the writer's next heartbeat (Fast DDS:
+        every 3 s), long after it has the data, and a stop must stay well
+        inside a launcher's 5 s. Returns how it ended: ``recorder``,
+        ``acknowledged`` or ``timeout``.
         """
         from rclpy.duration import Duration
         deadline = time.monotonic() + timeout
-        for pub in self.data_publishers + [self.health.pub]:
+        now_ = Duration(seconds=0)
+
+        def unacked(pub):
             try:
-                if pub.get_subscription_count():
-                    left = max(0.0, deadline - time.monotonic())
-                    pub.wait_for_all_acked(Duration(seconds=left))
+                return pub.get_subscription_count() > 0 and not pub.wait_for_all_acked(now_)
             except RuntimeError:     # a publisher already destroyed: nothing left to send
-                pass
+                return False
+        pending = [p for p in self.flush_publishers() if unacked(p)]
+        while pending:
+            if self._recorded:
+                return 'recorder'
+            if time.monotonic() >= deadline:
+                return 'timeout'
+            if self.while_flushing is not None:
+                self.while_flushing()
+            time.sleep(self.FLUSH_POLL)
+            while True:         # the confirmation, taken here: no executor turns now
+                data = take(self._confirmations)
+                if data is None:
+                    break
+                self._on_confirmation(data)
+            pending = [p for p in pending if unacked(p)]
+        return 'acknowledged'
 
     def summary(self) -> dict:
         """What the node did: counters, latency, its last status."""
@@ -423,7 +479,10 @@ class RigNode(Node):
     FLUSH_ON_SIGNAL, FLUSH_AT_END = 2.0, 6.0
 
     def close(self):
+        self.closing = True
         self.report()
-        self.flush(self.FLUSH_ON_SIGNAL if STOP.requested else self.FLUSH_AT_END)
+        started = time.monotonic()
+        how = self.flush(self.FLUSH_ON_SIGNAL if STOP.requested else self.FLUSH_AT_END)
+        self.flushed = '%s after %.3f s' % (how, time.monotonic() - started)
         if not self.summary_written:
             self.write_summary_file(self.summary())

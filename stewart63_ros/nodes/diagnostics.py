@@ -72,8 +72,14 @@ class Health:
         self.node.get_logger().warn('rejected %s' % self.last_rejection,
                                     throttle_duration_sec=1.0)
 
-    def report(self, stamp=None) -> None:
+    def report(self, stamp=None, final=False) -> None:
+        """Publish the status. ``final``: the node's last one, as it stops: it
+        also says how many messages the node published on each topic
+        (``final/<full topic name>``), so that a recorder can confirm it holds
+        them all (see RigNode.flush)."""
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+        from stewart63_ros import topics
         now = time.monotonic()
         period = max(now - self._last_report, 1e-9)
         rejected_total = sum(self.rejected.values())
@@ -102,6 +108,12 @@ class Health:
             values.append(KeyValue(key='latency/' + key, value=text))
         for key, val in self.values.items():
             values.append(KeyValue(key=key, value=str(val)))
+        if final:
+            values.append(KeyValue(key='final', value='true'))
+            for topic, n in sorted(self.published.items()):
+                full = self.node.resolve_topic_name(topic)
+                if full != topics.DIAGNOSTICS:
+                    values.append(KeyValue(key='final/' + full, value=str(n)))
         status = DiagnosticStatus(level=level, name=self.status_name,
                                   message=message, hardware_id='stewart63_ros', values=values)
         msg = DiagnosticArray(status=[status])

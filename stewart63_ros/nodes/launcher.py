@@ -120,10 +120,25 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
                 print('%s: while closing: %s' % (prog, exc), file=sys.stderr)
             node.destroy_node()
             # In the node's log, so that a slow stop shows where it went.
-            print('%s: stopped (exit %d, close took %.2f s%s)'
+            flushed = getattr(node, 'flushed', '')
+            print('%s: stopped (exit %d, close took %.2f s%s%s)'
                   % (prog, code, time.monotonic() - started,
+                     ', flush: %s' % flushed if flushed else '',
                      ', signals: %s' % ' '.join(signals.received) if signals.received else ''),
                   flush=True)
         if rclpy.ok():
             rclpy.shutdown()
+        ignore_stop_signals()
     return code
+
+
+def ignore_stop_signals() -> None:
+    """From here to the process's end, SIGINT and SIGTERM are ignored.
+
+    Python puts the default handlers back when the interpreter finalizes
+    (unloading the middleware takes a moment): a second Ctrl-C or launch's
+    SIGTERM arriving then would end a process that has stopped cleanly with
+    -2 or -15. An ignored signal stays ignored through finalization.
+    """
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)

@@ -205,9 +205,9 @@ class PlantNode(RigNode):
         if not self.started:
             return
         if self.mode == 'lockstep':
-            h.report(ros_time(self.k * self.period))
+            h.report(ros_time(self.k * self.period), final=self.closing)
         else:
-            h.report()
+            h.report(final=self.closing)
         h.warning = ''
 
     # -- main loops -----------------------------------------------------------

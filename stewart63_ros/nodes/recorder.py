@@ -121,6 +121,14 @@ class Recorder:
         self._closed = False
         self._lock = threading.Lock()
         self.error: BaseException | None = None
+        # Confirming to a stopping node that the bag holds all it published
+        # (RigNode.flush): the last message number per (topic, sending
+        # participant), the last statuses still to be confirmed, where to say so.
+        self._per_source: collections.Counter = collections.Counter()
+        self._finals: dict[tuple, tuple] = {}   # (status, participant) -> (counts, since)
+        self._status_pub = None
+        self._status_name = ''
+        self._diag_topic = None
 
     # ----------------------------------------------------------------- setup
     def open(self):
@@ -154,6 +162,13 @@ class Recorder:
                     self._subscribe(full, type_name)
                 else:
                     self._pending[full] = name
+            diag = self._node.resolve_topic_name(T.DIAGNOSTICS)
+            if diag in self._subs:
+                from diagnostic_msgs.msg import DiagnosticArray
+                self._diag_topic = diag
+                self._status_pub = self._node.create_publisher(DiagnosticArray, diag,
+                                                               T.DIAGNOSTICS_QOS)
+                self._status_name = 'stewart63' + self._node.get_fully_qualified_name()
             if self.fast_path:
                 try:
                     self._build_waitset()
@@ -234,6 +249,75 @@ class Recorder:
         self._last_stamp[topic] = stamp
         self._writer.write(conn, stamp, data)
         self.counts[topic] += 1
+        gid = info.get('publisher_gid') if info else None
+        if gid:
+            # The first 12 bytes of an endpoint's GID are its participant's
+            # (its process's): a node's /diagnostics and data publishers share them.
+            source = bytes(gid['data'][:12])
+            # A writer numbers its messages 1, 2, ...: the last one's number is
+            # how many it published, also for a recorder started after it.
+            seq = info.get('publication_sequence_number')
+            key = (topic, source)
+            if seq:
+                self._per_source[key] = max(self._per_source[key], int(seq))
+            else:
+                self._per_source[key] += 1
+            if topic == self._diag_topic:
+                self._note_final(data, source)
+
+    #: s: how long a stopping node's last status waits for its messages
+    FINAL_WAIT = 30.0
+
+    def _note_final(self, data, source):
+        """A node's last status (``final: true``) says how many messages it
+        published per topic: confirm once the bag holds them (``_confirm``)."""
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.serialization import deserialize_message
+        try:
+            msg = deserialize_message(bytes(data), DiagnosticArray)
+        except Exception:   # noqa: BLE001 - written as received; not ours to judge
+            return
+        for status in msg.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if values.get('final') != 'true' or status.name == self._status_name:
+                continue
+            wanted = {}
+            for key, value in values.items():
+                if key.startswith('final/'):
+                    try:
+                        wanted[key[len('final/'):]] = int(value)
+                    except ValueError:
+                        pass
+            self._finals[status.name, source] = (wanted, time.monotonic())
+
+    def _confirm(self):
+        """Say on /diagnostics (``confirms``: the statuses' names) which stopping
+        nodes' messages the bag now holds, on the topics it records."""
+        done = []
+        now = time.monotonic()
+        for key, (wanted, since) in list(self._finals.items()):
+            name, source = key
+            if all(self._per_source[topic, source] >= n for topic, n in wanted.items()
+                   if topic in self._subs):
+                done.append(name)
+                del self._finals[key]
+            elif now - since > self.FINAL_WAIT:
+                del self._finals[key]
+        if not done or self._status_pub is None:
+            return
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+        values = [KeyValue(key='confirms', value=','.join(done))]
+        values += [KeyValue(key='recorded/' + topic, value=str(n))
+                   for topic, n in self.counts.items()]
+        status = DiagnosticStatus(level=DiagnosticStatus.OK, name=self._status_name,
+                                  message='holds every message of ' + ', '.join(done),
+                                  hardware_id='stewart63_ros', values=values)
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self._node.get_clock().now().to_msg()
+        try:
+            self._status_pub.publish(msg)
+        except RuntimeError:    # rclpy's InvalidHandle: the node is going down
+            pass
 
     def _add_connection(self, topic):
         from stewart63_ros.bagio import typestore
@@ -277,6 +361,8 @@ class Recorder:
             for _, tag, data, info in taken:
                 self._on_message(topic, data, info, tag)
                 n += 1
+        if self._finals:
+            self._confirm()
         return n
 
     def spin_once(self, timeout=0.1):

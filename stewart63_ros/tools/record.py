@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 from stewart63_ros.bagio import BagError
+from stewart63_ros.nodes.launcher import ignore_stop_signals
 from stewart63_ros.nodes.recorder import MATCHED_LINE, READY_LINE, Recorder
 
 # ---------------------------------------------------------------- command line
@@ -155,6 +156,7 @@ def main(argv=None) -> int:
             rec.close()
         except Exception as exc:  # noqa: BLE001 - reported, the process ends anyway
             print(f'record: error while closing: {exc}', file=sys.stderr)
+        ignore_stop_signals()
 
 
 if __name__ == '__main__':

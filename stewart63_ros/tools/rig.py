@@ -427,6 +427,8 @@ def main(argv=None) -> int:
         # starting (importing, compiling) ends with whatever code that gives.
         failed_before = set(rig.failed())
         codes = rig.stop()
+        from stewart63_ros.nodes.launcher import ignore_stop_signals
+        ignore_stop_signals()      # the rig has stopped: nothing left to interrupt
     wall = time.monotonic() - start
     died = {n: c for n, c in codes.items() if c not in (0, None)}
     for name in died:
