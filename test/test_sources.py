@@ -256,8 +256,11 @@ def test_play_of_one_bag_twice_into_a_running_fk_is_answered_in_full(ros, tmp_pa
     assert ros.spin_until(lambda: 'matched after' in fk.stderr(), 120), fk.describe()
     counts = []
     for run in (1, 2):
-        # at a tenth of the recorded pace: fk's queue (100 samples) must not
-        # overflow on a loaded machine, that is not what this test is about
+        # At a tenth of the recorded pace. Samples a replay lost here came from
+        # fk's queue overflowing while fk was starved of CPU (it was 100 deep;
+        # now 1 s at 1 kHz). play starts once its publisher has matched fk's
+        # subscription: from then on the reliable writer keeps each sample
+        # for fk, also if fk's side of the match completes a moment later.
         before = len(got)
         play = ros.spawn(exe('play') + [str(bag), '--topics', 'leg_lengths', '--namespace',
                                         '/replay', '--rate', '0.1'], name='play%d' % run)
