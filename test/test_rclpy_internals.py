@@ -8,7 +8,8 @@ import time
 
 from sensor_msgs.msg import JointState
 
-from stewart63_ros.nodes.rclpy_internals import DirectTake, run_timer_if_ready, take
+from stewart63_ros.nodes.rclpy_internals import (DirectTake, raw_publisher,
+                                                  run_timer_if_ready, take)
 
 
 def test_take_direct_take_and_timers_work_in_this_rclpy(ros):
@@ -31,6 +32,11 @@ def test_take_direct_take_and_timers_work_in_this_rclpy(ros):
     pub.publish(JointState(name=['b']))
     assert direct.poll(5.0) is True                # waits in its own wait set
     assert len(got) == 1 and isinstance(got[0], bytes)
+
+    send = raw_publisher(pub)                      # serialized bytes, as they are
+    send(got[0])
+    assert direct.poll(5.0) is True
+    assert len(got) == 2 and got[1] == got[0]
 
     calls = []
     timer = node.create_timer(0.01, lambda: calls.append(1))

@@ -33,7 +33,8 @@ class Peers:
     sample, and it waits on all of their subscriptions at once.
     """
 
-    def __init__(self, context, own, answer_first=(), then=(), recorder=None, period=1e-3):
+    def __init__(self, context, own, answer_first=(), then=(), recorder=None, period=1e-3,
+                 side_period=None):
         from stewart63_ros.nodes.rclpy_internals import WaitAny
         self.own = own                          # DirectTake of the plant's leg_forces, or None
         self.answer_first = list(answer_first)  # (node, DirectTake): the controller
@@ -44,6 +45,8 @@ class Peers:
         self.waiter = WaitAny(context, subs)
         self.nodes = [n for n, _ in self.answer_first + self.then]
         self.next_side = 0.0
+        if side_period is not None:
+            self.side_period = side_period
 
     #: s: how often the loop looks at the peers' other subscriptions
     #: (setpoints), timers and parameter services when they are not due
@@ -51,6 +54,12 @@ class Peers:
     #: The recorder's share is taken then too: its subscriptions queue up to
     #: ten thousand messages each, a few milliseconds' worth.
     SIDE_PERIOD = 1e-3
+    #: s: the same in lockstep, where nothing waits on the wall clock: the
+    #: timers (diagnostics at 1 Hz, the watchdog at 20 Hz, markers at 30 Hz)
+    #: and the commands are served as often as they need, and the recorder's
+    #: queues hold far more than this many milliseconds' worth.
+    LOCKSTEP_SIDE_PERIOD = 5e-3
+    side_period = SIDE_PERIOD
 
     def serve(self, turn_ok: bool = True) -> bool:
         """One pass without waiting; True if a force was taken for the plant.
@@ -67,7 +76,7 @@ class Peers:
             direct.poll(0.0)
         now = time.monotonic()
         if now >= self.next_side:
-            wake = now + self.SIDE_PERIOD
+            wake = now + self.side_period
             for node in self.nodes:
                 wake = min(wake, node.housekeeping(now, turn_ok))
             self.next_side = wake
@@ -148,11 +157,14 @@ class Composed:
         plant = nodes.get('plant')
         context = next(iter(nodes.values())).context
 
+        lockstep = plant is not None and plant.mode == 'lockstep'
+        side_period = Peers.LOCKSTEP_SIDE_PERIOD if lockstep else Peers.SIDE_PERIOD
+
         def make_peers(own, period):
             self.loop = Peers(context, own,
                          [(nodes[n], directs[n]) for n in ('controller',) if n in directs],
                          [(nodes[n], directs[n]) for n in ('fk',) if n in directs],
-                         self.recorder, period)
+                         self.recorder, period, side_period)
             return self.loop
         if plant is None:
             import rclpy
@@ -175,7 +187,7 @@ class Composed:
 
         def paced_housekeeping(now, turn_ok=True):
             if now >= due[0]:
-                due[0] = min(housekeeping(now, turn_ok), now + Peers.SIDE_PERIOD)
+                due[0] = min(housekeeping(now, turn_ok), now + side_period)
             return due[0]
         plant.start_hot_loop = start_hot_loop
         plant.housekeeping = paced_housekeeping

@@ -46,6 +46,7 @@ from stewart63_ros.nodes.checks import (RESTART_PAUSE, Rejected, StampGate, fini
                                          leg_vector, source_of, stamp_ns)
 from stewart63_ros.nodes.commands import CommandInput
 from stewart63_ros.nodes.launcher import run
+from stewart63_ros.nodes.rclpy_internals import raw_publisher
 
 #: The one joint of a pose_trajectory.
 PLATFORM_JOINT = 'platform'
@@ -158,6 +159,7 @@ class ControllerNode(RigNode):
         self.pub_forces = self.publisher(JointState, topics.LEG_FORCES, topics.STREAM_PUB)
         self.forces_out = wire.JointStateTemplates(('effort',))
         self.forces_out.get('base')             # made now, not on the first sample
+        self.send_forces = raw_publisher(self.pub_forces)
         wire.warm_up(('position', 'velocity'))
         # Serialized samples in, serialized forces out: see nodes/wire.py.
         self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
@@ -266,7 +268,7 @@ class ControllerNode(RigNode):
         except LawError as exc:
             self.on_law_error(exc)
             return
-        self.pub_forces.publish(self.forces_out.get(frame_id).fill(sec, nanosec, effort=force))
+        self.send_forces(self.forces_out.get(frame_id).fill(sec, nanosec, effort=force))
         self.health.published[topics.LEG_FORCES] += 1
         estimate = self.control.estimate
         if estimate is None:

@@ -30,6 +30,7 @@ from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
 from stewart63_ros.nodes.checks import RESTART_PAUSE, Rejected, StampGate, source_of
 from stewart63_ros.nodes.launcher import run
+from stewart63_ros.nodes.rclpy_internals import raw_publisher
 
 
 class FKNode(RigNode):
@@ -48,6 +49,8 @@ class FKNode(RigNode):
         self.twist_out = wire.FrameTemplates(wire.twist_template)
         for out in (self.pose_out, self.twist_out):     # made now, not on sample 1
             out.get('base')
+        self.send_pose = raw_publisher(self.pub_pose)
+        self.send_twist = raw_publisher(self.pub_twist)
         wire.warm_up(('position',), ('velocity',))
         self.markers = None
         rate = self.param('marker_rate', 30.0)
@@ -99,14 +102,14 @@ class FKNode(RigNode):
             self.health.warning = ('near-singular pose (Jacobian condition %.3g): not '
                                    'published' % result.condition)
             return
-        self.pub_pose.publish(self.pose_out.get(frame_id).fill(
+        self.send_pose(self.pose_out.get(frame_id).fill(
             sec, nanosec, position=result.position, orientation=result.quaternion))
         self.health.published[topics.PLATFORM_POSE] += 1
         if self.markers is not None:       # references only: drawn by its timer
             self.markers.sample = (sec, nanosec, values['position'], result.position,
                                    result.rotation)
         if rates is not None:
-            self.pub_twist.publish(self.twist_out.get(frame_id).fill(
+            self.send_twist(self.twist_out.get(frame_id).fill(
                 sec, nanosec, linear=result.velocity, angular=result.omega))
             self.health.published[topics.PLATFORM_TWIST] += 1
 
