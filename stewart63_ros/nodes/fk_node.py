@@ -113,8 +113,15 @@ class FKNode(RigNode):
                 sec, nanosec, linear=result.velocity, angular=result.omega))
             self.health.published[topics.PLATFORM_TWIST] += 1
 
+    #: s: in lockstep (``clock_mode``), how long fk lets samples gather
+    #: between two batches (see RigNode.run_on): nothing waits for its poses
+    #: there, and a wake-up per sample costs the CPU the plant and the
+    #: controller need for the next one. Every sample still gets its pose.
+    LOCKSTEP_BATCH_PERIOD = 0.005
+
     def run(self):
-        self.run_on(self.sub_samples)
+        lockstep = self.param('clock_mode', 'realtime') == 'lockstep'
+        self.run_on(self.sub_samples, self.LOCKSTEP_BATCH_PERIOD if lockstep else 0.0)
 
     def report(self):
         self.health.values.update(singular_samples=self.singular,
