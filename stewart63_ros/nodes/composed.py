@@ -58,7 +58,10 @@ class Peers:
     #: timers (diagnostics at 1 Hz, the watchdog at 20 Hz, markers at 30 Hz)
     #: and the commands are served as often as they need, and the recorder's
     #: queues hold far more than this many milliseconds' worth.
-    LOCKSTEP_SIDE_PERIOD = 5e-3
+    LOCKSTEP_SIDE_PERIOD = 10e-3
+    #: s: in lockstep, each node's executor turn (parameter services, QoS
+    #: events; a turn costs a few hundred microseconds) at most this often.
+    LOCKSTEP_EXECUTOR_PERIOD = 0.25
     side_period = SIDE_PERIOD
 
     def serve(self, turn_ok: bool = True) -> bool:
@@ -159,6 +162,9 @@ class Composed:
 
         lockstep = plant is not None and plant.mode == 'lockstep'
         side_period = Peers.LOCKSTEP_SIDE_PERIOD if lockstep else Peers.SIDE_PERIOD
+        if lockstep:
+            for node in nodes.values():
+                node.EXECUTOR_PERIOD = Peers.LOCKSTEP_EXECUTOR_PERIOD
 
         def make_peers(own, period):
             self.loop = Peers(context, own,

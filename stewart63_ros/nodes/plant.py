@@ -16,6 +16,7 @@ cycle, counted and reported.
 """
 from __future__ import annotations
 
+import math
 import sys
 import time
 
@@ -180,7 +181,8 @@ class PlantNode(RigNode):
         lengths, rates = self.dyn.lengths_and_rates(self.y)
         if self.reference is not None and self.k * self.period >= TRACKING_FROM - 1e-12:
             self.add_tracking(lengths)
-        if lengths.min() < self.mech.leg_length_min or lengths.max() > self.mech.leg_length_max:
+        listed = lengths.tolist()           # (min and max of six: cheaper on a list)
+        if min(listed) < self.mech.leg_length_min or max(listed) > self.mech.leg_length_max:
             self.endstop_samples += 1
             self.health.warning = ('a leg is at an end stop (%d samples so far)'
                                    % self.endstop_samples)
@@ -212,8 +214,8 @@ class PlantNode(RigNode):
 
     def step(self):
         """Lockstep: one sample period with the force answering this sample."""
-        self.y = self.dyn.step(self.y, self.force, self.period, self.substeps, self.wrench)
-        if not np.all(np.isfinite(self.y)):
+        y = self.y = self.dyn.step(self.y, self.force, self.period, self.substeps, self.wrench)
+        if not math.isfinite(y @ y):       # a nan or inf anywhere (or beyond 1e154)
             raise RuntimeError('the simulation diverged (non-finite state)')
         self.k += 1
 
