@@ -422,8 +422,16 @@ class Recorder:
         n = 0
         for topic, sub in list(self._subs.items()):
             volatile = self._volatile_subs.get(topic)
-            if volatile is None:
+            if volatile is None and topic != self._diag_topic:
                 n += self._take_topic(topic, sub)
+                continue
+            if volatile is None:        # /diagnostics: rare, and read (see _note_final)
+                while True:
+                    got = take_with_info(sub)
+                    if got is None:
+                        break
+                    self._on_message(topic, got[0], got[1])
+                    n += 1
                 continue
             # A latched command topic: both subscriptions' messages in the
             # order they were received, so duplicates meet and the bag's
@@ -453,14 +461,24 @@ class Recorder:
         if conn is None:
             conn = self._add_connection(topic)
         last = self._last_stamp.get(topic, 0)
+        per_source = self._per_source
         batch = []
         while got is not None:
-            stamp = got[1].get('received_timestamp') if got[1] else None
+            info = got[1]
+            stamp = info.get('received_timestamp') if info else None
             stamp = int(stamp) if stamp else time.time_ns()
             if stamp <= last:           # see _on_message
                 stamp = last + 1
             last = stamp
             batch.append((stamp, got[0]))
+            gid = info.get('publisher_gid') if info else None
+            if gid:                     # the sender's count, as in _on_message
+                key = (topic, bytes(gid['data'][:12]))
+                seq = info.get('publication_sequence_number')
+                if seq:
+                    per_source[key] = max(per_source[key], int(seq))
+                else:
+                    per_source[key] += 1
             got = take_with_info(sub)
         self._last_stamp[topic] = last
         self._batch.write(conn, batch)
