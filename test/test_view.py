@@ -355,6 +355,8 @@ def test_dragging_the_ghost_publishes_a_pose_setpoint(ros, tmp_path):
                       name='view')
     page = PageClient(view_url(proc))
     assert wait_matched(sub, 1, timeout=60)
+    # the handle exists on the page (its scene message came) before it is dragged
+    assert wait_until(lambda: page.said('/setpoint_handle'), 60), page.texts[-3:]
     target = np.asarray(mech.initial_position) + [0.02, -0.01, 0.05]
     page.drag(target)
     assert ros.spin_until(lambda: got, timeout=30), page.texts[-3:]

@@ -58,6 +58,7 @@ class RigNode(Node):
         self.realtime_priority = self._realtime_priority()
         self._executor = None       # made on first use: see executor_
         self.data_publishers = []
+        self._optional_publishers = set()
         self.started = False        # diagnostics wait for the peers, like the data
         # Run-time changes through the parameter services: only the keys a
         # node registers with ``tunable`` may change; every other one is
@@ -158,13 +159,21 @@ class RigNode(Node):
         return value
 
     # -- start-up -----------------------------------------------------------
-    def publisher(self, msg_type, topic, qos):
+    def publisher(self, msg_type, topic, qos, required: bool = True):
+        """A data publisher: counted, flushed at the end, and waited for before
+        the first message. ``required=False`` (a side output such as
+        ``markers``): ``wait_for_subscribers`` does not apply to it; the
+        subscriptions the graph shows on it are still waited for."""
         pub = self.create_publisher(msg_type, topic, qos)
         self.data_publishers.append(pub)
+        if not required:
+            self._optional_publishers.add(id(pub))
         return pub
 
     #: s: how often a node still waiting for its peers says what it waits for.
     WAIT_REPORT_PERIOD = 5.0
+    #: s: how long a new match must hold before the first message (wait_for_matches).
+    MATCH_SETTLE = 0.5
 
     def graph_subscriptions(self, pub) -> int:
         """How many subscriptions the ROS graph shows on ``pub``'s topic that
@@ -189,9 +198,15 @@ class RigNode(Node):
         (so a recorder started before the rig gets everything from the first
         message), and ``extra()`` (a list of what else is missing) is empty.
         The graph is given ``discovery_settle`` s from the node's start to
-        show what already runs. Says at once what it waits for, and again
-        every few s."""
+        show what already runs. A new match must then hold for
+        ``MATCH_SETTLE`` s: a publisher counts a subscription as matched as
+        soon as it has discovered it, but the subscription drops what comes
+        before it has discovered the publisher in turn (a volatile reader
+        starts at the first sample it sees announced), which under load has
+        lagged tens of ms. Says at once what it waits for, and again every
+        few s."""
         pubs = self.data_publishers + [self.health.pub]
+        counts = {id(pub): (pub.get_subscription_count(), self._created) for pub in pubs}
 
         def missing():
             out = []
@@ -201,12 +216,20 @@ class RigNode(Node):
             if age < self.discovery_settle:
                 out.append('discovery of the ROS graph (%.1f of %g s, discovery_settle)'
                            % (age, self.discovery_settle))
+            now = time.monotonic()
             for pub in pubs:
-                want = max(self.wait_for_subscribers, self.graph_subscriptions(pub))
+                floor = self.wait_for_subscribers
+                if id(pub) in self._optional_publishers:
+                    floor = 0
+                want = max(floor, self.graph_subscriptions(pub))
                 have = pub.get_subscription_count()
+                if have != counts[id(pub)][0]:
+                    counts[id(pub)] = (have, now)
                 if have < want:
                     out.append('%s: %d of %d subscriptions matched'
                                % (pub.topic_name, have, want))
+                elif now - counts[id(pub)][1] < self.MATCH_SETTLE:
+                    out.append('%s: a new match settling' % pub.topic_name)
             return out + (list(extra()) if extra is not None else [])
 
         log = self.get_logger()

@@ -197,10 +197,11 @@ class MarkerPublisher:
         self.fk = fk
         self.scene = shapes_mod.Scene(mech)
         self.template = MarkerTemplate(self.scene.shapes(mech.initial_position, np.eye(3)))
-        # A data publisher of the node: waited for before the first sample like
-        # the 1 kHz topics (a recorder started first gets every array), flushed
-        # at the end.
-        self.pub = node.publisher(MarkerArray, topics.MARKERS, topics.MARKERS_QOS)
+        # A data publisher of the node: the subscriptions the graph shows are
+        # waited for before the first sample like the 1 kHz topics' (a recorder
+        # started first gets every array); flushed at the end.
+        self.pub = node.publisher(MarkerArray, topics.MARKERS, topics.MARKERS_QOS,
+                                  required=False)
         self.tf_pub = self._tf_publisher(node)
         self.sample = None            # (sec, nanosec, lengths, position, rotation)
         self.drawn = None             # the sample last drawn

@@ -490,8 +490,11 @@ def run_live(server, mech, namespace, stop):
         if src.pose is not None:
             view.update(src.pose[0], src.pose[1], src.lengths, src.forces)
         with lock:
-            pose = dragged.pop('pose', None)
-        if pose is not None and tick - last_sent > 0.1:
+            # At most one setpoint per 0.1 s; the newest drag waits its turn
+            # (the last position of a drag is always sent).
+            pending = 'pose' in dragged
+            pose = dragged.pop('pose') if pending and tick - last_sent > 0.1 else None
+        if pose is not None:
             rot = Rotation.from_quat(pose[1]).as_matrix()
             lengths = leg_lengths(mech, pose[0], rot)
             bad = np.flatnonzero((lengths < mech.leg_length_min) |
@@ -510,7 +513,7 @@ def run_live(server, mech, namespace, stop):
                 setpoint_note.content = 'Sent: x %.3f, y %.3f, z %.3f m' % tuple(pose[0])
                 view.set_ghost((pose[0], rot))
             last_sent = tick
-        elif pose is None and not refused_local:
+        elif not pending and not refused_local:
             view.set_ghost(src.ghost)
             if src.ghost is not None and handle_at is None:
                 handle.position = tuple(src.ghost[0])
