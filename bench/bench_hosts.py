@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -26,6 +25,7 @@ sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent / 'test'))
 
 import bench_loop  # noqa: E402
+from bench_loop import spread  # noqa: E402
 from netns import TwoHosts, dds_env  # noqa: E402
 
 RIG = [sys.executable, '-m', 'stewart63_ros.tools.rig']
@@ -68,13 +68,6 @@ def figures(mode: str, s: dict) -> dict:
         return {'samples_per_s': s['samples'] / s['wall_time_s']}
     return {'p50_us': lat['p50_ms'] * 1e3, 'p99_us': lat['p99_ms'] * 1e3,
             'missed_percent': 100.0 * s['missed_cycles'] / s['samples']}
-
-
-def spread(values, form='%.0f') -> str:
-    if not values:
-        return 'n/a'
-    return (form + ' (' + form + '..' + form + ')') % (statistics.median(values), min(values),
-                                                     max(values))
 
 
 def main():

@@ -225,6 +225,14 @@ def measure_variants(duration: float = 5.0, repeat: int = 3) -> dict:
             'loop_composed_missed_fraction': _median(runs['composed_rt'], 'missed_fraction')}
 
 
+def spread(values, form='%.0f') -> str:
+    """'median (min..max)' of ``values``, 'n/a' if there are none."""
+    if not values:
+        return 'n/a'
+    return (form + ' (' + form + '..' + form + ')') % (statistics.median(values), min(values),
+                                                     max(values))
+
+
 def _fmt(value, form='%.0f'):
     return 'n/a' if value is None else form % value
 

@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import os
 import socket
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -142,12 +141,8 @@ def one_run(variant: str, duration: float, tmp: Path) -> dict | None:
             view.stop()
 
 
-def spread(runs, key, scale=1.0, form='%.0f') -> str:
-    values = [r[key] * scale for r in runs]
-    if not values:
-        return 'n/a'
-    return (form + ' (' + form + '..' + form + ')') % (statistics.median(values), min(values),
-                                                     max(values))
+def figure(runs, key, scale=1.0, form='%.0f') -> str:
+    return bench_loop.spread([r[key] * scale for r in runs], form)
 
 
 def main():
@@ -185,8 +180,8 @@ def main():
     for variant in variants:
         r = runs[variant]
         print('  %-8s p50 %s us   p99 %s us   missed %s %%'
-              % (variant, spread(r, 'p50_us'), spread(r, 'p99_us'),
-                 spread(r, 'missed_fraction', 100.0, '%.3f')))
+              % (variant, figure(r, 'p50_us'), figure(r, 'p99_us'),
+                 figure(r, 'missed_fraction', 100.0, '%.3f')))
 
 
 if __name__ == '__main__':

@@ -12,19 +12,9 @@ no ROS package: the launch imports happen inside generate_launch_description().
 
 def default_params():
     """The packaged parameter file (installed share folder, or the checkout's).
-
-    Found through the ament index first: launch may run in a Python that has
-    launch but not this package's dependencies (numpy, scipy), which only the
-    nodes' own interpreter needs."""
-    from pathlib import Path
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        path = Path(get_package_share_directory('stewart63_ros')) / 'config' / 'stewart63.yaml'
-        if path.is_file():
-            return str(path)
-    except Exception:  # noqa: BLE001 - not installed through colcon: the package knows
-        pass
-    from stewart63_ros.core.params import default_params_path
+    stewart63_ros.paths needs only the standard library: launch may run in a
+    Python without this package's dependencies (numpy, scipy)."""
+    from stewart63_ros.paths import default_params_path
     return str(default_params_path())
 
 

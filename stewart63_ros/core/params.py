@@ -16,6 +16,7 @@ import numpy as np
 import yaml
 
 from stewart63_ros.core.rotation import rotation_from_euler
+from stewart63_ros.paths import default_params_path
 
 LEG_NAMES = tuple('leg_%d' % i for i in range(1, 7))
 #: Legs 2k-1 and 2k (1-based) meet at platform vertex k.
@@ -32,23 +33,6 @@ class ParameterError(ValueError):
         super().__init__('%s: %s' % (key, problem))
         self.key = key
         self.problem = problem
-
-
-def default_params_path() -> Path:
-    """Where the packaged ``config/stewart63.yaml`` is, installed or in a checkout."""
-    candidates = []
-    try:  # a colcon / ROS install
-        from ament_index_python.packages import get_package_share_directory
-        candidates.append(Path(get_package_share_directory('stewart63_ros')) / 'config')
-    except Exception:  # noqa: BLE001 - not a ROS install, or package not indexed
-        pass
-    candidates.append(Path(__file__).resolve().parents[2] / 'config')  # checkout / editable
-    import sys
-    candidates.append(Path(sys.prefix) / 'share' / 'stewart63_ros' / 'config')  # pip install
-    for folder in candidates:
-        if (folder / 'stewart63.yaml').is_file():
-            return folder / 'stewart63.yaml'
-    raise FileNotFoundError('config/stewart63.yaml not found in %s' % [str(c) for c in candidates])
 
 
 def _section_applies(key: str, node_name: str | None) -> int:

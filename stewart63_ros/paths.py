@@ -1,0 +1,22 @@
+"""Where the package's files are. Standard library only: the launch files
+import it in a Python that may have ``launch`` but not numpy or scipy."""
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def default_params_path() -> Path:
+    """Where the packaged ``config/stewart63.yaml`` is, installed or in a checkout."""
+    candidates = []
+    try:  # a colcon / ROS install
+        from ament_index_python.packages import get_package_share_directory
+        candidates.append(Path(get_package_share_directory('stewart63_ros')) / 'config')
+    except Exception:  # noqa: BLE001 - not a ROS install, or package not indexed
+        pass
+    candidates.append(Path(__file__).resolve().parents[1] / 'config')  # checkout / editable
+    import sys
+    candidates.append(Path(sys.prefix) / 'share' / 'stewart63_ros' / 'config')  # pip install
+    for folder in candidates:
+        if (folder / 'stewart63.yaml').is_file():
+            return folder / 'stewart63.yaml'
+    raise FileNotFoundError('config/stewart63.yaml not found in %s' % [str(c) for c in candidates])
