@@ -173,7 +173,7 @@ class RigNode(Node):
     #: s: how often a node still waiting for its peers says what it waits for.
     WAIT_REPORT_PERIOD = 5.0
     #: s: how long a new match must hold before the first message (wait_for_matches).
-    MATCH_SETTLE = 0.5
+    MATCH_SETTLE = 1.0
 
     def graph_subscriptions(self, pub) -> int:
         """How many subscriptions the ROS graph shows on ``pub``'s topic that
