@@ -16,6 +16,9 @@ from stewart63_ros.nodes.rclpy_internals import DirectTake, run_timer_if_ready, 
 from stewart63_ros.nodes.realtime import realtime_scheduling
 
 
+#: What rmw names a publisher whose node the graph does not know yet.
+UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'
+
 class RigNode(Node):
     """Loads the mechanism from the node's parameters and owns the diagnostics.
 
@@ -309,20 +312,26 @@ class RigNode(Node):
         h.source_warning = ''
         if len(senders) > 1:
             self._single_since = None
-            if not h.collision:
-                self.collisions += 1
-                h.values['collisions'] = self.collisions
+            # The graph may not know a new publisher's node yet: its name is
+            # looked up again on later checks while the collision lasts.
+            first = not h.collision
+            if first or UNKNOWN_NODE in h.collision:
+                if first:
+                    self.collisions += 1
+                    h.values['collisions'] = self.collisions
                 names = self.publisher_names(topic)
                 if len(names) < len(senders):
                     names += ['gid %s' % g[:12].hex() for g in senders]
-                h.collision = ('collision: %d publishers send on %s: %s; two rigs in one '
-                               'domain under one namespace? samples of the second source '
-                               'refused' % (len(senders), sub.topic_name, ', '.join(names)))
+                collision = ('collision: %d publishers send on %s: %s; two rigs in one '
+                             'domain under one namespace? samples of the second source '
+                             'refused' % (len(senders), sub.topic_name, ', '.join(names)))
                 if getattr(self, 'WITHHOLDS_ON_COLLISION', False):
-                    h.collision += '; forces withheld'
-                self.get_logger().error(h.collision)
-                if self.started:
-                    h.report()
+                    collision += '; forces withheld'
+                if collision != h.collision:
+                    h.collision = collision
+                    self.get_logger().error(h.collision)
+                    if self.started:
+                        h.report()
             return
         if count > 1:
             h.source_warning = ('%d publishers matched on %s, one sends: %s' % (
