@@ -42,9 +42,17 @@ MARKERS = 'markers'
 #: falls briefly behind is re-sent what it missed instead of losing it.
 STREAM_DEPTH = 1000
 
+#: The 1 kHz streams. TRANSIENT_LOCAL: a subscription that asks for it (the
+#: recorder) is sent the history it missed, up to STREAM_DEPTH samples. A
+#: publisher sees a subscription as matched before the subscription has
+#: matched it in turn (DDS discovery is not symmetric in time, and lagged
+#: seconds under load here); a VOLATILE subscription then starts at the
+#: first sample it sees and the start of the run is lost, a TRANSIENT_LOCAL
+#: one asks for what came before. Volatile subscriptions (the controller,
+#: fk, ``ros2 topic echo``) match it as they would a volatile publisher.
 STREAM_PUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH,
                         reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.VOLATILE)
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: Acting on the newest sample only.
 LATEST_SUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                         reliability=ReliabilityPolicy.RELIABLE,
@@ -59,6 +67,13 @@ EVERY_SUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
 RECORD_SUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH * 10,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
+#: Recording the 1 kHz streams: also the history a late match missed (see
+#: STREAM_PUB). The recorder falls back to RECORD_SUB on a topic where a
+#: volatile publisher shows up (a user's sensor driver), which this one
+#: would not match.
+RECORD_STREAM_SUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH * 10,
+                               reliability=ReliabilityPolicy.RELIABLE,
+                               durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: User commands: latched (publishers; and the subscription that receives a
 #: command published before the node started).
 SETPOINT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
@@ -69,11 +84,11 @@ COMMAND_VOLATILE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                                   reliability=ReliabilityPolicy.RELIABLE,
                                   durability=DurabilityPolicy.VOLATILE)
 #: ``markers`` (20-60 Hz): reliable, with a history of some 3 s of arrays, so
-#: a recorder that falls behind is re-sent what it missed; RViz2's and
-#: Foxglove's default subscriptions match.
+#: a recorder that falls behind (or matches late, see STREAM_PUB) is re-sent
+#: what it missed; RViz2's and Foxglove's default subscriptions match.
 MARKERS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                          reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.VOLATILE)
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                              reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.VOLATILE)
@@ -94,6 +109,12 @@ TOPIC_TYPES = {
     DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray',
     MARKERS: 'visualization_msgs/msg/MarkerArray',
 }
+
+#: The 1 kHz streams, published with STREAM_PUB.
+STREAM_TOPICS = (LEG_LENGTHS, LEG_FORCES, PLATFORM_POSE, PLATFORM_TWIST, TRUE_POSE,
+                 TRUE_TWIST, CLOCK)
+#: Published TRANSIENT_LOCAL with a history, recorded with RECORD_STREAM_SUB.
+HISTORY_TOPICS = STREAM_TOPICS + (MARKERS,)
 
 #: Topics whose publishers are latched (TRANSIENT_LOCAL): a recorder asks for
 #: their history, so a setpoint published before recording started is in the bag.
@@ -127,12 +148,32 @@ def publisher_qos(topic: str) -> QoSProfile:
 
 def recorder_qos(topic: str) -> QoSProfile:
     """The profile a recorder subscribes ``topic`` with: RECORD_SUB, and
-    TRANSIENT_LOCAL for latched topics so their last sample is recorded too."""
-    if relative_name(topic) in LATCHED_TOPICS:
+    TRANSIENT_LOCAL for latched topics so their last sample is recorded too,
+    and for the streams and markers so a late match loses nothing (STREAM_PUB)."""
+    name = relative_name(topic)
+    if name in LATCHED_TOPICS:
         return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=RECORD_SUB.depth,
                           reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    if name in HISTORY_TOPICS:
+        return RECORD_STREAM_SUB
     return RECORD_SUB
+
+
+def can_match(offered, requested) -> bool:
+    """Whether a publisher offering QoS ``offered`` matches a subscription
+    requesting ``requested`` (for example one the ROS graph shows), on the
+    two policies the rig's profiles differ in: a best-effort publisher does
+    not match a reliable subscription, a volatile one does not match a
+    TRANSIENT_LOCAL one. (rclpy's ``qos_check_compatible`` reports every
+    profile the graph returns as incompatible with one made in Python: the
+    graph gives deadline and liveliness lease as "infinite", which it reads
+    as set.)"""
+    if (requested.reliability == ReliabilityPolicy.RELIABLE
+            and offered.reliability == ReliabilityPolicy.BEST_EFFORT):
+        return False
+    return not (requested.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                and offered.durability == DurabilityPolicy.VOLATILE)
 
 
 def wait_for_subscribers(publishers, min_count: int = 1, timeout: float = 10.0,

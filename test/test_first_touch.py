@@ -157,6 +157,78 @@ def test_a_publisher_waits_for_a_subscription_the_graph_shows(ros, tmp_path):
           'the first included' % len(stamps))
 
 
+def test_the_graph_count_agrees_with_the_middlewares_matching(ros):
+    """What a node waits for before its first message: the subscriptions the
+    ROS graph shows that can match its publisher (``topics.can_match``) are
+    exactly those the publisher does match, for every kind the rig meets (the
+    first version counted none: rclpy's own check calls every profile the
+    graph returns incompatible)."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+    from stewart63_ros import topics
+    kinds = {'recorder': topics.RECORD_STREAM_SUB, 'controller': topics.LATEST_SUB,
+             'fk': topics.EVERY_SUB, 'echo': QoSProfile(depth=10),
+             'best_effort': QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)}
+    offered = {'stream': topics.STREAM_PUB,
+               'volatile_driver': QoSProfile(depth=10, durability=DurabilityPolicy.VOLATILE),
+               'best_effort_driver': QoSProfile(
+                   depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)}
+    publisher_node, subscriber_node = ros.node('pubs'), ros.node('subs')
+    for name, qos in kinds.items():
+        subscriber_node.create_subscription(JointState, 'only_' + name, lambda m: None, qos)
+    for pub_name, pub_qos in offered.items():
+        for name in kinds:
+            pub = publisher_node.create_publisher(JointState, 'only_' + name, pub_qos)
+            infos = []
+            assert ros.spin_until(lambda: bool(infos.extend(
+                publisher_node.get_subscriptions_info_by_topic(pub.topic_name)) or infos), 15)
+            predicted = topics.can_match(pub.qos_profile, infos[0].qos_profile)
+            if predicted:
+                assert ros.spin_until(lambda: pub.get_subscription_count() == 1, 15), (
+                    pub_name, name)
+            else:      # a match that should not be: give it as long as one that is took
+                ros.rc.spin_for(0.5)
+                assert pub.get_subscription_count() == 0, (pub_name, name)
+            publisher_node.destroy_publisher(pub)
+
+
+def test_the_plant_waits_for_a_late_peer_even_when_a_recorder_fills_the_count(ros, tmp_path):
+    """A recorder started first fills ``lengths_subscribers`` while fk, still
+    loading, has no subscription yet: the plant waits for the peers it is told
+    by name (``lengths_peers``, as ``rig`` sets them), says so, and fk started
+    late still gets every sample (a fresh-clone run lost all of fk's poses)."""
+    from sensor_msgs.msg import JointState
+    from stewart63_ros import topics
+    node = ros.node('early_recorder')
+    stamps = []
+    node.create_subscription(JointState, '/leg_lengths', lambda m: stamps.append(m),
+                             topics.RECORD_SUB)
+    plant_summary, fk_summary = tmp_path / 'plant.json', tmp_path / 'fk.json'
+    plant = ros.spawn([exe('plant'), '--ros-args', '--params-file', str(PARAMS),
+                       '-p', 'clock_mode:=realtime', '-p', 'duration:=0.5',
+                       '-p', 'lengths_subscribers:=1', '-p', 'lengths_peers:=[fk]',
+                       '-p', 'discovery_timeout:=60.0',
+                       '-p', 'summary_file:=%s' % plant_summary], name='plant')
+    try:
+        assert wait_text(plant, 'no subscription from /fk yet (lengths_peers)', 60), (
+            plant.describe())
+        fk = ros.spawn([exe('fk'), '--ros-args', '--params-file', str(PARAMS),
+                        '-p', 'summary_file:=%s' % fk_summary], name='fk')
+        assert ros.spin_until(lambda: plant.returncode is not None, 90), plant.describe()
+        assert plant.returncode == 0, plant.describe()
+        assert wait_until(lambda: plant_summary.exists(), 5)
+        samples = json.loads(plant_summary.read_text())['samples']
+        assert samples == 501
+        assert ros.spin_until(lambda: len(stamps) >= samples, 10), len(stamps)
+    finally:
+        ros.stop(plant)
+    assert ros.stop(fk) == 0, fk.describe()
+    received = json.loads(fk_summary.read_text())['received']
+    assert received.get('leg_lengths') == samples, (received, fk.describe())
+    print('\nrecorder first, fk late: fk received %d of %d samples' % (
+        received['leg_lengths'], samples))
+
+
 def test_lockstep_plant_alone_says_what_it_waits_for(ros, tmp_path):
     plant = ros.spawn([exe('plant'), '--ros-args', '-p', 'discovery_timeout:=60.0'],
                       name='plant')

@@ -31,7 +31,7 @@ from stewart63_ros.core.params import ParameterError
 from stewart63_ros.core.sensor import SensorModel
 from stewart63_ros.core.simulate import initial_state, substeps_for
 from stewart63_ros.nodes import wire
-from stewart63_ros.nodes.base import RigNode
+from stewart63_ros.nodes.base import RigNode, node_full_name
 from stewart63_ros.nodes.checks import (RESTART_PAUSE, Rejected, StampGate, finite_vector,
                                          ros_time, source_of)
 from stewart63_ros.nodes.commands import CommandInput
@@ -57,6 +57,11 @@ class PlantNode(RigNode):
         # Matched leg_lengths subscriptions to wait for before the first sample
         # (rig: controller + fk + recorder).
         self.lengths_subscribers = int(self.param('lengths_subscribers', 0))
+        # Nodes (names relative to this namespace) whose leg_lengths
+        # subscription the graph must show before the first sample. A count
+        # alone is not enough: a recorder started first fills it while fk,
+        # still loading, has no subscription yet, and fk misses the run.
+        self.lengths_peers = self.peer_names('lengths_peers')
         self.sensor = SensorModel(self.params)
         # The reference motion the controller follows (rig --reference), read
         # here only to report the true tracking error in the summary.
@@ -247,6 +252,12 @@ class PlantNode(RigNode):
             if have < self.lengths_subscribers:
                 out.append('%s: %d of %d subscriptions matched (lengths_subscribers)'
                            % (self.pub_lengths.topic_name, have, self.lengths_subscribers))
+            shown = {node_full_name(info.node_namespace, info.node_name) for info in
+                     self.get_subscriptions_info_by_topic(self.pub_lengths.topic_name)}
+            for peer in self.lengths_peers:
+                if peer not in shown:
+                    out.append('%s: no subscription from %s yet (lengths_peers)'
+                               % (self.pub_lengths.topic_name, peer))
             return out
         self.wait_for_matches(missing)
         self.forces_in = self.start_hot_loop(self.sub_forces)

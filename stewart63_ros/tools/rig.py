@@ -88,7 +88,8 @@ class Rig:
         remote = 0 if 'controller' in self.nodes else 1
         plant = dict(shared, summary_file=str(self.summary_file),
                      lengths_subscribers=sum(n in self.nodes for n in ('controller', 'fk'))
-                     + wait + remote)
+                     + wait + remote,
+                     lengths_peers=['controller'] + (['fk'] if 'fk' in self.nodes else []))
         if self.duration:
             plant['duration'] = float(self.duration)
         doc = {'/**': {'ros__parameters': shared}, '/**/plant': {'ros__parameters': plant}}
