@@ -84,11 +84,12 @@ COMMAND_VOLATILE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                                   reliability=ReliabilityPolicy.RELIABLE,
                                   durability=DurabilityPolicy.VOLATILE)
 #: ``markers`` (20-60 Hz): reliable, with a history of some 3 s of arrays, so
-#: a recorder that falls behind (or matches late, see STREAM_PUB) is re-sent
-#: what it missed; RViz2's and Foxglove's default subscriptions match.
+#: a recorder that falls behind is re-sent what it missed; RViz2's and
+#: Foxglove's default subscriptions match. (TRANSIENT_LOCAL, as the streams,
+#: lost arrays in mid-run in one recorded run of ten; left volatile.)
 MARKERS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                          reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+                         durability=DurabilityPolicy.VOLATILE)
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                              reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.VOLATILE)
@@ -110,11 +111,9 @@ TOPIC_TYPES = {
     MARKERS: 'visualization_msgs/msg/MarkerArray',
 }
 
-#: The 1 kHz streams, published with STREAM_PUB.
+#: The 1 kHz streams, published with STREAM_PUB and recorded with RECORD_STREAM_SUB.
 STREAM_TOPICS = (LEG_LENGTHS, LEG_FORCES, PLATFORM_POSE, PLATFORM_TWIST, TRUE_POSE,
                  TRUE_TWIST, CLOCK)
-#: Published TRANSIENT_LOCAL with a history, recorded with RECORD_STREAM_SUB.
-HISTORY_TOPICS = STREAM_TOPICS + (MARKERS,)
 
 #: Topics whose publishers are latched (TRANSIENT_LOCAL): a recorder asks for
 #: their history, so a setpoint published before recording started is in the bag.
@@ -149,13 +148,13 @@ def publisher_qos(topic: str) -> QoSProfile:
 def recorder_qos(topic: str) -> QoSProfile:
     """The profile a recorder subscribes ``topic`` with: RECORD_SUB, and
     TRANSIENT_LOCAL for latched topics so their last sample is recorded too,
-    and for the streams and markers so a late match loses nothing (STREAM_PUB)."""
+    and for the 1 kHz streams so a late match loses nothing (STREAM_PUB)."""
     name = relative_name(topic)
     if name in LATCHED_TOPICS:
         return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=RECORD_SUB.depth,
                           reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    if name in HISTORY_TOPICS:
+    if name in STREAM_TOPICS:
         return RECORD_STREAM_SUB
     return RECORD_SUB
 
