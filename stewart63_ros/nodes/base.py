@@ -143,7 +143,7 @@ class RigNode(Node):
             raise ParameterError(problems[0].partition(':')[0], problems[0].partition(': ')[2]
                                  + ' (strict_parameters is true)')
         for problem in problems:
-            self.get_logger().warn('%s; ignored' % problem)
+            self.get_logger().warning('%s; ignored' % problem)
 
     def param(self, name, default):
         return self.params.get(name, default)
@@ -176,7 +176,7 @@ class RigNode(Node):
         if value:
             refused = realtime_scheduling(value)
             if refused:
-                self.get_logger().warn('realtime_priority %d refused by the OS (%s): normal '
+                self.get_logger().warning('realtime_priority %d refused by the OS (%s): normal '
                                        'scheduling' % (value, refused))
                 return 0
             self.get_logger().info('SCHED_FIFO, priority %d' % value)
@@ -271,7 +271,7 @@ class RigNode(Node):
         if not waiting:
             log.info('matched after %.2f s' % (time.monotonic() - start))
             return True
-        log.warn('discovery: still missing after %.1f s: %s; starting anyway'
+        log.warning('discovery: still missing after %.1f s: %s; starting anyway'
                  % (self.discovery_timeout, '; '.join(waiting)))
         self.health.warning = 'started before all subscribers matched'
         return False
@@ -367,7 +367,7 @@ class RigNode(Node):
     def accept_sample(self, gate, ns: int, source, topic: str) -> None:
         """Accept a checked sample; a new run of its source is logged (and counted)."""
         if gate.new_run:
-            self.get_logger().warn('%s: a new run of its source (%s): accepted, %d so far'
+            self.get_logger().warning('%s: a new run of its source (%s): accepted, %d so far'
                                    % (topic, gate.new_run, gate.restarts + 1))
         gate.accept(ns, source)
 

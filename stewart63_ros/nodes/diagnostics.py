@@ -69,7 +69,7 @@ class Health:
     def reject(self, topic: str, exc: Rejected) -> None:
         self.rejected['%s/%s' % (topic, exc.reason)] += 1
         self.last_rejection = '%s: %s' % (topic, exc)
-        self.node.get_logger().warn('rejected %s' % self.last_rejection,
+        self.node.get_logger().warning('rejected %s' % self.last_rejection,
                                     throttle_duration_sec=1.0)
 
     def report(self, stamp=None, final=False) -> None:
