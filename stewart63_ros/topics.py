@@ -42,17 +42,13 @@ MARKERS = 'markers'
 #: falls briefly behind is re-sent what it missed instead of losing it.
 STREAM_DEPTH = 1000
 
-#: The 1 kHz streams. TRANSIENT_LOCAL: a subscription that asks for it (the
-#: recorder) is sent the history it missed, up to STREAM_DEPTH samples. A
-#: publisher sees a subscription as matched before the subscription has
-#: matched it in turn (DDS discovery is not symmetric in time, and lagged
-#: seconds under load here); a VOLATILE subscription then starts at the
-#: first sample it sees and the start of the run is lost, a TRANSIENT_LOCAL
-#: one asks for what came before. Volatile subscriptions (the controller,
-#: fk, ``ros2 topic echo``) match it as they would a volatile publisher.
+#: The 1 kHz streams. VOLATILE: TRANSIENT_LOCAL (so that a recorder that
+#: matched a publisher late is sent what it missed) was tried and lost
+#: samples in mid-run in 2 of 3 recorded fresh-clone runs (56 of 1001
+#: platform_pose, 6 of 96 markers); not understood, so not used.
 STREAM_PUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH,
                         reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+                        durability=DurabilityPolicy.VOLATILE)
 #: Acting on the newest sample only.
 LATEST_SUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                         reliability=ReliabilityPolicy.RELIABLE,
@@ -67,13 +63,6 @@ EVERY_SUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
 RECORD_SUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH * 10,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
-#: Recording the 1 kHz streams: also the history a late match missed (see
-#: STREAM_PUB). The recorder falls back to RECORD_SUB on a topic where a
-#: volatile publisher shows up (a user's sensor driver), which this one
-#: would not match.
-RECORD_STREAM_SUB = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH * 10,
-                               reliability=ReliabilityPolicy.RELIABLE,
-                               durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: User commands: latched (publishers; and the subscription that receives a
 #: command published before the node started).
 SETPOINT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
@@ -85,8 +74,7 @@ COMMAND_VOLATILE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                                   durability=DurabilityPolicy.VOLATILE)
 #: ``markers`` (20-60 Hz): reliable, with a history of some 3 s of arrays, so
 #: a recorder that falls behind is re-sent what it missed; RViz2's and
-#: Foxglove's default subscriptions match. (TRANSIENT_LOCAL, as the streams,
-#: lost arrays in mid-run in one recorded run of ten; left volatile.)
+#: Foxglove's default subscriptions match.
 MARKERS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                          reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
@@ -111,7 +99,7 @@ TOPIC_TYPES = {
     MARKERS: 'visualization_msgs/msg/MarkerArray',
 }
 
-#: The 1 kHz streams, published with STREAM_PUB and recorded with RECORD_STREAM_SUB.
+#: The 1 kHz streams, published with STREAM_PUB.
 STREAM_TOPICS = (LEG_LENGTHS, LEG_FORCES, PLATFORM_POSE, PLATFORM_TWIST, TRUE_POSE,
                  TRUE_TWIST, CLOCK)
 
@@ -147,15 +135,12 @@ def publisher_qos(topic: str) -> QoSProfile:
 
 def recorder_qos(topic: str) -> QoSProfile:
     """The profile a recorder subscribes ``topic`` with: RECORD_SUB, and
-    TRANSIENT_LOCAL for latched topics so their last sample is recorded too,
-    and for the 1 kHz streams so a late match loses nothing (STREAM_PUB)."""
+    TRANSIENT_LOCAL for latched topics so their last sample is recorded too."""
     name = relative_name(topic)
     if name in LATCHED_TOPICS:
         return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=RECORD_SUB.depth,
                           reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    if name in STREAM_TOPICS:
-        return RECORD_STREAM_SUB
     return RECORD_SUB
 
 

@@ -166,10 +166,12 @@ def test_the_graph_count_agrees_with_the_middlewares_matching(ros):
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
     from stewart63_ros import topics
-    kinds = {'recorder': topics.RECORD_STREAM_SUB, 'controller': topics.LATEST_SUB,
+    kinds = {'recorder': topics.RECORD_SUB, 'controller': topics.LATEST_SUB,
+             'latched_reader': QoSProfile(depth=10,
+                                          durability=DurabilityPolicy.TRANSIENT_LOCAL),
              'fk': topics.EVERY_SUB, 'echo': QoSProfile(depth=10),
              'best_effort': QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)}
-    offered = {'stream': topics.STREAM_PUB,
+    offered = {'stream': topics.STREAM_PUB, 'latched': topics.SETPOINT_QOS,
                'volatile_driver': QoSProfile(depth=10, durability=DurabilityPolicy.VOLATILE),
                'best_effort_driver': QoSProfile(
                    depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)}
