@@ -99,10 +99,6 @@ TOPIC_TYPES = {
     MARKERS: 'visualization_msgs/msg/MarkerArray',
 }
 
-#: The 1 kHz streams, published with STREAM_PUB.
-STREAM_TOPICS = (LEG_LENGTHS, LEG_FORCES, PLATFORM_POSE, PLATFORM_TWIST, TRUE_POSE,
-                 TRUE_TWIST, CLOCK)
-
 #: Topics whose publishers are latched (TRANSIENT_LOCAL): a recorder asks for
 #: their history, so a setpoint published before recording started is in the bag.
 LATCHED_TOPICS = (LEG_SETPOINT, POSE_SETPOINT, POSE_TRAJECTORY)
@@ -136,8 +132,7 @@ def publisher_qos(topic: str) -> QoSProfile:
 def recorder_qos(topic: str) -> QoSProfile:
     """The profile a recorder subscribes ``topic`` with: RECORD_SUB, and
     TRANSIENT_LOCAL for latched topics so their last sample is recorded too."""
-    name = relative_name(topic)
-    if name in LATCHED_TOPICS:
+    if relative_name(topic) in LATCHED_TOPICS:
         return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=RECORD_SUB.depth,
                           reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)

@@ -552,32 +552,19 @@ class Recorder:
                 self._qos_seen[topic] = [qos_to_rosbags(i.qos_profile) for i in infos]
             if topic not in self._conns:
                 self._add_connection(topic)
-            if topic not in self._volatile_subs:
-                self._adapt_qos(topic, sub, infos)
-
-    def _adapt_qos(self, topic, sub, infos):
-        """A publisher that the subscription cannot match: a best-effort one (a
-        sensor driver) for a reliable subscription, a volatile one for a
-        TRANSIENT_LOCAL subscription of a stream. Follow rosbag2 and subscribe
-        as it offers (a best-effort topic can lose samples, by design)."""
-        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-        q = sub.qos_profile
-        reliability, durability = q.reliability, q.durability
-        offered = [i.qos_profile for i in infos]
-        if (reliability == ReliabilityPolicy.RELIABLE and
-                any(o.reliability == ReliabilityPolicy.BEST_EFFORT for o in offered)):
-            reliability = ReliabilityPolicy.BEST_EFFORT
-            print(f'record: {topic} has a best-effort publisher; '
-                  'subscribing best effort', file=sys.stderr, flush=True)
-        if (durability == DurabilityPolicy.TRANSIENT_LOCAL and
-                any(o.durability == DurabilityPolicy.VOLATILE for o in offered)):
-            durability = DurabilityPolicy.VOLATILE
-            print(f'record: {topic} has a volatile publisher; subscribing volatile '
-                  '(its first messages may be lost)', file=sys.stderr, flush=True)
-        if (reliability, durability) != (q.reliability, q.durability):
-            self._subscribe(topic, self._types[topic],
-                            QoSProfile(history=q.history, depth=q.depth,
-                                       reliability=reliability, durability=durability))
+            # A best-effort publisher (a sensor driver) does not match a reliable
+            # subscription: follow rosbag2 and subscribe best effort then.
+            from rclpy.qos import QoSProfile, ReliabilityPolicy
+            if (sub.qos_profile.reliability == ReliabilityPolicy.RELIABLE and
+                    any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+                        for i in infos)):
+                q = sub.qos_profile
+                be = QoSProfile(history=q.history, depth=q.depth,
+                                reliability=ReliabilityPolicy.BEST_EFFORT,
+                                durability=q.durability)
+                print(f'record: {topic} has a best-effort publisher; '
+                      'subscribing best effort', file=sys.stderr, flush=True)
+                self._subscribe(topic, self._types[topic], be)
 
     def publisher_counts(self, topics=None):
         """Matched publishers per subscribed topic (or per topic of ``topics``,
