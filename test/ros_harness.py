@@ -127,8 +127,11 @@ def child_env(domain_id: int, extra: dict | None = None, *, other_venv: bool = F
 class Proc:
     """A child process in its own process group, with its output in files."""
 
-    def __init__(self, popen: subprocess.Popen, name: str, stdout: Path, stderr: Path):
+    def __init__(self, popen: subprocess.Popen, name: str, stdout: Path, stderr: Path,
+                 dumps_stacks: bool = False):
         self.popen = popen
+        #: one of the package's executables: SIGUSR1 prints its Python stacks
+        self.dumps_stacks = dumps_stacks
         self.name = name
         self.stdout_path = stdout
         self.stderr_path = stderr
@@ -172,7 +175,13 @@ def spawn(cmd, env: dict, log_dir, name: str | None = None, cwd=None) -> Proc:
         popen = subprocess.Popen([str(c) for c in cmd], env=env, cwd=cwd or REPO,
                                  stdin=subprocess.DEVNULL, stdout=fo, stderr=fe,
                                  start_new_session=True)
-    return Proc(popen, name, out, err)
+    ours = any(Path(str(c)).name in PACKAGE_EXECUTABLES or str(c).startswith('stewart63_ros.')
+               for c in cmd)
+    return Proc(popen, name, out, err, dumps_stacks=ours)
+
+
+#: console scripts that print their stacks on SIGUSR1 (launcher.dump_stacks_on_sigusr1)
+PACKAGE_EXECUTABLES = {'plant', 'controller', 'fk', 'composed', 'record', 'rig', 'view'}
 
 
 def _group_alive(pgid: int) -> bool:
@@ -200,6 +209,10 @@ def stop(proc: Proc, sigint_wait: float = 8.0, sigterm_wait: float = 4.0,
                       (signal.SIGKILL, sigkill_wait)):
         if proc.popen.poll() is not None and not _group_alive(pgid):
             break
+        if sig == signal.SIGTERM and proc.dumps_stacks and proc.popen.poll() is None:
+            # It ignored SIGINT: where it hangs goes to its stderr first.
+            _signal_group(pgid, signal.SIGUSR1)
+            time.sleep(0.5)
         _signal_group(pgid, sig)
         deadline = time.monotonic() + wait
         while time.monotonic() < deadline:

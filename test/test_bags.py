@@ -455,8 +455,12 @@ def test_commands_from_volatile_and_latched_publishers_are_recorded_once_each(ro
             PoseStamped, 'pose_setpoint',
             QoSProfile(depth=10, durability=DurabilityPolicy.VOLATILE))
         latched = node.create_publisher(PoseStamped, 'pose_setpoint', T.SETPOINT_QOS)
+        # Both sides of each match: a sample sent while only the publisher
+        # knows the recorder is lost to it (a volatile reader's late match).
         assert wait_until(lambda: volatile.get_subscription_count() >= 1
-                          and latched.get_subscription_count() >= 2, 15)
+                          and latched.get_subscription_count() >= 2
+                          and rec.publisher_counts(['pose_setpoint'])['/pose_setpoint'] >= 2,
+                          15), rec.publisher_counts()
         for k, pub in enumerate((volatile, latched, volatile, latched)):
             msg = PoseStamped()
             msg.header.stamp.sec = k

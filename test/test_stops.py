@@ -89,6 +89,25 @@ def test_each_node_stops_cleanly_on_repeated_signals(ros, tmp_path, sequence):
         print('  ' + ' | '.join(line for line in _text(proc).splitlines() if 'stopped (' in line))
 
 
+@pytest.mark.parametrize('name', ['fk', 'record'])
+def test_sigusr1_prints_where_a_process_is_and_it_runs_on(ros, tmp_path, name):
+    """What ``rig`` (and the tests) send a process that ignored SIGINT before
+    SIGTERM: its Python stacks go to its log, and it goes on running."""
+    args = [str(tmp_path / 'bag'), '--namespace', '/usr1'] if name == 'record' else \
+        ['--ros-args', '-r', '__ns:=/usr1']
+    proc = ros.spawn(exe(name) + args, name=name)
+    ready = 'READY' if name == 'record' else 'waiting'
+    assert wait_until(lambda: ready in _text(proc) or proc.returncode is not None, 120), \
+        proc.describe()
+    os.kill(proc.pid, signal.SIGUSR1)
+    assert wait_until(lambda: 'most recent call first' in proc.stderr()
+                      or proc.returncode is not None, 10), proc.describe()
+    assert proc.returncode is None, proc.describe()
+    assert 'File "' in proc.stderr(), proc.describe()
+    os.kill(proc.pid, signal.SIGINT)
+    assert proc.wait(STOP_WITHIN + 5) == 0, proc.describe()
+
+
 def published_counts(bag) -> dict:
     """{topic: count} that the nodes say they published (their last status in the bag)."""
     last = {}

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import signal
 import sys
 import time
@@ -100,6 +101,7 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
         return 2
     # SIGTERM (from rig, systemd, docker, launch) ends the node like Ctrl-C does.
     signals = STOP.install()
+    dump_stacks_on_sigusr1()
     node = None
     code = 0
     try:
@@ -130,6 +132,15 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
             rclpy.shutdown()
         ignore_stop_signals()
     return code
+
+
+def dump_stacks_on_sigusr1() -> None:
+    """``kill -USR1 <pid>`` prints every thread's Python stack to stderr.
+
+    ``rig`` sends it to a process that has not stopped within its grace
+    period, before SIGTERM and SIGKILL: the log then shows where it hung.
+    """
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
 
 
 def ignore_stop_signals() -> None:

@@ -567,23 +567,26 @@ class Recorder:
                 self._subscribe(topic, self._types[topic], be)
 
     def publisher_counts(self, topics=None):
-        """Matched publishers per subscribed topic (or per topic of ``topics``,
-        relative names resolved in the recorder's namespace)."""
-        if topics:
-            names = [self._node.resolve_topic_name(t) for t in topics]
-            return {t: (self._subs[t].get_publisher_count() if t in self._subs else 0)
-                    for t in names}
-        return {t: s.get_publisher_count() for t, s in list(self._subs.items())}
+        """Publishers the recorder's own subscriptions have matched, per
+        subscribed topic (or per topic of ``topics``, relative names resolved
+        in the recorder's namespace). A latched command topic counts those of
+        its volatile subscription, which matches latched and volatile
+        publishers alike (``_subscribe``).
+
+        This is the reader's side of the match: a publisher can already count
+        the recorder while the recorder does not know it yet, and what it
+        sends then is lost to the recorder."""
+        names = [self._node.resolve_topic_name(t) for t in topics] if topics else list(self._subs)
+        return {t: self._publisher_count(t) for t in names}
+
+    def _publisher_count(self, topic) -> int:
+        sub = self._volatile_subs.get(topic) or self._subs.get(topic)
+        return 0 if sub is None else sub.get_publisher_count()
 
     def matched(self, topics=None) -> bool:
         """True when every topic in ``topics`` (default: all subscribed) has a
         matched publisher. Relative names resolve in the recorder's namespace."""
-        names = [self._node.resolve_topic_name(t) for t in topics] if topics else list(self._subs)
-        for name in names:
-            sub = self._subs.get(name)
-            if sub is None or sub.get_publisher_count() < 1:
-                return False
-        return True
+        return all(n >= 1 for n in self.publisher_counts(topics).values())
 
     def wait_for_publishers(self, topics=None, timeout=30.0) -> bool:
         """Block until :meth:`matched` (bounded); spins if no thread is recording."""

@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from stewart63_ros.bagio import BagError
-from stewart63_ros.nodes.launcher import ignore_stop_signals
+from stewart63_ros.nodes.launcher import dump_stacks_on_sigusr1, ignore_stop_signals
 from stewart63_ros.nodes.recorder import MATCHED_LINE, READY_LINE, Recorder
 
 # ---------------------------------------------------------------- command line
@@ -74,6 +74,7 @@ def _write_ready_file(path, text):
 
 
 def main(argv=None) -> int:
+    dump_stacks_on_sigusr1()
     argv = list(sys.argv[1:] if argv is None else argv)
     ros_args = None
     if '--ros-args' in argv:

@@ -251,7 +251,8 @@ class Rig:
                 if proc.poll() is None:
                     proc.send_signal(signal.SIGINT)
                     interrupted.add(name)
-            for escalate, timeout in ((None, grace), (subprocess.Popen.terminate, 3.0),
+            for escalate, timeout in ((None, grace), (_dump_stacks, 0.5),
+                                      (subprocess.Popen.terminate, 3.0),
                                       (subprocess.Popen.kill, None)):
                 for proc in procs:
                     if escalate is not None and proc.poll() is None:
@@ -267,6 +268,12 @@ class Rig:
             return json.loads(path.read_text())
         except (OSError, ValueError):
             return None
+
+
+def _dump_stacks(proc) -> None:
+    """Ask a process that ignored SIGINT for its Python stacks (in its log;
+    see launcher.dump_stacks_on_sigusr1) before it is terminated."""
+    proc.send_signal(signal.SIGUSR1)
 
 
 def _wait_all(procs, timeout):
@@ -304,6 +311,8 @@ class _DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 
 def main(argv=None) -> int:
+    from stewart63_ros.nodes.launcher import dump_stacks_on_sigusr1
+    dump_stacks_on_sigusr1()
     parser = argparse.ArgumentParser(prog='rig', description=__doc__.split('\n\n')[0],
                                      formatter_class=_DefaultsFormatter)
     parser.add_argument('--params', metavar='FILE',

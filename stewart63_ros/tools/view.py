@@ -581,6 +581,8 @@ def run_bag(server, mech, bag_run: BagRun, stop):
 
 
 def main(argv=None) -> int:
+    from stewart63_ros.nodes.launcher import dump_stacks_on_sigusr1
+    dump_stacks_on_sigusr1()
     parser = argparse.ArgumentParser(
         prog='view', description=__doc__.split('\n\n')[0],
         epilog='Open the printed URL in a browser. Live: Ctrl-C stops the page; the rig '
