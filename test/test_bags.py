@@ -439,6 +439,35 @@ def test_recorder_discovers_late_topic_of_unknown_type(ros, tmp_path):
     assert msgs == [f'm{k}' for k in range(20)]
 
 
+def test_a_message_before_its_publisher_is_known_still_reads_back(ros, tmp_path):
+    """A first message can arrive before the recorder's graph shows who sent
+    it (the reader's match comes first). The topic's QoS in the MCAP channel
+    and in metadata.yaml must then still agree: a reader pairs the two by it,
+    and finds none of the topic's messages where they differ."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from rclpy.serialization import serialize_message
+
+    from stewart63_ros import topics as T
+    from stewart63_ros.nodes.recorder import Recorder
+    bag = tmp_path / 'early'
+    rec = Recorder(bag, ['leg_setpoint'], domain_id=ros.domain_id).open()
+    try:
+        first = serialize_message(DiagnosticArray(status=[DiagnosticStatus(name='early')]))
+        rec._subscribe('/early', 'diagnostic_msgs/msg/DiagnosticArray')
+        rec._on_message('/early', first, None)          # as taken from the middleware
+        node = ros.node('late_in_the_graph')
+        pub = node.create_publisher(DiagnosticArray, '/early', T.DIAGNOSTICS_QOS)
+        assert wait_until(lambda: rec.publisher_counts(['/early'])['/early'] >= 1
+                          and pub.get_subscription_count() >= 1, 15)
+        pub.publish(DiagnosticArray(status=[DiagnosticStatus(name='later')]))
+        assert wait_until(lambda: (rec.spin_once(0.05), rec.counts['/early'] >= 2)[1], 15), \
+            rec.counts
+    finally:
+        rec.close()
+    names = [s.name for _, _, m in bagio.read_messages(bag, ['/early']) for s in m.status]
+    assert names == ['early', 'later'], names
+
+
 def test_commands_from_volatile_and_latched_publishers_are_recorded_once_each(ros, tmp_path):
     """``ros2 topic pub`` publishes volatile: a latched-only subscription would
     never match it. The recorder takes every command, once, from either kind."""

@@ -157,6 +157,71 @@ def test_a_publisher_waits_for_a_subscription_the_graph_shows(ros, tmp_path):
           'the first included' % len(stamps))
 
 
+def test_a_node_starts_only_when_a_recorder_says_it_has_matched_it(ros):
+    """Each side of a DDS match discovers the other on its own: a recorder
+    still drops what fk sends while fk already counts it as matched. So the
+    recorder names on /diagnostics the nodes whose publishers it has matched,
+    and fk waits (saying so) for its own name before its first message."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    from geometry_msgs.msg import PoseStamped
+    from stewart63_ros import topics
+    node = ros.node('fake_recorder', namespace='/rw')
+    node.create_subscription(PoseStamped, '/rw/platform_pose', lambda m: None,
+                             topics.RECORD_SUB)
+    status_pub = node.create_publisher(DiagnosticArray, '/diagnostics',
+                                       topics.DIAGNOSTICS_QOS)
+
+    def say_matched(names, seconds, until=lambda: False):
+        """The fake recorder's status, every 0.2 s for ``seconds`` or ``until()``."""
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline and not until():
+            status = DiagnosticStatus(name='stewart63/rw/fake_recorder', values=[
+                KeyValue(key='matched_publishers', value=names)])
+            status_pub.publish(DiagnosticArray(status=[status]))
+            ros.spin_until(until, 0.2)
+        return until()
+    # (the default discovery_settle, 4 s: time to hear from the recorder)
+    fk = ros.spawn([exe('fk'), '--ros-args', '-r', '__ns:=/rw',
+                    '-p', 'discovery_timeout:=60.0'], name='fk')
+    waits_for_it = "fake_recorder to match /rw/fk's publishers"
+    assert say_matched('/rw/other', 60, lambda: waits_for_it in fk.stderr()
+                       or fk.returncode is not None), fk.describe()
+    assert not say_matched('/rw/other', 2.0, lambda: 'matched after' in fk.stderr()), \
+        fk.describe()
+    assert say_matched('/rw/other,/rw/fk', 15, lambda: 'matched after' in fk.stderr()), \
+        fk.describe()
+    assert ros.stop(fk) == 0, fk.describe()
+
+
+def test_the_recorder_names_the_nodes_it_has_matched(ros, tmp_path):
+    """The other side of the test above: the package's recorder says on
+    /diagnostics which nodes' publishers its own subscriptions have matched."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from sensor_msgs.msg import JointState
+    from stewart63_ros import topics
+    from stewart63_ros.nodes.recorder import Recorder
+    rec = Recorder(tmp_path / 'bag', ['leg_lengths'], domain_id=ros.domain_id).start()
+    try:
+        node = ros.node('talker', namespace='/rn')
+        said = []
+
+        def on_status(msg):
+            for status in msg.status:
+                if status.name == 'stewart63/record':
+                    values = {kv.key: kv.value for kv in status.values}
+                    if 'matched_publishers' in values:
+                        said.append(values['matched_publishers'].split(','))
+        node.create_subscription(DiagnosticArray, '/diagnostics', on_status,
+                                 topics.DIAGNOSTICS_QOS)
+        assert ros.spin_until(lambda: said, 15), 'no status from the recorder'
+        assert '/rn/talker' not in said[-1], said
+        node.create_publisher(JointState, '/leg_lengths', topics.STREAM_PUB)
+        assert ros.spin_until(lambda: '/rn/talker' in said[-1], 15), said
+        assert rec.publisher_counts(['leg_lengths'])['/leg_lengths'] >= 1
+    finally:
+        rec.stop()
+
+
 def test_the_graph_count_agrees_with_the_middlewares_matching(ros):
     """What a node waits for before its first message: the subscriptions the
     ROS graph shows that can match its publisher (``topics.can_match``) are

@@ -88,6 +88,9 @@ class RigNode(Node):
         from diagnostic_msgs.msg import DiagnosticArray
 
         from stewart63_ros import topics
+        #: recorder status name -> the nodes it says it has matched (see
+        #: wait_for_matches and Recorder._report)
+        self._recorders_matched: dict[str, set] = {}
         self._confirmations = self.create_subscription(
             DiagnosticArray, topics.DIAGNOSTICS, self._on_confirmation, topics.DIAGNOSTICS_QOS,
             raw=True)
@@ -199,19 +202,15 @@ class RigNode(Node):
     #: s: how long a new match must hold before the first message (wait_for_matches).
     MATCH_SETTLE = 1.0
 
-    def graph_subscriptions(self, pub) -> int:
-        """How many subscriptions the ROS graph shows on ``pub``'s topic that
-        can match it (same type, compatible QoS): a recorder, viewer or driver
+    def graph_subscriptions(self, pub) -> list:
+        """The subscriptions the ROS graph shows on ``pub``'s topic that can
+        match it (same type, compatible QoS): a recorder, viewer or driver
         started before this node."""
         cls = pub.msg_type
         type_name = '%s/msg/%s' % (cls.__module__.split('.')[0], cls.__name__)
-        count = 0
-        for info in self.get_subscriptions_info_by_topic(pub.topic_name):
-            if info.topic_type != type_name:
-                continue
-            if topics.can_match(pub.qos_profile, info.qos_profile):
-                count += 1
-        return count
+        return [info for info in self.get_subscriptions_info_by_topic(pub.topic_name)
+                if info.topic_type == type_name
+                and topics.can_match(pub.qos_profile, info.qos_profile)]
 
     def wait_for_matches(self, extra=None) -> bool:
         """Bounded wait (``discovery_timeout``) before the first message until
@@ -230,8 +229,11 @@ class RigNode(Node):
         pubs = self.data_publishers + [self.health.pub]
         counts = {id(pub): (pub.get_subscription_count(), self._created) for pub in pubs}
 
+        me = self.get_fully_qualified_name()
+
         def missing():
             out = []
+            recorders = set()
             # Discovery of what already runs takes a moment (seconds, loaded):
             # until then the graph may not show a subscriber started before us.
             age = time.monotonic() - self._created
@@ -243,7 +245,10 @@ class RigNode(Node):
                 floor = self.wait_for_subscribers
                 if id(pub) in self._optional_publishers:
                     floor = 0
-                want = max(floor, self.graph_subscriptions(pub))
+                subscribers = self.graph_subscriptions(pub)
+                recorders.update(name for name in map(_status_name, subscribers)
+                                 if name in self._recorders_matched)
+                want = max(floor, len(subscribers))
                 have = pub.get_subscription_count()
                 if have != counts[id(pub)][0]:
                     counts[id(pub)] = (have, now)
@@ -252,6 +257,9 @@ class RigNode(Node):
                                % (pub.topic_name, have, want))
                 elif now - counts[id(pub)][1] < self.MATCH_SETTLE:
                     out.append('%s: a new match settling' % pub.topic_name)
+            for name in sorted(recorders):
+                if me not in self._recorders_matched[name]:
+                    out.append('%s to match %s\'s publishers' % (name[len('stewart63'):], me))
             return out + (list(extra()) if extra is not None else [])
 
         log = self.get_logger()
@@ -464,9 +472,11 @@ class RigNode(Node):
         return self.data_publishers + [self.health.pub]
 
     def _on_confirmation(self, data) -> None:
-        """A /diagnostics message while the node stops: a recorder's status
-        that names this node under ``confirms`` holds all it published."""
-        if not self.closing or self._recorded:
+        """A /diagnostics message. While the node starts: a recorder's status
+        names under ``matched_publishers`` the nodes whose publishers it has
+        matched (wait_for_matches). While it stops: a recorder's status that
+        names this node under ``confirms`` holds all it published (flush)."""
+        if self.started and (not self.closing or self._recorded):
             return
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.serialization import deserialize_message
@@ -477,7 +487,9 @@ class RigNode(Node):
         me = self.health.status_name
         for status in msg.status:
             for kv in status.values:
-                if kv.key == 'confirms' and me in kv.value.split(','):
+                if kv.key == 'matched_publishers' and not self.started:
+                    self._recorders_matched[status.name] = set(kv.value.split(','))
+                elif kv.key == 'confirms' and self.closing and me in kv.value.split(','):
                     self._recorded = True
 
     #: s: how often flush looks at the acknowledgements and confirmations
@@ -552,3 +564,9 @@ class RigNode(Node):
         self.flushed = '%s after %.3f s' % (how, time.monotonic() - started)
         if not self.summary_written:
             self.write_summary_file(self.summary())
+
+
+def _status_name(info) -> str:
+    """The /diagnostics status name of the node of graph endpoint ``info``
+    (how the package's nodes and recorder name their statuses)."""
+    return 'stewart63%s/%s' % (info.node_namespace.rstrip('/'), info.node_name)

@@ -190,7 +190,6 @@ class Recorder:
         self._types: dict[str, str] = {}       # full topic -> type name
         self._pending: dict[str, str] = {}     # full topic -> requested name (type unknown)
         self._conns: dict[str, object] = {}    # full topic -> rosbags Connection
-        self._qos_seen: dict[str, list] = {}   # full topic -> offered QoS seen in the graph
         self._last_stamp: dict[str, int] = {}  # full topic -> last bag timestamp written
         self._stop = threading.Event()
         self._thread = None
@@ -210,6 +209,9 @@ class Recorder:
         self._finals: dict[tuple, tuple] = {}   # (status, participant) -> (counts, since)
         self._status_pub = None
         self._status_name = ''
+        self._matched_nodes: list[str] = []     # see _report
+        self._own_status_gid = None     # its status publisher's, from the graph
+        self._next_report = 0.0
         self._diag_topic = None
 
     # ----------------------------------------------------------------- setup
@@ -245,13 +247,15 @@ class Recorder:
                     self._subscribe(full, type_name)
                 else:
                     self._pending[full] = name
+            # The recorder's own status (see _report), also when /diagnostics
+            # is not recorded: starting nodes wait for what it says.
+            from diagnostic_msgs.msg import DiagnosticArray
             diag = self._node.resolve_topic_name(T.DIAGNOSTICS)
+            self._status_pub = self._node.create_publisher(DiagnosticArray, diag,
+                                                           T.DIAGNOSTICS_QOS)
+            self._status_name = 'stewart63' + self._node.get_fully_qualified_name()
             if diag in self._subs:
-                from diagnostic_msgs.msg import DiagnosticArray
                 self._diag_topic = diag
-                self._status_pub = self._node.create_publisher(DiagnosticArray, diag,
-                                                               T.DIAGNOSTICS_QOS)
-                self._status_name = 'stewart63' + self._node.get_fully_qualified_name()
             if self.fast_path:
                 try:
                     self._build_waitset()
@@ -307,6 +311,8 @@ class Recorder:
 
     # -------------------------------------------------------------- recording
     def _on_message(self, topic, data, info, tag='main'):
+        if topic == self._diag_topic and self._is_own_status(info):
+            return      # the recorder's own status: about the recording, not of the rig
         if topic in self._volatile_subs:
             # A latched publisher's sample arrives through both subscriptions:
             # the copy through the other one, within a second, is not written.
@@ -386,15 +392,21 @@ class Recorder:
                 del self._finals[key]
             elif now - since > self.FINAL_WAIT:
                 del self._finals[key]
-        if not done or self._status_pub is None:
+        if done:
+            self._publish_status('holds every message of ' + ', '.join(done),
+                                 confirms=','.join(done))
+
+    def _publish_status(self, message, **keys):
+        """One status of the recorder on /diagnostics: ``keys`` and the count
+        recorded per topic."""
+        if self._status_pub is None:
             return
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-        values = [KeyValue(key='confirms', value=','.join(done))]
+        values = [KeyValue(key=k, value=v) for k, v in keys.items()]
         values += [KeyValue(key='recorded/' + topic, value=str(n))
-                   for topic, n in self.counts.items()]
+                   for topic, n in sorted(self.counts.items())]
         status = DiagnosticStatus(level=DiagnosticStatus.OK, name=self._status_name,
-                                  message='holds every message of ' + ', '.join(done),
-                                  hardware_id='stewart63_ros', values=values)
+                                  message=message, hardware_id='stewart63_ros', values=values)
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self._node.get_clock().now().to_msg()
         try:
@@ -408,11 +420,11 @@ class Recorder:
             infos = self._node.get_publishers_info_by_topic(topic)
         except RuntimeError:  # rclpy's RCLError, InvalidHandle: the node is going down
             infos = []
-        qos = [qos_to_rosbags(i.qos_profile) for i in infos
-               if i.node_name != self._node.get_name() or
-               i.node_namespace != self._node.get_namespace()]
-        if qos:
-            self._qos_seen[topic] = qos
+        others = [i for i in infos if not self._own(i)]
+        # The recorder's own status publisher, when it is the only one known
+        # (its first status on /diagnostics). The QoS is fixed here, in the MCAP
+        # channel and in metadata.yaml alike: a reader pairs the two by it.
+        qos = [qos_to_rosbags(i.qos_profile) for i in (others or infos)]
         conn = self._writer.add_connection(topic, self._types[topic], typestore=typestore(),
                                            offered_qos_profiles=qos)
         self._conns[topic] = conn
@@ -515,6 +527,7 @@ class Recorder:
         if now >= self._next_discovery:
             self._next_discovery = now + self.discovery_period
             self._discover()
+        self._report(now)
         if now >= self._next_flush:
             self._next_flush = now + self.flush_period
             self.flush()
@@ -539,17 +552,24 @@ class Recorder:
                 if name in self._pending and types:
                     del self._pending[name]
                     self._subscribe(name, types[0])
+        # node -> whether every one of its publishers on recorded topics is
+        # matched by this recorder's subscriptions (see _report)
+        complete: dict[str, bool] = {}
         for topic, sub in list(self._subs.items()):
             try:
                 infos = node.get_publishers_info_by_topic(topic)
             except RuntimeError:  # rclpy's RCLError, InvalidHandle: the node is going down
                 continue
-            infos = [i for i in infos if not (i.node_name == node.get_name() and
-                                               i.node_namespace == node.get_namespace())]
+            # The subscription's own count is the reader's side of each match
+            # (its own status publisher's too); the graph shows a publisher no
+            # earlier than the match begins.
+            matched = self._publisher_count(topic) >= len(infos)
+            infos = [i for i in infos if not self._own(i)]
+            for info in infos:
+                name = _node_fqn(info)
+                complete[name] = complete.get(name, True) and matched
             if not infos:
                 continue
-            if not self._qos_seen.get(topic):
-                self._qos_seen[topic] = [qos_to_rosbags(i.qos_profile) for i in infos]
             if topic not in self._conns:
                 self._add_connection(topic)
             # A best-effort publisher (a sensor driver) does not match a reliable
@@ -565,6 +585,54 @@ class Recorder:
                 print(f'record: {topic} has a best-effort publisher; '
                       'subscribing best effort', file=sys.stderr, flush=True)
                 self._subscribe(topic, self._types[topic], be)
+        matched = sorted(name for name, ok in complete.items() if ok)
+        if matched != self._matched_nodes:
+            self._matched_nodes = matched
+            self._next_report = 0.0     # say so at once
+
+    #: s: how often the recorder publishes its status
+    REPORT_PERIOD = 1.0
+
+    def _report(self, now):
+        """The recorder's status on /diagnostics, every ``REPORT_PERIOD`` and
+        at once when it changes: ``matched_publishers`` names the nodes every
+        one of whose publishers on the recorded topics the recorder has matched.
+
+        A publisher counts the recorder as matched as soon as it has discovered
+        the recorder's subscription; the recorder drops what comes before it
+        has discovered the publisher in turn (a volatile reader starts at the
+        first sample it sees announced). Nobody but the recorder sees its side,
+        so it says it here, and a starting node waits for its own name before
+        its first sample (RigNode.wait_for_matches): every sample from the first.
+        """
+        if now < self._next_report:
+            return
+        self._next_report = now + self.REPORT_PERIOD
+        self._publish_status('recording %d topics to %s' % (len(self._subs), self.path),
+                             matched_publishers=','.join(self._matched_nodes))
+
+    def _is_own_status(self, info) -> bool:
+        """Whether a /diagnostics message (its ``info``) is the recorder's own
+        status (not written to the bag: about the recording, not the rig)."""
+        gid = info.get('publisher_gid') if info else None
+        if not gid or self._status_pub is None:
+            return False
+        if self._own_status_gid is None:
+            try:
+                infos = self._node.get_publishers_info_by_topic(self._status_pub.topic_name)
+            except RuntimeError:  # rclpy's RCLError, InvalidHandle: the node is going down
+                return False
+            own = [bytes(i.endpoint_gid) for i in infos if self._own(i)]
+            if not own:
+                return False
+            self._own_status_gid = own[0]
+        data = bytes(gid['data'])
+        return data[:len(self._own_status_gid)] == self._own_status_gid
+
+    def _own(self, info) -> bool:
+        """Whether graph endpoint ``info`` is the recorder's own."""
+        return (info.node_name == self._node.get_name()
+                and info.node_namespace == self._node.get_namespace())
 
     def publisher_counts(self, topics=None):
         """Publishers the recorder's own subscriptions have matched, per
@@ -665,7 +733,6 @@ class Recorder:
                 if abort:
                     writer.abort()
                 else:
-                    self._patch_qos(writer)
                     writer.close()
         finally:
             if self._executor is not None:
@@ -678,16 +745,13 @@ class Recorder:
                 self._context.try_shutdown()
                 self._context = None
 
-    def _patch_qos(self, writer):
-        # A first message can arrive before the graph lists its publisher: give
-        # metadata.yaml the QoS seen later (the MCAP channel keeps what was known).
-        for i, conn in enumerate(writer.connections):
-            seen = self._qos_seen.get(conn.topic)
-            if seen and not conn.ext.offered_qos_profiles:
-                writer.connections[i] = conn._replace(
-                    ext=conn.ext._replace(offered_qos_profiles=list(seen)))
-
     def summary(self) -> str:
         total = sum(self.counts.values())
         parts = ', '.join(f'{t} {n}' for t, n in self.counts.items() if n or t in self._conns)
         return f'record: {self.path}: {total} messages ({parts or "no topics"})'
+
+
+def _node_fqn(info) -> str:
+    """The fully qualified name of the node of a graph endpoint ``info``."""
+    ns = info.node_namespace.rstrip('/')
+    return '%s/%s' % (ns, info.node_name)
