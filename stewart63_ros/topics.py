@@ -172,3 +172,9 @@ def wait_for_subscribers(publishers, min_count: int = 1, timeout: float = 10.0,
         if time.monotonic() >= deadline:
             return False
         time.sleep(poll)
+
+
+def endpoint_node_name(info) -> str:
+    """The fully qualified name of the node of a ROS graph endpoint ``info``
+    (rclpy's TopicEndpointInfo), as ``Node.get_fully_qualified_name`` gives it."""
+    return '%s/%s' % (info.node_namespace.rstrip('/'), info.node_name)

@@ -569,4 +569,4 @@ class RigNode(Node):
 def _status_name(info) -> str:
     """The /diagnostics status name of the node of graph endpoint ``info``
     (how the package's nodes and recorder name their statuses)."""
-    return 'stewart63%s/%s' % (info.node_namespace.rstrip('/'), info.node_name)
+    return 'stewart63' + topics.endpoint_node_name(info)

@@ -566,7 +566,7 @@ class Recorder:
             matched = self._publisher_count(topic) >= len(infos)
             infos = [i for i in infos if not self._own(i)]
             for info in infos:
-                name = _node_fqn(info)
+                name = T.endpoint_node_name(info)
                 complete[name] = complete.get(name, True) and matched
             if not infos:
                 continue
@@ -750,8 +750,3 @@ class Recorder:
         parts = ', '.join(f'{t} {n}' for t, n in self.counts.items() if n or t in self._conns)
         return f'record: {self.path}: {total} messages ({parts or "no topics"})'
 
-
-def _node_fqn(info) -> str:
-    """The fully qualified name of the node of a graph endpoint ``info``."""
-    ns = info.node_namespace.rstrip('/')
-    return '%s/%s' % (ns, info.node_name)
