@@ -174,7 +174,22 @@ def wait_for_subscribers(publishers, min_count: int = 1, timeout: float = 10.0,
         time.sleep(poll)
 
 
+def node_full_name(namespace: str, name: str) -> str:
+    """'/ns/name' (or '/name') of a node the graph names by namespace and name,
+    as ``Node.get_fully_qualified_name`` gives it."""
+    return '%s/%s' % (namespace.rstrip('/'), name)
+
+
 def endpoint_node_name(info) -> str:
-    """The fully qualified name of the node of a ROS graph endpoint ``info``
-    (rclpy's TopicEndpointInfo), as ``Node.get_fully_qualified_name`` gives it."""
-    return '%s/%s' % (info.node_namespace.rstrip('/'), info.node_name)
+    """The full name of the node of a ROS graph endpoint ``info`` (rclpy's
+    TopicEndpointInfo)."""
+    return node_full_name(info.node_namespace, info.node_name)
+
+
+#: Every /diagnostics status of the package is named this + the node's full name.
+STATUS_PREFIX = 'stewart63'
+
+
+def status_name(full_name: str) -> str:
+    """The /diagnostics status name of the package's node ``full_name``."""
+    return STATUS_PREFIX + full_name

@@ -21,11 +21,6 @@ from stewart63_ros.nodes.realtime import realtime_scheduling
 UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'
 
 
-def node_full_name(namespace: str, name: str) -> str:
-    """'/ns/name' (or '/name') of a node the graph names by namespace and name."""
-    return '%s/%s' % (namespace.rstrip('/'), name)
-
-
 class RigNode(Node):
     """Loads the mechanism from the node's parameters and owns the diagnostics.
 
@@ -88,7 +83,7 @@ class RigNode(Node):
         from diagnostic_msgs.msg import DiagnosticArray
 
         from stewart63_ros import topics
-        #: recorder status name -> the nodes it says it has matched (see
+        #: recorder's full name -> the nodes it says it has matched (see
         #: wait_for_matches and Recorder._report)
         self._recorders_matched: dict[str, set] = {}
         self._confirmations = self.create_subscription(
@@ -158,7 +153,7 @@ class RigNode(Node):
         if isinstance(value, str) or not all(isinstance(v, str) and v.strip('/')
                                              for v in value):
             raise ParameterError(name, 'expected a list of node names, got %r' % (value,))
-        return [v if v.startswith('/') else node_full_name(self.get_namespace(), v)
+        return [v if v.startswith('/') else topics.node_full_name(self.get_namespace(), v)
                 for v in value]
 
     def positive(self, name, default) -> float:
@@ -246,7 +241,7 @@ class RigNode(Node):
                 if id(pub) in self._optional_publishers:
                     floor = 0
                 subscribers = self.graph_subscriptions(pub)
-                recorders.update(name for name in map(_status_name, subscribers)
+                recorders.update(name for name in map(topics.endpoint_node_name, subscribers)
                                  if name in self._recorders_matched)
                 want = max(floor, len(subscribers))
                 have = pub.get_subscription_count()
@@ -259,7 +254,7 @@ class RigNode(Node):
                     out.append('%s: a new match settling' % pub.topic_name)
             for name in sorted(recorders):
                 if me not in self._recorders_matched[name]:
-                    out.append('%s to match %s\'s publishers' % (name[len('stewart63'):], me))
+                    out.append('%s to match %s\'s publishers' % (name, me))
             return out + (list(extra()) if extra is not None else [])
 
         log = self.get_logger()
@@ -488,7 +483,8 @@ class RigNode(Node):
         for status in msg.status:
             for kv in status.values:
                 if kv.key == 'matched_publishers' and not self.started:
-                    self._recorders_matched[status.name] = set(kv.value.split(','))
+                    recorder = status.name[len(topics.STATUS_PREFIX):]
+                    self._recorders_matched[recorder] = set(kv.value.split(','))
                 elif kv.key == 'confirms' and self.closing and me in kv.value.split(','):
                     self._recorded = True
 
@@ -565,8 +561,3 @@ class RigNode(Node):
         if not self.summary_written:
             self.write_summary_file(self.summary())
 
-
-def _status_name(info) -> str:
-    """The /diagnostics status name of the node of graph endpoint ``info``
-    (how the package's nodes and recorder name their statuses)."""
-    return 'stewart63' + topics.endpoint_node_name(info)

@@ -173,8 +173,8 @@ class ControllerNode(RigNode):
         # The plant says on /diagnostics when its run is over ("run: ended"):
         # the silence that follows is then the end of a run, not a lost sensor.
         from diagnostic_msgs.msg import DiagnosticArray
-        namespace = self.get_namespace().rstrip('/')
-        self.plant_status = 'stewart63%s/plant' % namespace
+        self.plant_status = topics.status_name(topics.node_full_name(self.get_namespace(),
+                                                                     'plant'))
         self.source_ended = False
         self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics,
                                  topics.DIAGNOSTICS_QOS)

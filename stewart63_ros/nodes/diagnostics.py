@@ -49,7 +49,7 @@ class Health:
         self.name = name
         # 'stewart63/controller' in the root namespace, 'stewart63/rig2/controller'
         # in /rig2: /diagnostics is absolute, so two rigs must not share a name.
-        self.status_name = 'stewart63' + node.get_fully_qualified_name()
+        self.status_name = topics.status_name(node.get_fully_qualified_name())
         self.received = collections.Counter()
         self.published = collections.Counter()
         self.rejected = collections.Counter()

@@ -31,7 +31,7 @@ from stewart63_ros.core.params import ParameterError
 from stewart63_ros.core.sensor import SensorModel
 from stewart63_ros.core.simulate import initial_state, substeps_for
 from stewart63_ros.nodes import wire
-from stewart63_ros.nodes.base import RigNode, node_full_name
+from stewart63_ros.nodes.base import RigNode
 from stewart63_ros.nodes.checks import (RESTART_PAUSE, Rejected, StampGate, finite_vector,
                                          ros_time, source_of)
 from stewart63_ros.nodes.commands import CommandInput
@@ -252,7 +252,7 @@ class PlantNode(RigNode):
             if have < self.lengths_subscribers:
                 out.append('%s: %d of %d subscriptions matched (lengths_subscribers)'
                            % (self.pub_lengths.topic_name, have, self.lengths_subscribers))
-            shown = {node_full_name(info.node_namespace, info.node_name) for info in
+            shown = {topics.endpoint_node_name(info) for info in
                      self.get_subscriptions_info_by_topic(self.pub_lengths.topic_name)}
             for peer in self.lengths_peers:
                 if peer not in shown:

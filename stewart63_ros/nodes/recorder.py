@@ -253,7 +253,7 @@ class Recorder:
             diag = self._node.resolve_topic_name(T.DIAGNOSTICS)
             self._status_pub = self._node.create_publisher(DiagnosticArray, diag,
                                                            T.DIAGNOSTICS_QOS)
-            self._status_name = 'stewart63' + self._node.get_fully_qualified_name()
+            self._status_name = T.status_name(self._node.get_fully_qualified_name())
             if diag in self._subs:
                 self._diag_topic = diag
             if self.fast_path:
@@ -749,4 +749,3 @@ class Recorder:
         total = sum(self.counts.values())
         parts = ', '.join(f'{t} {n}' for t, n in self.counts.items() if n or t in self._conns)
         return f'record: {self.path}: {total} messages ({parts or "no topics"})'
-
