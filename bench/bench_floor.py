@@ -200,8 +200,7 @@ def cross_process(n: int, readers: int = 2) -> dict:
     from stewart63_ros import topics
     from stewart63_ros.nodes import wire
     from stewart63_ros.nodes.rclpy_internals import raw_publisher
-    env = dict(os.environ)
-    procs = [subprocess.Popen([sys.executable, __file__, '--subscriber', str(n)], env=env,
+    procs = [subprocess.Popen([sys.executable, __file__, '--subscriber', str(n)],
                               stdout=subprocess.PIPE, text=True) for _ in range(readers)]
     node = rclpy.create_node('floor_pub')
     try:
@@ -250,40 +249,32 @@ def sleep_wake_cpu(n: int) -> float:
 
 def measure(samples: int = 20000, repeat: int = 3, quiet: bool = False) -> dict:
     import rclpy
-    domain, fd = bench_loop.lease_domain()
-    saved = {k: os.environ.get(k) for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')}
-    os.environ['ROS_DOMAIN_ID'] = str(domain)
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     rounds = {k: [] for k in ('composed_dds_us', 'composed_dds_kernels_us',
                               'composed_dds_kernels_read_us', 'kernels_alone_us',
                               'xproc_publish_cpu_us', 'xproc_take_cpu_us', 'sleep_wake_cpu_us')}
     lost = 0
-    rclpy.init()
-    try:
-        floor = ComposedFloor()
-        floor.run(1000, True, read=True)     # kernels loaded, templates warm
-        for _ in range(repeat):
-            rounds['composed_dds_us'].append(floor.run(samples, False))
-            rounds['composed_dds_kernels_us'].append(floor.run(samples, True))
-            rounds['composed_dds_kernels_read_us'].append(floor.run(samples, True, read=True))
-            rounds['kernels_alone_us'].append(floor.kernels_alone(samples))
-            x = cross_process(max(1000, samples // 4))
-            lost += x.pop('xproc_lost')
-            for key, value in x.items():
-                rounds[key].append(value)
-            rounds['sleep_wake_cpu_us'].append(sleep_wake_cpu(2000))
-            if not quiet:
-                print('round: ' + ', '.join('%s %.1f' % (k, v[-1]) for k, v in rounds.items()),
-                      flush=True)
-        floor.close()
-    finally:
-        rclpy.try_shutdown()
-        for key, value in saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
-        os.close(fd)
+    with bench_loop.private_domain():
+        rclpy.init()
+        try:
+            floor = ComposedFloor()
+            floor.run(1000, True, read=True)     # kernels loaded, templates warm
+            for _ in range(repeat):
+                rounds['composed_dds_us'].append(floor.run(samples, False))
+                rounds['composed_dds_kernels_us'].append(floor.run(samples, True))
+                rounds['composed_dds_kernels_read_us'].append(
+                    floor.run(samples, True, read=True))
+                rounds['kernels_alone_us'].append(floor.kernels_alone(samples))
+                x = cross_process(max(1000, samples // 4))
+                lost += x.pop('xproc_lost')
+                for key, value in x.items():
+                    rounds[key].append(value)
+                rounds['sleep_wake_cpu_us'].append(sleep_wake_cpu(2000))
+                if not quiet:
+                    print('round: ' + ', '.join('%s %.1f' % (k, v[-1])
+                                                for k, v in rounds.items()), flush=True)
+            floor.close()
+        finally:
+            rclpy.try_shutdown()
     result = {k: statistics.median(v) for k, v in rounds.items()}
     result['xproc_lost'] = lost
     result['floor_rounds'] = repeat

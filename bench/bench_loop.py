@@ -16,6 +16,7 @@ full rig (plant + controller + fk) as a dict, for bench/bench_all.py.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import fcntl
 import json
 import os
@@ -48,6 +49,25 @@ def lease_domain() -> tuple[int, int]:
             continue
         return domain, fd
     raise RuntimeError('no free ROS domain id on this machine')
+
+
+@contextlib.contextmanager
+def private_domain():
+    """Inside: a leased domain id and loopback discovery for the processes
+    started (ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE); both restored after."""
+    domain, fd = lease_domain()
+    saved = {k: os.environ.get(k) for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')}
+    os.environ['ROS_DOMAIN_ID'] = str(domain)
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    try:
+        yield domain
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+        os.close(fd)
 
 
 #: Node parameters of every run (``--control-law``: the controller's law).
@@ -120,12 +140,8 @@ def _median(runs, key):
 def collect(duration, repeat, node_sets=(FULL,), quiet=False, realtime_priority=0) -> dict:
     """Runs realtime then lockstep, ``repeat`` times, for every node set;
     {nodes: {'realtime': [figures...], 'lockstep': [figures...]}}."""
-    domain, fd = lease_domain()
-    saved = {k: os.environ.get(k) for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')}
-    os.environ['ROS_DOMAIN_ID'] = str(domain)
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     out = {nodes: {'realtime': [], 'lockstep': []} for nodes in node_sets}
-    try:
+    with private_domain():
         for _ in range(repeat):
             for nodes in node_sets:
                 s = run('realtime', duration, nodes, realtime_priority)
@@ -138,13 +154,6 @@ def collect(duration, repeat, node_sets=(FULL,), quiet=False, realtime_priority=
                     out[nodes]['lockstep'].append(lockstep_figures(s))
                     if not quiet:
                         print_lockstep(nodes, out[nodes]['lockstep'][-1])
-    finally:
-        for key, value in saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
-        os.close(fd)
     return out
 
 
@@ -187,12 +196,8 @@ def measure_variants(duration: float = 5.0, repeat: int = 3) -> dict:
       ``loop_composed_missed_fraction``: ``rig --compose --mode realtime``.
 
     Samples per second are the plant loop's (start-up excluded)."""
-    domain, fd = lease_domain()
-    saved = {k: os.environ.get(k) for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')}
-    os.environ['ROS_DOMAIN_ID'] = str(domain)
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     runs = {'composed': [], 'composed_record': [], 'record': [], 'composed_rt': []}
-    try:
+    with private_domain():
         for _ in range(repeat):
             for key, mode, compose, record in (('composed', 'lockstep', True, False),
                                                ('composed_record', 'lockstep', True, True),
@@ -209,13 +214,6 @@ def measure_variants(duration: float = 5.0, repeat: int = 3) -> dict:
                 else:
                     runs[key].append(realtime_figures(s))
                     print_realtime((label,), runs[key][-1])
-    finally:
-        for key, value in saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
-        os.close(fd)
     return {'lockstep_composed_samples_per_s': _median(runs['composed'], 'samples_per_s'),
             'lockstep_composed_record_samples_per_s': _median(runs['composed_record'],
                                                               'samples_per_s'),
