@@ -298,6 +298,8 @@ class RosContext:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
         self.domain_id = int(domain_id)
+        from stewart63_ros.middleware import use_rig_profile
+        use_rig_profile()
         self.context = rclpy.Context()
         rclpy.init(context=self.context, domain_id=self.domain_id)
         self.executor = SingleThreadedExecutor(context=self.context)
@@ -388,9 +390,45 @@ class RosTest:
         if self._rc is not None:
             self._rc.close()
             self._rc = None
+        # Processes killed by the test (or by stop) leave their segments.
+        clean_dead_shm_segments()
         self.lease.release()
         if errors:
             raise errors[0]
+
+
+SHM_DIR = Path('/dev/shm')
+
+
+def clean_dead_shm_segments(shm_dir: Path = SHM_DIR) -> int:
+    """Remove the shared-memory files Fast DDS left behind for processes
+    that are gone (killed ones cannot clean up): a segment or port whose
+    ``_el`` lock file nobody holds any more. Fast DDS keeps that lock (an
+    ``flock``) for as long as the owner lives, so a live rig's files are
+    never touched. Returns how many files were removed."""
+    import fcntl
+    removed = 0
+    for lock in sorted(shm_dir.glob('fastdds_*_el')):
+        base = lock.with_name(lock.name[:-len('_el')])
+        try:
+            fd = os.open(lock, os.O_RDWR)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            continue        # held: its owner lives
+        else:
+            # (a port's named semaphore too: a process killed while it held
+            # it would block the next one that opens the port)
+            for path in (base, base.with_name(base.name + '_sl'),
+                         base.with_name('sem.%s_mutex' % base.name), lock):
+                with contextlib.suppress(FileNotFoundError):
+                    path.unlink()
+                    removed += 1
+        finally:
+            os.close(fd)
+    return removed
 
 
 @pytest.fixture

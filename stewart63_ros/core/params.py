@@ -206,10 +206,10 @@ NODE_KEYS: dict[str, set[str]] = {
               'lengths_subscribers', 'lengths_peers', 'sensor_noise', 'sensor_rate_noise',
               'sensor_resolution',
               'sensor_delay', 'sensor_seed', 'endstop_stiffness', 'endstop_damping',
-              'reference_file'},
+              'reference_file', 'lockstep_peers', 'lockstep_window', 'lockstep_peer_timeout'},
     'controller': {'watchdog_timeout', 'clock_mode', 'control_law', 'ct_kp', 'ct_kd',
                    'max_leg_speed', 'max_leg_acceleration', 'reference_file'},
-    'fk': {'singularity_threshold', 'marker_rate'},
+    'fk': {'singularity_threshold', 'marker_rate', 'clock_mode'},
 }
 
 

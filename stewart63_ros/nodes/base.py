@@ -11,6 +11,7 @@ from stewart63_ros import topics
 from stewart63_ros.core.precompile import COMPILE_NOTICE, kernel_cache_cold
 from stewart63_ros.core.params import ParameterError, mechanism_from_params, unknown_keys
 from stewart63_ros.nodes.diagnostics import Health
+from stewart63_ros.nodes.checks import SkipCounter
 from stewart63_ros.nodes.launcher import STOP
 from stewart63_ros.nodes.parameters import load_parameters, ros_parameters
 from stewart63_ros.nodes.rclpy_internals import DirectTake, run_timer_if_ready, take
@@ -61,6 +62,9 @@ class RigNode(Node):
                                  '(%g s), got %r' % (self.discovery_timeout,
                                                      self.discovery_settle))
         self.health = Health(self, name)
+        self._skip_counters = {}
+        #: called by run_on after each batch of messages (fk's lockstep progress)
+        self.after_batch = None
         #: where close() writes the node's summary as JSON ('' : nowhere)
         self.summary_file = str(self.param('summary_file', ''))
         self.summary_written = False
@@ -367,6 +371,17 @@ class RigNode(Node):
                                        % sub.topic_name)
                 h.collision = ''
 
+    def count_skips(self, topic: str, source, info) -> None:
+        """Count the messages on ``topic`` that never reached this node,
+        from the sequence numbers of each publisher (checks.SkipCounter):
+        on /diagnostics (``skipped/<topic>``) and in the summary."""
+        counter = self._skip_counters.get(topic)
+        if counter is None:
+            counter = self._skip_counters[topic] = SkipCounter()
+        gap = counter.note(source, info)
+        if gap:
+            self.health.skip(topic, gap)
+
     def accept_sample(self, gate, ns: int, source, topic: str) -> None:
         """Accept a checked sample; a new run of its source is logged (and counted)."""
         if gate.new_run:
@@ -458,6 +473,8 @@ class RigNode(Node):
                 n = 1
                 while n < self.BATCH_MAX and not STOP.requested and direct.poll(0.0):
                     n += 1
+                if self.after_batch is not None:
+                    self.after_batch()
                 pause = min(batch_period, wake - time.monotonic())
                 if pause > 0 and not STOP.requested:
                     time.sleep(pause)
@@ -535,6 +552,7 @@ class RigNode(Node):
         return {'node': self.get_fully_qualified_name(), 'received': dict(h.received),
                 'published': dict(h.published), 'rejected': dict(h.rejected),
                 'rejected_total': sum(h.rejected.values()),
+                'skipped': dict(h.skipped),
                 'loop_latency': h.latency.summary(),
                 'status': '; '.join(m for m in (h.collision, h.fault) if m) or h.warning or 'ok',
                 'values': {k: v if isinstance(v, (int, float, list)) else str(v)

@@ -164,3 +164,31 @@ def finite_vector(values, size: int, field: str) -> np.ndarray:
         raise Rejected('non_finite' if arr.shape == (size,) else 'wrong_size',
                        '%s must be %d finite numbers' % (field, size))
     return arr
+
+
+class SkipCounter:
+    """Messages of one topic that never reached this reader.
+
+    Every DDS writer numbers its messages 1, 2, ... (``publication_sequence_number``
+    in a take's info): a jump from n to n + k means k - 1 messages of that
+    publisher were skipped here (a depth-1 reader that took only the newest,
+    a queue that overflowed, a sample the writer could no longer re-send).
+    Counted per publisher; a new publisher starts its own count.
+    """
+
+    def __init__(self):
+        self.last: dict[bytes, int] = {}
+        self.skipped = 0
+
+    def note(self, source: bytes | None, info) -> int:
+        """Count the gap before the message ``info`` describes; returns it."""
+        seq = info.get('publication_sequence_number') if info else None
+        if not seq or source is None:
+            return 0
+        last = self.last.get(source)
+        self.last[source] = seq
+        if last is None or seq <= last + 1:
+            return 0
+        gap = seq - last - 1
+        self.skipped += gap
+        return gap

@@ -240,6 +240,7 @@ class ControllerNode(RigNode):
         """A serialized leg_lengths sample in; its forces out, with its stamp."""
         self.health.received[topics.LEG_LENGTHS] += 1
         source = source_of(info)
+        self.count_skips(topics.LEG_LENGTHS, source, info)
         try:
             ns, sec, nanosec, frame_id, values = wire.joint_state_sample(
                 data, self.sample_gate, ('position', 'velocity'), source=source)

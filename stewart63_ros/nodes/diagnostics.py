@@ -53,6 +53,12 @@ class Health:
         self.received = collections.Counter()
         self.published = collections.Counter()
         self.rejected = collections.Counter()
+        #: messages that never reached the node, per topic (see checks.SkipCounter)
+        self.skipped = collections.Counter()
+        #: topics on which every message must reach the node (fk's samples;
+        #: any input in lockstep): a skip there is a loss, and a warning
+        self.every_message = set()
+        self._skipped_at_report = 0
         self.last_rejection = ''
         self.latency = LatencyStats()
         self.fault = ''
@@ -72,6 +78,18 @@ class Health:
         self.node.get_logger().warning('rejected %s' % self.last_rejection,
                                     throttle_duration_sec=1.0)
 
+    def skip(self, topic: str, n: int) -> None:
+        """``n`` messages on ``topic`` never reached the node."""
+        self.skipped[topic] += n
+        if topic in self.every_message:
+            self.node.get_logger().warning(
+                'lost %d %s messages (%d so far): they never reached this node'
+                % (n, topic, self.skipped[topic]), throttle_duration_sec=1.0)
+
+    def lost(self) -> int:
+        """Messages lost on the topics that must see every message."""
+        return sum(n for t, n in self.skipped.items() if t in self.every_message)
+
     def report(self, stamp=None, final=False) -> None:
         """Publish the status. ``final``: the node's last one, as it stops: it
         also says how many messages the node published on each topic
@@ -84,9 +102,15 @@ class Health:
         period = max(now - self._last_report, 1e-9)
         rejected_total = sum(self.rejected.values())
         fresh_rejections = rejected_total - self._rejected_at_report
+        lost = self.lost()
+        fresh_losses = lost - self._skipped_at_report
         if self.fault or self.collision:
             level = DiagnosticStatus.ERROR
             message = '; '.join(m for m in (self.collision, self.fault) if m)
+        elif fresh_losses:
+            level = DiagnosticStatus.WARN
+            message = 'lost %d messages that must all arrive (%s)' % (fresh_losses, ', '.join(
+                sorted(t for t in self.every_message if self.skipped[t])))
         elif fresh_rejections or self.warning or self.source_warning:
             level = DiagnosticStatus.WARN
             message = self.warning or self.source_warning or 'rejected %d inputs (last: %s)' % (
@@ -100,6 +124,8 @@ class Health:
             values.append(KeyValue(key='received/' + topic, value=str(n)))
         for topic, n in sorted(self.published.items()):
             values.append(KeyValue(key='published/' + topic, value=str(n)))
+        for topic, n in sorted(self.skipped.items()):
+            values.append(KeyValue(key='skipped/' + topic, value=str(n)))
         values.append(KeyValue(key='rejected_total', value=str(rejected_total)))
         for key, n in sorted(self.rejected.items()):
             values.append(KeyValue(key='rejected/' + key, value=str(n)))
@@ -123,3 +149,4 @@ class Health:
         self._last_report = now
         self._received_at_report = collections.Counter(self.received)
         self._rejected_at_report = rejected_total
+        self._skipped_at_report = lost

@@ -66,6 +66,15 @@ class FKNode(RigNode):
                                                     self.on_sample, topics.EVERY_SUB,
                                                     raw=True)
         self.watch_source(self.sub_samples, topics.LEG_LENGTHS, self.gate)
+        # Every sample must reach fk; in lockstep it tells the plant how far it
+        # has got (nodes/lockstep.py), so the plant never outruns it.
+        self.health.every_message.add(topics.LEG_LENGTHS)
+        self.lockstep = self.param('clock_mode', 'realtime') == 'lockstep'
+        self.progress = None
+        if self.lockstep:
+            from stewart63_ros.nodes.lockstep import ProgressPublisher
+            self.progress = ProgressPublisher(self)
+            self.after_batch = self.progress.publish
 
     def warm_up(self):
         """Compile / load the solver kernels now, not on the first sample."""
@@ -79,12 +88,15 @@ class FKNode(RigNode):
     def on_sample(self, data, info):
         self.health.received[topics.LEG_LENGTHS] += 1
         source = source_of(info)
+        self.count_skips(topics.LEG_LENGTHS, source, info)
         try:
             ns, sec, nanosec, frame_id, values = wire.joint_state_sample(
                 data, self.gate, ('position',), ('velocity',), source=source)
         except Rejected as exc:
             self.health.reject(topics.LEG_LENGTHS, exc)
             return
+        if self.progress is not None:
+            self.progress.note(ns)      # handled, whether a pose comes of it or not
         if self.gate.new_run:
             # Another run (a bag played again): track from the pose it starts at.
             self.tracker.reset(self.mech.initial_position,
@@ -120,8 +132,7 @@ class FKNode(RigNode):
     LOCKSTEP_BATCH_PERIOD = 0.005
 
     def run(self):
-        lockstep = self.param('clock_mode', 'realtime') == 'lockstep'
-        self.run_on(self.sub_samples, self.LOCKSTEP_BATCH_PERIOD if lockstep else 0.0)
+        self.run_on(self.sub_samples, self.LOCKSTEP_BATCH_PERIOD if self.lockstep else 0.0)
 
     def report(self):
         self.health.values.update(singular_samples=self.singular,

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import faulthandler
 import signal
 import sys
@@ -46,6 +47,8 @@ class StopSignals:
 
     def __call__(self, signum, frame):
         self.received.append(signal.Signals(signum).name)
+        if not self.requested:
+            arm_stop_deadline()
         self.requested = True
         if self.armed and self.interruptible:
             self.armed = False
@@ -81,6 +84,8 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
     except ParameterError as exc:
         print('%s: parameter error: %s' % (prog, exc), file=sys.stderr)
         return 2
+    from stewart63_ros.middleware import use_rig_profile
+    use_rig_profile()       # before rclpy makes the participant
     import rclpy
     from rclpy.utilities import remove_ros_args
     try:
@@ -132,6 +137,44 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
             rclpy.shutdown()
         ignore_stop_signals()
     return code
+
+
+#: s from the first stop signal to a forced exit: a node flushes to its
+#: recorder for at most RigNode.FLUSH_ON_SIGNAL, and stopping must stay well
+#: inside a launcher's 5 s before it escalates.
+STOP_DEADLINE = 3.5
+
+
+def arm_stop_deadline(seconds: float = STOP_DEADLINE) -> None:
+    """A process still running ``seconds`` after its first stop signal prints
+    every thread's Python stack and exits with code 1 (``faulthandler``'s own
+    watchdog thread: it fires even while the main thread is stuck inside the
+    middleware, where a Python signal handler never runs). So a stop always
+    stops, and a hang says where it was."""
+    faulthandler.dump_traceback_later(seconds, exit=True)
+
+
+@contextlib.contextmanager
+def signals_deferred():
+    """Inside, SIGINT and SIGTERM are held back and handed to the handlers
+    in force once the block ends: a stop that arrives while a child process
+    is being started (``Popen``) would otherwise leave that child running,
+    unknown to the parent that stops the others."""
+    held = []
+    sigs = (signal.SIGINT, signal.SIGTERM)
+    previous = {sig: signal.signal(sig, lambda signum, frame: held.append(signum))
+                for sig in sigs}
+    try:
+        yield
+    finally:
+        for sig in sigs:
+            signal.signal(sig, previous[sig])
+        for signum in held:
+            handler = previous[signal.Signals(signum)]
+            if callable(handler):
+                handler(signum, None)
+            elif handler == signal.SIG_DFL and signum == signal.SIGINT:
+                raise KeyboardInterrupt
 
 
 def dump_stacks_on_sigusr1() -> None:

@@ -62,6 +62,25 @@ class PlantNode(RigNode):
         # alone is not enough: a recorder started first fills it while fk,
         # still loading, has no subscription yet, and fk misses the run.
         self.lengths_peers = self.peer_names('lengths_peers')
+        # Lockstep flow control (nodes/lockstep.py): the readers of
+        # leg_lengths outside the control loop (fk, the rig's recorder) that
+        # the plant never runs more than lockstep_window samples ahead of.
+        self.peers = None
+        lockstep_peers = self.peer_names('lockstep_peers')
+        window = self.param('lockstep_window', 200)
+        if isinstance(window, bool) or not isinstance(window, int) or not 1 <= window <= 900:
+            # Below the publishers' 1000-sample history: a sample a peer
+            # missed can still be re-sent.
+            raise ParameterError('lockstep_window', 'must be an integer number of samples '
+                                 'from 1 to 900, got %r' % (window,))
+        peer_timeout = self.positive('lockstep_peer_timeout', 10.0)
+        if lockstep_peers and self.mode == 'lockstep':
+            from stewart63_ros.nodes.lockstep import PeerWindow
+            self.peers = PeerWindow(self, lockstep_peers, window,
+                                    int(round(1e9 / self.rate)), peer_timeout)
+        elif lockstep_peers:
+            self.get_logger().info('lockstep_peers apply in lockstep only: in realtime a '
+                                   'reader that falls behind skips samples (counted)')
         self.sensor = SensorModel(self.params)
         # The reference motion the controller follows (rig --reference), read
         # here only to report the true tracking error in the summary.
@@ -130,6 +149,7 @@ class PlantNode(RigNode):
         received = time.perf_counter()      # the loop latency ends here, at the take
         self.health.received[topics.LEG_FORCES] += 1
         source = source_of(info)
+        self.count_skips(topics.LEG_FORCES, source, info)
         try:
             ns, _, _, _, values = wire.joint_state_sample(data, self.force_gate, ('effort',),
                                                           source=source)
@@ -258,6 +278,8 @@ class PlantNode(RigNode):
                 if peer not in shown:
                     out.append('%s: no subscription from %s yet (lengths_peers)'
                                % (self.pub_lengths.topic_name, peer))
+            if self.peers is not None:
+                out += self.peers.missing_publishers()
             return out
         self.wait_for_matches(missing)
         self.forces_in = self.start_hot_loop(self.sub_forces)
@@ -309,8 +331,17 @@ class PlantNode(RigNode):
             self.forces_in.poll(wake - time.monotonic())
         return True
 
+    def serve(self, timeout: float) -> None:
+        """While holding for lockstep peers: the other inputs, the executor,
+        and a wait of at most ``timeout`` s."""
+        self.housekeeping(time.monotonic())
+        self.forces_in.poll(timeout)
+
     def run_lockstep(self, n_samples):
         while True:
+            if self.peers is not None and not self.peers.hold(
+                    int(round(self.sample_time(self.k) * 1e9)), self.serve):
+                return
             ns = self.publish_sample()
             # Sample 0 races discovery: our side of every match is complete,
             # a peer's side may not be yet, and reliable delivery repairs the
@@ -397,8 +428,13 @@ class PlantNode(RigNode):
             'force_timeouts': self.timeouts, 'missed_cycles': self.missed,
             'late_cycles': self.late, 'endstop_samples': self.endstop_samples,
             'wall_time_s': time.time() - self.t0_wall,
+            'skipped': dict(self.health.skipped),
             'stopped_by_signal': stopped,
         }
+        if self.peers is not None:
+            summary['lockstep_peers'] = {
+                'window': self.peers.window, 'held_s': round(self.peers.held_s, 3),
+                'held_samples': self.peers.holds, 'dropped': dict(self.peers.dropped)}
         if self.reference is not None:
             from stewart63_ros.core.reference import tracking_summary
             summary['tracking_error'] = dict(from_s=TRACKING_FROM,

@@ -142,6 +142,19 @@ class BatchWriter:
             writer.max_timestamp = max(high, writer.max_timestamp)
 
 
+def header_stamp_ns(data: bytes) -> int:
+    """The ``header.stamp`` [ns] of a serialized message that starts with a
+    std_msgs/Header (little-endian CDR: 4 bytes of encapsulation, then
+    sec int32, nanosec uint32); -1 if it cannot be read."""
+    if len(data) < 12 or data[1] != 1:
+        return -1
+    sec, nanosec = _STAMP.unpack_from(data, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+_STAMP = struct.Struct('<iI')
+
+
 class Recorder:
     """Records topics into a new bag; usable in-process (tests, ``rig``) and by ``main``.
 
@@ -213,6 +226,14 @@ class Recorder:
         self._own_status_gid = None     # its status publisher's, from the graph
         self._next_report = 0.0
         self._diag_topic = None
+        #: messages of each topic that never reached the bag: gaps in each
+        #: publisher's sequence numbers (a reader that could not keep up)
+        self.lost: collections.Counter = collections.Counter()
+        self._skips: dict = {}          # full topic -> checks.SkipCounter
+        #: lockstep flow control (nodes/lockstep.py): how far the bag has got
+        #: on leg_lengths, for a plant that lists this recorder in lockstep_peers
+        self._progress = None
+        self._lengths_topic = None
 
     # ----------------------------------------------------------------- setup
     def open(self):
@@ -226,6 +247,8 @@ class Recorder:
         import rclpy
         from rclpy.node import Node
         if self._context is None:
+            from stewart63_ros.middleware import use_rig_profile
+            use_rig_profile()
             self._context = rclpy.Context()
             rclpy.init(args=self._ros_args, context=self._context, domain_id=self._domain_id)
         try:
@@ -256,6 +279,10 @@ class Recorder:
             self._status_name = T.status_name(self._node.get_fully_qualified_name())
             if diag in self._subs:
                 self._diag_topic = diag
+            from stewart63_ros.nodes.lockstep import ProgressPublisher
+            self._progress = ProgressPublisher(self._node)
+            lengths = self._node.resolve_topic_name(T.LEG_LENGTHS)
+            self._lengths_topic = lengths if lengths in self._subs else None
             if self.fast_path:
                 try:
                     self._build_waitset()
@@ -340,6 +367,10 @@ class Recorder:
         self.counts[topic] += 1
         gid = info.get('publisher_gid') if info else None
         if gid:
+            self._count_gap(topic, bytes(gid['data']), info)
+        if topic == self._lengths_topic:
+            self._progress.note(header_stamp_ns(data))
+        if gid:
             # The first 12 bytes of an endpoint's GID are its participant's
             # (its process's): a node's /diagnostics and data publishers share them.
             source = bytes(gid['data'][:12])
@@ -405,7 +436,14 @@ class Recorder:
         values = [KeyValue(key=k, value=v) for k, v in keys.items()]
         values += [KeyValue(key='recorded/' + topic, value=str(n))
                    for topic, n in sorted(self.counts.items())]
-        status = DiagnosticStatus(level=DiagnosticStatus.OK, name=self._status_name,
+        values += [KeyValue(key='lost/' + topic, value=str(n))
+                   for topic, n in sorted(self.lost.items())]
+        level = DiagnosticStatus.OK
+        if self.lost:
+            level = DiagnosticStatus.WARN
+            message = 'lost %d messages (%s); %s' % (
+                sum(self.lost.values()), ', '.join(sorted(self.lost)), message)
+        status = DiagnosticStatus(level=level, name=self._status_name,
                                   message=message, hardware_id='stewart63_ros', values=values)
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self._node.get_clock().now().to_msg()
@@ -461,6 +499,8 @@ class Recorder:
                 n += 1
         if self._finals:
             self._confirm()
+        if n and self._progress is not None:
+            self._progress.publish()
         return n
 
     def _take_topic(self, topic, sub) -> int:
@@ -485,6 +525,7 @@ class Recorder:
             batch.append((stamp, got[0]))
             gid = info.get('publisher_gid') if info else None
             if gid:                     # the sender's count, as in _on_message
+                self._count_gap(topic, bytes(gid['data']), info)
                 key = (topic, bytes(gid['data'][:12]))
                 seq = info.get('publication_sequence_number')
                 if seq:
@@ -495,7 +536,23 @@ class Recorder:
         self._last_stamp[topic] = last
         self._batch.write(conn, batch)
         self.counts[topic] += len(batch)
+        if topic == self._lengths_topic:
+            self._progress.note(header_stamp_ns(batch[-1][1]))
         return len(batch)
+
+    def _count_gap(self, topic, gid: bytes, info) -> None:
+        """Count the messages of the publisher ``gid`` on ``topic`` that never
+        reached the recorder (checks.SkipCounter)."""
+        counter = self._skips.get(topic)
+        if counter is None:
+            from stewart63_ros.nodes.checks import SkipCounter
+            counter = self._skips[topic] = SkipCounter()
+        gap = counter.note(gid, info)
+        if gap:
+            self.lost[topic] += gap
+            self._next_report = 0.0     # say so at once
+            print('record: lost %d %s messages (%d so far): they never reached the recorder'
+                  % (gap, topic, self.lost[topic]), file=sys.stderr, flush=True)
 
     def spin_once(self, timeout=0.1):
         """Wait up to ``timeout`` s for messages, write what arrived, do housekeeping."""
@@ -748,4 +805,8 @@ class Recorder:
     def summary(self) -> str:
         total = sum(self.counts.values())
         parts = ', '.join(f'{t} {n}' for t, n in self.counts.items() if n or t in self._conns)
-        return f'record: {self.path}: {total} messages ({parts or "no topics"})'
+        text = f'record: {self.path}: {total} messages ({parts or "no topics"})'
+        if self.lost:
+            text += '; LOST (never reached the recorder): ' + ', '.join(
+                f'{t} {n}' for t, n in sorted(self.lost.items()))
+        return text

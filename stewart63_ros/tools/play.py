@@ -108,6 +108,8 @@ class Player:
                 raise BagError(f'cannot publish {name}: message type {types[name]} '
                                f'is not available here ({exc})') from exc
         if self._context is None:
+            from stewart63_ros.middleware import use_rig_profile
+            use_rig_profile()
             self._context = rclpy.Context()
             rclpy.init(args=self._ros_args, context=self._context, domain_id=self._domain_id)
         self._node = Node(self._node_name, namespace=self.namespace or None,

@@ -19,7 +19,8 @@ import time
 from pathlib import Path
 
 from stewart63_ros.bagio import BagError
-from stewart63_ros.nodes.launcher import dump_stacks_on_sigusr1, ignore_stop_signals
+from stewart63_ros.nodes.launcher import (arm_stop_deadline, dump_stacks_on_sigusr1,
+                                          ignore_stop_signals)
 from stewart63_ros.nodes.recorder import MATCHED_LINE, READY_LINE, Recorder
 
 # ---------------------------------------------------------------- command line
@@ -105,6 +106,8 @@ def main(argv=None) -> int:
     stop = threading.Event()
 
     def on_signal(signum, frame):
+        if not stop.is_set():
+            arm_stop_deadline()
         stop.set()
         try:
             rec.request_stop()

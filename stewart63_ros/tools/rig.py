@@ -90,6 +90,12 @@ class Rig:
                      lengths_subscribers=sum(n in self.nodes for n in ('controller', 'fk'))
                      + wait + remote,
                      lengths_peers=['controller'] + (['fk'] if 'fk' in self.nodes else []))
+        if self.mode == 'lockstep' and not self.compose:
+            # The readers outside the control loop hold the plant back
+            # rather than lose samples (nodes/lockstep.py). Composed, one
+            # loop serves them all and none can fall behind.
+            plant['lockstep_peers'] = ((['fk'] if 'fk' in self.nodes else [])
+                                       + (['record'] if self.record else []))
         if self.duration:
             plant['duration'] = float(self.duration)
         doc = {'/**': {'ros__parameters': shared}, '/**/plant': {'ros__parameters': plant}}
@@ -122,12 +128,16 @@ class Rig:
         return args
 
     def spawn(self, name, argv):
+        from stewart63_ros.nodes.launcher import signals_deferred
         log = open(self.log_dir / ('%s.log' % name), 'w')
         # Own process group: a Ctrl-C in the terminal reaches only the rig,
-        # which then stops each child itself, in order.
-        proc = subprocess.Popen([sys.executable, '-m', MODULES[name]] + argv,
-                                stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-        self.procs[name] = proc
+        # which then stops each child itself, in order. A stop signal during
+        # the start is acted on once the child is known (and so stopped too).
+        with signals_deferred():
+            proc = subprocess.Popen([sys.executable, '-m', MODULES[name]] + argv,
+                                    stdout=log, stderr=subprocess.STDOUT,
+                                    start_new_session=True)
+            self.procs[name] = proc
         return proc
 
     def start(self):
@@ -232,7 +242,7 @@ class Rig:
         """The process whose end is the end of the run (the plant's)."""
         return 'composed' if self.compose else 'plant'
 
-    def stop(self, grace=10.0):
+    def stop(self, grace=4.0):
         """SIGINT the nodes (the recorder last, so it gets their final messages).
 
         Returns each process's exit code; a process that ended by the SIGINT
@@ -244,15 +254,17 @@ class Rig:
                  if n in self.procs] + (
             ['record'] if 'record' in self.procs else [])
         # The nodes together, then the recorder; each group on one deadline,
-        # so stopping takes at most grace + 3 s a group, however many hang.
+        # so stopping takes at most grace + 1.5 s a group, however many hang.
         for group in ([n for n in order if n != 'record'], ['record']):
             procs = [self.procs[n] for n in group if n in self.procs]
             for name, proc in zip(group, procs):
                 if proc.poll() is None:
                     proc.send_signal(signal.SIGINT)
                     interrupted.add(name)
+            # A node exits by itself STOP_DEADLINE after the signal, with its
+            # stacks (launcher.arm_stop_deadline): grace outlasts that.
             for escalate, timeout in ((None, grace), (_dump_stacks, 0.5),
-                                      (subprocess.Popen.terminate, 3.0),
+                                      (subprocess.Popen.terminate, 1.0),
                                       (subprocess.Popen.kill, None)):
                 for proc in procs:
                     if escalate is not None and proc.poll() is None:
@@ -473,6 +485,13 @@ def print_summary(rig, wall):
                   'max %.3f ms' % (lat['p50_ms'], lat['p99_ms'], lat['max_ms']))
         print('  missed cycles %d, force timeouts %d, end-stop samples %d' % (
             summary['missed_cycles'], summary['force_timeouts'], summary['endstop_samples']))
+        peers = summary.get('lockstep_peers')
+        if peers:
+            print('  lockstep peers held the plant %d times, %.3f s in all%s' % (
+                peers['held_samples'], peers['held_s'], ''.join(
+                    '; DROPPED %s: %s' % item for item in peers['dropped'].items())))
+        if summary.get('skipped'):
+            print('  plant skipped (never received): %s' % _counts(summary['skipped']))
         if 'tracking_error' in summary:
             from stewart63_ros.tools.sim import format_tracking
             print('  ' + format_tracking(summary['tracking_error']))
@@ -486,6 +505,10 @@ def print_summary(rig, wall):
         values = s.get('values', {})
         extra = ''.join(', %s %s' % (k.replace('_', ' '), values[k]) for k in (
             'source_restarts', 'collisions', 'forces_withheld') if values.get(k))
+        skipped = s.get('skipped') or {}
+        if skipped:
+            extra += ', %s %s' % ('LOST' if node == 'fk' else 'skipped (stale)',
+                                  _counts(skipped))
         print('  %s: received %s, published %s, rejected %d%s' % (
             node, _counts(s['received']), _counts(s['published']), s['rejected_total'],
             extra))

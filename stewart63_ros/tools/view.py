@@ -170,6 +170,8 @@ class LiveSource:
         from stewart63_ros.core.fk import ForwardKinematics
         self.mech = mech
         self.fk = ForwardKinematics(mech)
+        from stewart63_ros.middleware import use_rig_profile
+        use_rig_profile()
         rclpy.init(args=['view'])
         ns = namespace.strip('/')
         self.namespace = '/' + ns if ns else '/'

@@ -1,0 +1,159 @@
+"""Lockstep flow control: no reader of the rig falls behind the plant.
+
+In lockstep the controller's answer paces the plant, sample by sample. The
+other readers of ``leg_lengths`` (fk, a recorder) are not in that loop: on a
+busy machine one of them can fall a thousand samples behind, and the
+middleware then drops what its queue or the writer's history no longer
+holds. So each of those *lockstep peers* says how far it has got, and the
+plant publishes sample k only once every peer has handled sample
+k - ``lockstep_window``: a slow peer slows the run, it never loses a sample.
+
+The protocol (docs/interface.md, "Lockstep flow control"):
+
+- a peer publishes on ``~/lockstep_progress`` (``builtin_interfaces/Time``,
+  reliable, depth 1) the stamp of the newest ``leg_lengths`` sample it has
+  handled (fk: posed and published; the recorder: written), at most once
+  per batch of samples;
+- the plant's parameter ``lockstep_peers`` names the peers (``rig`` sets fk
+  and its recorder); before its first sample the plant waits until each
+  one's progress publisher is matched;
+- a peer whose progress publisher leaves the graph, or that has made no
+  progress for ``lockstep_peer_timeout`` seconds while the plant waits for
+  it, is dropped from the window with an error on /diagnostics: a dead peer
+  never stalls a run for good.
+"""
+from __future__ import annotations
+
+import time
+
+#: A peer's progress topic, private to the peer's node: ``/<ns>/<node>/lockstep_progress``.
+PROGRESS_TOPIC = 'lockstep_progress'
+
+
+def progress_qos():
+    """Reliable, volatile, depth 1: only the newest progress matters."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+class ProgressPublisher:
+    """A peer's side: ``note(ns)`` per sample handled, ``publish()`` per batch."""
+
+    def __init__(self, node):
+        from builtin_interfaces.msg import Time
+        self._msg = Time()
+        self.pub = node.create_publisher(Time, '~/' + PROGRESS_TOPIC, progress_qos())
+        self.handled_ns = -1
+        self._sent_ns = -1
+
+    def note(self, ns: int) -> None:
+        """The sample stamped ``ns`` [ns] has been handled."""
+        if ns > self.handled_ns:
+            self.handled_ns = ns
+
+    def publish(self) -> None:
+        """Say how far this node has got, if that changed since it last said."""
+        if self.handled_ns == self._sent_ns:
+            return
+        self._sent_ns = self.handled_ns
+        self._msg.sec, self._msg.nanosec = divmod(self.handled_ns, 1_000_000_000)
+        try:
+            self.pub.publish(self._msg)
+        except RuntimeError:     # rclpy's InvalidHandle: the node is going down
+            pass
+
+
+class PeerWindow:
+    """The plant's side: which peers it waits for, and how far each has got.
+
+    Args:
+        node: the plant (a RigNode); the progress subscriptions are its side
+            subscriptions, taken in its housekeeping.
+        peers: full node names of the peers.
+        window: samples the plant may run ahead of the slowest peer.
+        period_ns: the sample period [ns].
+        timeout: s without progress, while the plant waits, after which a
+            peer is dropped.
+    """
+
+    def __init__(self, node, peers: list[str], window: int, period_ns: int, timeout: float):
+        from builtin_interfaces.msg import Time
+        self.node = node
+        self.window = int(window)
+        self.period_ns = int(period_ns)
+        self.timeout = float(timeout)
+        self.progress: dict[str, int] = {}      # peer -> stamp [ns] handled
+        self.last_advance: dict[str, float] = {}
+        self.dropped: dict[str, str] = {}       # peer -> why
+        self.subs = {}
+        self.held_s = 0.0                       # wall time spent waiting for peers
+        self.holds = 0                          # samples that waited
+        for peer in peers:
+            topic = '%s/%s' % (peer.rstrip('/'), PROGRESS_TOPIC)
+            self.progress[peer] = -1
+            self.subs[peer] = node.create_subscription(
+                Time, topic, lambda msg, peer=peer: self._on_progress(peer, msg),
+                progress_qos())
+
+    @property
+    def active(self) -> list[str]:
+        return [p for p in self.subs if p not in self.dropped]
+
+    def _on_progress(self, peer: str, msg) -> None:
+        ns = int(msg.sec) * 1_000_000_000 + int(msg.nanosec)
+        if ns != self.progress.get(peer):
+            self.progress[peer] = ns
+            self.last_advance[peer] = time.monotonic()
+
+    def missing_publishers(self) -> list[str]:
+        """Before the first sample: the peers whose progress is not matched yet."""
+        return ['%s: no progress publisher matched yet (lockstep_peers)' % sub.topic_name
+                for peer, sub in self.subs.items() if sub.get_publisher_count() < 1]
+
+    def behind(self, ns: int) -> list[str]:
+        """The active peers that have not handled sample ``ns - window`` yet."""
+        floor = ns - self.window * self.period_ns
+        return [p for p in self.active if self.progress[p] < floor]
+
+    def drop(self, peer: str, why: str) -> None:
+        self.dropped[peer] = why
+        health = self.node.health
+        health.values['lockstep_peers_dropped'] = ', '.join(
+            '%s (%s)' % item for item in self.dropped.items())
+        health.fault = 'lockstep peer %s dropped: %s; its samples are no longer held for it' % (
+            peer, why)
+        self.node.get_logger().error(health.fault)
+
+    def hold(self, ns: int, serve) -> bool:
+        """Before publishing sample ``ns``: wait until no active peer is more
+        than the window behind. ``serve(timeout)`` waits for and takes
+        messages (the plant's housekeeping and its force input) up to
+        ``timeout`` s. Returns False if a stop was requested meanwhile."""
+        from stewart63_ros.nodes.launcher import STOP
+        late = self.behind(ns)
+        if not late:
+            return True
+        self.holds += 1
+        started = time.monotonic()
+        for peer in late:       # the timeout counts from now or its next progress
+            self.last_advance[peer] = started
+        while late:
+            if STOP.requested:
+                return False
+            now = time.monotonic()
+            for peer in late:
+                if self.subs[peer].get_publisher_count() < 1:
+                    self.drop(peer, 'its progress publisher left the ROS graph')
+                elif now - self.last_advance[peer] > self.timeout:
+                    self.drop(peer, 'no progress for %.1f s (lockstep_peer_timeout)'
+                              % (now - self.last_advance[peer]))
+            serve(0.001)
+            late = self.behind(ns)
+        waited = time.monotonic() - started
+        self.held_s += waited
+        health = self.node.health
+        health.values['lockstep_held_s'] = '%.3f' % self.held_s
+        health.values['lockstep_held_samples'] = self.holds
+        return True
