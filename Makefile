@@ -19,7 +19,7 @@ TEST_DEPS  := pytest pytest-xdist ruff colcon-core colcon-ros colcon-package-inf
 
 DEMO_OUT ?= out/demo
 
-.PHONY: demo test test-fast lint bench bench-view venv clean
+.PHONY: demo test test-fast test-stress lint bench bench-view venv clean
 
 venv: $(KERNELS)
 
@@ -47,8 +47,17 @@ demo: $(KERNELS)
 	$(BIN)/python -m stewart63_ros.tools.demo --out $(DEMO_OUT)
 
 # The MuJoCo agreement test must run here, not skip: make installed the extra.
+# Two workers (pytest-xdist): most DDS tests wait on discovery and on the
+# rig's pace, not on a core; each test leases its own ROS domain.
+TEST_WORKERS ?= 2
 test: $(KERNELS)
-	STEWART63_REQUIRE_MUJOCO=1 $(BIN)/python -m pytest -q test
+	STEWART63_REQUIRE_MUJOCO=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) test
+
+# The DDS tests three times in a row while another process keeps a core
+# busy (test/stress.py): a loaded machine may make the rig slower, never wrong.
+STRESS_ROUNDS ?= 3
+test-stress: $(KERNELS)
+	$(BIN)/python test/stress.py --rounds $(STRESS_ROUNDS) -- -n $(TEST_WORKERS) -m dds test
 
 # The numerics only: no DDS, no processes (markers in setup.cfg, test/conftest.py).
 test-fast: $(KERNELS)

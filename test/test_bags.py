@@ -568,3 +568,50 @@ def test_bad_inputs_give_one_line_errors_and_touch_nothing(recorded, ros, tmp_pa
     assert 'not in the bag' in procs['topic'].stderr()
     assert sorted(p.name for p in existing.iterdir()) == ['keep.txt']
     assert {k: sha(p) for k, p in bad.items() if p.exists()} == before
+
+
+def test_what_never_reached_the_recorder_is_counted_and_reported(ros, tmp_path, monkeypatch):
+    """A recorder that cannot keep up (here: its queue cut to 10 messages, and
+    not taking while 100 arrive) loses messages; the loss is counted per
+    topic from the publisher's sequence numbers, said on /diagnostics (WARN)
+    and in its closing line, and the bag's metadata counts what it holds."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from rclpy.duration import Duration
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+
+    from stewart63_ros import topics as T
+    from stewart63_ros.nodes.recorder import Recorder
+    monkeypatch.setattr(T, 'RECORD_SUB', QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                                                    reliability=ReliabilityPolicy.RELIABLE))
+    bag = tmp_path / 'lossy'
+    rec = Recorder(bag, ['leg_lengths'], domain_id=ros.domain_id).open()
+    statuses = []
+    try:
+        node = ros.node('fast_sender')
+        pub = node.create_publisher(JointState, 'leg_lengths', T.STREAM_PUB)
+        node.create_subscription(DiagnosticArray, '/diagnostics',
+                                 lambda m: statuses.extend(m.status), T.DIAGNOSTICS_QOS)
+        assert wait_until(lambda: rec.matched(['leg_lengths'])
+                          and pub.get_subscription_count() >= 1, 15)
+
+        def sample(k):
+            msg = JointState(name=['leg_%d' % i for i in range(1, 7)], position=[1.5] * 6)
+            msg.header.stamp.sec = k
+            return msg
+        pub.publish(sample(0))
+        assert wait_until(lambda: (rec.spin_once(0.05), rec.counts['/leg_lengths'] == 1)[1], 15)
+        for k in range(1, 101):
+            pub.publish(sample(k))
+        assert pub.wait_for_all_acked(Duration(seconds=15))    # delivered, queue overflowed
+        rec.take_available()
+        assert rec.counts['/leg_lengths'] == 11, rec.counts
+        assert rec.lost == {'/leg_lengths': 90}, rec.lost
+        assert ros.spin_until(lambda: rec.take_available() is not None and any(
+            s.level == DiagnosticStatus.WARN
+            and any(kv.key == 'lost//leg_lengths' and kv.value == '90' for kv in s.values)
+            for s in statuses), 15), statuses[-1:]
+        assert 'LOST (never reached the recorder): /leg_lengths 90' in rec.summary()
+    finally:
+        rec.close()
+    assert bagio.bag_info(bag)['topics']['/leg_lengths'][1] == 11

@@ -155,6 +155,7 @@ def assert_whole_and_equal_to_the_offline_run(bag, summary, fk, mech, logs):
     assert summary['force_timeouts'] == 0, summary
     assert not summary.get('skipped'), summary
     assert 'LOST' not in logs, logs
+    assert 'XMLPARSER' not in logs, logs     # config/fastdds.xml loaded cleanly
     assert fk['received']['leg_lengths'] == n, fk
     assert fk['published']['platform_pose'] == n, fk
     assert not fk.get('skipped'), fk
@@ -236,7 +237,7 @@ def test_rig_stops_within_5_s_of_a_signal_at_random_moments_of_start_up(
     print('\nseed %d (STEWART63_STOP_SEED to repeat)' % seed)
     for i in range(3):
         sig = rng.choice([signal.SIGINT, signal.SIGTERM])
-        delay = rng.uniform(0.0, 6.0)
+        delay = rng.uniform(0.0, 6.0) if i else rng.uniform(0.0, 1.0)
         log_dir = tmp_path / ('rig%d' % i)
         proc = ros.spawn(rig_command() + ['--mode', 'lockstep', '--duration', '30',
                                           '--record', str(tmp_path / ('bag%d' % i)),
@@ -256,7 +257,9 @@ def test_rig_stops_within_5_s_of_a_signal_at_random_moments_of_start_up(
                               max(0.1, 5.0 - took))
             print('%s after %.2f s of start-up: rig exit %s in %.2f s, %d children'
                   % (sig.name, delay, code, took, len(children)))
-            assert code == 0, proc.describe()
+            # Before Python has run the rig's first line there is no handler
+            # (and no child): the signal's default action ends it at once.
+            assert code == 0 or (code == -sig and not children), proc.describe()
             assert took <= 5.0, 'rig took %.2f s to stop\n%s' % (took, proc.describe())
             assert gone, ({p: c for p, c in children.items() if not ended(p, c)},
                           proc.describe())

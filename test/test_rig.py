@@ -298,7 +298,25 @@ def assert_every_published_message_is_in_the_bag(bag, summary):
         assert len(stamps) == published, '%s: published %d, bag has %d' % (
             topic, published, len(stamps))
         assert all(a < b for a, b in zip(stamps, stamps[1:])), '%s out of order' % topic
+    assert_every_status_is_in_the_bag(bag)
     return topics_of
+
+
+def assert_every_status_is_in_the_bag(bag) -> dict:
+    """Each node's statuses on /diagnostics are all in the bag: its last one
+    counts those before it (``published//diagnostics``), so the bag holds
+    that many plus the last one."""
+    held, said = {}, {}
+    for _, _, msg in bagio.read_messages(bag, ['/diagnostics']):
+        for status in msg.status:
+            held[status.name] = held.get(status.name, 0) + 1
+            values = {kv.key: kv.value for kv in status.values}
+            if values.get('final') == 'true':
+                said[status.name] = int(values.get('published//diagnostics', 0)) + 1
+    assert said, 'no final status in the bag: %s' % held
+    for name, n in said.items():
+        assert held[name] == n, '%s: published %d statuses, bag has %d' % (name, n, held[name])
+    return said
 
 
 def _fmt(value):

@@ -325,6 +325,25 @@ class _DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
 def main(argv=None) -> int:
     from stewart63_ros.nodes.launcher import dump_stacks_on_sigusr1
     dump_stacks_on_sigusr1()
+    # The first SIGINT or SIGTERM stops the rig (KeyboardInterrupt wherever it
+    # waits, also in start()); later ones, and any once the rig is stopping
+    # its nodes anyway, are only noted: a terminal's Ctrl-C under a launcher
+    # arrives twice, then a SIGTERM, and must not cut the stop short. Set
+    # first thing: one that comes while the options are read (nothing
+    # started yet) is noted, and the rig then starts nothing.
+    stopping = []
+    armed = [False]
+
+    def on_signal(signum, frame):
+        if not stopping:
+            stopping.append(signal.Signals(signum).name)
+        if armed[0]:
+            armed[0] = False
+            raise KeyboardInterrupt
+    # Explicitly for SIGINT too: a rig started as a background job of a
+    # script inherits SIGINT ignored, and `kill -INT` must stop it all the same.
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
     parser = argparse.ArgumentParser(prog='rig', description=__doc__.split('\n\n')[0],
                                      formatter_class=_DefaultsFormatter)
     parser.add_argument('--params', metavar='FILE',
@@ -410,26 +429,12 @@ def main(argv=None) -> int:
     rig = Rig(params, args.mode, args.duration, args.record, args.namespace, args.log_dir,
               nodes=nodes, realtime_priority=args.realtime_priority, compose=args.compose,
               extra_params=extra)
-    # The first SIGINT or SIGTERM stops the rig (KeyboardInterrupt wherever it
-    # waits, also in start()); later ones, and any once the rig is stopping
-    # its nodes anyway, are only noted: a terminal's Ctrl-C under a launcher
-    # arrives twice, then a SIGTERM, and must not cut the stop short.
-    stopping = []
-    armed = [True]
-
-    def on_signal(signum, frame):
-        if not stopping:
-            stopping.append(signal.Signals(signum).name)
-        if armed[0]:
-            armed[0] = False
-            raise KeyboardInterrupt
-    # Explicitly for SIGINT too: a rig started as a background job of a
-    # script inherits SIGINT ignored, and `kill -INT` must stop it all the same.
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
     ok = False
     start = time.monotonic()
     try:
+        armed[0] = True
+        if stopping:        # came while the options were read
+            raise KeyboardInterrupt
         rig.start()
         if args.view:
             print('rig: live view at %s' % rig.start_view(args.view_port), flush=True)
