@@ -153,3 +153,38 @@ def test_rig_stops_cleanly_on_repeated_signals_and_loses_nothing(ros, tmp_path, 
     print('\nrig, %s: exit 0 in %.2f s (nodes flush, then the recorder); bag holds all %s'
           % (sequence, took, published))
     assert took < STOP_WITHIN, took
+
+
+STUCK_NODE = '''
+import sys, time
+from stewart63_ros.nodes.launcher import run
+
+class Stuck:
+    """A node whose stop never ends (as one stuck inside the middleware)."""
+    def __init__(self, options):
+        print('RUNNING', flush=True)
+    def run(self):
+        while True:
+            time.sleep(0.05)
+    def close(self):
+        time.sleep(60)
+    def destroy_node(self):
+        pass
+
+sys.exit(run('stuck', 'a node that hangs when it stops', Stuck, ['stuck']))
+'''
+
+
+def test_a_node_that_hangs_while_stopping_exits_by_its_deadline_with_its_stacks(ros):
+    """A stop always stops: 3.5 s after the first signal a process still
+    running prints where every thread is and exits 1 (launcher.arm_stop_deadline)."""
+    proc = ros.python('-c', STUCK_NODE, name='stuck')
+    assert ros.wait_line(proc, 'RUNNING', 60), proc.describe()
+    os.kill(proc.popen.pid, signal.SIGINT)
+    sent = time.monotonic()
+    code = proc.popen.wait(10)
+    took = time.monotonic() - sent
+    print('\nhung stop: exit %d after %.2f s' % (code, took))
+    assert code == 1, proc.describe()
+    assert 3.0 <= took <= 5.0, took
+    assert 'in close' in proc.stderr(), proc.describe()      # its stack: where it hung
