@@ -123,7 +123,7 @@ def apply_values(params: dict, variations, values) -> dict:
         if var.index is None:
             out[var.name] = float(value)
         else:
-            current = list(np.asarray(out[var.name], dtype=float).ravel())
+            current = np.asarray(out[var.name], dtype=float).ravel().tolist()
             current[var.index] = float(value)
             out[var.name] = current
     return out
@@ -184,17 +184,15 @@ def make_plan(params_path, variations, law: str | None = None,
     law = law or controller.get('control_law', 'pd')
     plan = SweepPlan(plant, controller, law, float(duration), tuple(variations))
     keys = [v.key for v in plan.variations]
-    for key in keys:
-        if keys.count(key) > 1:
-            raise SweepError('--vary %s: given twice' % key)
-    _build(plan, [v.low for v in plan.variations])    # the file itself (raises ParameterError)
-    for k, var in enumerate(plan.variations):
+    for var in plan.variations:
+        if keys.count(var.key) > 1:
+            raise SweepError('--vary %s: given twice' % var.key)
         _check_key(var, plant, controller)
+    _build(dataclasses.replace(plan, variations=()), [])    # the file itself (ParameterError)
+    for var in plan.variations:
         for end in (var.low, var.high):
-            values = [v.low for v in plan.variations]
-            values[k] = end
             try:
-                _build(plan, values)
+                _build(dataclasses.replace(plan, variations=(var,)), [end])
             except ParameterError as exc:
                 raise SweepError('--vary %s=%g:%g: %g is outside the valid range: %s'
                                  % (var.key, var.low, var.high, end, exc)) from None
@@ -330,7 +328,7 @@ def run_dask(plan: SweepPlan, values, scheduler: str | None = None,
                                processes=True, host='127.0.0.1', dashboard_address=None)
         client = Client(cluster)
     else:
-        client = Client(scheduler, timeout='30s')
+        client = Client(scheduler, timeout='10s')
     try:
         workers = max(1, len(client.scheduler_info()['workers']))
         chunks = chunks_of(values, workers * 8)
@@ -388,3 +386,21 @@ def summary(plan: SweepPlan, rows) -> dict:
         out[key] = stats
     out['diverged'] = {'count': int(sum(r['diverged'] for r in rows))}
     return out
+
+
+def write_run_parameters(params_path, out_path, variations, values) -> None:
+    """Write the parameter file of one run: ``params_path`` with each varied key
+    set in every section that has it (in the wildcard section ``/**`` when
+    none has it), so that ``sim --params out_path`` reproduces the run."""
+    import yaml
+    from pathlib import Path
+    doc = yaml.safe_load(Path(params_path).read_text())
+    sections = [s['ros__parameters'] for s in doc.values()
+                if isinstance(s, dict) and isinstance(s.get('ros__parameters'), dict)]
+    wildcard = next((doc[k]['ros__parameters'] for k in doc if str(k).strip() in ('/**', '**')),
+                    sections[0])
+    for var, value in zip(variations, values):
+        holders = [s for s in sections if var.name in s] or [wildcard]
+        for section in holders:
+            section.update(apply_values(section, [var], [value]))
+    Path(out_path).write_text(yaml.safe_dump(doc, sort_keys=False))
