@@ -298,29 +298,33 @@ def warm_up(plan: SweepPlan, values) -> None:
     run_one(short, values)
 
 
-def run_local(plan: SweepPlan, values, workers: int | None = None) -> tuple[list, int]:
+def run_local(plan: SweepPlan, values, workers: int | None = None) -> tuple[list, int, float]:
     """All runs on this machine: ``workers`` processes (default: one per core),
     forked after ``warm_up`` so that none of them compiles. Returns (rows in
-    run order, workers used)."""
+    run order, workers used, wall time of the runs [s])."""
     workers = max(1, int(workers or os.cpu_count() or 1))
     chunks = chunks_of(values, workers * 8)
+    warm_up(plan, values[0])
+    start = time.perf_counter()
     if workers == 1 or len(values) == 1:
         rows = [row for chunk in chunks for row in run_chunk(plan, chunk)]
-        return rows, 1
+        return rows, 1, time.perf_counter() - start
     context = multiprocessing.get_context('fork')
     with concurrent.futures.ProcessPoolExecutor(max_workers=workers,
                                                 mp_context=context) as pool:
         parts = pool.map(run_chunk, [plan] * len(chunks), chunks)
         rows = [row for part in parts for row in part]
-    return sorted(rows, key=lambda r: r['run']), workers
+    return sorted(rows, key=lambda r: r['run']), workers, time.perf_counter() - start
 
 
 def run_dask(plan: SweepPlan, values, scheduler: str | None = None,
-             local_workers: int | None = None) -> tuple[list, int]:
+             local_workers: int | None = None) -> tuple[list, int, float]:
     """All runs on a Dask cluster: the scheduler at ``scheduler`` (``tcp://host:8786``),
     or a ``distributed.LocalCluster`` of ``local_workers`` processes (one thread
     each) started for the sweep. Workers need this package importable (the
-    same version). Returns (rows in run order, workers used)."""
+    same version). Every worker runs ``warm_up`` first (loads the kernels), then
+    the clock starts. Returns (rows in run order, workers used, wall time of
+    the runs [s])."""
     from distributed import Client, LocalCluster
     cluster = None
     if scheduler is None:
@@ -333,32 +337,31 @@ def run_dask(plan: SweepPlan, values, scheduler: str | None = None,
         workers = max(1, len(client.scheduler_info()['workers']))
         chunks = chunks_of(values, workers * 8)
         remote_plan = client.scatter(plan, broadcast=True)
+        client.run(warm_up, plan, tuple(values[0]))
+        start = time.perf_counter()
         futures = client.map(run_chunk, [remote_plan] * len(chunks), chunks, pure=False)
         rows = [row for part in client.gather(futures) for row in part]
+        wall = time.perf_counter() - start
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
-    return sorted(rows, key=lambda r: r['run']), workers
+    return sorted(rows, key=lambda r: r['run']), workers, wall
 
 
 def run_sweep(plan: SweepPlan, values, workers: int | None = None,
               scheduler: str | None = None, dask_local: int | None = None) -> dict:
     """Every run, locally or on Dask; {'rows', 'wall_time_s', 'workers', 'engine'}.
 
-    The wall time counts the runs only, after the kernels are loaded here
-    (locally) or from the first task on (Dask, cluster start-up excluded)."""
+    The wall time counts the runs only, after every worker has loaded the
+    kernels (cluster start-up and compilation excluded)."""
     values = np.asarray(values, dtype=float).reshape(len(values), len(plan.variations))
     if scheduler is None and dask_local is None:
-        warm_up(plan, values[0])
-        start = time.perf_counter()
-        rows, used = run_local(plan, values, workers)
+        rows, used, wall = run_local(plan, values, workers)
         engine = 'processes'
     else:
-        start = time.perf_counter()
-        rows, used = run_dask(plan, values, scheduler, dask_local)
+        rows, used, wall = run_dask(plan, values, scheduler, dask_local)
         engine = 'dask %s' % (scheduler or 'LocalCluster')
-    wall = time.perf_counter() - start
     for row in rows:
         row.update({var.key: float(values[row['run'], k])
                     for k, var in enumerate(plan.variations)})

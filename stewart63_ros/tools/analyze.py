@@ -151,7 +151,7 @@ def print_modes(model, found) -> None:
             pair = '%.4g +- %.4gj' % (a.real, abs(a.imag))
         else:
             pair = '%.4g, %.4g' % (a.real, b.real)
-        shape = ' '.join('%6.3f' % v for v in found.mode_shapes[k])
+        shape = ' '.join('%6.3f' % v for v in _clean(np.round(found.mode_shapes[k], 3)))
         print('%4d %9.4f %9.4f %7s  %-26s %s' % (k + 1, found.frequencies_hz[k],
                                                   found.damping_ratios[k],
                                                   'yes' if found.stable[k] else 'NO', pair,

@@ -195,8 +195,9 @@ def main(argv=None) -> int:
         else:
             print('%-22s %10s %10s %10s %10s %10d' % (key, '-', '-', '-', '-', 0))
     print('diverged runs          %d' % stats['diverged']['count'])
-    print('%s: %d runs in %.2f s wall (%s, %d workers, %.0f runs/s); seed %s'
+    print('%s: %d runs in %.2f s wall (%s, %d worker%s, %.0f runs/s); seed %s'
           % (PROG, len(rows), wall, outcome['engine'], outcome['workers'],
+             '' if outcome['workers'] == 1 else 's',
              len(rows) / wall if wall > 0 else float('inf'),
              'none (grid)' if args.grid else seed))
     print('written: %s, %s%s' % (out / 'runs.csv', out / 'summary.json',
