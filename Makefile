@@ -14,7 +14,8 @@ unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE
 ROS_WHEELS := ros-rclpy ros-rmw-fastrtps-cpp ros-std-msgs ros-geometry-msgs \
               ros-sensor-msgs ros-diagnostic-msgs ros-rosgraph-msgs ros-builtin-interfaces \
               ros-trajectory-msgs ros-visualization-msgs
-PY_DEPS    := numpy scipy numba matplotlib pyyaml rosbags mcap mcap-ros2-support viser
+PY_DEPS    := numpy scipy numba matplotlib pyyaml rosbags mcap mcap-ros2-support viser \
+              dask distributed
 TEST_DEPS  := pytest pytest-xdist ruff colcon-core colcon-ros colcon-package-information playwright
 
 DEMO_OUT ?= out/demo

@@ -18,8 +18,9 @@ setup(
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'numba', 'matplotlib', 'pyyaml', 'rosbags',
                       'mcap', 'viser'],
-    # MuJoCo only for `make bench` and its agreement test, never at run time.
-    extras_require={'bench': ['mujoco>=3.1']},
+    # MuJoCo only for `make bench` and its agreement tests, never at run time;
+    # Dask only for `sweep --scheduler` / `--dask-local`.
+    extras_require={'bench': ['mujoco>=3.1'], 'cluster': ['dask', 'distributed']},
     zip_safe=True,
     maintainer='stewart63_ros maintainers',
     maintainer_email='maintainers@stewart63.org',
@@ -37,6 +38,8 @@ setup(
             'sim = stewart63_ros.tools.sim:main',
             'plot = stewart63_ros.tools.plot:main',
             'view = stewart63_ros.tools.view:main',
+            'analyze = stewart63_ros.tools.analyze:main',
+            'sweep = stewart63_ros.tools.sweep:main',
         ],
     },
 )

@@ -20,6 +20,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
+import bench_analysis  # noqa: E402
 import bench_bags  # noqa: E402
 import bench_core  # noqa: E402
 import bench_fk  # noqa: E402
@@ -56,6 +57,8 @@ FIGURES = {
     'ct_loop_latency_p99_us': ('us', 1000.0, '<',
                                'realtime 1 kHz rig with computed_torque: latency p99'),
     'ct_loop_missed_fraction': ('', 0.001, '<', '  the same, missed cycles'),
+    'sweep_1000_runs_s': ('s', 10.0, '<', "sweep: 1000 runs of the paper's 10 s scenario"),
+    'analyze_modes_s': ('s', None, '<', 'analyze modes: linearize about the setpoint, modes'),
 }
 
 
@@ -138,6 +141,8 @@ def main(argv=None) -> int:
         ('forward kinematics', lambda: bench_fk.measure(count=2000 if args.quick else 5000)),
         ('control laws, per sample as the controller runs them',
          lambda: bench_laws.measure(count=2000 if args.quick else 5000)),
+        ('analysis: a 1000-run sweep, analyze modes',
+         lambda: bench_analysis.measure(repeat=1 if args.quick else 3)),
         ('machine floor: 1 kHz wake-up jitter', lambda: wake_jitter(2.0 if args.quick else 5.0)),
         ('rig over DDS', lambda: bench_loop.measure(duration=2.0 if args.quick else 5.0,
                                                      repeat=1 if args.quick else 3)),

@@ -82,6 +82,13 @@ def main():
     ref.check(1.0, 1.0)
     for name in LAWS:
         Controller(mech, law=name, reference=ref)(lengths, rates, 0.25)
+    # The analysis: holding forces, the workspace grid, a sweep run's leg lengths.
+    from stewart63_ros.core.analysis import holding_forces
+    from stewart63_ros.core.sweep import leg_lengths_of_states
+    from stewart63_ros.core.workspace import workspace_map
+    holding_forces(dyn, mech.initial_position, np.eye(3))
+    workspace_map(mech, np.eye(3), 1.0)
+    leg_lengths_of_states(dyn.base_points, dyn.leg_points, y[None, :])
     print('numba kernels ready (%.1f s)' % (time.perf_counter() - start))
 
 

@@ -1,0 +1,409 @@
+"""Many runs of the paper's scenario with parameters drawn from ranges, in parallel.
+
+A run is exactly what ``sim`` (continuous control, the default) does with one
+parameter file: the plant's mechanism from the file's plant section, the
+law from the controller's (``pd``: eq. (40) compiled inside the ODE, scipy's
+RK45 compiled in ``dopri``; another law: ``laws.Controller`` through
+``simulate.run_continuous``), output at 100 Hz. Each run varies some keys of
+the file: a scalar (``platform_mass``) or one element of a list as written in
+the file (``kp[2]``, ``base_points[4]``), drawn uniformly from [LO, HI] or on
+a grid.
+
+Per run (``METRICS``):
+
+- ``final_error_percent``: max_i |L_i(T) - (L_i)_0| / (L_i)_0 x 100 at the
+  last sample: ``sim``'s ``positioning_error_percent`` (the same arithmetic);
+- ``max_force``: the largest |F_i| [N] over the output samples (100 Hz);
+- ``settling_time_s``: the first output time after which every leg stays
+  within 2 % of the largest leg travel, max_i |L_i(T) - L_i(0)|, of its final
+  length L_i(T) (a step response's 2 % settling time, about the final value,
+  which the PD law's gravity sag moves off the setpoint); NaN when the legs
+  enter that band only in the last 10 % of the run (not settled);
+- ``endstop_samples``: output samples with a leg outside its stroke;
+- ``diverged``: 1 when the run did not finish: non-finite state, the
+  integrator failed, the law raised, or the drawn parameters are invalid
+  (``failure`` says which); its metrics are NaN.
+
+Runs go to local processes (``concurrent.futures``, forked after the
+kernels are loaded) or to a Dask cluster (``distributed``): chunks of runs,
+each chunk one task.
+"""
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import math
+import multiprocessing
+import os
+import re
+import time
+
+import numpy as np
+
+from stewart63_ros.core._jit import njit
+from stewart63_ros.core.dynamics import Dynamics, lengths_rates
+from stewart63_ros.core.laws import Controller, LawError
+from stewart63_ros.core.params import (ParameterError, known_keys, mechanism_from_params,
+                                       read_parameter_file)
+from stewart63_ros.core.simulate import run_continuous
+
+METRICS = ('final_error_percent', 'max_force', 'settling_time_s', 'endstop_samples',
+           'diverged')
+#: Output sample rate of a run [Hz] (``sim``'s default for continuous control).
+OUTPUT_RATE = 100.0
+#: Settling band: this fraction of the largest leg travel.
+SETTLING_BAND = 0.02
+#: A run settled only within this last fraction of its duration has not settled.
+UNSETTLED_TAIL = 0.1
+PERCENTILES = (0, 5, 25, 50, 75, 95, 100)
+
+_VARY = re.compile(r'^\s*([A-Za-z_][A-Za-z0-9_]*)(?:\[(\d+)\])?\s*=\s*([^:]+):([^:]+)$')
+
+
+class SweepError(ValueError):
+    """A sweep that cannot run; the message names the problem."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Variation:
+    """One varied parameter: ``name`` or element ``index`` of it, over [low, high]."""
+    key: str
+    name: str
+    index: int | None
+    low: float
+    high: float
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepPlan:
+    """Everything a worker needs for the runs (plain data: it is pickled to workers).
+
+    Attributes:
+        plant_params: the parameter file as the plant reads it (flat dict).
+        controller_params: as the controller reads it.
+        law: the control law's name (``pd``: the compiled eq. (40)).
+        duration: simulated time per run [s].
+        variations: the varied parameters, in column order.
+        output_rate: output samples per second [Hz].
+    """
+    plant_params: dict
+    controller_params: dict
+    law: str
+    duration: float
+    variations: tuple
+    output_rate: float = OUTPUT_RATE
+
+
+def parse_vary(text: str) -> Variation:
+    """``KEY=LO:HI`` or ``KEY[i]=LO:HI`` -> ``Variation``; SweepError if malformed."""
+    match = _VARY.match(text)
+    if not match:
+        raise SweepError('--vary %s: expected KEY=LO:HI or KEY[i]=LO:HI' % text)
+    name, index, low, high = match.groups()
+    try:
+        low, high = float(low), float(high)
+    except ValueError:
+        raise SweepError('--vary %s: LO and HI must be numbers' % text) from None
+    if not (math.isfinite(low) and math.isfinite(high)):
+        raise SweepError('--vary %s: LO and HI must be finite' % text)
+    if low > high:
+        raise SweepError('--vary %s: LO %g is above HI %g' % (text, low, high))
+    key = name if index is None else '%s[%s]' % (name, int(index))
+    return Variation(key, name, None if index is None else int(index), low, high)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def apply_values(params: dict, variations, values) -> dict:
+    """A copy of ``params`` with each variation set to its value (lists copied)."""
+    out = dict(params)
+    for var, value in zip(variations, values):
+        if var.index is None:
+            out[var.name] = float(value)
+        else:
+            current = np.asarray(out[var.name], dtype=float).ravel().tolist()
+            current[var.index] = float(value)
+            out[var.name] = current
+    return out
+
+
+def _check_key(var: Variation, plant: dict, controller: dict) -> None:
+    present = [p for p in (plant, controller) if var.name in p]
+    if not present:
+        if var.name in known_keys(controller) and var.index is None:
+            return            # a known key the file leaves at its default
+        raise SweepError('--vary %s: unknown parameter %s (not in the parameter file)'
+                         % (var.key, var.name))
+    value = present[0][var.name]
+    if var.index is None:
+        if isinstance(value, (list, tuple)):
+            raise SweepError('--vary %s: %s is a list of %d: vary one element, e.g. %s[0]'
+                             % (var.key, var.name, len(value), var.name))
+        if not _is_number(value):
+            raise SweepError('--vary %s: %s is %r, not a number' % (var.key, var.name, value))
+    else:
+        if not isinstance(value, (list, tuple)):
+            raise SweepError('--vary %s: %s is not a list' % (var.key, var.name))
+        if var.index >= len(value):
+            raise SweepError('--vary %s: %s has %d elements (index 0 to %d)'
+                             % (var.key, var.name, len(value), len(value) - 1))
+        if not _is_number(value[var.index]):
+            raise SweepError('--vary %s: %s[%d] is %r, not a number'
+                             % (var.key, var.name, var.index, value[var.index]))
+
+
+def _build(plan: SweepPlan, values):
+    """(plant mechanism, controller or None) of one run; ParameterError if invalid."""
+    plant = apply_values(plan.plant_params, plan.variations, values)
+    mech = mechanism_from_params(plant)
+    if plan.law == 'pd':
+        return mech, None
+    ctrl_params = apply_values(plan.controller_params, plan.variations, values)
+    return mech, Controller(mechanism_from_params(ctrl_params), ctrl_params, law=plan.law)
+
+
+def make_plan(params_path, variations, law: str | None = None,
+              duration: float = 10.0) -> SweepPlan:
+    """Read the parameter file, check every variation at both ends of its range.
+
+    Args:
+        params_path: the ROS 2 parameter file.
+        variations: ``Variation`` s (``parse_vary``).
+        law: the control law (default: the controller's ``control_law``, else pd).
+        duration: simulated time per run [s].
+
+    Raises:
+        SweepError: an unknown key, a list varied whole, an index out of range,
+            or a range end the parameter validation refuses (its message).
+        ParameterError: the file itself is invalid.
+    """
+    plant = read_parameter_file(params_path, 'plant')
+    controller = read_parameter_file(params_path, 'controller')
+    law = law or controller.get('control_law', 'pd')
+    plan = SweepPlan(plant, controller, law, float(duration), tuple(variations))
+    keys = [v.key for v in plan.variations]
+    for var in plan.variations:
+        if keys.count(var.key) > 1:
+            raise SweepError('--vary %s: given twice' % var.key)
+        _check_key(var, plant, controller)
+    _build(dataclasses.replace(plan, variations=()), [])    # the file itself (ParameterError)
+    for var in plan.variations:
+        for end in (var.low, var.high):
+            try:
+                _build(dataclasses.replace(plan, variations=(var,)), [end])
+            except ParameterError as exc:
+                raise SweepError('--vary %s=%g:%g: %g is outside the valid range: %s'
+                                 % (var.key, var.low, var.high, end, exc)) from None
+    return plan
+
+
+def draw_values(variations, runs: int, seed: int | None = None, grid: bool = False):
+    """(N, K) parameter values: ``runs`` uniform draws (numpy's default_rng(seed)),
+    or with ``grid`` n = round(runs^(1/K)) evenly spaced values per key, every
+    combination (n^K rows, first key slowest)."""
+    if runs < 1:
+        raise SweepError('--runs must be at least 1, got %d' % runs)
+    k = len(variations)
+    if k == 0:
+        return np.zeros((runs, 0))
+    low = np.array([v.low for v in variations])
+    high = np.array([v.high for v in variations])
+    if grid:
+        n = max(1, int(round(runs ** (1.0 / k))))
+        axes = [np.linspace(lo, hi, n) if n > 1 else np.array([lo]) for lo, hi in zip(low, high)]
+        return np.stack(np.meshgrid(*axes, indexing='ij'), axis=-1).reshape(-1, k)
+    rng = np.random.default_rng(seed)
+    return low + (high - low) * rng.random((runs, k))
+
+
+@njit
+def leg_lengths_of_states(base, plat, states):
+    """(N, 6) leg lengths [m] of (N, 13) states (eq. 5): the sensors' ``lengths_rates``."""
+    out = np.empty((states.shape[0], 6))
+    for k in range(states.shape[0]):
+        out[k] = lengths_rates(base, plat, states[k])[0]
+    return out
+
+
+def settling_time(times, lengths, band: float = SETTLING_BAND,
+                  tail: float = UNSETTLED_TAIL) -> float:
+    """The 2 % settling time of leg lengths (N, 6) at ``times`` (N,) (see ``METRICS``)."""
+    final = lengths[-1]
+    travel = float(np.max(np.abs(final - lengths[0])))
+    if travel == 0.0:
+        return 0.0
+    outside = np.any(np.abs(lengths - final) > band * travel, axis=1)
+    if not outside.any():
+        return float(times[0])
+    last = int(np.flatnonzero(outside)[-1])
+    settled = float(times[min(last + 1, len(times) - 1)])
+    if settled > times[-1] - tail * (times[-1] - times[0]):
+        return float('nan')
+    return settled
+
+
+def run_one(plan: SweepPlan, values) -> dict:
+    """One run with ``values`` (K,) of the varied keys: {metric: value, 'failure': str}."""
+    row = {'final_error_percent': math.nan, 'max_force': math.nan,
+           'settling_time_s': math.nan, 'endstop_samples': 0, 'diverged': 1, 'failure': ''}
+    try:
+        mech, controller = _build(plan, values)
+    except ParameterError as exc:
+        row['failure'] = 'invalid parameters: %s' % exc
+        return row
+    dyn = Dynamics(mech)
+    try:
+        result = run_continuous(mech, plan.duration, output_rate=plan.output_rate, dyn=dyn,
+                                controller=controller)
+    except LawError as exc:
+        row['failure'] = 'the control law failed: %s' % exc
+        return row
+    except (RuntimeError, ValueError, ArithmeticError) as exc:
+        row['failure'] = 'diverged: %s' % exc
+        return row
+    if not np.all(np.isfinite(result.states)):
+        row['failure'] = 'diverged: non-finite state'
+        return row
+    errors = result.final_leg_error_percent(dyn, mech.setpoint_lengths)   # as sim's summary
+    lengths = leg_lengths_of_states(dyn.base_points, dyn.leg_points, result.states)
+    row.update(final_error_percent=float(errors.max()),
+               max_force=float(np.max(np.abs(result.forces))),
+               settling_time_s=settling_time(result.times, lengths),
+               endstop_samples=int(result.endstop_samples), diverged=0)
+    return row
+
+
+def run_chunk(plan: SweepPlan, chunk) -> list:
+    """Rows of a chunk [(run index, values (K,)), ...]: the unit of work of a worker."""
+    rows = []
+    for index, values in chunk:
+        row = run_one(plan, values)
+        row['run'] = int(index)
+        rows.append(row)
+    return rows
+
+
+def chunks_of(values, parts: int) -> list:
+    """Split the runs into about ``parts`` chunks of (index, values) pairs."""
+    items = [(i, tuple(float(v) for v in row)) for i, row in enumerate(values)]
+    size = max(1, math.ceil(len(items) / max(1, parts)))
+    return [items[k:k + size] for k in range(0, len(items), size)]
+
+
+def warm_up(plan: SweepPlan, values) -> None:
+    """Load (or compile) the kernels of a run in this process, before forking workers."""
+    short = dataclasses.replace(plan, duration=min(plan.duration, 0.05))
+    run_one(short, values)
+
+
+def run_local(plan: SweepPlan, values, workers: int | None = None) -> tuple[list, int, float]:
+    """All runs on this machine: ``workers`` processes (default: one per core),
+    forked after ``warm_up`` so that none of them compiles. Returns (rows in
+    run order, workers used, wall time of the runs [s])."""
+    workers = max(1, int(workers or os.cpu_count() or 1))
+    chunks = chunks_of(values, workers * 8)
+    warm_up(plan, values[0])
+    start = time.perf_counter()
+    if workers == 1 or len(values) == 1:
+        rows = [row for chunk in chunks for row in run_chunk(plan, chunk)]
+        return rows, 1, time.perf_counter() - start
+    context = multiprocessing.get_context('fork')
+    with concurrent.futures.ProcessPoolExecutor(max_workers=workers,
+                                                mp_context=context) as pool:
+        parts = pool.map(run_chunk, [plan] * len(chunks), chunks)
+        rows = [row for part in parts for row in part]
+    return sorted(rows, key=lambda r: r['run']), workers, time.perf_counter() - start
+
+
+def run_dask(plan: SweepPlan, values, scheduler: str | None = None,
+             local_workers: int | None = None) -> tuple[list, int, float]:
+    """All runs on a Dask cluster: the scheduler at ``scheduler`` (``tcp://host:8786``),
+    or a ``distributed.LocalCluster`` of ``local_workers`` processes (one thread
+    each) started for the sweep. Workers need this package importable (the
+    same version). Every worker runs ``warm_up`` first (loads the kernels), then
+    the clock starts. Returns (rows in run order, workers used, wall time of
+    the runs [s])."""
+    from distributed import Client, LocalCluster
+    cluster = None
+    if scheduler is None:
+        cluster = LocalCluster(n_workers=int(local_workers or 1), threads_per_worker=1,
+                               processes=True, host='127.0.0.1', dashboard_address=None)
+        client = Client(cluster)
+    else:
+        client = Client(scheduler, timeout='10s')
+    try:
+        workers = max(1, len(client.scheduler_info()['workers']))
+        chunks = chunks_of(values, workers * 8)
+        remote_plan = client.scatter(plan, broadcast=True)
+        client.run(warm_up, plan, tuple(values[0]))
+        start = time.perf_counter()
+        futures = client.map(run_chunk, [remote_plan] * len(chunks), chunks, pure=False)
+        rows = [row for part in client.gather(futures) for row in part]
+        wall = time.perf_counter() - start
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    return sorted(rows, key=lambda r: r['run']), workers, wall
+
+
+def run_sweep(plan: SweepPlan, values, workers: int | None = None,
+              scheduler: str | None = None, dask_local: int | None = None) -> dict:
+    """Every run, locally or on Dask; {'rows', 'wall_time_s', 'workers', 'engine'}.
+
+    The wall time counts the runs only, after every worker has loaded the
+    kernels (cluster start-up and compilation excluded)."""
+    values = np.asarray(values, dtype=float).reshape(len(values), len(plan.variations))
+    if scheduler is None and dask_local is None:
+        rows, used, wall = run_local(plan, values, workers)
+        engine = 'processes'
+    else:
+        rows, used, wall = run_dask(plan, values, scheduler, dask_local)
+        engine = 'dask %s' % (scheduler or 'LocalCluster')
+    for row in rows:
+        row.update({var.key: float(values[row['run'], k])
+                    for k, var in enumerate(plan.variations)})
+    return {'rows': rows, 'wall_time_s': wall, 'workers': used, 'engine': engine}
+
+
+def columns(plan: SweepPlan) -> list[str]:
+    """Columns of runs.csv: run, each varied key, the metrics, failure."""
+    return ['run'] + [v.key for v in plan.variations] + list(METRICS) + ['failure']
+
+
+def summary(plan: SweepPlan, rows) -> dict:
+    """Percentiles (0, 5, 25, 50, 75, 95, 100), mean and count of every numeric
+    column over the runs that finished; ``diverged``: how many did not."""
+    done = [r for r in rows if not r['diverged']]
+    out = {}
+    for key in [v.key for v in plan.variations] + list(METRICS[:-1]):
+        data = np.array([r[key] for r in done], dtype=float)
+        data = data[np.isfinite(data)]
+        stats = {'count': int(data.size)}
+        if data.size:
+            stats.update({'p%d' % p: float(v) for p, v in zip(PERCENTILES,
+                                                              np.percentile(data, PERCENTILES))})
+            stats['mean'] = float(data.mean())
+        out[key] = stats
+    out['diverged'] = {'count': int(sum(r['diverged'] for r in rows))}
+    return out
+
+
+def write_run_parameters(params_path, out_path, variations, values) -> None:
+    """Write the parameter file of one run: ``params_path`` with each varied key
+    set in every section that has it (in the wildcard section ``/**`` when
+    none has it), so that ``sim --params out_path`` reproduces the run."""
+    import yaml
+    from pathlib import Path
+    doc = yaml.safe_load(Path(params_path).read_text())
+    sections = [s['ros__parameters'] for s in doc.values()
+                if isinstance(s, dict) and isinstance(s.get('ros__parameters'), dict)]
+    wildcard = next((doc[k]['ros__parameters'] for k in doc if str(k).strip() in ('/**', '**')),
+                    sections[0])
+    for var, value in zip(variations, values):
+        holders = [s for s in sections if var.name in s] or [wildcard]
+        for section in holders:
+            section.update(apply_values(section, [var], [value]))
+    Path(out_path).write_text(yaml.safe_dump(doc, sort_keys=False))
