@@ -47,7 +47,7 @@ from stewart63_ros.core._jit import njit
 from stewart63_ros.core.control import pd_law
 from stewart63_ros.core.dynamics import Dynamics, inverse_dynamics_forces
 from stewart63_ros.core.fk import ForwardKinematics, pose_and_twist
-from stewart63_ros.core.params import ParameterError
+from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.core.reference import (R_ACC, R_LEN, R_RATE, SAMPLE_SIZE, Reference,
                                           ReferenceSample)
 from stewart63_ros.core.rotation import rotation_from_euler

@@ -15,24 +15,14 @@ from typing import Any, Mapping
 import numpy as np
 import yaml
 
+# ParameterError lives in the leaf module errors; importing it from here works too.
+from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.core.rotation import rotation_from_euler
 from stewart63_ros.paths import default_params_path
 
 LEG_NAMES = tuple('leg_%d' % i for i in range(1, 7))
 #: Legs 2k-1 and 2k (1-based) meet at platform vertex k.
 LEG_VERTEX = np.array([0, 0, 1, 1, 2, 2])
-
-
-class ParameterError(ValueError):
-    """A parameter file that does not describe a usable mechanism.
-
-    The message always starts with the offending key.
-    """
-
-    def __init__(self, key: str, problem: str):
-        super().__init__('%s: %s' % (key, problem))
-        self.key = key
-        self.problem = problem
 
 
 def _section_applies(key: str, node_name: str | None) -> int:
@@ -372,7 +362,9 @@ def _check_geometry(base: np.ndarray, plat: np.ndarray) -> None:
 
 
 def _check_initial_pose(mech: Mechanism) -> None:
-    from stewart63_ros.core.kinematics import leg_lengths  # avoid an import cycle
+    # Imported here, not at the top: kinematics loads numba (about 0.2 s),
+    # which a program that only reads a parameter file does not need.
+    from stewart63_ros.core.kinematics import leg_lengths
     rot = rotation_from_euler(mech.initial_orientation)
     lengths = leg_lengths(mech, mech.initial_position, rot)
     for key, values in (('initial_position', lengths), ('setpoint_lengths', mech.setpoint_lengths)):

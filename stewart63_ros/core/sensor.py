@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stewart63_ros.core.params import ParameterError
+from stewart63_ros.core.errors import ParameterError
 
 
 class SensorModel:

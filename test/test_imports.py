@@ -1,0 +1,107 @@
+"""The package's import graph: every module imports, and no two modules of
+stewart63_ros import each other, directly or through others (function-level
+imports included: a cycle hidden in a function is still a cycle)."""
+from __future__ import annotations
+
+import ast
+import importlib
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = REPO / 'stewart63_ros'
+
+
+def modules() -> dict[str, Path]:
+    """Every module of the package, by its dotted name."""
+    out = {}
+    for path in sorted(PACKAGE.rglob('*.py')):
+        parts = list(path.relative_to(REPO).with_suffix('').parts)
+        if parts[-1] == '__init__':
+            parts.pop()
+        out['.'.join(parts)] = path
+    return out
+
+
+def imported(path: Path, name: str, known: dict[str, Path]) -> set[str]:
+    """The package's modules that ``path`` (module ``name``) imports, anywhere in it."""
+    package = name if path.name == '__init__.py' else name.rpartition('.')[0]
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ''
+            if node.level:
+                parent = package.split('.')
+                parent = parent[:len(parent) - node.level + 1]
+                base = '.'.join(parent + ([base] if base else []))
+            # `from pkg import mod` imports the module pkg.mod; `from mod import f` mod.
+            targets = [base + '.' + alias.name if base + '.' + alias.name in known else base
+                       for alias in node.names]
+        else:
+            continue
+        out |= {t for t in targets if t in known and t != name}
+    return out
+
+
+def graph() -> dict[str, set[str]]:
+    known = modules()
+    return {name: imported(path, name, known) for name, path in known.items()}
+
+
+def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one module (Tarjan)."""
+    index, low, stack, on_stack, found = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(edges[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(edges):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_the_graph_sees_function_level_imports():
+    edges = graph()
+    assert 'stewart63_ros.core.kinematics' in edges['stewart63_ros.core.params']
+    assert 'stewart63_ros.core.errors' in edges['stewart63_ros.core.params']
+    assert cycles({'a': {'b'}, 'b': {'c'}, 'c': {'a'}, 'd': {'a'}}) == [['a', 'b', 'c']]
+
+
+def test_no_import_cycle_in_the_package():
+    found = cycles(graph())
+    assert found == [], 'modules that import each other: %s' % found
+
+
+@pytest.mark.parametrize('name', sorted(modules()))
+def test_every_module_imports(name):
+    if name.endswith('__main__'):
+        pytest.skip('runs a program')
+    try:
+        importlib.import_module(name)
+    except ImportError as exc:
+        # Optional dependencies: MuJoCo (the bench extra), tf2_msgs (a ROS install).
+        if exc.name in ('mujoco', 'tf2_msgs'):
+            pytest.skip('optional dependency %s' % exc.name)
+        raise
