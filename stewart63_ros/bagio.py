@@ -210,10 +210,10 @@ def trajectory_from_bag(bag_dir, *, relative_time: bool = True,
     NaN (a controller running slower than the sensor answers only some samples);
     with ``hold_forces`` each F row instead holds the last force received
     (zero-order hold, as the plant applies it).
-    θ = ``Rotation.from_quat(q).as_euler('xyz')`` (R = Rz·Ry·Rx). ``t`` is the
+    θ = ``core.rotation.euler_from_quaternion(q)`` (R = Rz·Ry·Rx). ``t`` is the
     stamp in seconds, from the first row's stamp when ``relative_time``.
     """
-    from scipy.spatial.transform import Rotation
+    from stewart63_ros.core.rotation import euler_from_quaternion
 
     reader = open_reader(bag_dir)
     try:
@@ -278,7 +278,7 @@ def trajectory_from_bag(bag_dir, *, relative_time: bool = True,
             np.nan_to_num(pose[:, 3:]), axis=1) > 0)
         if ok.any():
             euler = np.full((n, 3), np.nan)
-            euler[ok] = Rotation.from_quat(pose[ok, 3:]).as_euler('xyz')
+            euler[ok] = euler_from_quaternion(pose[ok, 3:])
             for k, name in enumerate(('theta_x', 'theta_y', 'theta_z')):
                 cols[name] = euler[:, k]
     if twist_t:

@@ -41,7 +41,8 @@ import dataclasses
 import numpy as np
 
 from stewart63_ros.core.params import LEG_VERTEX, Mechanism
-from stewart63_ros.core.rotation import euler_rate_matrix, rotation_from_euler
+from stewart63_ros.core.rotation import (euler_rate_matrix, quaternion_from_rotation,
+                                         rotation_from_euler, rotation_from_quaternion)
 
 #: Axial moment of inertia of each leg part in the MuJoCo model [kg m^2].
 AXIAL_INERTIA = 1e-9
@@ -52,8 +53,7 @@ def _fmt(values) -> str:
 
 
 def _quat_wxyz(rot) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-    x, y, z, w = Rotation.from_matrix(rot).as_quat()
+    x, y, z, w = quaternion_from_rotation(rot)
     return np.array([w, x, y, z])
 
 
@@ -209,7 +209,6 @@ class MujocoPlatform:
         distance between a piston tip and its vertex at the samples [m].
         The loop only copies arrays, so its wall time is MuJoCo's.
         """
-        from scipy.spatial.transform import Rotation
         self.reset()
         m, d = self.model, self.data
         step, kinematics = self.mujoco.mj_step, self.mujoco.mj_kinematics
@@ -228,7 +227,7 @@ class MujocoPlatform:
             tips[k] = d.xpos[pistons]
         positions = poses[:, 0:3]
         quats = poses[:, [4, 5, 6, 3]]                       # (w, x, y, z) -> (x, y, z, w)
-        rots = Rotation.from_quat(quats).as_matrix()
+        rots = rotation_from_quaternion(quats)
         vertices = positions[:, None, :] + np.einsum('nab,lb->nla', rots,
                                                      self.mech.leg_platform_points)
         lengths = np.linalg.norm(vertices - np.asarray(self.mech.base_points), axis=2)

@@ -105,3 +105,16 @@ def test_every_module_imports(name):
         if exc.name in ('mujoco', 'tf2_msgs'):
             pytest.skip('optional dependency %s' % exc.name)
         raise
+
+
+def test_rotations_go_through_core_rotation():
+    """One place for the orientation convention: scipy's Rotation (and its
+    Euler sequence literal) only in core/rotation.py."""
+    offenders = []
+    for name, path in modules().items():
+        if name == 'stewart63_ros.core.rotation':
+            continue
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            if 'scipy.spatial.transform' in line or "'xyz'" in line:
+                offenders.append('%s:%d' % (path.relative_to(REPO), number))
+    assert offenders == [], offenders

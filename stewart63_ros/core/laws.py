@@ -48,8 +48,9 @@ from stewart63_ros.core.control import pd_law
 from stewart63_ros.core.dynamics import Dynamics, inverse_dynamics_forces
 from stewart63_ros.core.fk import ForwardKinematics, pose_and_twist
 from stewart63_ros.core.errors import ParameterError
-from stewart63_ros.core.reference import (R_ACC, R_LEN, R_RATE, SAMPLE_SIZE, Reference,
-                                          ReferenceSample)
+from stewart63_ros.core.reference import (I_ACC, I_ALPHA, I_LEN, I_OMEGA, I_POS, I_RATE,
+                                          I_VEL, R_ACC, R_LEN, R_RATE, SAMPLE_SIZE, Reference,
+                                          ReferenceSample, rotation_error)
 from stewart63_ros.core.rotation import rotation_from_euler
 
 DEFAULT_CT_KP = 2500.0
@@ -93,7 +94,7 @@ def _pd(lengths, rates, ref, kp, kv, max_force):
     """Eq. (40) towards the reference's lengths and rates, saturated."""
     out = np.empty(6)
     for i in range(6):
-        f = kp[i] * (ref[24 + i] - lengths[i]) - kv[i] * (rates[i] - ref[30 + i])
+        f = kp[i] * (ref[I_LEN + i] - lengths[i]) - kv[i] * (rates[i] - ref[I_RATE + i])
         out[i] = min(max(f, -max_force), max_force)
     return out
 
@@ -106,35 +107,21 @@ def _pd_gravity(const, base, plat, inertia, lengths, rates, pos, rot, ref, kp, k
                                    zero)
     out = np.empty(6)
     for i in range(6):
-        f = kp[i] * (ref[24 + i] - lengths[i]) - kv[i] * (rates[i] - ref[30 + i]) + hold[i]
+        f = (kp[i] * (ref[I_LEN + i] - lengths[i]) - kv[i] * (rates[i] - ref[I_RATE + i])
+             + hold[i])
         out[i] = min(max(f, -max_force), max_force)
     return out
 
 
 @njit
-def rotation_error(r_ref, rot):
-    """Rotation vector of R_ref R^T (base frame): the rotation that takes R to R_ref."""
-    m = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            m[i, j] = r_ref[i, 0] * rot[j, 0] + r_ref[i, 1] * rot[j, 1] + r_ref[i, 2] * rot[j, 2]
-    vx, vy, vz = 0.5 * (m[2, 1] - m[1, 2]), 0.5 * (m[0, 2] - m[2, 0]), 0.5 * (m[1, 0] - m[0, 1])
-    s = np.sqrt(vx * vx + vy * vy + vz * vz)
-    angle = np.arctan2(s, 0.5 * (m[0, 0] + m[1, 1] + m[2, 2] - 1.0))
-    k = angle / s if s > 1e-300 else 1.0
-    return np.array([k * vx, k * vy, k * vz])
-
-
-@njit
 def _computed_torque(const, base, plat, inertia, pos, rot, twist, ref, kp, kd, max_force):
     """F = H^-1 (J a_c + eta), a_c = a_ref + Kd e' + Kp e (task space)."""
-    r_ref = ref[3:12].copy().reshape(3, 3)
-    e_rot = rotation_error(r_ref, rot)
+    e_rot = rotation_error(ref, rot)
     acc = np.empty(6)
     for a in range(3):
-        acc[a] = (ref[18 + a] + kd[a] * (ref[12 + a] - twist[a])
-                  + kp[a] * (ref[a] - pos[a]))
-        acc[3 + a] = (ref[21 + a] + kd[3 + a] * (ref[15 + a] - twist[3 + a])
+        acc[a] = (ref[I_ACC + a] + kd[a] * (ref[I_VEL + a] - twist[a])
+                  + kp[a] * (ref[I_POS + a] - pos[a]))
+        acc[3 + a] = (ref[I_ALPHA + a] + kd[3 + a] * (ref[I_OMEGA + a] - twist[3 + a])
                       + kp[3 + a] * e_rot[a])
     f = inverse_dynamics_forces(const, base, plat, inertia, rot, pos, twist[:3], twist[3:], acc)
     for i in range(6):

@@ -35,10 +35,15 @@ from stewart63_ros.core.kinematics import leg_kernel
 #: Layout of a reference sample: position t (3), rotation R row-major (9),
 #: velocity v (3), angular velocity omega (3), acceleration (3), angular
 #: acceleration alpha (3), all in the base frame; desired leg lengths (6)
-#: and leg rates (6).
-R_POS, R_ROT, R_VEL, R_OMEGA = slice(0, 3), slice(3, 12), slice(12, 15), slice(15, 18)
-R_ACC, R_ALPHA, R_LEN, R_RATE = slice(18, 21), slice(21, 24), slice(24, 30), slice(30, 36)
+#: and leg rates (6). ``I_*``: the index of each part's first element (the
+#: compiled kernels index with these; numba freezes them as constants);
+#: ``R_*``: the part as a slice.
+I_POS, I_ROT, I_VEL, I_OMEGA, I_ACC, I_ALPHA, I_LEN, I_RATE = 0, 3, 12, 15, 18, 21, 24, 30
 SAMPLE_SIZE = 36
+R_POS, R_ROT = slice(I_POS, I_POS + 3), slice(I_ROT, I_ROT + 9)
+R_VEL, R_OMEGA = slice(I_VEL, I_VEL + 3), slice(I_OMEGA, I_OMEGA + 3)
+R_ACC, R_ALPHA = slice(I_ACC, I_ACC + 3), slice(I_ALPHA, I_ALPHA + 3)
+R_LEN, R_RATE = slice(I_LEN, I_LEN + 6), slice(I_RATE, I_RATE + 6)
 CSV_COLUMNS = ('t', 'x', 'y', 'z', 'theta_x', 'theta_y', 'theta_z')
 
 
@@ -129,24 +134,24 @@ def _sample_into(breaks, coeffs, base, plat, fixed, use_fixed, t, out):
           (-sy * ty * sz + cy * cz * tz, -sz * tz, 0.0),
           (-cy * ty, 0.0, 0.0))
     for r in range(3):
-        out[r] = p[r]
-        out[12 + r] = d1[r]
-        out[18 + r] = d2[r]
+        out[I_POS + r] = p[r]
+        out[I_VEL + r] = d1[r]
+        out[I_ACC + r] = d2[r]
         w = 0.0
         al = 0.0
         for c in range(3):
-            out[3 + 3 * r + c] = rot[r][c]
+            out[I_ROT + 3 * r + c] = rot[r][c]
             w += e[r][c] * d1[3 + c]
             al += e[r][c] * d2[3 + c] + de[r][c] * d1[3 + c]
-        out[15 + r] = w
-        out[21 + r] = al
+        out[I_OMEGA + r] = w
+        out[I_ALPHA + r] = al
     pos = (p[0], p[1], p[2])
     vel = (d1[0], d1[1], d1[2])
-    omega = (out[15], out[16], out[17])
+    omega = (out[I_OMEGA], out[I_OMEGA + 1], out[I_OMEGA + 2])
     for leg in range(6):
         g = leg_kernel(rot, pos, vel, omega, base, plat, leg)
-        out[24 + leg] = fixed[leg] if use_fixed else g[3]
-        out[30 + leg] = g[10]
+        out[I_LEN + leg] = fixed[leg] if use_fixed else g[3]
+        out[I_RATE + leg] = g[10]
 
 
 @njit
@@ -361,29 +366,70 @@ def write_reference_csv(path, times, poses) -> None:
 
 
 @njit
+def _relative_rotation(ref, rot):
+    """The rotation R_ref R^T that takes R to R_ref, as angle and axis.
+
+    Args:
+        ref: a reference sample (SAMPLE_SIZE,), whose ``R_ROT`` part is R_ref.
+        rot: R (3, 3), platform to base.
+
+    Returns:
+        (angle, vx, vy, vz, s): the angle [rad] in [0, pi], and the axial
+        vector v of the matrix's antisymmetric part with its norm s = sin(angle).
+    """
+    m = np.empty((3, 3))            # R_ref R^T
+    for i in range(3):
+        for j in range(3):
+            m[i, j] = (ref[I_ROT + 3 * i] * rot[j, 0] + ref[I_ROT + 1 + 3 * i] * rot[j, 1]
+                       + ref[I_ROT + 2 + 3 * i] * rot[j, 2])
+    vx, vy, vz = 0.5 * (m[2, 1] - m[1, 2]), 0.5 * (m[0, 2] - m[2, 0]), 0.5 * (m[1, 0] - m[0, 1])
+    s = np.sqrt(vx * vx + vy * vy + vz * vz)
+    angle = np.arctan2(s, 0.5 * (m[0, 0] + m[1, 1] + m[2, 2] - 1.0))
+    return angle, vx, vy, vz, s
+
+
+@njit
+def rotation_error(ref, rot):
+    """The rotation vector of R_ref R^T (base frame): the rotation that takes R to R_ref.
+
+    Args:
+        ref: a reference sample (SAMPLE_SIZE,), whose ``R_ROT`` part is R_ref.
+        rot: R (3, 3), platform to base.
+
+    Returns:
+        (3,) axis times angle [rad].
+    """
+    angle, vx, vy, vz, s = _relative_rotation(ref, rot)
+    k = angle / s if s > 1e-300 else 1.0
+    return np.array([k * vx, k * vy, k * vz])
+
+
+@njit
 def accumulate_tracking(acc, lengths, ref, pos, rot, with_pose):
     """Add one sample's tracking error to ``acc`` (8,): count, max and sum of
     squares of the leg-length error, of |t_ref - t| and of the angle of R_ref R^T
-    (the last two with ``with_pose``)."""
+    (the last two with ``with_pose``).
+
+    Args:
+        acc: (8,) the running sums, updated in place (``tracking_summary`` reads them).
+        lengths: (6,) measured leg lengths [m].
+        ref: the reference sample (SAMPLE_SIZE,).
+        pos: (3,) the estimated position [m]; rot: (3, 3) the estimated rotation.
+        with_pose: whether ``pos`` and ``rot`` hold an estimate.
+    """
     acc[0] += 1.0
     e = 0.0
     for i in range(6):
-        d = abs(ref[24 + i] - lengths[i])
+        d = abs(ref[I_LEN + i] - lengths[i])
         e = max(e, d)
         acc[2] += d * d
     acc[1] = max(acc[1], e)
     if with_pose:
-        d = np.sqrt((ref[0] - pos[0]) ** 2 + (ref[1] - pos[1]) ** 2 + (ref[2] - pos[2]) ** 2)
+        d = np.sqrt((ref[I_POS] - pos[0]) ** 2 + (ref[I_POS + 1] - pos[1]) ** 2
+                    + (ref[I_POS + 2] - pos[2]) ** 2)
         acc[3] = max(acc[3], d)
         acc[4] += d * d
-        m = np.empty((3, 3))            # R_ref R^T
-        for i in range(3):
-            for j in range(3):
-                m[i, j] = (ref[3 + 3 * i] * rot[j, 0] + ref[4 + 3 * i] * rot[j, 1]
-                           + ref[5 + 3 * i] * rot[j, 2])
-        sin = 0.5 * np.sqrt((m[2, 1] - m[1, 2]) ** 2 + (m[0, 2] - m[2, 0]) ** 2
-                            + (m[1, 0] - m[0, 1]) ** 2)
-        angle = np.arctan2(sin, 0.5 * (m[0, 0] + m[1, 1] + m[2, 2] - 1.0))
+        angle = _relative_rotation(ref, rot)[0]
         acc[5] = max(acc[5], angle)
         acc[6] += angle * angle
         acc[7] += 1.0
@@ -406,9 +452,8 @@ def tracking_errors(mech, reference: Reference, times, states, after: float = 1.
     """Max and RMS of the leg-length error, the position error |t_ref - t| and
     the orientation error (angle of R_ref R^T) over the samples at or after
     ``after`` seconds; ``states`` (N, 13) as in the dynamics."""
-    from scipy.spatial.transform import Rotation
-
     from stewart63_ros.core.dynamics import POS, QUAT, lengths_rates
+    from stewart63_ros.core.rotation import rotation_angle_between
     times = np.asarray(times, float)
     keep = times >= after - 1e-12
     if not keep.any():
@@ -420,9 +465,7 @@ def tracking_errors(mech, reference: Reference, times, states, after: float = 1.
     legs = np.array([lengths_rates(base, plat, y)[0] for y in st])
     dl = np.abs(legs - s[:, R_LEN])
     dp = np.linalg.norm(st[:, POS] - s[:, R_POS], axis=1)
-    rel = Rotation.from_matrix(s[:, R_ROT].reshape(-1, 3, 3)) * Rotation.from_quat(
-        st[:, QUAT]).inv()
-    da = np.linalg.norm(rel.as_rotvec(), axis=1)
+    da = rotation_angle_between(s[:, R_ROT].reshape(-1, 3, 3), st[:, QUAT])
     return {'from_s': after, 'samples': int(keep.sum()),
             'leg_max_m': float(dl.max()), 'leg_rms_m': float(np.sqrt(np.mean(dl ** 2))),
             'position_max_m': float(dp.max()), 'position_rms_m': float(np.sqrt(np.mean(dp ** 2))),

@@ -31,6 +31,45 @@ def euler_from_matrix(rot) -> np.ndarray:
     return Rotation.from_matrix(np.asarray(rot, dtype=float)).as_euler(EULER_SEQ)
 
 
+def rotation_from_quaternion(quat) -> np.ndarray:
+    """R from unit quaternions (x, y, z, w), normalised first (scipy).
+
+    Args:
+        quat: (4,) or (N, 4), any non-zero length.
+
+    Returns:
+        (3, 3) or (N, 3, 3), platform to base.
+    """
+    return Rotation.from_quat(np.asarray(quat, dtype=float)).as_matrix()
+
+
+def quaternion_from_rotation(rot) -> np.ndarray:
+    """The unit quaternion (x, y, z, w) of R (scipy: its sign as scipy picks it).
+
+    Args:
+        rot: (3, 3) or (N, 3, 3) rotation matrices.
+
+    Returns:
+        (4,) or (N, 4).
+    """
+    return Rotation.from_matrix(np.asarray(rot, dtype=float)).as_quat()
+
+
+def rotation_angle_between(rot_ref, quat) -> np.ndarray:
+    """The angle of R_ref R^T: how far R (as a quaternion) is from R_ref.
+
+    Args:
+        rot_ref: (N, 3, 3) the reference rotations.
+        quat: (N, 4) the actual orientations, quaternions (x, y, z, w).
+
+    Returns:
+        (N,) angles [rad], in [0, pi].
+    """
+    rel = Rotation.from_matrix(np.asarray(rot_ref, dtype=float)) * Rotation.from_quat(
+        np.asarray(quat, dtype=float)).inv()
+    return np.linalg.norm(rel.as_rotvec(), axis=-1)
+
+
 def matrix_from_quaternion(q) -> np.ndarray:
     """R from a unit quaternion (x, y, z, w).
 

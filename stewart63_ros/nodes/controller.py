@@ -69,7 +69,7 @@ def reference_from_trajectory(mech, msg, max_leg_speed=0.0, max_leg_acceleration
     (twist, base frame) and accelerations used when every point has them
     (quintic Hermite pieces with both, cubic Hermite with velocities only),
     otherwise the poses are splined as a reference CSV is (clamped cubic)."""
-    from scipy.spatial.transform import Rotation
+    from stewart63_ros.core.rotation import euler_from_quaternion
     if list(msg.joint_names) != [PLATFORM_JOINT]:
         raise Rejected('unknown_joint_names', 'joint_names must be [%r], got %s'
                        % (PLATFORM_JOINT, list(msg.joint_names)))
@@ -98,7 +98,7 @@ def reference_from_trajectory(mech, msg, max_leg_speed=0.0, max_leg_acceleration
                 arr[k] = finite_vector([lin.x, lin.y, lin.z, ang.x, ang.y, ang.z], 6,
                                        'point %d twist' % k)
     # theta continuous from point to point (no 2 pi jumps)
-    poses[:, 3:] = np.unwrap(Rotation.from_quat(quats).as_euler('xyz'), axis=0)
+    poses[:, 3:] = np.unwrap(euler_from_quaternion(quats), axis=0)
     rates = accs = None
     if twists is not None:
         # dtheta/dt = E^-1 omega; ddtheta = E^-1 (alpha - dE/dt dtheta), per point
@@ -341,14 +341,14 @@ class ControllerNode(RigNode):
         self.setpoint_gate.accept(ns)
 
     def on_pose_setpoint(self, msg: PoseStamped):
-        from scipy.spatial.transform import Rotation
+        from stewart63_ros.core.rotation import rotation_from_quaternion
         self.health.received[topics.POSE_SETPOINT] += 1
         p = msg.pose.position
         try:
             ns = self.pose_gate.check(msg.header.stamp)
             position = finite_vector([p.x, p.y, p.z], 3, 'pose.position')
-            rot = Rotation.from_quat(_unit_quaternion(msg.pose.orientation,
-                                                      'pose.orientation')).as_matrix()
+            rot = rotation_from_quaternion(_unit_quaternion(msg.pose.orientation,
+                                                            'pose.orientation'))
             self.set_setpoint(leg_lengths(self.mech, position, rot), topics.POSE_SETPOINT,
                               pose=(position, rot))
         except Rejected as exc:

@@ -252,14 +252,14 @@ class MarkerPublisher:
         self.ghost = (np.asarray(result.position), np.asarray(result.rotation))
 
     def on_pose_setpoint(self, msg):
-        from scipy.spatial.transform import Rotation
+        from stewart63_ros.core.rotation import rotation_from_quaternion
         p, q = msg.pose.position, msg.pose.orientation
         position = np.array([p.x, p.y, p.z])
         quat = np.array([q.x, q.y, q.z, q.w])
         norm = np.linalg.norm(quat)
         if not (np.all(np.isfinite(position)) and np.isfinite(norm) and 0.9 < norm < 1.1):
             return
-        rot = Rotation.from_quat(quat / norm).as_matrix()
+        rot = rotation_from_quaternion(quat / norm)
         if self.in_stroke(leg_lengths(self.mech, position, rot)):
             self.ghost = (position, rot)
 
@@ -296,14 +296,15 @@ class MarkerPublisher:
 
     def _transform(self, sec, nanosec, position, rotation):
         from geometry_msgs.msg import TransformStamped
-        from scipy.spatial.transform import Rotation
         from tf2_msgs.msg import TFMessage
+
+        from stewart63_ros.core.rotation import quaternion_from_rotation
         tf = TransformStamped()
         tf.header.frame_id = FRAME
         tf.header.stamp.sec, tf.header.stamp.nanosec = int(sec), int(nanosec)
         tf.child_frame_id = PLATFORM_FRAME
         tr = tf.transform
         tr.translation.x, tr.translation.y, tr.translation.z = (float(v) for v in position)
-        q = Rotation.from_matrix(rotation).as_quat()
+        q = quaternion_from_rotation(rotation)
         tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w = (float(v) for v in q)
         return TFMessage(transforms=[tf])

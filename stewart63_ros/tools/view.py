@@ -33,6 +33,7 @@ import time
 import numpy as np
 
 from stewart63_ros.core import markers as shapes_mod
+from stewart63_ros.core.rotation import quaternion_from_rotation, rotation_from_quaternion
 from stewart63_ros.core.params import LEG_NAMES, ParameterError, default_params_path, \
     load_mechanism
 
@@ -101,12 +102,11 @@ class ViewScene:
 
     def update(self, position, rot, lengths=None, forces=None):
         """Move everything to one state (call at most FRAME_RATE times a second)."""
-        from scipy.spatial.transform import Rotation
         shapes = self.scene.shapes(position, rot, lengths, forces)
         by = {(s.ns, s.id): s for s in shapes}
         with self.server.atomic():
             self.platform.position = tuple(np.asarray(position, dtype=float))
-            self.platform.wxyz = _wxyz(Rotation.from_matrix(rot).as_quat())
+            self.platform.wxyz = _wxyz(quaternion_from_rotation(rot))
             for i in range(6):
                 for handle, shape in ((self.cylinders[i], by[('cylinder', i)]),
                                       (self.pistons[i], by[('piston', i)])):
@@ -130,7 +130,6 @@ class ViewScene:
 
     def set_ghost(self, pose, refused=False):
         """The setpoint pose (position, rot), or None to hide it."""
-        from scipy.spatial.transform import Rotation
         key = None if pose is None else (tuple(np.round(pose[0], 9)),
                                          tuple(np.round(np.ravel(pose[1]), 9)), refused)
         if key == self._ghost_pose:
@@ -140,7 +139,7 @@ class ViewScene:
             self.ghost.visible = False
             return
         self.ghost.position = tuple(np.asarray(pose[0], dtype=float))
-        self.ghost.wxyz = _wxyz(Rotation.from_matrix(pose[1]).as_quat())
+        self.ghost.wxyz = _wxyz(quaternion_from_rotation(pose[1]))
         self.ghost_mesh.color = rgb(REFUSED if refused else shapes_mod.ENDSTOP)
         self.ghost.visible = True
 
@@ -218,15 +217,13 @@ class LiveSource:
 
     def poll(self):
         """Take what came in since the last call."""
-        from scipy.spatial.transform import Rotation
-
         from stewart63_ros.nodes import rclpy_internals, wire
         msg = self._newest('pose')
         if msg is not None:
             p, q = msg.pose.position, msg.pose.orientation
             quat = np.array([q.x, q.y, q.z, q.w])
             if np.all(np.isfinite(quat)) and np.linalg.norm(quat) > 0.5:
-                self.pose = (np.array([p.x, p.y, p.z]), Rotation.from_quat(quat).as_matrix())
+                self.pose = (np.array([p.x, p.y, p.z]), rotation_from_quaternion(quat))
                 self.last_pose_wall = time.monotonic()
         for name, field in (('lengths', 'position'), ('forces', 'effort')):
             data = self._newest(name)
@@ -477,8 +474,6 @@ def run_live(server, mech, namespace, stop):
         with lock:
             dragged['pose'] = (np.array(handle.position), _quat_xyzw(handle.wxyz))
 
-    from scipy.spatial.transform import Rotation
-
     from stewart63_ros.core.kinematics import leg_lengths
     last_panel = 0.0
     last_sent = 0.0
@@ -497,7 +492,7 @@ def run_live(server, mech, namespace, stop):
             pending = 'pose' in dragged
             pose = dragged.pop('pose') if pending and tick - last_sent > 0.1 else None
         if pose is not None:
-            rot = Rotation.from_quat(pose[1]).as_matrix()
+            rot = rotation_from_quaternion(pose[1])
             lengths = leg_lengths(mech, pose[0], rot)
             bad = np.flatnonzero((lengths < mech.leg_length_min) |
                                  (lengths > mech.leg_length_max))
@@ -519,7 +514,7 @@ def run_live(server, mech, namespace, stop):
             view.set_ghost(src.ghost)
             if src.ghost is not None and handle_at is None:
                 handle.position = tuple(src.ghost[0])
-                handle.wxyz = _wxyz(Rotation.from_matrix(src.ghost[1]).as_quat())
+                handle.wxyz = _wxyz(quaternion_from_rotation(src.ghost[1]))
                 handle_at = src.ghost
         if sent is not None:
             count, message = src.controller_rejections()
