@@ -30,7 +30,7 @@ setup(
         'console_scripts': [
             'plant = stewart63_ros.nodes.plant:main',
             'controller = stewart63_ros.nodes.controller:main',
-            'fk = stewart63_ros.nodes.fk_node:main',
+            'fk = stewart63_ros.tools.fk:main',
             'record = stewart63_ros.tools.record:main',
             'play = stewart63_ros.tools.play:main',
             'rig = stewart63_ros.tools.rig:main',

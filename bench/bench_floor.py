@@ -61,7 +61,8 @@ class ComposedFloor:
         from stewart63_ros.core.params import load_mechanism
         from stewart63_ros.core.simulate import initial_state, substeps_for
         from stewart63_ros.nodes import wire
-        from stewart63_ros.nodes.rclpy_internals import raw_publisher
+        from stewart63_ros.nodes.rclpy_internals import raw_publisher, take_with_info
+        self.take_with_info = take_with_info
         self.nodes = [rclpy.create_node(n) for n in ('floor_plant', 'floor_controller', 'floor_fk')]
         plant, ctl, fk = self.nodes
         pubs = (plant.create_publisher(JointState, 'floor/leg_lengths', topics.STREAM_PUB),
@@ -107,10 +108,10 @@ class ComposedFloor:
         tracker.reset(self.mech.initial_position, np.eye(3))
         zero3, zero6, unit_quat = np.zeros(3), np.zeros(6), np.array([0.0, 0.0, 0.0, 1.0])
 
-        read_joint_state = self.read_joint_state
+        read_joint_state, take_with_info = self.read_joint_state, self.take_with_info
 
         def take(sub, fields=('position', 'velocity')):
-            taken = sub.handle.take_message(sub.msg_type, True)
+            taken = take_with_info(sub)
             if taken is None:
                 raise RuntimeError('%s: nothing to take' % sub.topic_name)
             if read:
@@ -171,7 +172,7 @@ def _subscriber(n: int) -> None:
     from sensor_msgs.msg import JointState
 
     from stewart63_ros import topics
-    from stewart63_ros.nodes.rclpy_internals import WaitAny
+    from stewart63_ros.nodes.rclpy_internals import WaitAny, take
     rclpy.init()
     node = rclpy.create_node('floor_sub_%d' % os.getpid())
     sub = node.create_subscription(JointState, _TOPIC, lambda _: None, topics.EVERY_SUB,
@@ -181,7 +182,7 @@ def _subscriber(n: int) -> None:
     deadline = time.monotonic() + WAIT + n * 2e-3
     while got < n and time.monotonic() < deadline:
         waiter.wait(0.5)
-        while sub.handle.take_message(sub.msg_type, True) is not None:
+        while take(sub) is not None:
             if cpu_start is None:
                 cpu_start = time.thread_time()     # from the first message on
             got += 1

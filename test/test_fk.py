@@ -440,11 +440,27 @@ def test_cli_bad_arguments_are_argparse_errors(argv, capsys):
     assert 'usage' in capsys.readouterr().err
 
 
+def test_the_fk_executable_dispatches_to_the_solver_or_the_node(capsys):
+    """``fk`` (tools/fk.py) runs the solver with --solve, else the node, whose
+    --help lists the solver's options too (--strict included)."""
+    from stewart63_ros.tools import fk
+    with pytest.raises(SystemExit) as exc:
+        fk.main(['fk', '--solve', '1.9', '1.9', '1.6', '1.6', '1.6', '1.6', '--strict'])
+    assert exc.value.code == 0
+    assert json.loads(capsys.readouterr().out)['position'][2] == pytest.approx(1.0737, abs=1e-3)
+    with pytest.raises(SystemExit) as exc:
+        fk.main(['fk', '--help'])
+    assert exc.value.code == 0
+    usage = capsys.readouterr().out
+    for option in ('--solve', '--params', '--all', '--strict', '--ros-args'):
+        assert option in usage, usage
+
+
 @pytest.mark.slow      # a fresh interpreter
 def test_cli_runs_as_a_module_without_ros():
     code = ('import sys, runpy; sys.argv = ["fk", "--solve", "1.9", "1.9", "1.6", "1.6", '
             '"1.6", "1.6"]\n'
-            'try:\n    runpy.run_module("stewart63_ros.tools.fk_solve", run_name="__main__")\n'
+            'try:\n    runpy.run_module("stewart63_ros.tools.fk", run_name="__main__")\n'
             'except SystemExit as e:\n    assert not e.code, e.code\n'
             'assert "rclpy" not in sys.modules\n')
     proc = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,

@@ -292,3 +292,20 @@ def test_sim_refuses_non_yaml(tmp_path):
     assert result.returncode != 0
     assert 'params file' in result.stderr
     assert 'Traceback' not in result.stderr
+
+
+def test_one_splitter_for_the_ros_arguments():
+    """record, play and the nodes' parameters split --ros-args the same way:
+    every group up to its ``--``, a value taken whole even when it starts with '-'."""
+    from stewart63_ros.nodes.parameters import ros_arguments
+    from stewart63_ros.nodes.ros_args import rclpy_args, split_ros_args
+    line = ['bag', '--rate', '2', '--ros-args', '-r', '__ns:=/rig2', '-p', 'x:=--', '--',
+            '--loop', '--ros-args', '--params-file', 'f.yaml']
+    own, ros = split_ros_args(line)
+    assert own == ['bag', '--rate', '2', '--loop']
+    assert ros == ['--ros-args', '-r', '__ns:=/rig2', '-p', 'x:=--', '--ros-args',
+                   '--params-file', 'f.yaml']
+    assert rclpy_args('play', ros) == ['play'] + ros
+    assert split_ros_args(['bag']) == (['bag'], []) and rclpy_args('play', []) is None
+    args = ros_arguments(['plant'] + line)
+    assert args.params_files == ['f.yaml'] and args.overrides == [(None, 'x', '--')]

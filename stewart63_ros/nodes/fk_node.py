@@ -10,8 +10,8 @@ Jacobian condition number exceeds ``singularity_threshold``, are reported on
 a timer draws the newest sample, its pose and the newest ``leg_forces``
 (nodes/markers.py); the sample path only stores references for it.
 
-``fk --solve L1 .. L6 [--params FILE] [--all]`` solves once and prints JSON,
-without DDS.
+The ``fk`` executable is ``tools/fk.py``: this node, or with ``--solve`` one
+solution printed as JSON without DDS (``tools/fk_solve.py``).
 """
 from __future__ import annotations
 
@@ -144,19 +144,10 @@ class FKNode(RigNode):
             self.health.warning = ''
 
 
-def _solve_options(parser):
-    parser.add_argument('--solve', nargs=6, metavar='L', type=float,
-                        help='solve once for six leg lengths and print JSON (no DDS)')
-    parser.add_argument('--params', help='with --solve: parameter file')
-    parser.add_argument('--all', action='store_true', help='with --solve: every assembly mode')
-
-
-def main(argv=None):
+def main(argv=None, extra_args=None):
+    """Run the node; ``extra_args(parser)`` adds options to its ``--help``."""
     argv = list(sys.argv if argv is None else argv)
-    if '--solve' in argv:
-        from stewart63_ros.tools.fk_solve import main as solve_main
-        sys.exit(solve_main(argv[1:]))
-    sys.exit(run('fk', __doc__.split('\n\n')[0], FKNode, argv, extra_args=_solve_options))
+    sys.exit(run('fk', __doc__.split('\n\n')[0], FKNode, argv, extra_args=extra_args))
 
 
 if __name__ == '__main__':

@@ -23,10 +23,7 @@ import yaml
 
 from stewart63_ros.core.params import (ParameterError, default_params_path,
                                        read_parameter_file)
-
-#: ROS arguments (after --ros-args) that take a value.
-_WITH_VALUE = {'-p', '--param', '--params-file', '-r', '--remap', '--log-level',
-               '--log-config-file', '-e', '--enclave', '--log-file-name'}
+from stewart63_ros.nodes.ros_args import WITH_VALUE, split_ros_args
 
 _argv: list[str] | None = None
 
@@ -50,16 +47,11 @@ def ros_arguments(argv) -> RosArguments:
     each ``--ros-args``, up to ``--``). Raises ParameterError for a ``-p``
     without ``:=``."""
     out = RosArguments()
-    inside = False
-    args = list(argv)
+    args = split_ros_args(argv)[1]
     i = 0
     while i < len(args):
         arg = args[i]
-        if arg == '--ros-args':
-            inside = True
-        elif arg == '--' and inside:
-            inside = False
-        elif inside and arg in _WITH_VALUE:
+        if arg in WITH_VALUE:
             value = args[i + 1] if i + 1 < len(args) else ''
             i += 1
             if arg in ('-p', '--param'):

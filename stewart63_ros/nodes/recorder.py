@@ -691,6 +691,12 @@ class Recorder:
         return (info.node_name == self._node.get_name()
                 and info.node_namespace == self._node.get_namespace())
 
+    @property
+    def topics(self) -> list[str]:
+        """The full names of the topics subscribed so far (more may come: a
+        topic of unknown type is subscribed once the ROS graph shows it)."""
+        return list(self._subs)
+
     def publisher_counts(self, topics=None):
         """Publishers the recorder's own subscriptions have matched, per
         subscribed topic (or per topic of ``topics``, relative names resolved

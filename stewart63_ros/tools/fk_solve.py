@@ -42,6 +42,15 @@ def _pose(mode) -> dict:
     }
 
 
+def add_solve_options(parser: argparse.ArgumentParser) -> None:
+    """The ``--solve`` options, as the node's ``fk --help`` lists them."""
+    parser.add_argument('--solve', nargs=6, metavar='L', type=float,
+                        help='solve once for six leg lengths and print JSON (no DDS)')
+    parser.add_argument('--params', metavar='FILE', help='with --solve: parameter file')
+    parser.add_argument('--all', action='store_true', help='with --solve: every assembly mode')
+    parser.add_argument('--strict', action='store_true', help='with --solve: ' + STRICT_HELP)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog='fk', description='Forward kinematics of the 6-3 platform from six leg lengths '

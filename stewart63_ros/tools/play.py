@@ -23,6 +23,7 @@ import time
 from stewart63_ros import topics as T
 from stewart63_ros.bagio import (ABSOLUTE_TOPICS, BagError, bag_namespace, open_reader,
                                  read_raw, resolve_bag_topics)
+from stewart63_ros.nodes.ros_args import rclpy_args, split_ros_args
 
 
 def _rebase(topic: str, rec_ns: str, namespace: str | None) -> str:
@@ -295,12 +296,8 @@ def _parser():
 
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    ros_args = None
-    if '--ros-args' in argv:
-        i = argv.index('--ros-args')
-        j = argv.index('--', i) if '--' in argv[i:] else len(argv)
-        ros_args = ['play'] + argv[i:j]
-        argv = argv[:i] + argv[j + 1:]
+    argv, ros = split_ros_args(argv)
+    ros_args = rclpy_args('play', ros)
     args = _parser().parse_args(argv)
     if args.rate <= 0:
         _parser().error('--rate must be positive')

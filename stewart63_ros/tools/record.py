@@ -22,6 +22,7 @@ from stewart63_ros.bagio import BagError
 from stewart63_ros.nodes.launcher import (arm_stop_deadline, dump_stacks_on_sigusr1,
                                           ignore_stop_signals)
 from stewart63_ros.nodes.recorder import MATCHED_LINE, READY_LINE, Recorder
+from stewart63_ros.nodes.ros_args import rclpy_args, split_ros_args
 
 # ---------------------------------------------------------------- command line
 def _parser():
@@ -77,12 +78,8 @@ def _write_ready_file(path, text):
 def main(argv=None) -> int:
     dump_stacks_on_sigusr1()
     argv = list(sys.argv[1:] if argv is None else argv)
-    ros_args = None
-    if '--ros-args' in argv:
-        i = argv.index('--ros-args')
-        j = argv.index('--', i) if '--' in argv[i:] else len(argv)
-        ros_args = ['record'] + argv[i:j]
-        argv = argv[:i] + argv[j + 1:]
+    argv, ros = split_ros_args(argv)
+    ros_args = rclpy_args('record', ros)
     args = _parser().parse_args(argv)
     bag = args.output or args.bag
     if not bag:
@@ -125,7 +122,7 @@ def main(argv=None) -> int:
             print(f'record: error: {exc}', file=sys.stderr)
             return 2
         print(READY_LINE, flush=True)
-        print(f'record: recording {len(rec._subs)} topics into {bag}', file=sys.stderr,
+        print(f'record: recording {len(rec.topics)} topics into {bag}', file=sys.stderr,
               flush=True)
         end = None if args.duration is None else time.monotonic() + args.duration
         if args.wait_for_publishers is not None:
