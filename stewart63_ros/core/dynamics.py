@@ -34,13 +34,20 @@ array, so that an evaluation allocates nothing but its result
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from stewart63_ros.core._jit import njit, njit_kernel
 from stewart63_ros.core.control import pd_leg
 from stewart63_ros.core.fk import solve_linear
 from stewart63_ros.core.kinematics import LegState, leg_kernel
 from stewart63_ros.core.rotation import matrix_from_quaternion
+
+if TYPE_CHECKING:
+    from stewart63_ros.core.control import PDController
+    from stewart63_ros.core.params import Mechanism
 
 #: State vector layout: position t (3), quaternion (x, y, z, w) (4),
 #: velocity dt/dt (3), angular velocity omega (3); all in the base frame.
@@ -245,12 +252,22 @@ def _terms(const, base, plat, inertia_body, rot, pos, vel, omega):
 
 
 @njit
-def inverse_dynamics_forces(const, base, plat, inertia_body, rot, pos, vel, omega, acc):
+def inverse_dynamics_forces(const: np.ndarray, base: np.ndarray, plat: np.ndarray,
+                            inertia_body: np.ndarray, rot: np.ndarray, pos: np.ndarray,
+                            vel: np.ndarray, omega: np.ndarray, acc: np.ndarray) -> np.ndarray:
     """Piston forces F with H F = J acc + eta at the pose (R, t) and twist (v, omega):
-    eq. (38) solved for F, without external wrench and end stops. ``acc`` is
-    [dd t; alpha] (base frame); with a zero twist and acc = 0 it gives the
-    forces that hold the mechanism against gravity. Compiled; NaN where H is
-    singular."""
+    eq. (38) solved for F, without external wrench and end stops. With a zero
+    twist and acc = 0 it gives the forces that hold the mechanism against
+    gravity. Compiled.
+
+    Args:
+        const, base, plat, inertia_body: ``Dynamics.kernel_args()``.
+        rot: R (3, 3); pos: t (3,) [m]; vel: v (3,) [m/s]; omega: (3,) [rad/s].
+        acc: [dd t; alpha] (6,) [m/s^2, rad/s^2], base frame.
+
+    Returns:
+        (6,) piston forces [N]; NaN where H is singular.
+    """
     out = np.empty((_WORK_ROWS, 6))
     rows = ((rot[0, 0], rot[0, 1], rot[0, 2]), (rot[1, 0], rot[1, 1], rot[1, 2]),
             (rot[2, 0], rot[2, 1], rot[2, 2]))
@@ -266,8 +283,17 @@ def inverse_dynamics_forces(const, base, plat, inertia_body, rot, pos, vel, omeg
 
 
 @njit
-def lengths_rates(base, plat, y):
-    """L_i and dL_i/dt of the state y, eqs. (2)-(5), (13): the arithmetic of ``_terms``."""
+def lengths_rates(base: np.ndarray, plat: np.ndarray,
+                  y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """L_i and dL_i/dt of the state y, eqs. (2)-(5), (13): the arithmetic of ``_terms``.
+
+    Args:
+        base: (6, 3) b_i [m]; plat: (6, 3) each leg's vertex [m] (``kernel_args``).
+        y: the state (13,) (``POS``, ``QUAT``, ``VEL``, ``OMEGA``).
+
+    Returns:
+        (L (6,) [m], dL/dt (6,) [m/s]).
+    """
     quat, pos, vel, omega = _state_tuples(y)
     rot = _rotation_rows(*quat)
     L = np.empty(6)
@@ -366,8 +392,23 @@ def _derivative(const, base, plat, inertia_body, y, forces, wrench, endstops):
 
 
 @njit
-def derivative_pd(const, base, plat, inertia_body, y, forces, wrench, endstops, pd, max_force):
-    """dy/dt (a new array); see ``_derivative_into``."""
+def derivative_pd(const: np.ndarray, base: np.ndarray, plat: np.ndarray,
+                  inertia_body: np.ndarray, y: np.ndarray, forces: np.ndarray,
+                  wrench: np.ndarray, endstops: bool, pd: np.ndarray,
+                  max_force: float) -> np.ndarray:
+    """dy/dt (a new array); see ``_derivative_into``. Compiled.
+
+    Args:
+        const, base, plat, inertia_body: ``Dynamics.kernel_args()``.
+        y: the state (13,); forces: applied piston forces (6,) [N].
+        wrench: (F_ext, M_ext) (6,) [N, N m], platform frame, at its origin.
+        endstops: whether the end stops act.
+        pd: [setpoint; kp; kv] (3, 6) for eq. (40) inside the ODE, or
+            ``NO_GAINS`` (0, 6) for none; max_force: its saturation [N].
+
+    Returns:
+        dy/dt (13,).
+    """
     dy = np.empty(13)
     _derivative_into(const, base, plat, inertia_body, y, forces, wrench, endstops, pd,
                      max_force, dy, np.empty((_WORK_ROWS, 6)))
@@ -375,12 +416,24 @@ def derivative_pd(const, base, plat, inertia_body, y, forces, wrench, endstops, 
 
 
 @njit
-def rk4(const, base, plat, inertia_body, y, forces, wrench, dt, steps):
+def rk4(const: np.ndarray, base: np.ndarray, plat: np.ndarray, inertia_body: np.ndarray,
+        y: np.ndarray, forces: np.ndarray, wrench: np.ndarray, dt: float,
+        steps: int) -> np.ndarray:
     """Classical RK4 with the forces held (zero-order hold) over ``steps`` steps.
 
-    Returns the new state (``y`` is not modified). Stages and work array are
-    allocated once per call; the loops over j are the vector expressions
-    y + dt/2 k1, ..., y + dt/6 (k1 + 2 k2 + 2 k3 + k4), component by component."""
+    Stages and work array are allocated once per call; the loops over j are
+    the vector expressions y + dt/2 k1, ..., y + dt/6 (k1 + 2 k2 + 2 k3 + k4),
+    component by component. The quaternion is normalised after each step;
+    the end stops act.
+
+    Args:
+        const, base, plat, inertia_body: ``Dynamics.kernel_args()``.
+        y: the state (13,) (not modified); forces: (6,) [N], held.
+        wrench: (6,) [N, N m], platform frame; dt: one step [s]; steps: how many.
+
+    Returns:
+        The new state (13,).
+    """
     y = y.copy()
     k = np.empty((5, 13))          # k1, k2, k3, k4 and the stage state
     work = np.empty((_WORK_ROWS, 6))
@@ -409,16 +462,26 @@ def rk4(const, base, plat, inertia_body, y, forces, wrench, dt, steps):
 
 
 
-def wrench6(wrench):
+def wrench6(wrench: tuple[ArrayLike, ArrayLike] | None) -> np.ndarray:
+    """(F_ext, M_ext) as one array (6,) [N, N m]; None gives ``NO_WRENCH`` (zeros)."""
     if wrench is None:
         return NO_WRENCH
     return np.concatenate([np.asarray(wrench[0], float), np.asarray(wrench[1], float)])
 
 
 class Dynamics:
-    """The model of one mechanism; constants are gathered once here."""
+    """The model of one mechanism; constants are gathered once here.
 
-    def __init__(self, mech):
+    The state ``y`` is a float array (13,): t [m], quaternion (x, y, z, w),
+    v [m/s], omega [rad/s], all in the base frame (``POS``, ``QUAT``, ``VEL``,
+    ``OMEGA``). ``endstop_stiffness`` / ``endstop_damping`` come from
+    ``mech.extra`` (defaults ``DEFAULT_ENDSTOP_*``).
+
+    Args:
+        mech: the mechanism.
+    """
+
+    def __init__(self, mech: Mechanism) -> None:
         self.mech = mech
         extra = mech.extra
         const = np.zeros(_NCONST)
@@ -440,24 +503,46 @@ class Dynamics:
         self.g = np.asarray(mech.gravity)
         self.mass = mech.platform_mass
 
-    def kernel_args(self) -> tuple:
-        """(constants, base_points (6, 3), leg_points (6, 3), platform_inertia (3, 3)):
-        the first four arguments of every compiled kernel of this module
-        (``derivative_pd``, ``rk4``); ``lengths_rates`` takes the middle two."""
+    def kernel_args(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The first four arguments of every compiled kernel of this module
+        (``derivative_pd``, ``rk4``); ``lengths_rates`` takes the middle two.
+
+        Returns:
+            (constants, base_points (6, 3), leg_points (6, 3), platform_inertia (3, 3)).
+        """
         return self.constants, self.base_points, self.leg_points, self.platform_inertia
 
     # -- eq. (38) -------------------------------------------------------------
-    def equation_terms(self, rot, position, velocity, omega):
-        """J (6x6, symmetric positive definite), eta (6,) and H (6x6) of eq. (38)."""
+    def equation_terms(self, rot: ArrayLike, position: ArrayLike, velocity: ArrayLike,
+                       omega: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The terms of eq. (38) at one pose and twist.
+
+        Args:
+            rot: R (3, 3); position: t (3,) [m]; velocity: v (3,) [m/s];
+                omega: (3,) [rad/s]; base frame.
+
+        Returns:
+            (J (6, 6) symmetric positive definite, eta (6,), H (6, 6)).
+        """
         f = np.asarray
         J, eta, H, _, _ = _terms(*self.kernel_args(), f(rot, float), f(position, float),
                                  f(velocity, float), f(omega, float))
         return J, eta, H
 
-    def accelerations(self, rot, position, velocity, omega, forces, wrench=None):
+    def accelerations(self, rot: ArrayLike, position: ArrayLike, velocity: ArrayLike,
+                      omega: ArrayLike, forces: ArrayLike,
+                      wrench: tuple[ArrayLike, ArrayLike] | None = None,
+                      ) -> tuple[np.ndarray, np.ndarray]:
         """Forward dynamics: (dd t, alpha) from state and piston forces, eq. (38).
 
-        ``wrench`` = (F_ext, M_ext) in the platform frame, at its origin.
+        Args:
+            rot: R (3, 3); position, velocity, omega: (3,) each, base frame.
+            forces: (6,) piston forces [N] (no end stops here).
+            wrench: (F_ext (3,) [N], M_ext (3,) [N m]) in the platform frame, at
+                its origin; None: none.
+
+        Returns:
+            (dd t (3,) [m/s^2], alpha (3,) [rad/s^2]), base frame.
         """
         J, eta, H = self.equation_terms(rot, position, velocity, omega)
         rhs = H @ np.asarray(forces, float) - eta
@@ -467,8 +552,19 @@ class Dynamics:
         x = np.linalg.solve(J, rhs)
         return x[:3], x[3:]
 
-    def inverse_dynamics(self, rot, position, velocity, omega, accel, alpha, wrench=None):
-        """Piston forces that produce (dd t, alpha) at this state: H F = J x + eta - ext."""
+    def inverse_dynamics(self, rot: ArrayLike, position: ArrayLike, velocity: ArrayLike,
+                         omega: ArrayLike, accel: ArrayLike, alpha: ArrayLike,
+                         wrench: tuple[ArrayLike, ArrayLike] | None = None) -> np.ndarray:
+        """Piston forces that produce (dd t, alpha) at this state: H F = J x + eta - ext.
+
+        Args:
+            rot: R (3, 3); position, velocity, omega: (3,) each, base frame.
+            accel: dd t (3,) [m/s^2]; alpha: (3,) [rad/s^2]; base frame.
+            wrench: (F_ext, M_ext), platform frame; None: none.
+
+        Returns:
+            (6,) piston forces [N].
+        """
         J, eta, H = self.equation_terms(rot, position, velocity, omega)
         rhs = J @ np.concatenate([accel, alpha]) + eta
         w = wrench6(wrench)
@@ -477,33 +573,79 @@ class Dynamics:
         return np.linalg.solve(H, rhs)
 
     # -- state vector ---------------------------------------------------------
-    def derivative(self, y, forces, wrench=None, with_endstops=True):
-        """dy/dt of the 13-vector state under piston forces ``forces`` [N]."""
+    def derivative(self, y: ArrayLike, forces: ArrayLike,
+                   wrench: tuple[ArrayLike, ArrayLike] | None = None,
+                   with_endstops: bool = True) -> np.ndarray:
+        """dy/dt of the state under piston forces.
+
+        Args:
+            y: the state (13,); forces: (6,) [N].
+            wrench: (F_ext, M_ext), platform frame; None: none.
+            with_endstops: whether the end stops act.
+
+        Returns:
+            dy/dt (13,).
+        """
         return _derivative(*self.kernel_args(), np.asarray(y, float), np.asarray(forces, float),
                            wrench6(wrench), with_endstops)
 
-    def step(self, y, forces, dt, substeps=1, wrench=None):
-        """Advance ``dt`` with forces held constant (RK4, ``substeps`` steps)."""
+    def step(self, y: ArrayLike, forces: ArrayLike, dt: float, substeps: int = 1,
+             wrench: tuple[ArrayLike, ArrayLike] | None = None) -> np.ndarray:
+        """Advance ``dt`` with forces held constant (RK4, ``substeps`` steps).
+
+        Args:
+            y: the state (13,); forces: (6,) [N], held over the step.
+            dt: the time to advance [s]; substeps: RK4 steps in it.
+            wrench: (F_ext, M_ext), platform frame; None: none.
+
+        Returns:
+            The new state (13,) (``y`` is not modified).
+        """
         return rk4(*self.kernel_args(), np.array(y, float), np.asarray(forces, float),
                     wrench6(wrench), dt / substeps, substeps)
 
-    def lengths_and_rates(self, y):
-        """L_i [m] and dL_i/dt [m/s] at the state y: what ideal linear sensors read."""
+    def lengths_and_rates(self, y: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """What ideal linear sensors read at the state.
+
+        Args:
+            y: the state (13,).
+
+        Returns:
+            (L (6,) [m], dL/dt (6,) [m/s]).
+        """
         return lengths_rates(self.base_points, self.leg_points, np.asarray(y, float))
 
-    def derivative_with(self, y, controller, wrench=None):
-        """dy/dt under continuous PD control (a ``PDController``), eq. (40) inside the ODE."""
+    def derivative_with(self, y: ArrayLike, controller: PDController,
+                        wrench: tuple[ArrayLike, ArrayLike] | None = None) -> np.ndarray:
+        """dy/dt under continuous PD control, eq. (40) inside the ODE.
+
+        Args:
+            y: the state (13,).
+            controller: a ``PDController`` (its setpoint, gains, saturation).
+            wrench: (F_ext, M_ext), platform frame; None: none.
+
+        Returns:
+            dy/dt (13,).
+        """
         gains = np.vstack([controller.setpoint, controller.kp, controller.kv])
         return derivative_pd(*self.kernel_args(), np.asarray(y, float), np.zeros(6),
                               wrench6(wrench), True, gains, controller.max_force)
 
-    def legs(self, y) -> LegState:
+    def legs(self, y: np.ndarray) -> LegState:
+        """The six legs (``LegState``, with rates) at the state y (13,)."""
         quat = y[QUAT] / np.linalg.norm(y[QUAT])
         return LegState(self.mech, y[POS], matrix_from_quaternion(quat), y[VEL], y[OMEGA])
 
     # -- energy (for checks and diagnostics) -----------------------------------
-    def energy(self, y):
-        """(kinetic, potential) of platform and both parts of every leg [J]."""
+    def energy(self, y: np.ndarray) -> tuple[float, float]:
+        """The mechanism's energy at a state.
+
+        Args:
+            y: the state (13,).
+
+        Returns:
+            (kinetic, potential) [J] of the platform and both parts of every leg.
+        """
         mech = self.mech
         legs = self.legs(y)
         rot = matrix_from_quaternion(y[QUAT] / np.linalg.norm(y[QUAT]))
@@ -524,8 +666,8 @@ class Dynamics:
                             + (m_d * l_d + m_u * arm_u) * (legs.s @ self.g))
         return float(kinetic), float(potential)
 
-    def dissipation(self, y):
-        """Power lost to friction: sum C_p dL^2 + C_u |W|^2 [W]."""
+    def dissipation(self, y: np.ndarray) -> float:
+        """Power lost to friction at the state y (13,): sum C_p dL^2 + C_u |W|^2 [W]."""
         legs = self.legs(y)
         return float(self.mech.piston_damping * legs.Ldot @ legs.Ldot
                      + self.mech.ujoint_damping * np.sum(legs.W * legs.W))

@@ -35,11 +35,17 @@ compile.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from stewart63_ros.core._jit import njit
 from stewart63_ros.core.kinematics import leg_kernel
 from stewart63_ros.core.rotation import euler_from_matrix, rotation_from_euler
+
+if TYPE_CHECKING:
+    from stewart63_ros.core.params import Mechanism
 
 #: Flag a pose whose 6x6 Jacobian (rows [s_i, q_i x s_i], in metres) has a
 #: 2-norm condition number above this. Over 5000 random poses of the default
@@ -68,13 +74,18 @@ class FKResult:
     above the threshold; ``residual`` max |L_i(pose) - L_i| [m]; ``iterations``
     of Newton; ``fallback`` True when the all-modes solver chose the branch;
     ``velocity``, ``omega`` the twist (base frame) when leg rates were given.
+
+    Args:
+        position: t (3,) [m]; rotation: R (3, 3).
+        condition, singular, residual, iterations, fallback: as the attributes.
     """
 
     __slots__ = ('position', 'rotation', 'condition', 'singular', 'residual',
                  'iterations', 'fallback', 'velocity', 'omega')
 
-    def __init__(self, position, rotation, condition, singular, residual, iterations=0,
-                 fallback=False):
+    def __init__(self, position: np.ndarray, rotation: np.ndarray, condition: float,
+                 singular: bool, residual: float, iterations: int = 0,
+                 fallback: bool = False) -> None:
         self.position = position
         self.rotation = rotation
         self.condition = float(condition)
@@ -94,7 +105,7 @@ class FKResult:
         """(x, y, z, w) with w >= 0."""
         return _quaternion(self.rotation)
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return ('FKResult(position=%s, theta=%s, condition=%.3g%s)'
                 % (np.round(self.position, 6).tolist(), np.round(self.theta, 6).tolist(),
                    self.condition, ', SINGULAR' if self.singular else ''))
@@ -186,10 +197,17 @@ def _legs(base, legp, t, rot, lengths, jac, res):
 
 
 @njit
-def solve_linear(a, b):
+def solve_linear(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """x = a^-1 b by Gaussian elimination with partial pivoting; NaN when singular.
 
-    Compiled; ``a`` and ``b`` are left untouched. Cheaper than a LAPACK call at 6x6."""
+    Compiled; ``a`` and ``b`` are left untouched. Cheaper than a LAPACK call at 6x6.
+
+    Args:
+        a: (n, n) float array; b: (n,) float array.
+
+    Returns:
+        x (n,); all NaN when ``a`` is singular.
+    """
     a = a.copy()
     x = b.copy()
     n = b.shape[0]
@@ -223,12 +241,18 @@ def solve_linear(a, b):
 
 
 @njit
-def condition_number(jac):
+def condition_number(jac: np.ndarray) -> float:
     """2-norm condition number sigma_max / sigma_min of a square matrix.
 
     One-sided Jacobi (Hestenes 1958): rotate pairs of columns until all are
     orthogonal; the column norms are then the singular values, small ones to
-    full relative accuracy. Cheaper than a LAPACK call at 6x6.
+    full relative accuracy. Cheaper than a LAPACK call at 6x6. Compiled.
+
+    Args:
+        jac: (n, n) float array (not modified).
+
+    Returns:
+        sigma_max / sigma_min (inf for a singular matrix).
     """
     a = jac.copy()
     m, n = a.shape
@@ -368,13 +392,24 @@ def _track(base, legp, lengths, t_prev, rot_prev, t_cur, rot_cur, extrapolate, m
 
 
 @njit
-def pose_and_twist(base, legp, lengths, rates, t0, rot0, max_iter):
+def pose_and_twist(base: np.ndarray, legp: np.ndarray, lengths: np.ndarray,
+                   rates: np.ndarray, t0: np.ndarray, rot0: np.ndarray,
+                   max_iter: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     """Tracking FK in one compiled call: Newton on the six leg equations from the
     pose (t0, R0) (the previous estimate), then [v; omega] = J^-1 dL/dt (eq. 13).
 
-    Returns t, R, twist (6,), converged (also: residual down to 1e-9 of the
-    longest leg). A caller falls back on ``ForwardKinematics.nearest`` when it
-    did not converge (a jump, or lengths with no assembly).
+    A caller falls back on ``ForwardKinematics.nearest`` when it did not
+    converge (a jump, or lengths with no assembly).
+
+    Args:
+        base: (6, 3) b_i [m]; legp: (6, 3) each leg's vertex p_k(i) [m].
+        lengths: L (6,) [m]; rates: dL/dt (6,) [m/s].
+        t0: (3,) [m] and rot0: (3, 3), the pose to start from.
+        max_iter: Newton iterations at most.
+
+    Returns:
+        (t (3,), R (3, 3), twist (6,) = v, omega in the base frame, converged:
+        also the residual down to 1e-9 of the longest leg).
     """
     t, rot, _, ok, res = _newton(base, legp, lengths, t0, rot0, max_iter, 1e-12)
     scale = 0.0
@@ -456,7 +491,7 @@ def _resultant_coefficients(q12, q23, q31):
 
 
 @njit
-def real_angles(coeffs):
+def real_angles(coeffs: np.ndarray) -> np.ndarray:
     """Angles phi = 2 atan(t) of the (nearly) real roots t of sum_k coeffs[k] t^k.
 
     Roots are the eigenvalues of the companion matrix. A vanishing leading
@@ -466,6 +501,12 @@ def real_angles(coeffs):
     solved instead (an 8x8 eigenproblem costs a quarter of a 16x16 one).
     Acceptance is generous (|Im phi| < 1e-3) and Newton decides later: a
     near-double real root comes out as a complex pair with a small imaginary part.
+
+    Args:
+        coeffs: (n + 1,) the polynomial's coefficients, constant term first.
+
+    Returns:
+        (m,) the angles phi [rad] of its real roots.
     """
     top = 0.0
     for k in range(17):
@@ -711,9 +752,15 @@ def _polish_modes(base, legp, lengths, vertices, plat, size, res_tol):
 
 
 class ForwardKinematics:
-    """Forward kinematics of one mechanism; constants gathered once here."""
+    """Forward kinematics of one mechanism; constants gathered once here.
 
-    def __init__(self, mech, cond_threshold: float = DEFAULT_COND_THRESHOLD):
+    Args:
+        mech: the mechanism.
+        cond_threshold: a pose whose Jacobian's condition number exceeds this
+            is flagged ``singular``.
+    """
+
+    def __init__(self, mech: Mechanism, cond_threshold: float = DEFAULT_COND_THRESHOLD) -> None:
         self.mech = mech
         self.cond_threshold = float(cond_threshold)
         self.base = _arr(mech.base_points)
@@ -747,7 +794,13 @@ class ForwardKinematics:
                           _arr(rotation_from_euler(mech.initial_orientation)))
 
     # -- small helpers --------------------------------------------------------
-    def check_lengths(self, lengths) -> np.ndarray:
+    def check_lengths(self, lengths: ArrayLike) -> np.ndarray:
+        """Six finite positive leg lengths as a float array (6,).
+
+        Raises:
+            ValueError: not six finite numbers.
+            NoAssemblyError: a length that is not positive.
+        """
         lengths = _arr(lengths)
         if lengths.shape != (6,) or not np.all(np.isfinite(lengths)):
             raise ValueError('leg lengths must be 6 finite numbers, got %r' % (lengths,))
@@ -757,30 +810,60 @@ class ForwardKinematics:
                                   % (bad[0] + 1, lengths[bad[0]]))
         return lengths
 
-    def jacobian(self, position, rotation) -> np.ndarray:
-        """6x6 J, row i = [s_i, q_i x s_i]: dL/dt = J [v; omega]."""
+    def jacobian(self, position: ArrayLike, rotation: ArrayLike) -> np.ndarray:
+        """6x6 J, row i = [s_i, q_i x s_i]: dL/dt = J [v; omega].
+
+        Args:
+            position: t (3,) [m]; rotation: R (3, 3).
+
+        Returns:
+            (6, 6) J.
+        """
         jac = np.empty((6, 6))
         _legs(self.base, self.legp, _arr(position), _arr(rotation), np.zeros(6), jac,
               np.empty(6))
         return jac
 
-    def condition(self, position, rotation) -> float:
-        """2-norm condition number of the Jacobian at a pose."""
+    def condition(self, position: ArrayLike, rotation: ArrayLike) -> float:
+        """2-norm condition number of the Jacobian at the pose t (3,), R (3, 3)."""
         return float(condition_number(self.jacobian(position, rotation)))
 
-    def twist(self, position, rotation, rates):
-        """(v, omega), base frame, from leg rates: J [v; omega] = dL/dt (eq. 13)."""
+    def twist(self, position: ArrayLike, rotation: ArrayLike,
+              rates: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """The twist from leg rates: J [v; omega] = dL/dt (eq. 13).
+
+        Args:
+            position: t (3,) [m]; rotation: R (3, 3); rates: dL/dt (6,) [m/s].
+
+        Returns:
+            (v (3,) [m/s], omega (3,) [rad/s]), base frame.
+        """
         x = _twist(self.base, self.legp, _arr(position), _arr(rotation), _arr(rates))
         return x[:3], x[3:]
 
-    def distance(self, position, rotation, ref_position, ref_rotation) -> float:
-        """|dt| + size * angle(R_ref^T R) [m]: the angle weighted by the platform radius."""
+    def distance(self, position: ArrayLike, rotation: ArrayLike, ref_position: ArrayLike,
+                 ref_rotation: ArrayLike) -> float:
+        """|dt| + size * angle(R_ref^T R) [m]: the angle weighted by the platform radius.
+
+        Args:
+            position, ref_position: (3,) [m]; rotation, ref_rotation: (3, 3).
+        """
         return _pose_distance(_arr(position), _arr(rotation), _arr(ref_position),
                               _arr(ref_rotation), self.size)
 
     # -- all assembly modes ---------------------------------------------------
-    def circles(self, lengths):
-        """Centre (3, 3) and radius (3,) of each vertex's circle; NoAssemblyError if none."""
+    def circles(self, lengths: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """Where each vertex can be: the circle its leg pair leaves it.
+
+        Args:
+            lengths: L (6,) [m].
+
+        Returns:
+            (centre (3, 3) [m], radius (3,) [m]), one row per vertex.
+
+        Raises:
+            NoAssemblyError: a leg pair cannot meet.
+        """
         return self._circles(self.check_lengths(lengths))
 
     def _circles(self, lengths):
@@ -797,11 +880,20 @@ class ForwardKinematics:
                                   '|b%d - b%d| = %.6g m' % (a + 1, b + 1, why, a + 1, b + 1, d))
         return centre, radius
 
-    def all_modes(self, lengths, reference=None) -> list:
+    def all_modes(self, lengths: ArrayLike,
+                  reference: tuple[ArrayLike, ArrayLike] | None = None) -> list[FKResult]:
         """Every real assembly mode, nearest the reference pose first.
 
-        reference: (position, rotation); default the mechanism's initial pose.
-        Raises NoAssemblyError when a leg pair cannot meet or no mode exists.
+        Args:
+            lengths: L (6,) [m].
+            reference: (position (3,), rotation (3, 3)); default the
+                mechanism's initial pose.
+
+        Returns:
+            The modes, each an ``FKResult`` (``fallback`` True).
+
+        Raises:
+            NoAssemblyError: a leg pair cannot meet, or no mode exists.
         """
         lengths = self.check_lengths(lengths)
         centre, radius = self._circles(lengths)
@@ -818,8 +910,13 @@ class ForwardKinematics:
         return [FKResult(t[k], rot[k], cond[k], cond[k] > self.cond_threshold, res[k],
                          iters[k], True) for k in order]
 
-    def nearest(self, lengths, position, rotation) -> FKResult:
-        """The assembly mode nearest a pose."""
+    def nearest(self, lengths: ArrayLike, position: ArrayLike,
+                rotation: ArrayLike) -> FKResult:
+        """The assembly mode nearest the pose t (3,), R (3, 3), for L (6,) [m].
+
+        Raises:
+            NoAssemblyError: as ``all_modes``.
+        """
         return self.all_modes(lengths, (position, rotation))[0]
 
 
@@ -833,11 +930,20 @@ class FKTracker:
     Starts at ``position``/``rotation``, by default the mechanism's initial
     pose. Results flagged ``singular`` lie where branches meet: the lengths
     alone cannot tell which one the platform took.
+
+    Args:
+        mech_or_fk: the mechanism, or a ``ForwardKinematics`` to share.
+        position: (3,) [m] and rotation: (3, 3), the start; default the initial pose.
+        cond_threshold: overrides the ``ForwardKinematics``'s.
+        max_move: the largest jump from the prediction Newton may make [m].
+        max_iter: Newton iterations at most per sample.
+        extrapolate: predict from the last two samples (else: the last one).
     """
 
-    def __init__(self, mech_or_fk, position=None, rotation=None,
+    def __init__(self, mech_or_fk: Mechanism | ForwardKinematics,
+                 position: ArrayLike | None = None, rotation: ArrayLike | None = None,
                  cond_threshold: float | None = None, max_move: float = 0.05,
-                 max_iter: int = 12, extrapolate: bool = True):
+                 max_iter: int = 12, extrapolate: bool = True) -> None:
         if isinstance(mech_or_fk, ForwardKinematics):
             fk = mech_or_fk
         else:
@@ -851,15 +957,27 @@ class FKTracker:
         self.reset(fk.reference[0] if position is None else position,
                    fk.reference[1] if rotation is None else rotation)
 
-    def reset(self, position, rotation):
-        """Continue from this pose, at rest (a known start, or after a gap in the data)."""
+    def reset(self, position: ArrayLike, rotation: ArrayLike) -> None:
+        """Continue from the pose t (3,), R (3, 3), at rest (a known start, or
+        after a gap in the data)."""
         self.position = _arr(position)
         self.rotation = _arr(rotation)
         self._prev = (self.position, self.rotation)
         self._moving = False
 
-    def solve(self, lengths, rates=None) -> FKResult:
-        """Pose (and twist, if leg rates are given) for one sample of leg lengths."""
+    def solve(self, lengths: ArrayLike, rates: ArrayLike | None = None) -> FKResult:
+        """Pose (and twist, if leg rates are given) for one sample of leg lengths.
+
+        Args:
+            lengths: L (6,) [m]; rates: dL/dt (6,) [m/s], or None.
+
+        Returns:
+            The pose, with ``velocity`` and ``omega`` when ``rates`` was given.
+
+        Raises:
+            ValueError: not six lengths.
+            NoAssemblyError: the lengths admit no assembly.
+        """
         fk = self.fk
         lengths = _arr(lengths)
         if lengths.shape != (6,):

@@ -40,8 +40,11 @@ Built-in laws (``LAWS``):
 from __future__ import annotations
 
 import importlib
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from stewart63_ros.core._jit import njit
 from stewart63_ros.core.control import pd_law
@@ -53,6 +56,9 @@ from stewart63_ros.core.reference import (I_ACC, I_ALPHA, I_LEN, I_OMEGA, I_POS,
                                           ReferenceSample, rotation_error)
 from stewart63_ros.core.rotation import rotation_from_euler
 
+if TYPE_CHECKING:
+    from stewart63_ros.core.params import Mechanism
+
 DEFAULT_CT_KP = 2500.0
 DEFAULT_CT_KD = 100.0
 
@@ -61,8 +67,16 @@ class LawError(RuntimeError):
     """A law that raised or returned forces that cannot be applied."""
 
 
-def gain_vector(name, value) -> np.ndarray:
-    """Six finite non-negative gains, or ParameterError with the reason."""
+def gain_vector(name: str, value: Any) -> np.ndarray:
+    """Six finite non-negative gains, or ParameterError with the reason.
+
+    Args:
+        name: the parameter's name, for the error.
+        value: the value as given (a sequence of six numbers).
+
+    Returns:
+        (6,) float array.
+    """
     try:
         arr = np.array(value, dtype=float).ravel()
     except (TypeError, ValueError):
@@ -133,15 +147,34 @@ def _computed_torque(const, base, plat, inertia, pos, rot, twist, ref, kp, kd, m
 class PoseEstimator:
     """Tracking FK of the measured lengths and rates (pose and twist): Newton from
     the previous estimate (``fk.pose_and_twist``, compiled), falling back on the
-    assembly mode nearest the previous estimate when Newton fails."""
+    assembly mode nearest the previous estimate when Newton fails.
 
-    def __init__(self, mech):
+    Starts at the mechanism's initial pose; ``position`` (3,), ``rotation``
+    (3, 3) and ``twist`` (6,) hold the last estimate.
+
+    Args:
+        mech: the mechanism.
+    """
+
+    def __init__(self, mech: Mechanism) -> None:
         self.fk = ForwardKinematics(mech)
         self.position = np.array(mech.initial_position, dtype=float)
         self.rotation = rotation_from_euler(mech.initial_orientation)
         self.twist = np.zeros(6)
 
-    def __call__(self, lengths, rates):
+    def __call__(self, lengths: np.ndarray,
+                 rates: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Estimate the pose and twist of one sample.
+
+        Args:
+            lengths: L (6,) [m]; rates: dL/dt (6,) [m/s].
+
+        Returns:
+            (t (3,) [m], R (3, 3), twist (6,) = v [m/s], omega [rad/s], base frame).
+
+        Raises:
+            NoAssemblyError: the lengths admit no assembly.
+        """
         fk = self.fk
         t, rot, twist, ok = pose_and_twist(fk.base, fk.legp, lengths, rates, self.position,
                                            self.rotation, 12)
@@ -156,75 +189,106 @@ class PoseEstimator:
 
 # -- the built-in laws ------------------------------------------------------------------------
 class PDLaw:
-    """``pd``: eq. (40) on every leg, towards the reference's lengths and rates."""
+    """``pd``: eq. (40) on every leg, towards the reference's lengths and rates.
+
+    Args:
+        mech: the mechanism (``max_force``, and the default gains).
+        params: the controller's parameters (``kp``, ``kv``: six gains each).
+    """
 
     parameters = ('kp', 'kv')
 
-    def __init__(self, mech, params):
+    def __init__(self, mech: Mechanism, params: Mapping[str, Any]) -> None:
         self.max_force = float(mech.max_force)
         self.kp = gain_vector('kp', params.get('kp', mech.kp))
         self.kv = gain_vector('kv', params.get('kv', mech.kv))
         self.estimate = None
 
-    def set_parameter(self, name, value):
+    def set_parameter(self, name: str, value: Any) -> None:
+        """Change the gain ``name`` (one of ``parameters``); ParameterError to refuse."""
         setattr(self, name, gain_vector(name, value))
 
-    def __call__(self, t, lengths, rates, ref):
+    def __call__(self, t: float, lengths: np.ndarray, rates: np.ndarray,
+                 ref: ReferenceSample) -> np.ndarray:
+        """The forces (6,) [N], saturated, for one sample (the module's law interface)."""
         return _pd(lengths, rates, ref.array, self.kp, self.kv, self.max_force)
 
 
 class _ModelLaw:
     """A law that uses the plant's model at the estimated pose."""
 
-    def __init__(self, mech, params):
+    def __init__(self, mech: Mechanism, params: Mapping[str, Any]) -> None:
         self.max_force = float(mech.max_force)
         self.args = Dynamics(mech).kernel_args()
         self.estimator = PoseEstimator(mech)
 
     @property
-    def estimate(self):
-        """(position, rotation) of the last estimate."""
+    def estimate(self) -> tuple[np.ndarray, np.ndarray]:
+        """(position (3,) [m], rotation (3, 3)) of the last estimate."""
         return self.estimator.position, self.estimator.rotation
 
 
 class PDGravityLaw(_ModelLaw):
-    """``pd_gravity``: eq. (40) plus the forces holding the mechanism against gravity."""
+    """``pd_gravity``: eq. (40) plus the forces holding the mechanism against gravity.
+
+    Args:
+        mech: the mechanism.
+        params: the controller's parameters (``kp``, ``kv``).
+    """
 
     parameters = ('kp', 'kv')
 
-    def __init__(self, mech, params):
+    def __init__(self, mech: Mechanism, params: Mapping[str, Any]) -> None:
         super().__init__(mech, params)
         self.kp = gain_vector('kp', params.get('kp', mech.kp))
         self.kv = gain_vector('kv', params.get('kv', mech.kv))
 
     set_parameter = PDLaw.set_parameter
 
-    def holding_forces(self, position, rotation):
-        """H^-1 eta(q, 0): piston forces that hold the mechanism still at this pose."""
+    def holding_forces(self, position: ArrayLike, rotation: ArrayLike) -> np.ndarray:
+        """H^-1 eta(q, 0): piston forces that hold the mechanism still at this pose.
+
+        Args:
+            position: t (3,) [m]; rotation: R (3, 3).
+
+        Returns:
+            (6,) forces [N].
+        """
         zero = np.zeros(6)
         return inverse_dynamics_forces(*self.args, np.asarray(rotation, float),
                                        np.asarray(position, float), zero[:3], zero[3:], zero)
 
-    def __call__(self, t, lengths, rates, ref):
+    def __call__(self, t: float, lengths: np.ndarray, rates: np.ndarray,
+                 ref: ReferenceSample) -> np.ndarray:
+        """The forces (6,) [N], saturated, for one sample (the module's law interface)."""
         pos, rot, _ = self.estimator(lengths, rates)
         return _pd_gravity(*self.args, lengths, rates, pos, rot, ref.array, self.kp, self.kv,
                            self.max_force)
 
 
 class ComputedTorqueLaw(_ModelLaw):
-    """``computed_torque``: inverse dynamics in task space with reference feedforward."""
+    """``computed_torque``: inverse dynamics in task space with reference feedforward.
+
+    Args:
+        mech: the mechanism.
+        params: the controller's parameters (``ct_kp`` [1/s^2], ``ct_kd`` [1/s]:
+            six per task axis x, y, z, rx, ry, rz).
+    """
 
     parameters = ('ct_kp', 'ct_kd')
 
-    def __init__(self, mech, params):
+    def __init__(self, mech: Mechanism, params: Mapping[str, Any]) -> None:
         super().__init__(mech, params)
         self.ct_kp = gain_vector('ct_kp', params.get('ct_kp', [DEFAULT_CT_KP] * 6))
         self.ct_kd = gain_vector('ct_kd', params.get('ct_kd', [DEFAULT_CT_KD] * 6))
 
-    def set_parameter(self, name, value):
+    def set_parameter(self, name: str, value: Any) -> None:
+        """Change the gain ``name`` (one of ``parameters``); ParameterError to refuse."""
         setattr(self, name, gain_vector(name, value))
 
-    def __call__(self, t, lengths, rates, ref):
+    def __call__(self, t: float, lengths: np.ndarray, rates: np.ndarray,
+                 ref: ReferenceSample) -> np.ndarray:
+        """The forces (6,) [N], saturated, for one sample (the module's law interface)."""
         pos, rot, twist = self.estimator(lengths, rates)
         return _computed_torque(*self.args, pos, rot, twist, ref.array, self.ct_kp,
                                 self.ct_kd, self.max_force)
@@ -235,8 +299,19 @@ LAWS = {'pd': PDLaw, 'pd_gravity': PDGravityLaw, 'computed_torque': ComputedTorq
 LAW_PARAMETERS = ('kp', 'kv', 'ct_kp', 'ct_kd')
 
 
-def law_class(name: str):
-    """The class of a built-in law, or of a user's ``package.module:Class``."""
+def law_class(name: str) -> type:
+    """The class of a built-in law, or of a user's ``package.module:Class``.
+
+    Args:
+        name: ``pd``, ``pd_gravity``, ``computed_torque`` or ``package.module:Class``.
+
+    Returns:
+        The class (imported, for a user's law).
+
+    Raises:
+        ParameterError: (key ``control_law``) an unknown name, a module that
+            cannot be imported, or no such class in it.
+    """
     if not isinstance(name, str) or not name:
         raise ParameterError('control_law', 'expected a law name, got %r' % (name,))
     if name in LAWS:
@@ -256,8 +331,19 @@ def law_class(name: str):
     return cls
 
 
-def make_law(name: str, mech, params):
-    """Build the law ``name`` (built-in or ``package.module:Class``) from the parameters."""
+def make_law(name: str, mech: Mechanism, params: Mapping[str, Any]) -> Any:
+    """Build the law ``name`` (built-in or ``package.module:Class``) from the parameters.
+
+    Args:
+        name: as for ``law_class``.
+        mech: the mechanism; params: the controller's parameters.
+
+    Returns:
+        The law: callable as ``law(t, lengths, rates, ref)``.
+
+    Raises:
+        ParameterError: (key ``control_law``, or the law's own key) it cannot be built.
+    """
     cls = law_class(name)
     try:
         law = cls(mech, params)
@@ -280,12 +366,24 @@ class Controller:
     clock; None: the first sample's time). Forces are saturated at max_force;
     a law that raises or returns anything but six finite numbers raises
     ``LawError`` (the caller withholds the forces).
+
+    Args:
+        mech: the mechanism.
+        params: the controller's parameters, over ``mech.to_params()``.
+        law: the law's name (default: ``params['control_law']``, else ``pd``).
+        reference: what to follow (default: hold ``mech.setpoint_lengths``).
+        start: the reference's time 0 on the sample clock [s] (None: the first sample).
+
+    Raises:
+        ParameterError: the law cannot be built from the parameters.
     """
 
     #: run_sampled passes the sample time: controller(lengths, rates, t)
     timed = True
 
-    def __init__(self, mech, params=None, law=None, reference=None, start=0.0):
+    def __init__(self, mech: Mechanism, params: Mapping[str, Any] | None = None,
+                 law: str | None = None, reference: Reference | None = None,
+                 start: float | None = 0.0) -> None:
         self.mech = mech
         self.params = dict(mech.to_params())
         self.params.update(params or {})
@@ -297,7 +395,7 @@ class Controller:
         self.set_reference(reference or Reference.constant_lengths(mech, mech.setpoint_lengths),
                            start)
 
-    def set_reference(self, reference, start=None):
+    def set_reference(self, reference: Reference, start: float | None = None) -> None:
         """Follow ``reference`` from ``start`` on the sample clock (None: the next sample)."""
         self.reference = reference
         self.start = start
@@ -306,13 +404,13 @@ class Controller:
         if self._fixed:
             reference.sample(0.0, self.sample.array)
 
-    def set_law(self, name):
-        """Switch law (a new one built from the current parameters)."""
+    def set_law(self, name: str) -> None:
+        """Switch law (a new one built from the current parameters); ParameterError to refuse."""
         self.law = make_law(name, self.mech, self.params)
         self.law_name = name
         self.params['control_law'] = name
 
-    def set_parameter(self, name, value):
+    def set_parameter(self, name: str, value: Any) -> None:
         """A gain of the active law (checked by it); other laws' gains are checked
         and kept for when they become active. ParameterError to refuse."""
         if name in getattr(self.law, 'parameters', ()):
@@ -326,7 +424,19 @@ class Controller:
             gain_vector(name, value)
         self.params[name] = value
 
-    def forces(self, t, lengths, rates):
+    def forces(self, t: float, lengths: np.ndarray, rates: np.ndarray) -> np.ndarray:
+        """The law's forces for one sample.
+
+        Args:
+            t: the sample time [s] on the sample clock.
+            lengths: L (6,) [m]; rates: dL/dt (6,) [m/s]; float arrays.
+
+        Returns:
+            (6,) forces [N], saturated at +-max_force.
+
+        Raises:
+            LawError: the law raised, or returned anything but six finite numbers.
+        """
         if self.start is None:
             self.start = t
         ref = self.sample
@@ -346,19 +456,23 @@ class Controller:
                            % (self.law_name, np.array2string(np.asarray(f), precision=4)))
         return f
 
-    def __call__(self, lengths, rates, t=0.0):
+    def __call__(self, lengths: np.ndarray, rates: np.ndarray, t: float = 0.0) -> np.ndarray:
+        """``forces(t, lengths, rates)``, in the argument order ``run_sampled`` uses."""
         return self.forces(t, lengths, rates)
 
     @property
-    def estimate(self):
-        """(position, rotation) the law estimated at the last sample, or None."""
+    def estimate(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(position (3,), rotation (3, 3)) the law estimated at the last sample, or None."""
         return getattr(self.law, 'estimate', None)
 
-    def reference_lengths(self):
+    def reference_lengths(self) -> np.ndarray:
+        """The desired leg lengths (6,) [m] of the last reference sample (a view)."""
         return self.sample.array[R_LEN]
 
-    def reference_rates(self):
+    def reference_rates(self) -> np.ndarray:
+        """The desired leg rates (6,) [m/s] of the last reference sample (a view)."""
         return self.sample.array[R_RATE]
 
-    def reference_acceleration(self):
+    def reference_acceleration(self) -> np.ndarray:
+        """The desired acceleration (3,) [m/s^2] of the last reference sample (a view)."""
         return self.sample.array[R_ACC]

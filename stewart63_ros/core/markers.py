@@ -24,8 +24,13 @@ Its status sphere, at the cylinder's mouth, is yellow at an end stop
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
+
+if TYPE_CHECKING:
+    from stewart63_ros.core.params import Mechanism
 
 #: Marker kinds (the visualization_msgs names): CYLINDER / SPHERE are one
 #: shape at ``position``/``orientation``; the LIST kinds take ``points``.
@@ -55,9 +60,16 @@ class Shape:
     points: np.ndarray = None
 
 
-def quaternion_z_to(direction) -> np.ndarray:
+def quaternion_z_to(direction: ArrayLike) -> np.ndarray:
     """Unit quaternion (x, y, z, w) turning the z axis onto ``direction``
-    (the axis of a visualization_msgs CYLINDER is its local z)."""
+    (the axis of a visualization_msgs CYLINDER is its local z).
+
+    Args:
+        direction: (3,), any non-zero length.
+
+    Returns:
+        (4,) the quaternion (x, y, z, w).
+    """
     d = np.asarray(direction, dtype=float)
     d = d / np.linalg.norm(d)
     w = 1.0 + d[2]
@@ -74,8 +86,16 @@ def _quaternions_z_to(directions) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1)[:, None]
 
 
-def force_color(force: float, max_force: float) -> tuple:
-    """Grey at 0, towards PUSH (F > 0) or PULL (F < 0), full at |F| = max_force."""
+def force_color(force: float | None, max_force: float) -> tuple:
+    """Grey at 0, towards PUSH (F > 0) or PULL (F < 0), full at |F| = max_force.
+
+    Args:
+        force: F [N], or None / NaN for unknown (grey).
+        max_force: the saturation [N].
+
+    Returns:
+        (r, g, b, a) in [0, 1].
+    """
     if force is None or not np.isfinite(force):
         return GREY + (1.0,)
     a = min(abs(force) / max_force, 1.0)
@@ -83,8 +103,17 @@ def force_color(force: float, max_force: float) -> tuple:
     return tuple(g + a * (c - g) for g, c in zip(GREY, target)) + (1.0,)
 
 
-def leg_status(length, force, mech) -> str:
-    """'endstop', 'saturated' or '' for one leg."""
+def leg_status(length: float | None, force: float | None, mech: Mechanism) -> str:
+    """What a leg's status sphere shows.
+
+    Args:
+        length: L [m] or None (unknown); force: F [N] or None (unknown).
+        mech: the mechanism (stroke limits, ``max_force``).
+
+    Returns:
+        ``'endstop'`` (at or beyond a stroke limit), ``'saturated'``
+        (|F| = max_force) or ``''``.
+    """
     if length is not None and not mech.leg_length_min < length < mech.leg_length_max:
         return 'endstop'
     if force is not None and abs(force) >= mech.max_force * (1.0 - 1e-9):
@@ -93,9 +122,13 @@ def leg_status(length, force, mech) -> str:
 
 
 class Scene:
-    """The shapes of one mechanism; sizes follow its geometry."""
+    """The shapes of one mechanism; sizes follow its geometry.
 
-    def __init__(self, mech):
+    Args:
+        mech: the mechanism.
+    """
+
+    def __init__(self, mech: Mechanism) -> None:
         self.mech = mech
         base = np.asarray(mech.base_points, dtype=float)
         plat = np.asarray(mech.platform_points, dtype=float)
@@ -112,14 +145,30 @@ class Scene:
         self.rod = mech.leg_length_max - 0.5 * self.body
 
     # ------------------------------------------------------------- geometry
-    def vertices(self, position, rot) -> np.ndarray:
-        """The three platform vertices t + R p_k, base frame (eq. 1)."""
+    def vertices(self, position: ArrayLike, rot: ArrayLike) -> np.ndarray:
+        """The three platform vertices t + R p_k, base frame (eq. 1).
+
+        Args:
+            position: t (3,) [m]; rot: R (3, 3).
+
+        Returns:
+            (3, 3) one vertex per row [m].
+        """
         return np.asarray(position, dtype=float) + np.asarray(self.mech.platform_points) @ \
             np.asarray(rot, dtype=float).T
 
-    def legs(self, position, rot, lengths=None):
-        """(b, s, tip): U-joints, unit leg directions (eq. 4) from the pose and
-        the leg tips b_i + L_i s_i, with the measured L_i where given."""
+    def legs(self, position: ArrayLike, rot: ArrayLike,
+             lengths: ArrayLike | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Where the legs are drawn.
+
+        Args:
+            position: t (3,) [m]; rot: R (3, 3).
+            lengths: measured L (6,) [m]; None: the pose's own.
+
+        Returns:
+            (b (6, 3) U-joints, s (6, 3) unit leg directions from the pose
+            (eq. 4), tips b_i + L_i s_i (6, 3)) [m].
+        """
         mech = self.mech
         base = np.asarray(mech.base_points, dtype=float)
         verts = self.vertices(position, rot)[[0, 0, 1, 1, 2, 2]]
@@ -130,12 +179,20 @@ class Scene:
         return base, s, base + L[:, None] * s
 
     # --------------------------------------------------------------- shapes
-    def shapes(self, position, rot, lengths=None, forces=None,
-               ghost=None) -> list[Shape]:
-        """Every shape for one state. ``position``/``rot``: platform pose
-        (base frame); ``lengths``: measured L_i (None: from the pose);
-        ``forces``: F_i (None: unknown, grey); ``ghost``: (position, rot)
-        of the setpoint pose or None (then the ghost is hidden)."""
+    def shapes(self, position: ArrayLike, rot: ArrayLike, lengths: ArrayLike | None = None,
+               forces: ArrayLike | None = None,
+               ghost: tuple[ArrayLike, ArrayLike] | None = None) -> list[Shape]:
+        """Every shape for one state.
+
+        Args:
+            position: t (3,) [m]; rot: R (3, 3): the platform pose, base frame.
+            lengths: measured L (6,) [m]; None: from the pose.
+            forces: F (6,) [N]; None: unknown (grey).
+            ghost: (position (3,), rot (3, 3)) of the setpoint pose; None: hidden.
+
+        Returns:
+            The 24 shapes, in marker order (docs/interface.md, Markers).
+        """
         mech = self.mech
         out = []
         base, s, tip = self.legs(position, rot, lengths)
@@ -169,9 +226,20 @@ class Scene:
         out.extend(self.ghost_shapes(ghost))
         return out
 
-    def flat(self, position, rot, lengths=None, forces=None, ghost=None):
+    def flat(self, position: ArrayLike, rot: ArrayLike, lengths: ArrayLike | None = None,
+             forces: ArrayLike | None = None,
+             ghost: tuple[ArrayLike, ArrayLike] | None = None,
+             ) -> tuple[np.ndarray, np.ndarray]:
         """``flatten(self.shapes(...))``, vectorized: what a 30 Hz marker
-        timer can afford in a process that also serves a 1 kHz loop."""
+        timer can afford in a process that also serves a 1 kHz loop.
+
+        Args:
+            As ``shapes``; ``ghost`` is compared by identity (flattened again
+            only when another object is passed).
+
+        Returns:
+            (float64 numbers, float32 colours), as ``flatten``.
+        """
         f8, f4 = self._flat_static()
         mech = self.mech
         base, s, tip = self.legs(position, rot, lengths)
@@ -236,8 +304,15 @@ class Scene:
             self._ghost_key = self._ghost_flat = False
         return self._static[0].copy(), self._static[1].copy()
 
-    def ghost_shapes(self, ghost) -> list[Shape]:
-        """The setpoint pose: a translucent triangle and thin legs to it."""
+    def ghost_shapes(self, ghost: tuple[ArrayLike, ArrayLike] | None) -> list[Shape]:
+        """The setpoint pose: a translucent triangle and thin legs to it.
+
+        Args:
+            ghost: (position (3,), rot (3, 3)); None: both shapes hidden.
+
+        Returns:
+            The two shapes ``ghost`` and ``ghost_legs``.
+        """
         if ghost is None:
             points = np.zeros((6, 3))
             return [Shape('ghost', 0, TRIANGLE_LIST, HIDDEN, points=points),
@@ -254,11 +329,17 @@ class Scene:
                       (0.006, 1.0, 1.0), points=legs)]
 
 
-def flatten(shape_list):
-    """The numbers of ``shape_list`` in marker order: (float64 vector, float32
-    colours). Per shape: position (3), orientation (4), scale (3), then the
-    points of a list kind; colours r, g, b, a per shape. ``Scene.flat``
-    computes the same numbers directly, without Shape objects."""
+def flatten(shape_list: list[Shape]) -> tuple[np.ndarray, np.ndarray]:
+    """The numbers of ``shape_list`` in marker order. ``Scene.flat`` computes
+    the same numbers directly, without Shape objects.
+
+    Args:
+        shape_list: the shapes.
+
+    Returns:
+        (float64 vector: per shape position (3), orientation (4), scale (3),
+        then the points of a list kind; float32 colours: r, g, b, a per shape).
+    """
     f8, f4 = [], []
     for shape in shape_list:
         if shape.kind in (CYLINDER, SPHERE):

@@ -10,7 +10,8 @@ import dataclasses
 import difflib
 import os
 from pathlib import Path
-from typing import Any, Mapping
+from collections.abc import Iterable, Mapping
+from typing import Any
 
 import numpy as np
 import yaml
@@ -40,8 +41,20 @@ def read_parameter_file(path: str | os.PathLike, node_name: str | None = None,
     """Flatten a ROS 2 parameter file into {name: value} for one node.
 
     Wildcard ``/**`` keys first, then the node's own section overrides them.
-    ``allow_empty``: a file with no section for this node gives {} (a second
-    file that only adds another node's keys) instead of an error.
+
+    Args:
+        path: the parameter file.
+        node_name: the node whose section (``/**/<node>:`` or ``<node>:``)
+            applies; None: the wildcard sections only.
+        allow_empty: a file with no section for this node gives {} (a second
+            file that only adds another node's keys) instead of an error.
+
+    Returns:
+        {key: value} as YAML read it.
+
+    Raises:
+        ParameterError: the file cannot be read, is not YAML, or not a ROS 2
+            parameter file.
     """
     path = Path(path)
     try:
@@ -107,7 +120,14 @@ def _check_axisymmetric_inertia(key, axial_transverse):
 
 
 def inertia_matrix(six: np.ndarray) -> np.ndarray:
-    """[Ixx, Iyy, Izz, Ixy, Ixz, Iyz] -> the symmetric 3x3 matrix (elements, not products)."""
+    """[Ixx, Iyy, Izz, Ixy, Ixz, Iyz] -> the symmetric 3x3 matrix (elements, not products).
+
+    Args:
+        six: (6,) the matrix elements [kg m^2], as ``platform_inertia`` lists them.
+
+    Returns:
+        (3, 3) the symmetric inertia matrix.
+    """
     ixx, iyy, izz, ixy, ixz, iyz = six
     return np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
 
@@ -155,8 +175,19 @@ class Mechanism:
         """(6, 3): the platform vertex of each leg, platform frame (p_k repeated)."""
         return self.platform_points[LEG_VERTEX]
 
-    def replace(self, **changes) -> 'Mechanism':
-        """A copy with some fields changed, validated again."""
+    def replace(self, **changes: Any) -> Mechanism:
+        """A copy with some fields changed, validated again.
+
+        Args:
+            **changes: field names and new values (``platform_inertia`` as six
+                numbers or the (3, 3) matrix).
+
+        Returns:
+            The new mechanism.
+
+        Raises:
+            ParameterError: the changed mechanism is not valid.
+        """
         params = self.to_params()
         params.update({k: (np.asarray(v).ravel().tolist() if np.ndim(v) else v)
                        for k, v in changes.items()})
@@ -166,7 +197,11 @@ class Mechanism:
         return mechanism_from_params(params)
 
     def to_params(self) -> dict:
-        """The flat parameter dictionary this mechanism was built from."""
+        """The flat parameter dictionary this mechanism was built from.
+
+        Returns:
+            {key: value} with lists for arrays, ``extra`` included.
+        """
         out = dict(self.extra)
         for field in dataclasses.fields(self):
             if field.name == 'extra':
@@ -205,7 +240,14 @@ NODE_KEYS: dict[str, set[str]] = {
 
 def known_keys(params: Mapping[str, Any] | None = None) -> set[str]:
     """Every key some executable reads: the mechanism's and every node's, and
-    those of the user's control law that ``params`` names, if any."""
+    those of the user's control law that ``params`` names, if any.
+
+    Args:
+        params: parameters whose ``control_law`` may name a user's law.
+
+    Returns:
+        The set of key names.
+    """
     keys = set(_KNOWN).union(*NODE_KEYS.values())
     law = (params or {}).get('control_law')
     if isinstance(law, str) and ':' in law:
@@ -217,10 +259,17 @@ def known_keys(params: Mapping[str, Any] | None = None) -> set[str]:
     return keys
 
 
-def unknown_keys(params) -> list[str]:
-    """One message per key of ``params`` (a mapping, or just the keys) that no
-    executable reads, with the nearest known key when one is close
-    ("sensor_rat: unknown parameter (did you mean sensor_rate?)"), in order."""
+def unknown_keys(params: Mapping[str, Any] | Iterable[str]) -> list[str]:
+    """One message per key of ``params`` that no executable reads, with the
+    nearest known key when one is close.
+
+    Args:
+        params: a mapping of parameters, or just the keys.
+
+    Returns:
+        Messages in key order, e.g. "sensor_rat: unknown parameter (did you
+        mean sensor_rate?)"; empty when every key is known.
+    """
     known = known_keys(params if isinstance(params, Mapping) else None)
     keys = params
     out = []
@@ -237,7 +286,14 @@ def unknown_keys(params) -> list[str]:
 def file_parameters(path: str | os.PathLike) -> dict:
     """Every key of every ``ros__parameters`` section of a parameter file,
     once each, in file order, with its last value (for a check of the whole
-    file)."""
+    file).
+
+    Args:
+        path: the parameter file (already known to be readable YAML).
+
+    Returns:
+        {key: value}.
+    """
     doc = yaml.safe_load(Path(path).read_text())
     params: dict = {}
     if isinstance(doc, dict):
@@ -261,6 +317,15 @@ def mechanism_from_params(params: Mapping[str, Any]) -> Mechanism:
     A missing key that looks like an unknown key of ``params`` says so
     (``platform_mass: missing (the file has the unknown key platfrom_mass:
     a typo?)``).
+
+    Args:
+        params: {key: value}, the mechanism's keys and any others (kept in ``extra``).
+
+    Returns:
+        The validated, immutable mechanism.
+
+    Raises:
+        ParameterError: a key missing or out of its range (docs/interface.md).
     """
     try:
         return _mechanism_from_params(params)
@@ -378,7 +443,19 @@ def _check_initial_pose(mech: Mechanism) -> None:
 
 def load_mechanism(path: str | os.PathLike | None = None, node_name: str | None = None,
                    overrides: Mapping[str, Any] | None = None) -> Mechanism:
-    """Read and validate a parameter file (default: the packaged one)."""
+    """Read and validate a parameter file (default: the packaged one).
+
+    Args:
+        path: the parameter file; None: the packaged ``config/stewart63.yaml``.
+        node_name: the node whose section applies, as in ``read_parameter_file``.
+        overrides: values that replace the file's.
+
+    Returns:
+        The validated mechanism.
+
+    Raises:
+        ParameterError: as ``read_parameter_file`` and ``mechanism_from_params``.
+    """
     params = read_parameter_file(path if path is not None else default_params_path(), node_name)
     if overrides:
         params.update(overrides)

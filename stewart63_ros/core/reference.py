@@ -25,12 +25,18 @@ microseconds), so that the controller samples it at 1 kHz.
 from __future__ import annotations
 
 import csv
+import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from stewart63_ros.core._jit import njit
 from stewart63_ros.core.kinematics import leg_kernel
+
+if TYPE_CHECKING:
+    from stewart63_ros.core.params import Mechanism
 
 #: Layout of a reference sample: position t (3), rotation R row-major (9),
 #: velocity v (3), angular velocity omega (3), acceleration (3), angular
@@ -52,47 +58,58 @@ class ReferenceError(ValueError):
 
 
 class ReferenceSample:
-    """Named views into one reference sample (a flat array, ``.array``)."""
+    """Named views into one reference sample (a flat array, ``.array``).
+
+    Every property is a view into the array (base frame, SI units), valid as
+    long as the array holds this sample.
+
+    Args:
+        array: (SAMPLE_SIZE,) to wrap; None: a new one of zeros.
+    """
 
     __slots__ = ('array',)
 
-    def __init__(self, array=None):
+    def __init__(self, array: np.ndarray | None = None) -> None:
         self.array = np.zeros(SAMPLE_SIZE) if array is None else array
 
     @property
-    def position(self):
-        """t_ref [m], base frame."""
+    def position(self) -> np.ndarray:
+        """t_ref (3,) [m], base frame."""
         return self.array[R_POS]
 
     @property
-    def rotation(self):
+    def rotation(self) -> np.ndarray:
         """R_ref (3, 3), platform to base."""
         return self.array[R_ROT].reshape(3, 3)
 
     @property
-    def velocity(self):
+    def velocity(self) -> np.ndarray:
+        """v_ref (3,) [m/s], base frame."""
         return self.array[R_VEL]
 
     @property
-    def omega(self):
+    def omega(self) -> np.ndarray:
+        """omega_ref (3,) [rad/s], base frame."""
         return self.array[R_OMEGA]
 
     @property
-    def acceleration(self):
+    def acceleration(self) -> np.ndarray:
+        """d2t_ref/dt2 (3,) [m/s^2], base frame."""
         return self.array[R_ACC]
 
     @property
-    def alpha(self):
+    def alpha(self) -> np.ndarray:
+        """alpha_ref (3,) [rad/s^2], base frame."""
         return self.array[R_ALPHA]
 
     @property
-    def lengths(self):
-        """Desired leg lengths [m] (inverse kinematics of the reference pose)."""
+    def lengths(self) -> np.ndarray:
+        """Desired leg lengths (6,) [m] (inverse kinematics of the reference pose)."""
         return self.array[R_LEN]
 
     @property
-    def rates(self):
-        """Desired leg rates dL/dt [m/s] (eq. 13 at the reference twist)."""
+    def rates(self) -> np.ndarray:
+        """Desired leg rates dL/dt (6,) [m/s] (eq. 13 at the reference twist)."""
         return self.array[R_RATE]
 
 
@@ -181,9 +198,23 @@ def _leg_accelerations(mech, samples):
 class Reference:
     """A reference motion: ``sample(t)`` gives pose, twist, accelerations and
     the desired leg lengths and rates at time t [s] (from the reference's own
-    time 0)."""
+    time 0).
 
-    def __init__(self, mech, breaks, coeffs, fixed_lengths=None, kind='trajectory'):
+    Built by ``from_poses``, ``constant_pose`` or ``constant_lengths`` rather
+    than directly.
+
+    Args:
+        mech: the mechanism (geometry for the inverse kinematics).
+        breaks: (m + 1,) the pieces' start times [s], increasing.
+        coeffs: (k, m, 6) polynomial coefficients per piece and pose
+            coordinate, highest power first (scipy's ``PPoly`` layout).
+        fixed_lengths: (6,) desired leg lengths to report instead of the
+            pose's inverse kinematics (a leg setpoint).
+        kind: ``'trajectory'``, ``'pose'`` or ``'lengths'``.
+    """
+
+    def __init__(self, mech: Mechanism, breaks: ArrayLike, coeffs: ArrayLike,
+                 fixed_lengths: ArrayLike | None = None, kind: str = 'trajectory') -> None:
         self.mech = mech
         self.breaks = np.ascontiguousarray(breaks, dtype=float)
         self.coeffs = np.ascontiguousarray(coeffs, dtype=float)
@@ -199,37 +230,58 @@ class Reference:
         """Time of the last pose [s]; the last pose holds after it."""
         return float(self.breaks[-1]) if not self.constant else 0.0
 
-    def sample(self, t: float, out=None) -> np.ndarray:
-        """The sample (SAMPLE_SIZE,) at time t; written into ``out`` if given."""
+    def sample(self, t: float, out: np.ndarray | None = None) -> np.ndarray:
+        """The reference at one time.
+
+        Args:
+            t: the time [s] from the reference's time 0.
+            out: (SAMPLE_SIZE,) float array to write into (no allocation).
+
+        Returns:
+            The sample (SAMPLE_SIZE,) (``out`` when given), laid out as ``R_*``.
+        """
         if out is None:
             out = np.empty(SAMPLE_SIZE)
         _sample_into(self.breaks, self.coeffs, self._base, self._plat, self._fixed,
                      self._use_fixed, float(t), out)
         return out
 
-    def sample_many(self, times) -> np.ndarray:
+    def sample_many(self, times: ArrayLike) -> np.ndarray:
+        """The samples (N, SAMPLE_SIZE) at the times (N,) [s]."""
         return _sample_many(self.breaks, self.coeffs, self._base, self._plat, self._fixed,
                             self._use_fixed, np.ascontiguousarray(times, dtype=float))
 
-    def poses(self, times) -> np.ndarray:
-        """(N, 6) x, y, z, theta_x, theta_y, theta_z at ``times`` (the CSV layout)."""
+    def poses(self, times: ArrayLike) -> np.ndarray:
+        """(N, 6) x, y, z, theta_x, theta_y, theta_z at the times (N,) [s] (the CSV layout)."""
         from stewart63_ros.core.rotation import euler_from_matrix
         s = self.sample_many(times)
         return np.hstack([s[:, R_POS], euler_from_matrix(s[:, R_ROT].reshape(-1, 3, 3))])
 
     # -- construction ---------------------------------------------------------
     @classmethod
-    def constant_pose(cls, mech, position, rotation) -> 'Reference':
+    def constant_pose(cls, mech: Mechanism, position: ArrayLike,
+                      rotation: ArrayLike) -> Reference:
+        """Hold one pose: t (3,) [m], R (3, 3)."""
         from stewart63_ros.core.rotation import euler_from_matrix
         theta = euler_from_matrix(np.asarray(rotation, float))
         pose = np.concatenate([np.asarray(position, float), theta])
         return cls(mech, [0.0, 1.0], pose[None, None, :], kind='pose')
 
     @classmethod
-    def constant_lengths(cls, mech, lengths, near=None) -> 'Reference':
-        """Hold leg lengths (a leg setpoint). The pose is their forward kinematics,
-        the assembly mode nearest ``near`` = (position, rotation) (default: the
-        initial pose); the desired lengths are ``lengths`` exactly."""
+    def constant_lengths(cls, mech: Mechanism, lengths: ArrayLike,
+                         near: tuple[ArrayLike, ArrayLike] | None = None) -> Reference:
+        """Hold leg lengths (a leg setpoint).
+
+        Args:
+            mech: the mechanism.
+            lengths: (6,) [m], the desired lengths exactly.
+            near: (position (3,), rotation (3, 3)): the pose is the forward
+                kinematics of ``lengths`` nearest it (default: the initial
+                pose); NaN where they admit no assembly.
+
+        Returns:
+            The reference (``kind`` ``'lengths'``).
+        """
         from stewart63_ros.core.fk import ForwardKinematics
         fk = ForwardKinematics(mech)
         lengths = np.array(lengths, dtype=float)
@@ -242,10 +294,24 @@ class Reference:
         return cls(mech, ref.breaks, ref.coeffs, fixed_lengths=lengths, kind='lengths')
 
     @classmethod
-    def from_poses(cls, mech, times, poses, velocities=None, accelerations=None) -> 'Reference':
-        """From (N,) times and (N, 6) poses x, y, z, theta_x, theta_y, theta_z
-        (and optional (N, 6) rates d/dt of the same coordinates, and their second
-        derivatives). Raises ReferenceError on bad times or values."""
+    def from_poses(cls, mech: Mechanism, times: ArrayLike, poses: ArrayLike,
+                   velocities: ArrayLike | None = None,
+                   accelerations: ArrayLike | None = None) -> Reference:
+        """A reference through given poses (module docstring: the interpolation).
+
+        Args:
+            mech: the mechanism.
+            times: (N,) [s], from 0 or later, increasing.
+            poses: (N, 6) x, y, z [m], theta_x, theta_y, theta_z [rad].
+            velocities: (N, 6) d/dt of the same coordinates, or None.
+            accelerations: (N, 6) their second derivatives (with ``velocities``), or None.
+
+        Returns:
+            The reference, not yet checked (``check``).
+
+        Raises:
+            ReferenceError: bad shapes, times or values.
+        """
         from scipy.interpolate import BPoly, CubicSpline, PPoly
         times = np.asarray(times, dtype=float)
         poses = np.asarray(poses, dtype=float)
@@ -283,7 +349,16 @@ class Reference:
         leg outside the stroke anywhere, or, where the limits are > 0, moves a leg
         faster than ``max_leg_speed`` [m/s] or accelerates it more than
         ``max_leg_acceleration`` [m/s^2]. Checked at every pose given and on a
-        grid of ``step`` seconds (at least 10 points between two poses)."""
+        grid of ``step`` seconds (at least 10 points between two poses).
+
+        Args:
+            max_leg_speed: [m/s], 0: no limit.
+            max_leg_acceleration: [m/s^2], 0: no limit.
+            step: the grid [s].
+
+        Raises:
+            ReferenceError: the first time and leg that break a limit.
+        """
         mech = self.mech
         b = self.breaks
         if self.constant:
@@ -321,8 +396,18 @@ class Reference:
             raise ReferenceError('at t = %.4f s, leg_%d %s' % (t, leg + 1, why))
 
 
-def read_reference_csv(path) -> tuple[np.ndarray, np.ndarray]:
-    """(times (N,), poses (N, 6)) from a reference CSV ``t,x,y,z,theta_x,theta_y,theta_z``."""
+def read_reference_csv(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a reference CSV ``t,x,y,z,theta_x,theta_y,theta_z``.
+
+    Args:
+        path: the file.
+
+    Returns:
+        (times (N,) [s], poses (N, 6) [m, rad]).
+
+    Raises:
+        ReferenceError: the file cannot be read, or is not such a CSV.
+    """
     path = Path(path)
     try:
         with open(path, newline='') as stream:
@@ -345,9 +430,21 @@ def read_reference_csv(path) -> tuple[np.ndarray, np.ndarray]:
     return table[:, 0], table[:, 1:]
 
 
-def load_reference(mech, path, max_leg_speed: float = 0.0,
+def load_reference(mech: Mechanism, path: str | os.PathLike, max_leg_speed: float = 0.0,
                    max_leg_acceleration: float = 0.0) -> Reference:
-    """A checked reference from a CSV file; ReferenceError names the file."""
+    """A checked reference from a reference CSV.
+
+    Args:
+        mech: the mechanism; path: the CSV file.
+        max_leg_speed, max_leg_acceleration: as for ``Reference.check``.
+
+    Returns:
+        The reference, checked.
+
+    Raises:
+        ReferenceError: naming the file, as ``read_reference_csv``,
+            ``Reference.from_poses`` and ``Reference.check``.
+    """
     times, poses = read_reference_csv(path)
     try:
         ref = Reference.from_poses(mech, times, poses)
@@ -357,7 +454,8 @@ def load_reference(mech, path, max_leg_speed: float = 0.0,
     return ref
 
 
-def write_reference_csv(path, times, poses) -> None:
+def write_reference_csv(path: str | os.PathLike, times: ArrayLike, poses: ArrayLike) -> None:
+    """Write times (N,) [s] and poses (N, 6) [m, rad] as a reference CSV (full precision)."""
     with open(path, 'w', newline='') as stream:
         writer = csv.writer(stream)
         writer.writerow(CSV_COLUMNS)
@@ -366,7 +464,7 @@ def write_reference_csv(path, times, poses) -> None:
 
 
 @njit
-def _relative_rotation(ref, rot):
+def _relative_rotation(ref: np.ndarray, rot: np.ndarray) -> tuple:
     """The rotation R_ref R^T that takes R to R_ref, as angle and axis.
 
     Args:
@@ -389,7 +487,7 @@ def _relative_rotation(ref, rot):
 
 
 @njit
-def rotation_error(ref, rot):
+def rotation_error(ref: np.ndarray, rot: np.ndarray) -> np.ndarray:
     """The rotation vector of R_ref R^T (base frame): the rotation that takes R to R_ref.
 
     Args:
@@ -405,7 +503,8 @@ def rotation_error(ref, rot):
 
 
 @njit
-def accumulate_tracking(acc, lengths, ref, pos, rot, with_pose):
+def accumulate_tracking(acc: np.ndarray, lengths: np.ndarray, ref: np.ndarray,
+                        pos: np.ndarray, rot: np.ndarray, with_pose: bool) -> None:
     """Add one sample's tracking error to ``acc`` (8,): count, max and sum of
     squares of the leg-length error, of |t_ref - t| and of the angle of R_ref R^T
     (the last two with ``with_pose``).
@@ -435,8 +534,16 @@ def accumulate_tracking(acc, lengths, ref, pos, rot, with_pose):
         acc[7] += 1.0
 
 
-def tracking_summary(acc) -> dict:
-    """Max and RMS from an ``accumulate_tracking`` array (empty dict: no sample)."""
+def tracking_summary(acc: np.ndarray) -> dict:
+    """Max and RMS from an ``accumulate_tracking`` array.
+
+    Args:
+        acc: (8,) as ``accumulate_tracking`` filled it.
+
+    Returns:
+        ``samples``, ``leg_max_m``, ``leg_rms_m`` and, with a pose, ``position_*``
+        [m] and ``orientation_*`` [rad]; an empty dict when there was no sample.
+    """
     if acc[0] == 0:
         return {}
     out = {'samples': int(acc[0]), 'leg_max_m': float(acc[1]),
@@ -448,10 +555,22 @@ def tracking_summary(acc) -> dict:
     return out
 
 
-def tracking_errors(mech, reference: Reference, times, states, after: float = 1.0) -> dict:
+def tracking_errors(mech: Mechanism, reference: Reference, times: ArrayLike,
+                    states: ArrayLike, after: float = 1.0) -> dict:
     """Max and RMS of the leg-length error, the position error |t_ref - t| and
     the orientation error (angle of R_ref R^T) over the samples at or after
-    ``after`` seconds; ``states`` (N, 13) as in the dynamics."""
+    ``after`` seconds.
+
+    Args:
+        mech: the mechanism; reference: what was followed.
+        times: (N,) [s] on the reference's clock; states: (N, 13) as in the dynamics.
+        after: the first time counted [s].
+
+    Returns:
+        ``from_s``, ``samples``, ``leg_max_m``, ``leg_rms_m``, ``position_max_m``,
+        ``position_rms_m``, ``orientation_max_rad``, ``orientation_rms_rad``;
+        an empty dict when no sample is that late.
+    """
     from stewart63_ros.core.dynamics import POS, QUAT, lengths_rates
     from stewart63_ros.core.rotation import rotation_angle_between
     times = np.asarray(times, float)

@@ -9,29 +9,61 @@ carries a unit quaternion, free of singularities.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 EULER_SEQ = 'xyz'  # lower case = extrinsic: R = Rz Ry Rx
 
 
-def rotation_from_euler(theta) -> np.ndarray:
+def rotation_from_euler(theta: ArrayLike) -> np.ndarray:
+    """R = Rz(theta_z) Ry(theta_y) Rx(theta_x).
+
+    Args:
+        theta: (3,) or (N, 3) angles [rad].
+
+    Returns:
+        (3, 3) or (N, 3, 3), platform to base.
+    """
     return Rotation.from_euler(EULER_SEQ, np.asarray(theta, dtype=float)).as_matrix()
 
 
-def quaternion_from_euler(theta) -> np.ndarray:
+def quaternion_from_euler(theta: ArrayLike) -> np.ndarray:
+    """The unit quaternion (x, y, z, w) of R = Rz Ry Rx.
+
+    Args:
+        theta: (3,) or (N, 3) angles [rad].
+
+    Returns:
+        (4,) or (N, 4).
+    """
     return Rotation.from_euler(EULER_SEQ, np.asarray(theta, dtype=float)).as_quat()
 
 
-def euler_from_quaternion(quat) -> np.ndarray:
-    """theta from (x, y, z, w); accepts (4,) or (N, 4)."""
+def euler_from_quaternion(quat: ArrayLike) -> np.ndarray:
+    """theta of a quaternion (normalised first).
+
+    Args:
+        quat: (4,) or (N, 4), (x, y, z, w).
+
+    Returns:
+        (3,) or (N, 3) angles [rad], each in scipy's range for ``'xyz'``.
+    """
     return Rotation.from_quat(np.asarray(quat, dtype=float)).as_euler(EULER_SEQ)
 
 
-def euler_from_matrix(rot) -> np.ndarray:
+def euler_from_matrix(rot: ArrayLike) -> np.ndarray:
+    """theta of R.
+
+    Args:
+        rot: (3, 3) or (N, 3, 3) rotation matrices.
+
+    Returns:
+        (3,) or (N, 3) angles [rad].
+    """
     return Rotation.from_matrix(np.asarray(rot, dtype=float)).as_euler(EULER_SEQ)
 
 
-def rotation_from_quaternion(quat) -> np.ndarray:
+def rotation_from_quaternion(quat: ArrayLike) -> np.ndarray:
     """R from unit quaternions (x, y, z, w), normalised first (scipy).
 
     Args:
@@ -43,7 +75,7 @@ def rotation_from_quaternion(quat) -> np.ndarray:
     return Rotation.from_quat(np.asarray(quat, dtype=float)).as_matrix()
 
 
-def quaternion_from_rotation(rot) -> np.ndarray:
+def quaternion_from_rotation(rot: ArrayLike) -> np.ndarray:
     """The unit quaternion (x, y, z, w) of R (scipy: its sign as scipy picks it).
 
     Args:
@@ -55,7 +87,7 @@ def quaternion_from_rotation(rot) -> np.ndarray:
     return Rotation.from_matrix(np.asarray(rot, dtype=float)).as_quat()
 
 
-def rotation_angle_between(rot_ref, quat) -> np.ndarray:
+def rotation_angle_between(rot_ref: ArrayLike, quat: ArrayLike) -> np.ndarray:
     """The angle of R_ref R^T: how far R (as a quaternion) is from R_ref.
 
     Args:
@@ -70,12 +102,18 @@ def rotation_angle_between(rot_ref, quat) -> np.ndarray:
     return np.linalg.norm(rel.as_rotvec(), axis=-1)
 
 
-def matrix_from_quaternion(q) -> np.ndarray:
-    """R from a unit quaternion (x, y, z, w).
+def matrix_from_quaternion(q: ArrayLike) -> np.ndarray:
+    """R from a unit quaternion (x, y, z, w), not normalised here.
 
     Hand-written rather than scipy's Rotation because the dynamics call it on
     every right-hand-side evaluation, where Rotation's object overhead (~10 us)
     would dominate.
+
+    Args:
+        q: (4,) a unit quaternion (x, y, z, w).
+
+    Returns:
+        (3, 3) R.
     """
     x, y, z, w = q
     xx, yy, zz = x * x, y * y, z * z
@@ -86,8 +124,15 @@ def matrix_from_quaternion(q) -> np.ndarray:
         [2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)]])
 
 
-def quaternion_rate(q, omega) -> np.ndarray:
-    """dq/dt for a base-frame angular velocity omega: q' = 1/2 [omega, 0] (x) q."""
+def quaternion_rate(q: ArrayLike, omega: ArrayLike) -> np.ndarray:
+    """dq/dt for a base-frame angular velocity omega: q' = 1/2 [omega, 0] (x) q.
+
+    Args:
+        q: (4,) the quaternion (x, y, z, w); omega: (3,) [rad/s], base frame.
+
+    Returns:
+        (4,) dq/dt [1/s].
+    """
     x, y, z, w = q
     ox, oy, oz = omega
     return 0.5 * np.array([
@@ -97,10 +142,16 @@ def quaternion_rate(q, omega) -> np.ndarray:
         -ox * x - oy * y - oz * z])
 
 
-def euler_rate_matrix(theta) -> np.ndarray:
+def euler_rate_matrix(theta: ArrayLike) -> np.ndarray:
     """E(theta) with omega = E(theta) dtheta/dt (base frame) for R = Rz Ry Rx.
 
     omega = dtz * z + Rz dty * y + Rz Ry dtx * x.
+
+    Args:
+        theta: (3,) angles [rad].
+
+    Returns:
+        (3, 3) E.
     """
     _, ty, tz = theta
     cy, sy, cz, sz = np.cos(ty), np.sin(ty), np.cos(tz), np.sin(tz)

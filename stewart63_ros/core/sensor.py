@@ -1,6 +1,9 @@
 """A model of the linear leg sensors: what the plant publishes as ``leg_lengths``."""
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 import numpy as np
 
 from stewart63_ros.core.errors import ParameterError
@@ -12,9 +15,15 @@ class SensorModel:
     ``sensor_noise`` [m] and ``sensor_rate_noise`` [m/s]: Gaussian standard
     deviations; ``sensor_resolution`` [m]: quantisation step of L;
     ``sensor_delay`` [samples]: transport delay; ``sensor_seed``: RNG seed.
+
+    Args:
+        params: the plant's parameters (the keys above; missing ones are off).
+
+    Raises:
+        ParameterError: a value that is not a finite number >= 0.
     """
 
-    def __init__(self, params):
+    def __init__(self, params: Mapping[str, Any]) -> None:
         self.noise = float(params.get('sensor_noise', 0.0))
         self.rate_noise = float(params.get('sensor_rate_noise', 0.0))
         self.resolution = float(params.get('sensor_resolution', 0.0))
@@ -26,7 +35,16 @@ class SensorModel:
         self.rng = np.random.default_rng(int(params.get('sensor_seed', 0)))
         self.history = []
 
-    def measure(self, lengths, rates):
+    def measure(self, lengths: np.ndarray,
+                rates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What the sensors report for one sample of the true lengths and rates.
+
+        Args:
+            lengths: true L (6,) [m]; rates: true dL/dt (6,) [m/s].
+
+        Returns:
+            (L (6,), dL/dt (6,)) as reported: delayed, noisy, quantised as set.
+        """
         if self.delay:
             self.history.append((lengths, rates))
             lengths, rates = self.history[0]

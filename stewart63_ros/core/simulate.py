@@ -13,8 +13,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.integrate import solve_ivp
 
 from stewart63_ros.core import dopri
@@ -23,17 +26,32 @@ from stewart63_ros.core.control import PDController, pd_law
 from stewart63_ros.core.dynamics import (NO_GAINS, NO_WRENCH, OMEGA, POS, QUAT, STATE_SIZE, VEL,
                                          Dynamics,
                                          derivative_pd, lengths_rates, rk4)
-from stewart63_ros.core.trajectory import COLUMNS
 from stewart63_ros.core.rotation import (euler_from_quaternion, euler_rate_matrix,
                                          quaternion_from_euler)
+from stewart63_ros.core.trajectory import COLUMNS
+
+if TYPE_CHECKING:
+    from stewart63_ros.core.params import Mechanism
+
+#: A controller for ``run_sampled`` / ``run_continuous``: ``PDController``,
+#: ``laws.Controller`` (``timed``: called with the time too) or any callable
+#: (lengths (6,), rates (6,)) -> forces (6,) [N].
+ControllerLike = Callable[..., np.ndarray]
 
 #: Longest RK4 step of the sampled/plant integrator [s]. 1 ms keeps the
 #: end-stop spring (about 700 rad/s) well inside RK4's stability region.
 MAX_STEP = 1.0e-3
 
 
-def initial_state(mech) -> np.ndarray:
-    """The 13-state at t = 0 from t_0, dt_0/dt, theta_0, dtheta_0/dt of the parameters."""
+def initial_state(mech: Mechanism) -> np.ndarray:
+    """The state at t = 0 from t_0, dt_0/dt, theta_0, dtheta_0/dt of the parameters.
+
+    Args:
+        mech: the mechanism (its ``initial_*`` values).
+
+    Returns:
+        (13,) t, quaternion (x, y, z, w), v, omega (base frame), as in the dynamics.
+    """
     y = np.empty(STATE_SIZE)
     y[POS] = mech.initial_position
     y[QUAT] = quaternion_from_euler(mech.initial_orientation)
@@ -43,18 +61,34 @@ def initial_state(mech) -> np.ndarray:
 
 
 def substeps_for(period: float) -> int:
-    """RK4 steps per control period so that none exceeds MAX_STEP."""
+    """RK4 steps per control period so that none exceeds MAX_STEP.
+
+    Args:
+        period: the control period [s].
+
+    Returns:
+        The number of RK4 steps, at least 1.
+    """
     return max(1, int(math.ceil(period / MAX_STEP - 1e-9)))
 
 
-def sensor_reading(dyn: Dynamics, y) -> tuple[np.ndarray, np.ndarray]:
-    """What ideal linear sensors measure: L_i and dL_i/dt, eqs. (5), (13)."""
+def sensor_reading(dyn: Dynamics, y: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """What ideal linear sensors measure: L_i and dL_i/dt, eqs. (5), (13).
+
+    Args:
+        dyn: the model; y: the state (13,).
+
+    Returns:
+        (L (6,) [m], dL/dt (6,) [m/s]).
+    """
     return dyn.lengths_and_rates(y)
 
 
 @dataclasses.dataclass
 class Result:
-    """Samples of a run: times (N,), states (N, 13), forces (N, 6) applied from each time."""
+    """Samples of a run: times (N,) [s], states (N, 13), forces (N, 6) [N] applied
+    from each time; how many samples had a leg outside its stroke, and how many
+    right-hand-side evaluations the integration took."""
     times: np.ndarray
     states: np.ndarray
     forces: np.ndarray
@@ -62,7 +96,14 @@ class Result:
     rhs_evaluations: int = 0
 
     def table(self, dyn: Dynamics) -> np.ndarray:
-        """Rows of the trajectory CSV (docs/interface.md)."""
+        """Rows of the trajectory CSV (docs/interface.md).
+
+        Args:
+            dyn: the model (for the leg lengths and rates of each state).
+
+        Returns:
+            (N, 31) in the order of ``trajectory.COLUMNS``.
+        """
         rows = np.empty((len(self.times), len(COLUMNS)))
         rows[:, 0] = self.times
         rows[:, 1:4] = self.states[:, POS]
@@ -74,8 +115,15 @@ class Result:
         rows[:, 25:31] = self.forces
         return rows
 
-    def final_leg_error_percent(self, dyn: Dynamics, setpoint) -> np.ndarray:
-        """|L_i - (L_i)_0| / (L_i)_0 in % at the last sample, per leg."""
+    def final_leg_error_percent(self, dyn: Dynamics, setpoint: ArrayLike) -> np.ndarray:
+        """|L_i - (L_i)_0| / (L_i)_0 in % at the last sample, per leg.
+
+        Args:
+            dyn: the model; setpoint: (L_i)_0 (6,) [m].
+
+        Returns:
+            (6,) [%].
+        """
         lengths, _ = sensor_reading(dyn, self.states[-1])
         return 100.0 * np.abs(lengths - setpoint) / np.asarray(setpoint)
 
@@ -134,7 +182,8 @@ def _is_pd(controller) -> bool:
     return type(controller) is PDController
 
 
-def run_sampled(mech, duration: float, rate: float, controller=None, y0=None,
+def run_sampled(mech: Mechanism, duration: float, rate: float,
+                controller: ControllerLike | None = None, y0: ArrayLike | None = None,
                 dyn: Dynamics | None = None, loop: str = 'compiled') -> Result:
     """Eq. (40) sampled at ``rate`` Hz with zero-order hold; RK4 in between.
 
@@ -144,6 +193,20 @@ def run_sampled(mech, duration: float, rate: float, controller=None, y0=None,
     ``Dynamics.step``, hence the same numbers to the bit); ``'python'`` calls
     ``Dynamics.step`` per sample, as the plant node does (also used for a
     controller other than a plain ``PDController``).
+
+    Args:
+        mech: the mechanism.
+        duration: simulated time [s]; rate: the control and sample rate [Hz].
+        controller: default ``PDController(mech)``; see ``ControllerLike``.
+        y0: the initial state (13,); default ``initial_state(mech)``.
+        dyn: the model to use (default: a new ``Dynamics(mech)``).
+        loop: ``'compiled'`` or ``'python'``.
+
+    Returns:
+        One row per sample, N = duration * rate + 1.
+
+    Raises:
+        ValueError: an unknown ``loop``.
     """
     if loop not in ('compiled', 'python'):
         raise ValueError("loop must be 'compiled' or 'python', not %r" % (loop,))
@@ -174,8 +237,9 @@ def run_sampled(mech, duration: float, rate: float, controller=None, y0=None,
     return Result(np.arange(n + 1) * period, states, forces, contact, 4 * steps * n)
 
 
-def run_continuous(mech, duration: float, output_rate: float = 100.0, controller=None,
-                   y0=None, rtol: float = 1e-8, atol: float = 1e-10,
+def run_continuous(mech: Mechanism, duration: float, output_rate: float = 100.0,
+                   controller: ControllerLike | None = None, y0: ArrayLike | None = None,
+                   rtol: float = 1e-8, atol: float = 1e-10,
                    dyn: Dynamics | None = None, integrator: str = 'compiled',
                    max_steps: int = dopri.MAX_STEPS) -> Result:
     """Eq. (40) inside the ODE, adaptive RK45 (the paper's ode45), output at ``output_rate``.
@@ -183,9 +247,25 @@ def run_continuous(mech, duration: float, output_rate: float = 100.0, controller
     ``integrator='compiled'`` (default) runs scipy's RK45 compiled
     (``dopri.solve_pd``: same steps, same dense output, ~4x faster);
     ``'scipy'`` calls ``scipy.integrate.solve_ivp`` (the reference).
-    ``max_steps`` bounds the compiled integrator's step attempts.
-    Raises ValueError on a non-finite initial state, RuntimeError when the
-    integration fails.
+    A controller other than a plain ``PDController`` runs inside scipy's
+    ``solve_ivp``.
+
+    Args:
+        mech: the mechanism.
+        duration: simulated time [s]; output_rate: rows per second [Hz].
+        controller: default ``PDController(mech)``; see ``ControllerLike``.
+        y0: the initial state (13,); default ``initial_state(mech)``.
+        rtol, atol: the integrator's tolerances.
+        dyn: the model to use (default: a new ``Dynamics(mech)``).
+        integrator: ``'compiled'`` or ``'scipy'``.
+        max_steps: bounds the compiled integrator's step attempts.
+
+    Returns:
+        One row per output time, N = duration * output_rate + 1.
+
+    Raises:
+        ValueError: an unknown ``integrator``, or a non-finite initial state.
+        RuntimeError: the integration failed.
     """
     if integrator not in ('compiled', 'scipy'):
         raise ValueError("integrator must be 'compiled' or 'scipy', not %r" % (integrator,))

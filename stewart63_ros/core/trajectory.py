@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import csv
+import os
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +18,16 @@ class TrajectoryError(ValueError):
     """A file that is not a trajectory CSV."""
 
 
-def write_csv(path, table: np.ndarray) -> None:
-    """Write rows of len(COLUMNS) values, header first."""
+def write_csv(path: str | os.PathLike, table: np.ndarray) -> None:
+    """Write a trajectory CSV: the header, then the rows as repr-exact floats.
+
+    Args:
+        path: the file (overwritten).
+        table: (N, len(COLUMNS)) rows in the order of ``COLUMNS``.
+
+    Raises:
+        TrajectoryError: a table of another shape.
+    """
     table = np.asarray(table, float)
     if table.ndim != 2 or table.shape[1] != len(COLUMNS):
         raise TrajectoryError('expected an (N, %d) table, got %s' % (len(COLUMNS), table.shape))
@@ -29,8 +38,19 @@ def write_csv(path, table: np.ndarray) -> None:
         writer.writerows([[repr(float(v)) for v in row] for row in table])
 
 
-def read_csv(path) -> dict:
-    """{column: array} from a trajectory CSV; clear errors for anything else."""
+def read_csv(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Read a trajectory CSV.
+
+    Args:
+        path: the file.
+
+    Returns:
+        {column name: (N,) array}, for every name of ``COLUMNS``.
+
+    Raises:
+        TrajectoryError: the file cannot be read, or is not a trajectory CSV
+            (the message names the problem).
+    """
     path = Path(path)
     try:
         with open(path, newline='') as stream:
