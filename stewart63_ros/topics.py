@@ -7,9 +7,11 @@ Why these profiles:
   controller subscribe RELIABLE with depth 1 and so always act on the newest
   sample, never on a backlog. A BEST_EFFORT subscriber (a driver, rviz) also
   matches these publishers.
-- Commands (``leg_setpoint``, ``pose_setpoint``, ``pose_trajectory``,
-  ``external_wrench``) are published TRANSIENT_LOCAL depth 1 ("latched") by
-  the package's tools. A node receives a command through two subscriptions
+- Commands: ``leg_setpoint``, ``pose_setpoint`` and ``pose_trajectory`` are
+  published TRANSIENT_LOCAL depth 1 ("latched") by the package's tools
+  (``view``, ``play``); ``external_wrench`` is not latched (``play``
+  replays it with the stream profile; no other tool publishes it). A node
+  receives every command, ``external_wrench`` included, through two subscriptions
   (``nodes/commands.py``): a VOLATILE one, which matches every reliable
   publisher (``ros2 topic pub`` with its defaults included), and a
   TRANSIENT_LOCAL one, which receives the command a latched publisher sent

@@ -132,3 +132,22 @@ def test_rotations_go_through_core_rotation():
             if 'scipy.spatial.transform' in line or "'xyz'" in line:
                 offenders.append('%s:%d' % (path.relative_to(REPO), number))
     assert offenders == [], offenders
+
+
+def test_package_xml_lists_every_ros_package_imported():
+    """A ROS install (rosdep, colcon) learns the runtime dependencies from
+    package.xml: every ROS package the code imports is an exec_depend there."""
+    import re
+    declared = set(re.findall(r'<exec_depend>([\w-]+)</exec_depend>',
+                              (REPO / 'package.xml').read_text()))
+    used = set()
+    for path in modules().values():
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module] if isinstance(node, ast.ImportFrom) and node.module
+                     and not node.level else [])
+            for name in names:
+                top = name.split('.')[0]
+                if top == 'rclpy' or top.endswith(('_msgs', '_interfaces')):
+                    used.add(top)
+    assert used - declared == set(), 'add to package.xml: %s' % sorted(used - declared)

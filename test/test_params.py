@@ -81,6 +81,8 @@ BAD_FILES = [
     ('missing-mass', None, ('platform_mass',), 'platform_mass', ['missing']),
     ('missing-base', None, ('base_points',), 'base_points', ['missing']),
     ('missing-gains', None, ('kv',), 'kv', ['missing']),
+    ('negative-endstop', {'endstop_stiffness': -1.0}, (), 'endstop_stiffness', ['>= 0']),
+    ('nan-endstop', {'endstop_damping': float('nan')}, (), 'endstop_damping', []),
 ]
 
 

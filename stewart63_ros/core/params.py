@@ -394,6 +394,10 @@ def _mechanism_from_params(params: Mapping[str, Any]) -> Mechanism:
     for key in ('kp', 'kv'):
         if np.any(getattr(mech, key) < 0):
             raise ParameterError(key, 'gains must be >= 0')
+    # The end stops belong to the model the plant integrates (and sim).
+    for key in ('endstop_stiffness', 'endstop_damping'):
+        if key in params:
+            _scalar(params, key, nonnegative=True)
     if np.any(mech.setpoint_lengths <= 0):
         raise ParameterError('setpoint_lengths', 'lengths must be > 0')
     if mech.leg_lower_com > lmax or mech.leg_upper_com > lmax:

@@ -157,11 +157,11 @@ def main(argv=None) -> int:
         parser.exit(2, 'plot: error: %s\n' % text)
     if len(columns['t']) == 0 or not np.all(np.isfinite(columns['t'])):
         parser.exit(2, 'plot: error: %s holds no samples\n' % source)
-    from stewart63_ros.core.params import ParameterError, load_mechanism
-    try:
-        setpoint = load_mechanism(args.params, node_name='controller').setpoint_lengths
-    except ParameterError as exc:
-        parser.exit(2, 'plot: parameter error: %s\n' % exc)
+    from stewart63_ros.tools.cli import load_checked
+    mech = load_checked('plot', args.params, node_name='controller')
+    if mech is None:
+        return 2
+    setpoint = mech.setpoint_lengths
     out = Path(args.out) if args.out else (
         source / 'figure.png' if source.is_dir() else source.with_name('figure.png'))
     if reference is not None and len(columns['t']):
@@ -174,23 +174,24 @@ def main(argv=None) -> int:
 
 
 def animate_main(parser, args, source) -> int:
-    from stewart63_ros.core.params import ParameterError, default_params_path, load_mechanism
+    from stewart63_ros.bagio import BagError
     from stewart63_ros.tools.animate import Animator
+    from stewart63_ros.tools.cli import load_checked
     if not 0 < args.fps <= 60:
         parser.exit(2, 'plot: error: --fps must be in (0, 60]\n')
     out = Path(args.out) if args.out else (
         source / 'animation.gif' if source.is_dir() else source.with_name('animation.gif'))
     if out.suffix.lower() not in ('.gif', '.mp4'):
         parser.exit(2, 'plot: error: %s: --animate writes a .gif or an .mp4\n' % out)
+    mech = load_checked('plot', args.params)
+    if mech is None:
+        return 2
     try:
-        mech = load_mechanism(args.params or default_params_path())
         columns = load_columns(source)
         if len(columns['t']) == 0:
             raise ValueError('%s holds no samples' % source)
         path, frames, speed = Animator(columns, mech, title=source.name).save(out, args.fps)
-    except ParameterError as exc:
-        parser.exit(2, 'plot: parameter error: %s\n' % exc)
-    except (ValueError, OSError) as exc:  # TrajectoryError, BagError, no poses, no ffmpeg
+    except (ValueError, OSError, BagError) as exc:  # TrajectoryError, no poses, no ffmpeg
         parser.exit(2, 'plot: error: %s\n' % exc)
     print('%s (%d frames at %g fps%s)' % (path, frames, args.fps,
                                           ', %.1fx real time' % speed if speed > 1 else ''))

@@ -33,9 +33,8 @@ import time
 import numpy as np
 
 from stewart63_ros.core import markers as shapes_mod
+from stewart63_ros.core.params import LEG_NAMES
 from stewart63_ros.core.rotation import quaternion_from_rotation, rotation_from_quaternion
-from stewart63_ros.core.params import LEG_NAMES, ParameterError, default_params_path, \
-    load_mechanism
 
 #: Browser update rate [Hz]: viser pushes every change over a websocket; at
 #: 1 kHz the page stops following, at 30 Hz it follows (measured).
@@ -601,10 +600,9 @@ def main(argv=None) -> int:
     if args.bag and args.namespace:
         print('view: error: --namespace is for a live rig, not with a BAG', file=sys.stderr)
         return 2
-    try:
-        mech = load_mechanism(args.params or default_params_path())
-    except ParameterError as exc:
-        print('view: parameter error: %s' % exc, file=sys.stderr)
+    from stewart63_ros.tools.cli import load_checked
+    mech = load_checked('view', args.params)
+    if mech is None:
         return 2
     bag_run = None
     if args.bag:
