@@ -68,7 +68,7 @@ test-fast: $(KERNELS)
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
-# Every figure, medians of repeated runs, into bench/results.json (README, Performance).
+# Every figure, medians of repeated runs, into bench/results.json (docs/performance.md).
 bench: $(KERNELS)
 	$(BIN)/python bench/bench_all.py
 

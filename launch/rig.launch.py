@@ -3,7 +3,7 @@
 
 The same three processes as the `rig` executable (plant, controller, fk), for
 ROS 2 installs that have `launch`. Recording: `ros2 bag record` or our
-`record`, see README. Importing this file needs no ROS package: the launch
+`record`, see docs/running.md. Importing this file needs no ROS package: the launch
 imports happen inside generate_launch_description().
 """
 

@@ -4,7 +4,7 @@
 plant, controller and fk as nodes of ONE process (the ``composed``
 executable, what ``rig --compose`` runs): each its own node with its own
 name, parameters and /diagnostics, the traffic between them still on the
-DDS topics, served by one loop (README: "One process or several").
+DDS topics, served by one loop (docs/running.md: "One process or several").
 ``record:=DIR`` adds the recorder to that process. Importing this file needs
 no ROS package: the launch imports happen inside generate_launch_description().
 """

@@ -1,4 +1,4 @@
-"""bench/bench_floor.py: the floor figures the README's performance section cites."""
+"""bench/bench_floor.py: the floor figures docs/performance.md cites."""
 import json
 import math
 import subprocess

@@ -1,4 +1,4 @@
-"""Faults while a realtime rig runs, each with the behaviour the README states.
+"""Faults while a realtime rig runs, each with the behaviour docs/hosts.md states.
 
 The rig's nodes run here as separate processes (not under ``rig``, which
 stops everything when a node dies) in one namespace, with a recorder:

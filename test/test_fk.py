@@ -145,7 +145,7 @@ def test_fk_of_ik_returns_the_pose(default_mech, fk):
 
 
 def test_nearest_mode_to_the_initial_pose_is_the_setpoint_pose(default_mech, fk):
-    """The paper's setpoint is a level pose ~7 cm above the start (config comment, README)."""
+    """The paper's setpoint is a level pose ~7 cm above the start (config, docs/design.md)."""
     modes = fk.all_modes(default_mech.setpoint_lengths)
     assert len(modes) == 8                        # 8 real assembly modes here
     best = modes[0]

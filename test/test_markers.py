@@ -191,7 +191,7 @@ def test_rig_publishes_markers_that_follow_a_pose_setpoint(ros):
     assert alpha > 0
 
     # A step of the setpoint pose: 8 cm up, level. The PD law leaves a
-    # gravity sag below any setpoint (README), so the platform must move by
+    # gravity sag below any setpoint (README, docs/design.md), so the platform must move by
     # what the setpoint moved, not reach it.
     target = ghost_before + [0.0, 0.0, 0.08]
     pub = node.create_publisher(PoseStamped, 'pose_setpoint', topics.SETPOINT_QOS)

@@ -77,7 +77,7 @@ def _assert_within_convergence(coarse, fine):
 def test_paper_scenario_agrees_with_mujoco_within_its_convergence(default_mech):
     coarse, fine = _gaps(default_mech, 10.0, (1e-3, 5e-4))
     _assert_within_convergence(coarse, fine)
-    # The figure the README states: 1.0e-8 m at 0.5 ms.
+    # The figure docs/design.md states: 1.0e-8 m at 0.5 ms.
     assert fine['gap_L'] < 1e-7 and fine['gap_pos'] < 1e-7 and fine['gap_rot'] < 1e-7
     # The constraints hold: piston tips stay on their vertices.
     assert fine['violation'] < 1e-7

@@ -1,6 +1,6 @@
 """An example of a user's own control law: ``control_law: stewart63_ros.examples.my_law:LegPD``.
 
-The interface every law follows (README, "Control laws"):
+The interface every law follows (docs/controllers.md, docs/interface.md "Control laws"):
 
 - ``__init__(self, mech, params)``: ``mech`` is the validated ``Mechanism``
   (geometry, masses, ``max_force``, ...), ``params`` the controller's

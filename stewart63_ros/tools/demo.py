@@ -64,7 +64,7 @@ def main(argv=None) -> int:
           'http://localhost:8080/' % bag)
     print('  a live rig in the browser:    .venv/bin/rig --mode realtime --view')
     print('  an animation of the run:      .venv/bin/plot --animate %s' % bag)
-    print('  RViz2 / Foxglove: the bag has the markers topic (README, "Seeing the platform")')
+    print('  RViz2 / Foxglove: the bag has the markers topic (docs/view.md)')
     return 0
 
 

@@ -363,8 +363,8 @@ def main(argv=None) -> int:
     parser.add_argument('--compose', action='store_true',
                         help='run the nodes (and the recorder) in one process, each still its '
                         'own node on the DDS topics: many times faster in lockstep, and the '
-                        'controller answers in the same wake-up in realtime (README: when to '
-                        'use which)')
+                        'controller answers in the same wake-up in realtime (docs/running.md: '
+                        'when to use which)')
     parser.add_argument('--control-law', metavar='NAME',
                         help="the controller's law: pd (eq. 40), pd_gravity, computed_torque "
                         'or package.module:Class (default: control_law of the file, else pd)')
