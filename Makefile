@@ -64,7 +64,7 @@ test-stress: $(KERNELS)
 test-fast: $(KERNELS)
 	$(BIN)/python -m pytest -q -m "not slow" test
 
-# pyflakes, pycodestyle, bugbear, blind except (ruff.toml).
+# pyflakes, pycodestyle, bugbear, blind except, import order (ruff.toml).
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
