@@ -194,8 +194,8 @@ def _subscriber(n: int) -> None:
 
 def cross_process(n: int, readers: int = 2) -> dict:
     """Publisher here, ``readers`` subscriber processes; CPU per publish and per take."""
-    import rclpy
     import numpy as np
+    import rclpy
     from sensor_msgs.msg import JointState
 
     from stewart63_ros import topics

@@ -52,8 +52,9 @@ def _composed(context, *args, **kwargs):
 
 
 def generate_launch_description():
-    from launch import LaunchDescription
     from launch.actions import DeclareLaunchArgument, OpaqueFunction
+
+    from launch import LaunchDescription
 
     return LaunchDescription([
         DeclareLaunchArgument('params_file', default_value=default_params()),

@@ -337,9 +337,8 @@ def recover_bag(bag_dir) -> dict[str, int]:
     from mcap.stream_reader import StreamReader
     from rosbags.rosbag2 import ReaderError, StoragePlugin, Writer
     from rosbags.rosbag2.metadata import parse_qos
-    from rosbags.typesys import get_types_from_msg
+    from rosbags.typesys import Stores, get_types_from_msg
     from rosbags.typesys import get_typestore as _get_typestore
-    from rosbags.typesys import Stores
 
     path = Path(bag_dir)
     if not path.is_dir():

@@ -41,8 +41,12 @@ import dataclasses
 import numpy as np
 
 from stewart63_ros.core.params import LEG_VERTEX, Mechanism
-from stewart63_ros.core.rotation import (euler_rate_matrix, quaternion_from_rotation,
-                                         rotation_from_euler, rotation_from_quaternion)
+from stewart63_ros.core.rotation import (
+    euler_rate_matrix,
+    quaternion_from_rotation,
+    rotation_from_euler,
+    rotation_from_quaternion,
+)
 
 #: Axial moment of inertia of each leg part in the MuJoCo model [kg m^2].
 AXIAL_INERTIA = 1e-9

@@ -23,8 +23,7 @@ Why these profiles:
 """
 from __future__ import annotations
 
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile,
-                       ReliabilityPolicy)
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 LEG_LENGTHS = 'leg_lengths'
 LEG_FORCES = 'leg_forces'

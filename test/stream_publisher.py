@@ -89,6 +89,7 @@ def main(argv=None) -> int:
 
     import rclpy
     from rclpy.node import Node
+
     from stewart63_ros import topics as T
     from stewart63_ros.nodes.recorder import message_class
 

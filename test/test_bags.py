@@ -17,15 +17,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from mcap.reader import make_reader
-
-from ros_harness import (PYTHON, RosTest, lease_domain_id, stop, wait_line, wait_matched,
-                         wait_until)
 import stream_publisher as SP
+from mcap.reader import make_reader
+from ros_harness import PYTHON, RosTest, lease_domain_id, stop, wait_line, wait_matched, wait_until
 
 from stewart63_ros import bagio
-from stewart63_ros.core.trajectory import COLUMNS
 from stewart63_ros.bagio import BagError
+from stewart63_ros.core.trajectory import COLUMNS
 
 HERE = Path(__file__).resolve().parent
 #: Node processes over DDS: `make test-fast` leaves this file out.
@@ -335,8 +333,8 @@ def test_recorder_class_in_namespace_then_player(ros, tmp_path, fast_path):
     from sensor_msgs.msg import JointState
 
     from stewart63_ros import topics as T
-    from stewart63_ros.tools.play import Player
     from stewart63_ros.nodes.recorder import Recorder
+    from stewart63_ros.tools.play import Player
     bag = tmp_path / 'nsbag'
     rec = Recorder(bag, namespace='rig2', domain_id=ros.domain_id, fast_path=fast_path).start()
     try:

@@ -18,11 +18,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from ros_harness import PYTHON, wait_line, wait_until
-from test_rig import (assert_every_published_message_is_in_the_bag, by_stamp, children_of,
-                      ended, kill_leftovers, read_log, rig_command,
-                      warm_kernels)  # noqa: F401 (a fixture)
+from test_rig import (
+    assert_every_published_message_is_in_the_bag,
+    by_stamp,
+    children_of,
+    ended,
+    kill_leftovers,
+    read_log,
+    rig_command,
+    warm_kernels,  # noqa: F401 (a fixture)
+)
 
 from stewart63_ros.core.dynamics import POS, Dynamics
 from stewart63_ros.core.params import load_mechanism

@@ -301,11 +301,12 @@ LOCKSTEP_DURATION = 1.5       # s: the tracking error counts from 1 s
 @pytest.mark.parametrize('law', ['pd', 'pd_gravity', 'computed_torque',
                                  'stewart63_ros.examples.my_law:LegPD'])
 def test_lockstep_rig_with_a_reference_equals_sim(ros, monkeypatch, tmp_path, mech, law):
+    from test_laws import six_axis_reference
+
     from stewart63_ros.core.reference import tracking_errors, write_reference_csv
     from stewart63_ros.core.simulate import run_sampled, sensor_reading
     from stewart63_ros.tools.rig import Rig, control_params
     from stewart63_ros.tools.sim import make_controller
-    from test_laws import six_axis_reference
     ref_csv = tmp_path / 'reference.csv'
     write_reference_csv(ref_csv, *six_axis_reference(mech, duration=3.0))
     controller, reference = make_controller(PARAMS, law, ref_csv)

@@ -129,6 +129,7 @@ def test_a_publisher_waits_for_a_subscription_the_graph_shows(ros, tmp_path):
     waits for it, saying so in its log); here in realtime at 500 Hz,
     through the README's own command with -p overrides."""
     from sensor_msgs.msg import JointState
+
     from stewart63_ros import topics
     node = ros.node('probe')
     stamps = []
@@ -164,6 +165,7 @@ def test_a_node_starts_only_when_a_recorder_says_it_has_matched_it(ros):
     and fk waits (saying so) for its own name before its first message."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     from geometry_msgs.msg import PoseStamped
+
     from stewart63_ros import topics
     node = ros.node('fake_recorder', namespace='/rw')
     node.create_subscription(PoseStamped, '/rw/platform_pose', lambda m: None,
@@ -198,6 +200,7 @@ def test_the_recorder_names_the_nodes_it_has_matched(ros, tmp_path):
     /diagnostics which nodes' publishers its own subscriptions have matched."""
     from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import JointState
+
     from stewart63_ros import topics
     from stewart63_ros.nodes.recorder import Recorder
     rec = Recorder(tmp_path / 'bag', ['leg_lengths'], domain_id=ros.domain_id).start()
@@ -230,6 +233,7 @@ def test_the_graph_count_agrees_with_the_middlewares_matching(ros):
     graph returns incompatible)."""
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
+
     from stewart63_ros import topics
     kinds = {'recorder': topics.RECORD_SUB, 'controller': topics.LATEST_SUB,
              'latched_reader': QoSProfile(depth=10,
@@ -265,6 +269,7 @@ def test_the_plant_waits_for_a_late_peer_even_when_a_recorder_fills_the_count(ro
     by name (``lengths_peers``, as ``rig`` sets them), says so, and fk started
     late still gets every sample (a fresh-clone run lost all of fk's poses)."""
     from sensor_msgs.msg import JointState
+
     from stewart63_ros import topics
     node = ros.node('early_recorder')
     stamps = []
@@ -574,6 +579,7 @@ def test_readme_sim_and_fk(tmp_path):
 
 def test_readme_rig_plot_play(ros, tmp_path):
     from geometry_msgs.msg import PoseStamped
+
     from stewart63_ros import bagio, topics
     cwd = _readme_cwd(tmp_path)
     rig = ros.spawn(_command('rig --mode lockstep --duration 10 --record out/run1'), cwd=cwd,

@@ -18,8 +18,14 @@ from scipy.spatial.transform import Rotation
 
 from stewart63_ros.core import rotation as rotation_mod
 from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.fk import (FKResult, FKTracker, ForwardKinematics, NoAssemblyError,
-                                   condition_number, real_angles)
+from stewart63_ros.core.fk import (
+    FKResult,
+    FKTracker,
+    ForwardKinematics,
+    NoAssemblyError,
+    condition_number,
+    real_angles,
+)
 from stewart63_ros.core.kinematics import jacobian, leg_lengths, leg_rates
 from stewart63_ros.core.rotation import rotation_from_euler
 from stewart63_ros.tools import fk_solve

@@ -21,7 +21,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from netns import TwoHosts, dds_env
 from ros_harness import PYTHON, wait_until
 

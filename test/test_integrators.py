@@ -13,8 +13,13 @@ from scipy.integrate import solve_ivp
 from stewart63_ros.core.control import PDController
 from stewart63_ros.core.dynamics import QUAT, Dynamics
 from stewart63_ros.core.params import load_mechanism
-from stewart63_ros.core.simulate import (initial_state, run_continuous, run_sampled,
-                                         sensor_reading, substeps_for)
+from stewart63_ros.core.simulate import (
+    initial_state,
+    run_continuous,
+    run_sampled,
+    sensor_reading,
+    substeps_for,
+)
 
 RTOL, ATOL = 1e-8, 1e-10
 DURATION, OUTPUT_RATE = 10.0, 100.0      # the paper's scenario

@@ -20,9 +20,21 @@ from stewart63_ros.core.dynamics import POS, QUAT, Dynamics
 from stewart63_ros.core.kinematics import jacobian, leg_lengths
 from stewart63_ros.core.laws import Controller, LawError, PDGravityLaw
 from stewart63_ros.core.params import ParameterError
-from stewart63_ros.core.reference import (R_ACC, R_ALPHA, R_LEN, R_OMEGA, R_POS, R_RATE, R_ROT,
-                                          R_VEL, Reference, ReferenceError, load_reference,
-                                          tracking_errors, write_reference_csv)
+from stewart63_ros.core.reference import (
+    R_ACC,
+    R_ALPHA,
+    R_LEN,
+    R_OMEGA,
+    R_POS,
+    R_RATE,
+    R_ROT,
+    R_VEL,
+    Reference,
+    ReferenceError,
+    load_reference,
+    tracking_errors,
+    write_reference_csv,
+)
 from stewart63_ros.core.rotation import quaternion_from_euler, rotation_from_euler
 from stewart63_ros.core.simulate import initial_state, run_continuous, run_sampled
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,8 +19,6 @@ from scipy.spatial.transform import Rotation
 
 from stewart63_ros.core import markers as M
 from stewart63_ros.core.params import load_mechanism
-
-from pathlib import Path
 
 PARAMS = Path(__file__).resolve().parents[1] / "config" / "stewart63.yaml"
 
@@ -164,9 +163,9 @@ def start_realtime_rig(ros, extra=()):
 
 def test_rig_publishes_markers_that_follow_a_pose_setpoint(ros):
     from geometry_msgs.msg import PoseStamped
+    from ros_harness import wait_matched
     from visualization_msgs.msg import MarkerArray
 
-    from ros_harness import wait_matched
     from stewart63_ros import topics
     rig = start_realtime_rig(ros)
     node = ros.node('probe')

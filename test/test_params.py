@@ -14,8 +14,13 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from stewart63_ros.core.params import (ParameterError, default_params_path, load_mechanism,
-                                       mechanism_from_params, read_parameter_file)
+from stewart63_ros.core.params import (
+    ParameterError,
+    default_params_path,
+    load_mechanism,
+    mechanism_from_params,
+    read_parameter_file,
+)
 
 SECTION = '/**'
 

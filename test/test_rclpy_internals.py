@@ -8,8 +8,7 @@ import time
 
 from sensor_msgs.msg import JointState
 
-from stewart63_ros.nodes.rclpy_internals import (DirectTake, raw_publisher,
-                                                  run_timer_if_ready, take)
+from stewart63_ros.nodes.rclpy_internals import DirectTake, raw_publisher, run_timer_if_ready, take
 
 
 def test_take_direct_take_and_timers_work_in_this_rclpy(ros):

@@ -21,7 +21,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from ros_harness import PYTHON, wait_line, wait_until
 
 from stewart63_ros import bagio

@@ -129,7 +129,6 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-
 from ros_harness import PYTHON, wait_until  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]

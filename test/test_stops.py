@@ -16,7 +16,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from ros_harness import PYTHON, wait_until
 
 from stewart63_ros import bagio

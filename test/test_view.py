@@ -26,7 +26,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from ros_harness import PYTHON, wait_until
 
 REPO = Path(__file__).resolve().parents[1]
@@ -221,8 +220,8 @@ def test_rig_view_refuses_a_port_in_use():
 # ------------------------------------------------------------------- in a browser
 def test_live_page_follows_a_pose_setpoint_step(ros, browser, tmp_path):
     from geometry_msgs.msg import PoseStamped
-
     from ros_harness import wait_matched
+
     from stewart63_ros import topics
     # lockstep: on a two-core machine the software-rendering browser can
     # starve a realtime loop (the controller's watchdog then withholds forces)
@@ -342,8 +341,8 @@ def test_dragging_the_ghost_publishes_a_pose_setpoint(ros, tmp_path):
     """The handle at the ghost, dragged on the page, sends ``pose_setpoint``;
     a pose outside the stroke is refused on the page and not sent."""
     from geometry_msgs.msg import PoseStamped
-
     from ros_harness import wait_matched
+
     from stewart63_ros import topics
     from stewart63_ros.core.params import load_mechanism
     mech = load_mechanism()

@@ -49,11 +49,24 @@ from numpy.typing import ArrayLike
 from stewart63_ros.core._jit import njit
 from stewart63_ros.core.control import pd_law
 from stewart63_ros.core.dynamics import Dynamics, inverse_dynamics_forces
-from stewart63_ros.core.fk import ForwardKinematics, pose_and_twist
 from stewart63_ros.core.errors import ParameterError
-from stewart63_ros.core.reference import (I_ACC, I_ALPHA, I_LEN, I_OMEGA, I_POS, I_RATE,
-                                          I_VEL, R_ACC, R_LEN, R_RATE, SAMPLE_SIZE, Reference,
-                                          ReferenceSample, rotation_error)
+from stewart63_ros.core.fk import ForwardKinematics, pose_and_twist
+from stewart63_ros.core.reference import (
+    I_ACC,
+    I_ALPHA,
+    I_LEN,
+    I_OMEGA,
+    I_POS,
+    I_RATE,
+    I_VEL,
+    R_ACC,
+    R_LEN,
+    R_RATE,
+    SAMPLE_SIZE,
+    Reference,
+    ReferenceSample,
+    rotation_error,
+)
 from stewart63_ros.core.rotation import rotation_from_euler
 
 if TYPE_CHECKING:

@@ -9,8 +9,8 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import os
-from pathlib import Path
 from collections.abc import Iterable, Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np

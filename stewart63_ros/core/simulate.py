@@ -23,11 +23,24 @@ from scipy.integrate import solve_ivp
 from stewart63_ros.core import dopri
 from stewart63_ros.core._jit import njit
 from stewart63_ros.core.control import PDController, pd_law
-from stewart63_ros.core.dynamics import (NO_GAINS, NO_WRENCH, OMEGA, POS, QUAT, STATE_SIZE, VEL,
-                                         Dynamics,
-                                         derivative_pd, lengths_rates, rk4)
-from stewart63_ros.core.rotation import (euler_from_quaternion, euler_rate_matrix,
-                                         quaternion_from_euler)
+from stewart63_ros.core.dynamics import (
+    NO_GAINS,
+    NO_WRENCH,
+    OMEGA,
+    POS,
+    QUAT,
+    STATE_SIZE,
+    VEL,
+    Dynamics,
+    derivative_pd,
+    lengths_rates,
+    rk4,
+)
+from stewart63_ros.core.rotation import (
+    euler_from_quaternion,
+    euler_rate_matrix,
+    quaternion_from_euler,
+)
 from stewart63_ros.core.trajectory import COLUMNS
 
 if TYPE_CHECKING:

@@ -8,15 +8,14 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from stewart63_ros import topics
-from stewart63_ros.core.precompile import COMPILE_NOTICE, kernel_cache_cold
 from stewart63_ros.core.params import ParameterError, mechanism_from_params, unknown_keys
+from stewart63_ros.core.precompile import COMPILE_NOTICE, kernel_cache_cold
 from stewart63_ros.nodes.diagnostics import Health
 from stewart63_ros.nodes.checks import SkipCounter
 from stewart63_ros.nodes.launcher import STOP
 from stewart63_ros.nodes.parameters import load_parameters, ros_parameters
 from stewart63_ros.nodes.rclpy_internals import DirectTake, run_timer_if_ready, take
 from stewart63_ros.nodes.realtime import realtime_scheduling
-
 
 #: What rmw names a publisher whose node the graph does not know yet.
 UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'

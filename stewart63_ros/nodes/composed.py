@@ -147,9 +147,9 @@ class Composed:
         self.loop = None
         self.closed = False
         if options.record:
-            from stewart63_ros.nodes.recorder import Recorder
             # First, so that its subscriptions exist before any node publishes.
             from stewart63_ros.bagio import BagError
+            from stewart63_ros.nodes.recorder import Recorder
             self.recorder = Recorder(options.record, context=rclpy.get_default_context())
             try:
                 self.recorder.open()

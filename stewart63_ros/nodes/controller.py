@@ -37,13 +37,25 @@ from stewart63_ros import topics
 from stewart63_ros.core.kinematics import leg_lengths
 from stewart63_ros.core.laws import LAW_PARAMETERS, LAWS, Controller, LawError
 from stewart63_ros.core.params import ParameterError
-from stewart63_ros.core.reference import (Reference, ReferenceError, accumulate_tracking,
-                                          load_reference, tracking_summary)
+from stewart63_ros.core.reference import (
+    Reference,
+    ReferenceError,
+    accumulate_tracking,
+    load_reference,
+    tracking_summary,
+)
 from stewart63_ros.core.rotation import euler_rate_matrix
 from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
-from stewart63_ros.nodes.checks import (RESTART_PAUSE, Rejected, StampGate, finite_vector,
-                                         leg_vector, source_of, stamp_ns)
+from stewart63_ros.nodes.checks import (
+    RESTART_PAUSE,
+    Rejected,
+    StampGate,
+    finite_vector,
+    leg_vector,
+    source_of,
+    stamp_ns,
+)
 from stewart63_ros.nodes.commands import CommandInput
 from stewart63_ros.nodes.launcher import run
 from stewart63_ros.nodes.rclpy_internals import raw_publisher

@@ -44,6 +44,7 @@ class Health:
 
     def __init__(self, node, name: str):
         from diagnostic_msgs.msg import DiagnosticArray
+
         from stewart63_ros import topics
         self.node = node
         self.name = name

@@ -21,8 +21,7 @@ import sys
 
 import yaml
 
-from stewart63_ros.core.params import (ParameterError, default_params_path,
-                                       read_parameter_file)
+from stewart63_ros.core.params import ParameterError, default_params_path, read_parameter_file
 from stewart63_ros.nodes.ros_args import WITH_VALUE, split_ros_args
 
 _argv: list[str] | None = None

@@ -32,8 +32,14 @@ from stewart63_ros.core.sensor import SensorModel
 from stewart63_ros.core.simulate import initial_state, substeps_for
 from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
-from stewart63_ros.nodes.checks import (RESTART_PAUSE, Rejected, StampGate, finite_vector,
-                                         ros_time, source_of)
+from stewart63_ros.nodes.checks import (
+    RESTART_PAUSE,
+    Rejected,
+    StampGate,
+    finite_vector,
+    ros_time,
+    source_of,
+)
 from stewart63_ros.nodes.commands import CommandInput
 from stewart63_ros.nodes.launcher import STOP, run
 from stewart63_ros.nodes.rclpy_internals import raw_publisher

@@ -35,8 +35,14 @@ def message_class(type_name: str):
 
 def qos_to_rosbags(profile):
     """An rclpy QoSProfile (e.g. a discovered publisher's) as a rosbags ``Qos``."""
-    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
-                                    QosReliability, QosTime)
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
 
     def enum(cls, value):
         name = getattr(value, 'name', None)

@@ -3,8 +3,13 @@ from __future__ import annotations
 
 import sys
 
-from stewart63_ros.core.params import (ParameterError, default_params_path, file_parameters,
-                                       load_mechanism, unknown_keys)
+from stewart63_ros.core.params import (
+    ParameterError,
+    default_params_path,
+    file_parameters,
+    load_mechanism,
+    unknown_keys,
+)
 
 STRICT_HELP = ('refuse (exit 2) a parameter file with a key no executable reads, instead '
                'of a warning')

@@ -21,8 +21,14 @@ import threading
 import time
 
 from stewart63_ros import topics as T
-from stewart63_ros.bagio import (ABSOLUTE_TOPICS, BagError, bag_namespace, open_reader,
-                                 read_raw, resolve_bag_topics)
+from stewart63_ros.bagio import (
+    ABSOLUTE_TOPICS,
+    BagError,
+    bag_namespace,
+    open_reader,
+    read_raw,
+    resolve_bag_topics,
+)
 from stewart63_ros.nodes.ros_args import rclpy_args, split_ros_args
 
 

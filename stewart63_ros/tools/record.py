@@ -24,6 +24,7 @@ from stewart63_ros.nodes.launcher import (arm_stop_deadline, dump_stacks_on_sigu
 from stewart63_ros.nodes.recorder import MATCHED_LINE, READY_LINE, Recorder
 from stewart63_ros.nodes.ros_args import rclpy_args, split_ros_args
 
+
 # ---------------------------------------------------------------- command line
 def _parser():
     p = argparse.ArgumentParser(
