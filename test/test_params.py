@@ -88,6 +88,7 @@ BAD_FILES = [
     ('missing-gains', None, ('kv',), 'kv', ['missing']),
     ('negative-endstop', {'endstop_stiffness': -1.0}, (), 'endstop_stiffness', ['>= 0']),
     ('nan-endstop', {'endstop_damping': float('nan')}, (), 'endstop_damping', []),
+    ('text-endstop', {'endstop_damping': 'soft'}, (), 'endstop_damping', ['number']),
 ]
 
 

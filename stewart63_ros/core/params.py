@@ -119,6 +119,16 @@ def _check_axisymmetric_inertia(key, axial_transverse):
                              % (axial, transverse))
 
 
+def _check_nonnegative(key: str, value: Any) -> None:
+    """One number >= 0 (infinity included), or ParameterError."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ParameterError(key, 'expected a number, got %r' % (value,)) from None
+    if not number >= 0:        # NaN too
+        raise ParameterError(key, 'must be >= 0, got %r' % (value,))
+
+
 def inertia_matrix(six: np.ndarray) -> np.ndarray:
     """[Ixx, Iyy, Izz, Ixy, Ixz, Iyz] -> the symmetric 3x3 matrix (elements, not products).
 
@@ -394,10 +404,11 @@ def _mechanism_from_params(params: Mapping[str, Any]) -> Mechanism:
     for key in ('kp', 'kv'):
         if np.any(getattr(mech, key) < 0):
             raise ParameterError(key, 'gains must be >= 0')
-    # The end stops belong to the model the plant integrates (and sim).
+    # The end stops belong to the model the plant integrates (and sim); an
+    # infinitely stiff one is allowed (the integrators then report it).
     for key in ('endstop_stiffness', 'endstop_damping'):
         if key in params:
-            _scalar(params, key, nonnegative=True)
+            _check_nonnegative(key, params[key])
     if np.any(mech.setpoint_lengths <= 0):
         raise ParameterError('setpoint_lengths', 'lengths must be > 0')
     if mech.leg_lower_com > lmax or mech.leg_upper_com > lmax:
