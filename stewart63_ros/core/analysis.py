@@ -45,11 +45,17 @@ import dataclasses
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from stewart63_ros.core.dynamics import (NO_GAINS, NO_WRENCH, STATE_SIZE, Dynamics,
-                                         derivative_pd, inverse_dynamics_forces, lengths_rates)
+from stewart63_ros.core.dynamics import (
+    NO_GAINS,
+    NO_WRENCH,
+    STATE_SIZE,
+    Dynamics,
+    derivative_pd,
+    inverse_dynamics_forces,
+    lengths_rates,
+)
 from stewart63_ros.core.params import LEG_NAMES, Mechanism
-from stewart63_ros.core.rotation import (euler_from_matrix, euler_rate_matrix,
-                                         rotation_from_euler)
+from stewart63_ros.core.rotation import euler_from_matrix, euler_rate_matrix, rotation_from_euler
 
 #: A pose whose Jacobian (rows [s_i, q_i x s_i], metres) has a 2-norm
 #: condition number above this is refused as near-singular (``--max-condition``).

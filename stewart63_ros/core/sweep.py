@@ -43,8 +43,12 @@ import numpy as np
 from stewart63_ros.core._jit import njit
 from stewart63_ros.core.dynamics import Dynamics, lengths_rates
 from stewart63_ros.core.laws import Controller, LawError
-from stewart63_ros.core.params import (ParameterError, known_keys, mechanism_from_params,
-                                       read_parameter_file)
+from stewart63_ros.core.params import (
+    ParameterError,
+    known_keys,
+    mechanism_from_params,
+    read_parameter_file,
+)
 from stewart63_ros.core.simulate import run_continuous
 
 METRICS = ('final_error_percent', 'max_force', 'settling_time_s', 'endstop_samples',
@@ -395,8 +399,9 @@ def write_run_parameters(params_path, out_path, variations, values) -> None:
     """Write the parameter file of one run: ``params_path`` with each varied key
     set in every section that has it (in the wildcard section ``/**`` when
     none has it), so that ``sim --params out_path`` reproduces the run."""
-    import yaml
     from pathlib import Path
+
+    import yaml
     doc = yaml.safe_load(Path(params_path).read_text())
     sections = [s['ros__parameters'] for s in doc.values()
                 if isinstance(s, dict) and isinstance(s.get('ros__parameters'), dict)]

@@ -10,8 +10,8 @@ from rclpy.node import Node
 from stewart63_ros import topics
 from stewart63_ros.core.params import ParameterError, mechanism_from_params, unknown_keys
 from stewart63_ros.core.precompile import COMPILE_NOTICE, kernel_cache_cold
-from stewart63_ros.nodes.diagnostics import Health
 from stewart63_ros.nodes.checks import SkipCounter
+from stewart63_ros.nodes.diagnostics import Health
 from stewart63_ros.nodes.launcher import STOP
 from stewart63_ros.nodes.parameters import load_parameters, ros_parameters
 from stewart63_ros.nodes.rclpy_internals import DirectTake, run_timer_if_ready, take

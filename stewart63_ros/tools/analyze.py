@@ -177,6 +177,7 @@ def draw_bode(model, freqs, response, path: Path, couplings: int = 3) -> Path:
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
+
     from stewart63_ros.core.analysis import strongest_couplings
     from stewart63_ros.tools.plot import LEG_STYLES
     fig, (mag_ax, ph_ax) = plt.subplots(2, 1, figsize=(9, 7.5), sharex=True)
@@ -238,6 +239,7 @@ def draw_workspace(mech, result, setpoint, path: Path, title: str) -> Path:
     import matplotlib.pyplot as plt
     from matplotlib.colors import ListedColormap
     from matplotlib.patches import Patch
+
     from stewart63_ros.core.workspace import REASONS
     xs, ys, zs = result.axes
     shape = (len(xs), len(ys), len(zs))
