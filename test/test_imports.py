@@ -123,13 +123,14 @@ def test_every_module_imports(name):
 
 def test_rotations_go_through_core_rotation():
     """One place for the orientation convention: scipy's Rotation (and its
-    Euler sequence literal) only in core/rotation.py."""
+    Euler angles) only in core/rotation.py."""
     offenders = []
     for name, path in modules().items():
         if name == 'stewart63_ros.core.rotation':
             continue
         for number, line in enumerate(path.read_text().splitlines(), 1):
-            if 'scipy.spatial.transform' in line or "'xyz'" in line:
+            if any(word in line for word in ('scipy.spatial.transform', '.from_euler(',
+                                             '.as_euler(', 'Rotation.')):
                 offenders.append('%s:%d' % (path.relative_to(REPO), number))
     assert offenders == [], offenders
 

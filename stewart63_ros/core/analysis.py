@@ -43,7 +43,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from stewart63_ros.core.dynamics import (
     NO_GAINS,
@@ -55,7 +54,15 @@ from stewart63_ros.core.dynamics import (
     lengths_rates,
 )
 from stewart63_ros.core.params import LEG_NAMES, Mechanism
-from stewart63_ros.core.rotation import euler_from_matrix, euler_rate_matrix, rotation_from_euler
+from stewart63_ros.core.rotation import (
+    euler_from_matrix,
+    euler_rate_matrix,
+    quaternion_from_rotation,
+    quaternion_of_rotvec_times,
+    rotation_from_euler,
+    rotvec_between,
+    rotvec_from_rotation,
+)
 
 #: A pose whose Jacobian (rows [s_i, q_i x s_i], metres) has a 2-norm
 #: condition number above this is refused as near-singular (``--max-condition``).
@@ -121,14 +128,14 @@ class Equilibrium:
         """(13,) the dynamics' state: position, quaternion (x, y, z, w), zero twist."""
         y = np.zeros(STATE_SIZE)
         y[0:3] = self.position
-        y[3:7] = Rotation.from_matrix(self.rotation).as_quat()
+        y[3:7] = quaternion_from_rotation(self.rotation)
         return y
 
     def state12(self) -> np.ndarray:
         """(12,) x0: position, R0's rotation vector (for information), zero twist."""
         x = np.zeros(12)
         x[0:3] = self.position
-        x[3:6] = Rotation.from_matrix(self.rotation).as_rotvec()
+        x[3:6] = rotvec_from_rotation(self.rotation)
         return x
 
 
@@ -215,7 +222,7 @@ def equilibrium(mech: Mechanism, pose=None, max_condition: float = DEFAULT_MAX_C
 def _state13(position, rotation, velocity=(0.0, 0.0, 0.0), omega=(0.0, 0.0, 0.0)):
     y = np.empty(STATE_SIZE)
     y[0:3] = position
-    y[3:7] = Rotation.from_matrix(np.asarray(rotation, float)).as_quat()
+    y[3:7] = quaternion_from_rotation(np.asarray(rotation, float))
     y[7:10] = velocity
     y[10:13] = omega
     return y
@@ -227,7 +234,7 @@ def state13_from_chart(dx, eq: Equilibrium) -> np.ndarray:
     dx = np.asarray(dx, dtype=float)
     y = np.empty(STATE_SIZE)
     y[0:3] = eq.position + dx[0:3]
-    y[3:7] = (Rotation.from_rotvec(dx[3:6]) * Rotation.from_matrix(eq.rotation)).as_quat()
+    y[3:7] = quaternion_of_rotvec_times(dx[3:6], eq.rotation)
     y[7:13] = dx[6:12]
     return y
 
@@ -240,8 +247,7 @@ def chart_from_state13(y, eq: Equilibrium) -> np.ndarray:
     y = np.atleast_2d(y)
     dx = np.empty((len(y), 12))
     dx[:, 0:3] = y[:, 0:3] - eq.position
-    rel = Rotation.from_quat(y[:, 3:7]) * Rotation.from_matrix(eq.rotation).inv()
-    dx[:, 3:6] = rel.as_rotvec()
+    dx[:, 3:6] = rotvec_between(y[:, 3:7], eq.rotation)
     dx[:, 6:12] = y[:, 7:13]
     return dx[0] if single else dx
 

@@ -102,6 +102,46 @@ def rotation_angle_between(rot_ref: ArrayLike, quat: ArrayLike) -> np.ndarray:
     return np.linalg.norm(rel.as_rotvec(), axis=-1)
 
 
+def rotvec_from_rotation(rot: ArrayLike) -> np.ndarray:
+    """The rotation vector (axis times angle) of R.
+
+    Args:
+        rot: (3, 3) or (N, 3, 3) rotation matrices.
+
+    Returns:
+        (3,) or (N, 3) [rad].
+    """
+    return Rotation.from_matrix(np.asarray(rot, dtype=float)).as_rotvec()
+
+
+def quaternion_of_rotvec_times(rotvec: ArrayLike, rot: ArrayLike) -> np.ndarray:
+    """The unit quaternion (x, y, z, w) of exp([phi]x) R: R turned further by phi.
+
+    Args:
+        rotvec: phi (3,) [rad], base frame; rot: R (3, 3).
+
+    Returns:
+        (4,).
+    """
+    return (Rotation.from_rotvec(np.asarray(rotvec, dtype=float))
+            * Rotation.from_matrix(np.asarray(rot, dtype=float))).as_quat()
+
+
+def rotvec_between(quat: ArrayLike, rot_ref: ArrayLike) -> np.ndarray:
+    """The rotation vector phi = log(R R_ref^T): how far R (as a quaternion) is
+    turned from R_ref, in the base frame.
+
+    Args:
+        quat: (4,) or (N, 4) quaternions (x, y, z, w) of R.
+        rot_ref: (3, 3) R_ref.
+
+    Returns:
+        (3,) or (N, 3) [rad].
+    """
+    return (Rotation.from_quat(np.asarray(quat, dtype=float))
+            * Rotation.from_matrix(np.asarray(rot_ref, dtype=float)).inv()).as_rotvec()
+
+
 def matrix_from_quaternion(q: ArrayLike) -> np.ndarray:
     """R from a unit quaternion (x, y, z, w), not normalised here.
 
