@@ -61,3 +61,28 @@ def test_readme_is_short_and_links_to_docs_that_exist():
 
 #: Pages the analysis and fault-injection parts of the package provide.
 LATER = {'docs/analysis.md', 'docs/faults.md', 'docs/bode.png', 'docs/workspace.png'}
+
+
+def _slug(heading: str) -> str:
+    """GitHub's anchor of a heading: lower case, punctuation dropped, spaces to '-'."""
+    text = re.sub(r'[^\w\- ]', '', heading.strip().lower())
+    return text.replace(' ', '-')
+
+
+def test_links_between_the_documents_land_on_a_heading():
+    """Every link from one document to another (or within one), with or
+    without an #anchor, reaches a file that exists and a heading it has."""
+    broken = []
+    for path in documents():
+        for target, anchor in re.findall(r'\]\(([\w./-]*\.md|)(?:#([\w-]+))?\)',
+                                         path.read_text()):
+            dest = (path.parent / target) if target else path
+            if not dest.exists():
+                if Path(target).name not in {Path(x).name for x in LATER}:
+                    broken.append('%s: %s' % (path.relative_to(ROOT), target))
+                continue
+            if anchor:
+                headings = re.findall(r'^#+ (.*)$', dest.read_text(), re.M)
+                if anchor not in {_slug(h) for h in headings}:
+                    broken.append('%s: %s#%s' % (path.relative_to(ROOT), target, anchor))
+    assert broken == [], broken
