@@ -12,13 +12,13 @@ from stewart63_ros.core.params import ParameterError, mechanism_from_params, unk
 from stewart63_ros.core.precompile import COMPILE_NOTICE, kernel_cache_cold
 from stewart63_ros.nodes.checks import SkipCounter
 from stewart63_ros.nodes.diagnostics import Health
+from stewart63_ros.nodes.handshake import RecorderWord
 from stewart63_ros.nodes.launcher import STOP
 from stewart63_ros.nodes.parameters import load_parameters, ros_parameters
 from stewart63_ros.nodes.rclpy_internals import DirectTake, run_timer_if_ready, take
 from stewart63_ros.nodes.realtime import realtime_scheduling
-
-#: What rmw names a publisher whose node the graph does not know yet.
-UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'
+from stewart63_ros.nodes.startup import StartupBarrier
+from stewart63_ros.nodes.stopping import Flush
 
 
 class RigNode(Node):
@@ -39,7 +39,7 @@ class RigNode(Node):
         # Parameters as nodes/parameters.py reads them (a -p wins over the
         # files; a file given is the whole model), declared as the node's
         # ROS parameters so that ros2 param shows what the node runs with.
-        self._created = time.monotonic()       # the graph's discovery starts about now
+        self.created = time.monotonic()       # the graph's discovery starts about now
         _, params = load_parameters(name)
         super().__init__(name, parameter_overrides=ros_parameters(params),
                          automatically_declare_parameters_from_overrides=True,
@@ -70,7 +70,7 @@ class RigNode(Node):
         self.realtime_priority = self._realtime_priority()
         self._executor = None       # made on first use: see executor_
         self.data_publishers = []
-        self._optional_publishers = set()
+        self.optional_publishers = set()
         self.started = False        # diagnostics wait for the peers, like the data
         # Run-time changes through the parameter services: only the keys a
         # node registers with ``tunable`` may change; every other one is
@@ -79,19 +79,12 @@ class RigNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.create_timer(1.0, self.report)
         self.closing = False         # the next report is the last one (see close)
-        self._recorded = False      # a recorder confirmed it holds everything (see flush)
         self.flushed = ''           # how the flush at close ended, for the node's log
-        #: called while flush waits: a recorder in the same thread takes its messages
-        self.while_flushing = None
-        from diagnostic_msgs.msg import DiagnosticArray
-
-        from stewart63_ros import topics
-        #: recorder's full name -> the nodes it says it has matched (see
-        #: wait_for_matches and Recorder._report)
-        self._recorders_matched: dict[str, set] = {}
-        self._confirmations = self.create_subscription(
-            DiagnosticArray, topics.DIAGNOSTICS, self._on_confirmation, topics.DIAGNOSTICS_QOS,
-            raw=True)
+        # The parts that do one job each: what the recorders say on
+        # /diagnostics, the wait before the first message, the flush at the end.
+        self.recorder_word = RecorderWord(self)
+        self.startup = StartupBarrier(self, self.recorder_word)
+        self.stop_flush = Flush(self, self.recorder_word)
 
     # -- run-time parameter changes --------------------------------------------
     def tunable(self, name: str, apply) -> None:
@@ -192,95 +185,13 @@ class RigNode(Node):
         pub = self.create_publisher(msg_type, topic, qos)
         self.data_publishers.append(pub)
         if not required:
-            self._optional_publishers.add(id(pub))
+            self.optional_publishers.add(id(pub))
         return pub
 
-    #: s: how often a node still waiting for its peers says what it waits for.
-    WAIT_REPORT_PERIOD = 5.0
-    #: s: how long a new match must hold before the first message (wait_for_matches).
-    MATCH_SETTLE = 1.0
-
-    def graph_subscriptions(self, pub) -> list:
-        """The subscriptions the ROS graph shows on ``pub``'s topic that can
-        match it (same type, compatible QoS): a recorder, viewer or driver
-        started before this node."""
-        cls = pub.msg_type
-        type_name = '%s/msg/%s' % (cls.__module__.split('.')[0], cls.__name__)
-        return [info for info in self.get_subscriptions_info_by_topic(pub.topic_name)
-                if info.topic_type == type_name
-                and topics.can_match(pub.qos_profile, info.qos_profile)]
-
     def wait_for_matches(self, extra=None) -> bool:
-        """Bounded wait (``discovery_timeout``) before the first message until
-        every data publisher has matched ``wait_for_subscribers``
-        subscriptions and every subscription the ROS graph shows on its topic
-        (so a recorder started before the rig gets everything from the first
-        message), and ``extra()`` (a list of what else is missing) is empty.
-        The graph is given ``discovery_settle`` s from the node's start to
-        show what already runs. A new match must then hold for
-        ``MATCH_SETTLE`` s: a publisher counts a subscription as matched as
-        soon as it has discovered it, but the subscription drops what comes
-        before it has discovered the publisher in turn (a volatile reader
-        starts at the first sample it sees announced), which under load has
-        lagged tens of ms. Says at once what it waits for, and again every
-        few s."""
-        pubs = self.data_publishers + [self.health.pub]
-        counts = {id(pub): (pub.get_subscription_count(), self._created) for pub in pubs}
-
-        me = self.get_fully_qualified_name()
-
-        def missing():
-            out = []
-            recorders = set()
-            # Discovery of what already runs takes a moment (seconds, loaded):
-            # until then the graph may not show a subscriber started before us.
-            age = time.monotonic() - self._created
-            if age < self.discovery_settle:
-                out.append('discovery of the ROS graph (%.1f of %g s, discovery_settle)'
-                           % (age, self.discovery_settle))
-            now = time.monotonic()
-            for pub in pubs:
-                floor = self.wait_for_subscribers
-                if id(pub) in self._optional_publishers:
-                    floor = 0
-                subscribers = self.graph_subscriptions(pub)
-                recorders.update(name for name in map(topics.endpoint_node_name, subscribers)
-                                 if name in self._recorders_matched)
-                want = max(floor, len(subscribers))
-                have = pub.get_subscription_count()
-                if have != counts[id(pub)][0]:
-                    counts[id(pub)] = (have, now)
-                if have < want:
-                    out.append('%s: %d of %d subscriptions matched'
-                               % (pub.topic_name, have, want))
-                elif now - counts[id(pub)][1] < self.MATCH_SETTLE:
-                    out.append('%s: a new match settling' % pub.topic_name)
-            for name in sorted(recorders):
-                if me not in self._recorders_matched[name]:
-                    out.append('%s to match %s\'s publishers' % (name, me))
-            return out + (list(extra()) if extra is not None else [])
-
-        log = self.get_logger()
-        start = time.monotonic()
-        deadline = start + self.discovery_timeout
-        next_report = start
-        waiting = missing()
-        while waiting and time.monotonic() < deadline:
-            now = time.monotonic()
-            if now >= next_report:
-                log.info('waiting (at most %.1f s more, discovery_timeout) for: %s'
-                         % (deadline - now, '; '.join(waiting)))
-                next_report = now + self.WAIT_REPORT_PERIOD
-            self.executor_.spin_once(timeout_sec=min(0.05, max(0.0, deadline - now)))
-            waiting = missing()
-        self.started = True
-        if not waiting:
-            log.info('matched after %.2f s' % (time.monotonic() - start))
-            return True
-        log.warning('discovery: still missing after %.1f s: %s; starting anyway'
-                 % (self.discovery_timeout, '; '.join(waiting)))
-        self.health.warning = 'started before all subscribers matched'
-        return False
+        """Bounded wait before the first message until the node's subscribers
+        are matched (``startup.StartupBarrier.wait``); True if they all are."""
+        return self.startup.wait(extra)
 
     def report(self):
         if self.started:
@@ -290,85 +201,12 @@ class RigNode(Node):
         self.wait_for_matches()
         self.executor_.spin()
 
-    # -- sources of the 1 kHz input ---------------------------------------------
-    #: s: how often the number of publishers on the watched input is checked
-    SOURCE_CHECK_PERIOD = 0.25
-    #: s: a collision ends once the input has had one source for this long
-    COLLISION_CLEAR_AFTER = 1.0
-
+    # -- sources of the 1 kHz input (nodes/sources.py) -------------------------
     def watch_source(self, subscription, topic: str, gate) -> None:
-        """Watch the sources of the 1 kHz input ``subscription`` (its StampGate: ``gate``).
-
-        Two publishers that both sent samples within ``COLLISION_WINDOW``
-        (interleaved, or alternating in runs) are a collision: ERROR on
-        /diagnostics naming the publishers (two rigs in one domain under one
-        namespace feed each other) until the input has had a single sender
-        for ``COLLISION_CLEAR_AFTER``. More than one publisher matched while
-        only one sends is a warning: a killed source's endpoint stays in the
-        graph until its lease runs out, a ``play`` may not have started yet.
-        New runs of the source (a restarted plant, a bag played again) are
-        counted as ``source_restarts``.
-        """
-        self._watched = (subscription, topic, gate)
-        self._single_since = None
-        self.collisions = 0
-        self.health.values['source_restarts'] = 0
-        self.health.values['collisions'] = 0
-        self.create_timer(self.SOURCE_CHECK_PERIOD, self.check_sources)
-
-    #: s: two publishers sending within this window of each other collide
-    COLLISION_WINDOW = 1.0
-
-    def publisher_names(self, topic: str) -> list:
-        """'/ns/node (gid ...)' of each publisher the graph knows on ``topic``."""
-        try:
-            infos = self.get_publishers_info_by_topic(self.resolve_topic_name(topic))
-        except Exception:   # noqa: BLE001 - naming is a courtesy; the count is the finding
-            return []
-        return ['%s/%s (gid %s)' % (i.node_namespace.rstrip('/'), i.node_name,
-                                    bytes(i.endpoint_gid[:12]).hex()) for i in infos]
-
-    def check_sources(self) -> None:
-        sub, topic, gate = self._watched
-        h = self.health
-        count = sub.get_publisher_count()
-        senders = gate.senders(self.COLLISION_WINDOW)
-        h.values['source_restarts'] = gate.restarts
-        h.source_warning = ''
-        if len(senders) > 1:
-            self._single_since = None
-            # The graph may not know a new publisher's node yet: its name is
-            # looked up again on later checks while the collision lasts.
-            first = not h.collision
-            if first or UNKNOWN_NODE in h.collision:
-                if first:
-                    self.collisions += 1
-                    h.values['collisions'] = self.collisions
-                names = self.publisher_names(topic)
-                if len(names) < len(senders):
-                    names += ['gid %s' % g[:12].hex() for g in senders]
-                collision = ('collision: %d publishers send on %s: %s; two rigs in one '
-                             'domain under one namespace? samples of the second source '
-                             'refused' % (len(senders), sub.topic_name, ', '.join(names)))
-                if getattr(self, 'WITHHOLDS_ON_COLLISION', False):
-                    collision += '; forces withheld'
-                if collision != h.collision:
-                    h.collision = collision
-                    self.get_logger().error(h.collision)
-                    if self.started:
-                        h.report()
-            return
-        if count > 1:
-            h.source_warning = ('%d publishers matched on %s, one sends: %s' % (
-                count, sub.topic_name, ', '.join(self.publisher_names(topic))))
-        if h.collision:
-            now = time.monotonic()
-            if self._single_since is None:
-                self._single_since = now
-            elif now - self._single_since >= self.COLLISION_CLEAR_AFTER:
-                self.get_logger().info('collision over: one publisher sends on %s again'
-                                       % sub.topic_name)
-                h.collision = ''
+        """Watch the sources of the 1 kHz input ``subscription`` (its StampGate:
+        ``gate``) for collisions and restarts: see ``sources.SourceWatch``."""
+        from stewart63_ros.nodes.sources import SourceWatch
+        self.source_watch = SourceWatch(self, subscription, topic, gate)
 
     def count_skips(self, topic: str, source, info) -> None:
         """Count the messages on ``topic`` that never reached this node,
@@ -478,72 +316,9 @@ class RigNode(Node):
                 if pause > 0 and not STOP.requested:
                     time.sleep(pause)
 
-    def flush_publishers(self) -> list:
-        """What ``flush`` waits for: every publisher of the node."""
-        return self.data_publishers + [self.health.pub]
-
-    def _on_confirmation(self, data) -> None:
-        """A /diagnostics message. While the node starts: a recorder's status
-        names under ``matched_publishers`` the nodes whose publishers it has
-        matched (wait_for_matches). While it stops: a recorder's status that
-        names this node under ``confirms`` holds all it published (flush)."""
-        if self.started and (not self.closing or self._recorded):
-            return
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.serialization import deserialize_message
-        try:
-            msg = deserialize_message(bytes(data), DiagnosticArray)
-        except Exception:   # noqa: BLE001 - not a status we can read: not a confirmation
-            return
-        me = self.health.status_name
-        for status in msg.status:
-            for kv in status.values:
-                if kv.key == 'matched_publishers' and not self.started:
-                    recorder = status.name[len(topics.STATUS_PREFIX):]
-                    self._recorders_matched[recorder] = set(kv.value.split(','))
-                elif kv.key == 'confirms' and self.closing and me in kv.value.split(','):
-                    self._recorded = True
-
-    #: s: how often flush looks at the acknowledgements and confirmations
-    FLUSH_POLL = 0.005
-
     def flush(self, timeout: float = 2.0) -> str:
-        """Let reliable subscribers (the recorder) receive everything before exiting.
-
-        Done when the package's recorder confirms on /diagnostics that it
-        holds every message the node's last status says it published (a few
-        ms after that status), or when every subscriber has acknowledged
-        everything, or at ``timeout``. The acknowledgements alone are slow: a
-        subscriber acknowledges at the writer's next heartbeat (Fast DDS:
-        every 3 s), long after it has the data, and a stop must stay well
-        inside a launcher's 5 s. Returns how it ended: ``recorder``,
-        ``acknowledged`` or ``timeout``.
-        """
-        from rclpy.duration import Duration
-        deadline = time.monotonic() + timeout
-        now_ = Duration(seconds=0)
-
-        def unacked(pub):
-            try:
-                return pub.get_subscription_count() > 0 and not pub.wait_for_all_acked(now_)
-            except RuntimeError:     # a publisher already destroyed: nothing left to send
-                return False
-        pending = [p for p in self.flush_publishers() if unacked(p)]
-        while pending:
-            if self._recorded:
-                return 'recorder'
-            if time.monotonic() >= deadline:
-                return 'timeout'
-            if self.while_flushing is not None:
-                self.while_flushing()
-            time.sleep(self.FLUSH_POLL)
-            while True:         # the confirmation, taken here: no executor turns now
-                data = take(self._confirmations)
-                if data is None:
-                    break
-                self._on_confirmation(data)
-            pending = [p for p in pending if unacked(p)]
-        return 'acknowledged'
+        """Let the recorder receive everything before exiting (``stopping.Flush``)."""
+        return self.stop_flush.flush(timeout)
 
     def summary(self) -> dict:
         """What the node did: counters, latency, its last status."""

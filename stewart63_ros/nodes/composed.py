@@ -221,7 +221,7 @@ class Composed:
             self.loop.drain()
         for node in self.nodes.values():      # final diagnostics, flushed
             if self.recorder is not None:     # it confirms what it holds meanwhile
-                node.while_flushing = self.recorder.take_available
+                node.stop_flush.while_flushing = self.recorder.take_available
             try:
                 node.close()
             except Exception as exc:  # noqa: BLE001 - close the others all the same

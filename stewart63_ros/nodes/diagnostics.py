@@ -6,6 +6,7 @@ import time
 
 import numpy as np
 
+from stewart63_ros.nodes import handshake
 from stewart63_ros.nodes.checks import Rejected
 
 
@@ -136,11 +137,11 @@ class Health:
         for key, val in self.values.items():
             values.append(KeyValue(key=key, value=str(val)))
         if final:
-            values.append(KeyValue(key='final', value='true'))
+            values.append(KeyValue(key=handshake.FINAL, value='true'))
             for topic, n in sorted(self.published.items()):
                 full = self.node.resolve_topic_name(topic)
                 if full != topics.DIAGNOSTICS:
-                    values.append(KeyValue(key='final/' + full, value=str(n)))
+                    values.append(KeyValue(key=handshake.FINAL_PREFIX + full, value=str(n)))
         status = DiagnosticStatus(level=level, name=self.status_name,
                                   message=message, hardware_id='stewart63_ros', values=values)
         msg = DiagnosticArray(status=[status])

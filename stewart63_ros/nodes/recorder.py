@@ -16,6 +16,7 @@ from pathlib import Path
 
 from stewart63_ros import topics as T
 from stewart63_ros.bagio import NAMESPACE_KEY, BagError
+from stewart63_ros.nodes import handshake
 from stewart63_ros.nodes.rclpy_internals import WaitAny, take_with_info
 
 READY_LINE = 'READY'
@@ -404,16 +405,11 @@ class Recorder:
         except Exception:   # noqa: BLE001 - written as received; not ours to judge
             return
         for status in msg.status:
-            values = {kv.key: kv.value for kv in status.values}
-            if values.get('final') != 'true' or status.name == self._status_name:
+            if status.name == self._status_name:
                 continue
-            wanted = {}
-            for key, value in values.items():
-                if key.startswith('final/'):
-                    try:
-                        wanted[key[len('final/'):]] = int(value)
-                    except ValueError:
-                        pass
+            wanted = handshake.final_counts({kv.key: kv.value for kv in status.values})
+            if wanted is None:
+                continue
             self._finals[status.name, source] = (wanted, time.monotonic())
 
     def _confirm(self):
@@ -431,7 +427,7 @@ class Recorder:
                 del self._finals[key]
         if done:
             self._publish_status('holds every message of ' + ', '.join(done),
-                                 confirms=','.join(done))
+                                 **{handshake.CONFIRMS: ','.join(done)})
 
     def _publish_status(self, message, **keys):
         """One status of the recorder on /diagnostics: ``keys`` and the count
@@ -672,7 +668,7 @@ class Recorder:
             return
         self._next_report = now + self.REPORT_PERIOD
         self._publish_status('recording %d topics to %s' % (len(self._subs), self.path),
-                             matched_publishers=','.join(self._matched_nodes))
+                             **{handshake.MATCHED: ','.join(self._matched_nodes)})
 
     def _is_own_status(self, info) -> bool:
         """Whether a /diagnostics message (its ``info``) is the recorder's own

@@ -1,0 +1,110 @@
+"""A node's start-up barrier: nothing is published before its subscribers are there."""
+from __future__ import annotations
+
+import time
+
+from stewart63_ros import topics
+
+
+class StartupBarrier:
+    """``wait(extra)`` before a RigNode's first message (its ``wait_for_matches``).
+
+    Uses the node's ``data_publishers``, ``optional_publishers``, health
+    publisher, ``wait_for_subscribers``, ``discovery_settle``,
+    ``discovery_timeout`` and ``created``, and what the recorders say
+    (``word``: handshake.RecorderWord).
+    """
+
+    def __init__(self, node, word):
+        self.node = node
+        self.word = word
+
+    #: s: how often a node still waiting for its peers says what it waits for.
+    WAIT_REPORT_PERIOD = 5.0
+    #: s: how long a new match must hold before the first message (wait_for_matches).
+    MATCH_SETTLE = 1.0
+
+    def graph_subscriptions(self, pub) -> list:
+        """The subscriptions the ROS graph shows on ``pub``'s topic that can
+        match it (same type, compatible QoS): a recorder, viewer or driver
+        started before this node."""
+        cls = pub.msg_type
+        type_name = '%s/msg/%s' % (cls.__module__.split('.')[0], cls.__name__)
+        return [info for info in self.node.get_subscriptions_info_by_topic(pub.topic_name)
+                if info.topic_type == type_name
+                and topics.can_match(pub.qos_profile, info.qos_profile)]
+
+    def wait(self, extra=None) -> bool:
+        """Bounded wait (``discovery_timeout``) before the first message until
+        every data publisher has matched ``wait_for_subscribers``
+        subscriptions and every subscription the ROS graph shows on its topic
+        (so a recorder started before the rig gets everything from the first
+        message), and ``extra()`` (a list of what else is missing) is empty.
+        The graph is given ``discovery_settle`` s from the node's start to
+        show what already runs. A new match must then hold for
+        ``MATCH_SETTLE`` s: a publisher counts a subscription as matched as
+        soon as it has discovered it, but the subscription drops what comes
+        before it has discovered the publisher in turn (a volatile reader
+        starts at the first sample it sees announced), which under load has
+        lagged tens of ms. Says at once what it waits for, and again every
+        few s."""
+        node = self.node
+        pubs = node.data_publishers + [node.health.pub]
+        counts = {id(pub): (pub.get_subscription_count(), node.created) for pub in pubs}
+
+        me = node.get_fully_qualified_name()
+        matched = self.word.matched
+
+        def missing():
+            out = []
+            recorders = set()
+            # Discovery of what already runs takes a moment (seconds, loaded):
+            # until then the graph may not show a subscriber started before us.
+            age = time.monotonic() - node.created
+            if age < node.discovery_settle:
+                out.append('discovery of the ROS graph (%.1f of %g s, discovery_settle)'
+                           % (age, node.discovery_settle))
+            now = time.monotonic()
+            for pub in pubs:
+                floor = node.wait_for_subscribers
+                if id(pub) in node.optional_publishers:
+                    floor = 0
+                subscribers = self.graph_subscriptions(pub)
+                recorders.update(name for name in map(topics.endpoint_node_name, subscribers)
+                                 if name in matched)
+                want = max(floor, len(subscribers))
+                have = pub.get_subscription_count()
+                if have != counts[id(pub)][0]:
+                    counts[id(pub)] = (have, now)
+                if have < want:
+                    out.append('%s: %d of %d subscriptions matched'
+                               % (pub.topic_name, have, want))
+                elif now - counts[id(pub)][1] < self.MATCH_SETTLE:
+                    out.append('%s: a new match settling' % pub.topic_name)
+            for name in sorted(recorders):
+                if me not in matched[name]:
+                    out.append('%s to match %s\'s publishers' % (name, me))
+            return out + (list(extra()) if extra is not None else [])
+
+        log = node.get_logger()
+        start = time.monotonic()
+        deadline = start + node.discovery_timeout
+        next_report = start
+        waiting = missing()
+        while waiting and time.monotonic() < deadline:
+            now = time.monotonic()
+            if now >= next_report:
+                log.info('waiting (at most %.1f s more, discovery_timeout) for: %s'
+                         % (deadline - now, '; '.join(waiting)))
+                next_report = now + self.WAIT_REPORT_PERIOD
+            node.executor_.spin_once(timeout_sec=min(0.05, max(0.0, deadline - now)))
+            waiting = missing()
+        node.started = True
+        if not waiting:
+            log.info('matched after %.2f s' % (time.monotonic() - start))
+            return True
+        log.warning('discovery: still missing after %.1f s: %s; starting anyway'
+                 % (node.discovery_timeout, '; '.join(waiting)))
+        node.health.warning = 'started before all subscribers matched'
+        return False
+
