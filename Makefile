@@ -13,7 +13,7 @@ unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE
 
 ROS_WHEELS := ros-rclpy ros-rmw-fastrtps-cpp ros-std-msgs ros-geometry-msgs \
               ros-sensor-msgs ros-diagnostic-msgs ros-rosgraph-msgs ros-builtin-interfaces \
-              ros-trajectory-msgs ros-visualization-msgs
+              ros-trajectory-msgs ros-visualization-msgs ros-std-srvs
 PY_DEPS    := numpy scipy numba matplotlib pyyaml rosbags mcap mcap-ros2-support viser \
               dask distributed
 TEST_DEPS  := pytest pytest-xdist ruff colcon-core colcon-ros colcon-package-information playwright
@@ -37,7 +37,7 @@ $(STAMP): setup.py package.xml Makefile
 	fi
 	$(BIN)/pip install -q $(PY_DEPS) $(TEST_DEPS)
 	$(BIN)/pip install -q -e '.[bench]'
-	$(BIN)/python -c 'import rclpy, sensor_msgs.msg, stewart63_ros'
+	$(BIN)/python -c 'import rclpy, sensor_msgs.msg, std_srvs.srv, stewart63_ros'
 	touch $(STAMP)
 
 $(KERNELS): $(STAMP) $(wildcard stewart63_ros/core/*.py)

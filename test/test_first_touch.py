@@ -507,7 +507,8 @@ def test_every_key_the_code_reads_is_known():
     from test_interface_doc import parameters_read
 
     from stewart63_ros.core.params import known_keys
-    examples = {'legpd_kp', 'legpd_kv', 'failing_after'}    # the example laws' own keys
+    examples = {'legpd_kp', 'legpd_kv', 'failing_after',     # the example laws' own keys
+                'fd_window', 'fd_threshold'}
     examples |= {'plant', 'controller', 'fk'}   # rig's extra['plant'][...]: node names
     missing = {k: where for k, where in parameters_read().items()
                if k not in known_keys() and k not in examples}

@@ -7,7 +7,9 @@ Two control modes:
 - ``sampled``: eq. (40) sampled at ``rate`` Hz and held (zero-order hold),
   fixed-step RK4 between samples, exactly as the plant node runs it, so a
   lockstep rig reproduces it sample for sample. The loop is compiled; it
-  calls the plant's own RK4 kernel, so its arithmetic is the plant's.
+  calls the plant's own RK4 kernel, so its arithmetic is the plant's. With
+  faults (core/faults.py) the loop runs in Python, sample by sample as the
+  plant node does (``run_faulted``).
 """
 from __future__ import annotations
 
@@ -107,6 +109,13 @@ class Result:
     forces: np.ndarray
     endstop_samples: int = 0     # samples with some leg outside its stroke
     rhs_evaluations: int = 0
+    #: with faults: the forces the pistons applied (``forces`` holds the
+    #: controller's commands, as the rig's leg_forces do), what the sensors
+    #: reported (N, 12: L1..L6, Ldot1..Ldot6, as leg_lengths carries them),
+    #: and what each fault did (``FaultModel.summary``)
+    applied: np.ndarray | None = None
+    measured: np.ndarray | None = None
+    faults: list | None = None
 
     def table(self, dyn: Dynamics) -> np.ndarray:
         """Rows of the trajectory CSV (docs/interface.md).
@@ -197,7 +206,8 @@ def _is_pd(controller) -> bool:
 
 def run_sampled(mech: Mechanism, duration: float, rate: float,
                 controller: ControllerLike | None = None, y0: ArrayLike | None = None,
-                dyn: Dynamics | None = None, loop: str = 'compiled') -> Result:
+                dyn: Dynamics | None = None, loop: str = 'compiled',
+                faults=None) -> Result:
     """Eq. (40) sampled at ``rate`` Hz with zero-order hold; RK4 in between.
 
     Sample k at t_k = k / rate: measure L, dL/dt; F_k = PD; hold F_k over
@@ -214,6 +224,8 @@ def run_sampled(mech: Mechanism, duration: float, rate: float,
         y0: the initial state (13,); default ``initial_state(mech)``.
         dyn: the model to use (default: a new ``Dynamics(mech)``).
         loop: ``'compiled'`` or ``'python'``.
+        faults: a ``FaultModel``, or a list of fault strings: the faulted
+            loop (``run_faulted``); None: none.
 
     Returns:
         One row per sample, N = duration * rate + 1.
@@ -225,6 +237,8 @@ def run_sampled(mech: Mechanism, duration: float, rate: float,
         raise ValueError("loop must be 'compiled' or 'python', not %r" % (loop,))
     dyn = dyn or Dynamics(mech)
     controller = controller or PDController(mech)
+    if faults is not None:
+        return run_faulted(mech, duration, rate, faults, controller, y0, dyn)
     period = 1.0 / rate
     steps = substeps_for(period)
     n = int(round(duration * rate))
@@ -248,6 +262,60 @@ def run_sampled(mech: Mechanism, duration: float, rate: float,
         if k < n:
             y = dyn.step(y, forces[k], period, steps)
     return Result(np.arange(n + 1) * period, states, forces, contact, 4 * steps * n)
+
+
+def run_faulted(mech: Mechanism, duration: float, rate: float, faults,
+                controller: ControllerLike | None = None, y0: ArrayLike | None = None,
+                dyn: Dynamics | None = None) -> Result:
+    """``run_sampled`` with sensor and actuator faults, as the lockstep plant runs it.
+
+    Sample k: the faults begin k; the sensors read L, dL/dt; ``faults.sense``
+    makes what ``leg_lengths`` would carry; the controller answers it (a
+    sample with a dropped-out leg gets no answer, as the controller node
+    refuses it: the force of the previous sample holds); ``faults.actuate``
+    gives the applied forces, held over the period.
+
+    Args:
+        mech, duration, rate, controller, y0, dyn: as ``run_sampled``.
+        faults: a ``FaultModel`` (used as it is: a fresh one for a fresh
+            run) or fault strings (a model at ``rate``, seed 0).
+    Returns:
+        a Result: ``forces`` the controller's commands, ``applied`` what the
+        pistons applied, ``measured`` what the sensors reported, ``faults``
+        each fault's summary.
+    """
+    from stewart63_ros.core.faults import FaultModel, parse_faults
+    if not isinstance(faults, FaultModel):
+        faults = FaultModel(parse_faults(faults), rate)
+    dyn = dyn or Dynamics(mech)
+    controller = controller or PDController(mech)
+    period = 1.0 / rate
+    steps = substeps_for(period)
+    n = int(round(duration * rate))
+    y = initial_state(mech) if y0 is None else np.array(y0, float)
+    states = np.empty((n + 1, STATE_SIZE))
+    forces = np.empty((n + 1, 6))
+    applied = np.empty((n + 1, 6))
+    measured = np.empty((n + 1, 12))
+    held = np.zeros(6)          # the plant holds zero until the first answer
+    contact = 0
+    timed = getattr(controller, 'timed', False)
+    for k in range(n + 1):
+        faults.begin(k)
+        lengths, rates = sensor_reading(dyn, y)
+        contact += _outside_stroke(mech, lengths)
+        states[k] = y
+        lengths, rates, complete = faults.sense(lengths, rates)
+        measured[k, :6], measured[k, 6:] = lengths, rates
+        if complete:
+            held = (controller(lengths, rates, k * period) if timed
+                    else controller(lengths, rates))
+        forces[k] = held
+        applied[k] = faults.actuate(held)
+        if k < n:
+            y = dyn.step(y, applied[k], period, steps)
+    return Result(np.arange(n + 1) * period, states, forces, contact, 4 * steps * n,
+                  applied=applied, measured=measured, faults=faults.summary())
 
 
 def run_continuous(mech: Mechanism, duration: float, output_rate: float = 100.0,

@@ -182,12 +182,15 @@ class ControllerNode(RigNode):
             CommandInput(self, MultiDOFJointTrajectory, topics.POSE_TRAJECTORY,
                          self.on_trajectory)]
         self.create_timer(min(self.watchdog_timeout / 2, 0.05), self.watchdog)
-        # The plant says on /diagnostics when its run is over ("run: ended"):
-        # the silence that follows is then the end of a run, not a lost sensor.
+        # The plant says on /diagnostics when its samples stop on purpose
+        # ("run: ended", "run: paused", "run: reset"): the silence that
+        # follows is then not a lost sensor. Its "run_number" goes up on a
+        # reset: a new run, whose reference starts again at its first sample.
         from diagnostic_msgs.msg import DiagnosticArray
         self.plant_status = topics.status_name(topics.node_full_name(self.get_namespace(),
                                                                      'plant'))
-        self.source_ended = False
+        self.source_ended = False       # or why the plant is silent: 'ended', 'paused', ...
+        self.plant_run = None
         self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics,
                                  topics.DIAGNOSTICS_QOS)
         # Run-time tuning: the law, every built-in law's gains, the active law's own.
@@ -384,11 +387,23 @@ class ControllerNode(RigNode):
             topics.POSE_TRAJECTORY, len(msg.points), reference.duration))
         self.get_logger().info('following %s' % self.reference_name)
 
+    #: the plant's ``run`` values that announce a silence of its samples
+    SILENT_RUN = ('ended', 'paused', 'reset')
+
     def on_diagnostics(self, msg):
         for status in msg.status:
-            if status.name == self.plant_status and any(
-                    kv.key == 'run' and kv.value == 'ended' for kv in status.values):
-                self.source_ended = True
+            if status.name != self.plant_status:
+                continue
+            for kv in status.values:
+                if kv.key == 'run':
+                    if kv.value in self.SILENT_RUN:
+                        self.source_ended = kv.value
+                    elif kv.value in ('running', 'stepping'):
+                        self.source_ended = False
+                elif kv.key == 'run_number':
+                    if self.plant_run is not None and kv.value != self.plant_run:
+                        self.ref_start_ns = None    # a new run: the reference starts again
+                    self.plant_run = kv.value
 
     def run(self):
         self.run_on(self.sub_samples)
@@ -401,9 +416,12 @@ class ControllerNode(RigNode):
             self.tripped = True
             if self.source_ended:
                 # Forces are withheld all the same (none without a sample).
+                why = {'ended': 'ended its run', 'paused': 'paused its run',
+                       'reset': 'is starting a new run'}.get(self.source_ended,
+                                                             self.source_ended)
                 self.source_ended = False
-                self.get_logger().info('the plant ended its run: no more leg_lengths; '
-                                       'forces withheld until samples return')
+                self.get_logger().info('the plant %s: no leg_lengths; forces withheld '
+                                       'until samples return' % why)
                 return
             self.health.fault = ('watchdog: no leg_lengths for %.3f s; forces withheld '
                                  'until samples return' % silent)

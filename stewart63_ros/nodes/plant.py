@@ -13,6 +13,9 @@ fast as the machine allows. clock_mode ``realtime``: paced by the wall clock;
 a force takes effect when it arrives (the real loop delay acts on the
 physics); an answer that has not arrived by the next sample is a missed
 cycle, counted and reported.
+
+Faults (parameter ``faults``) and the simulation control services
+``~/pause``, ``~/reset`` and ``~/step``: nodes/plant_control.py, docs/faults.md.
 """
 from __future__ import annotations
 
@@ -42,13 +45,14 @@ from stewart63_ros.nodes.checks import (
 )
 from stewart63_ros.nodes.commands import CommandInput
 from stewart63_ros.nodes.launcher import STOP, run
+from stewart63_ros.nodes.plant_control import PlantControl
 from stewart63_ros.nodes.rclpy_internals import raw_publisher
 
 #: The tracking error in the summary counts samples from this time [s] on.
 TRACKING_FROM = 1.0
 
 
-class PlantNode(RigNode):
+class PlantNode(PlantControl, RigNode):
     def __init__(self, options):
         super().__init__('plant')
         self.rate = self.positive('sensor_rate', 1000.0)
@@ -148,6 +152,7 @@ class PlantNode(RigNode):
         self.t0_mono = None         # realtime: monotonic time of sample 0
         self.t_phys = 0.0           # realtime: simulated time the state is at
         self.forces_in = None       # DirectTake, made when the loop starts
+        self.init_control()         # faults, ~/pause, ~/reset, ~/step (plant_control.py)
 
     # -- inputs ---------------------------------------------------------------
     def on_forces(self, data: bytes, info):
@@ -209,6 +214,8 @@ class PlantNode(RigNode):
             self.listeners(now)
         ns = int(round(self.sample_time(self.k) * 1e9))
         sec, nanosec = divmod(ns, 1_000_000_000)
+        if self.fault_model.states:
+            self.begin_faults()
         lengths, rates = self.dyn.lengths_and_rates(self.y)
         if self.reference is not None and self.k * self.period >= TRACKING_FROM - 1e-12:
             self.add_tracking(lengths)
@@ -218,6 +225,7 @@ class PlantNode(RigNode):
             self.health.warning = ('a leg is at an end stop (%d samples so far)'
                                    % self.endstop_samples)
         lengths, rates = self.sensor.measure(lengths, rates)
+        lengths, rates, self.sample_complete = self.fault_model.sense(lengths, rates)
         data = self.lengths_out.fill(sec, nanosec, position=lengths, velocity=rates)
         self.sent_wall[ns] = time.perf_counter()
         if len(self.sent_wall) > 1000:   # answers that never came
@@ -245,7 +253,8 @@ class PlantNode(RigNode):
 
     def step(self):
         """Lockstep: one sample period with the force answering this sample."""
-        y = self.y = self.dyn.step(self.y, self.force, self.period, self.substeps, self.wrench)
+        y = self.y = self.dyn.step(self.y, self.applied_force(), self.period, self.substeps,
+                                   self.wrench)
         if not math.isfinite(y @ y):       # a nan or inf anywhere (or beyond 1e154)
             raise RuntimeError('the simulation diverged (non-finite state)')
         self.k += 1
@@ -256,6 +265,7 @@ class PlantNode(RigNode):
                          'clock_mode': self.mode, 'force_timeouts': self.timeouts,
                          'missed_cycles': self.missed, 'late_cycles': self.late,
                          'endstop_samples': self.endstop_samples})
+        self.report_faults()
         if not self.started:
             return
         if self.mode == 'lockstep':
@@ -289,6 +299,7 @@ class PlantNode(RigNode):
             return out
         self.wait_for_matches(missing)
         self.forces_in = self.start_hot_loop(self.sub_forces)
+        self.announce_run('running')
         self.t0_wall = time.time()
         n_samples = int(round(self.duration * self.rate)) if self.duration > 0 else None
         self.get_logger().info('%s at %g Hz%s' % (
@@ -305,6 +316,7 @@ class PlantNode(RigNode):
         """Tell the controller, on /diagnostics (``run: ended``), that no more
         samples come because the run is over: its watchdog then says so
         instead of reporting a lost sensor."""
+        self.ended = True           # the simulation control services refuse from now on
         if self.health.values.get('run') != 'ended':
             self.health.values['run'] = 'ended'
             if self.started:
@@ -345,6 +357,8 @@ class PlantNode(RigNode):
 
     def run_lockstep(self, n_samples):
         while True:
+            if self.hold_due and not self.sample_boundary():     # pause, step, reset
+                return
             if self.peers is not None and not self.peers.hold(
                     int(round(self.sample_time(self.k) * 1e9)), self.serve):
                 return
@@ -355,7 +369,9 @@ class PlantNode(RigNode):
             # discovery bound rather than step without its force.
             timeout = self.force_timeout if self.k else max(self.force_timeout,
                                                               self.discovery_timeout)
-            if not self.wait_for_answer(ns, timeout):
+            # A sample with a dropped-out leg (NaN) gets no answer: the
+            # controller refuses it, the held force goes on (as in sim).
+            if self.sample_complete and not self.wait_for_answer(ns, timeout):
                 if STOP.requested:
                     return
                 self.timeouts += 1
@@ -376,6 +392,8 @@ class PlantNode(RigNode):
         self.t0_mono = time.monotonic()
         self.t0_wall = time.time()
         while not STOP.requested:
+            if self.hold_due and not self.sample_boundary():     # pause, reset
+                return
             ns = self.publish_sample()
             if n_samples is not None and self.k >= n_samples:
                 self.wait_for_answer(ns, 0.1)
@@ -394,7 +412,7 @@ class PlantNode(RigNode):
                 pass
             if STOP.requested:
                 return
-            if not answered and self.force_ns != ns:
+            if not answered and self.force_ns != ns and self.sample_complete:
                 self.missed += 1
             self.advance_to((self.k + 1) * self.period)
             self.k += 1
@@ -406,7 +424,7 @@ class PlantNode(RigNode):
         dt = t - self.t_phys
         if dt <= 1e-7:
             return
-        self.y = self.dyn.step(self.y, self.force, dt, substeps_for(dt), self.wrench)
+        self.y = self.dyn.step(self.y, self.applied_force(), dt, substeps_for(dt), self.wrench)
         if not np.all(np.isfinite(self.y)):
             raise RuntimeError('the simulation diverged (non-finite state)')
         self.t_phys = t
@@ -436,6 +454,8 @@ class PlantNode(RigNode):
             'wall_time_s': time.time() - self.t0_wall,
             'skipped': dict(self.health.skipped),
             'stopped_by_signal': stopped,
+            'run_number': self.run_number, 'resets': self.resets,
+            'faults': self.fault_model.summary(),
         }
         if self.peers is not None:
             summary['lockstep_peers'] = {

@@ -11,7 +11,9 @@ reference motion (--reference, or a reference.csv beside the source, as `sim
 --reference` writes it; time 0 = the first sample), the reference is drawn
 dashed against the actual motion and a fourth panel shows the error.
 ``--animate`` writes an animation of the run instead: the platform in 3D
-beside the leg lengths (tools/animate.py).
+beside the leg lengths (tools/animate.py). Faulted intervals are shaded: from
+``faults.json`` beside a trajectory (``sim --fault``) or from the plant's
+statuses on a bag's /diagnostics (docs/faults.md).
 """
 from __future__ import annotations
 
@@ -27,12 +29,14 @@ LEG_STYLES = ('-', (0, (6, 2)), '-.', (0, (1, 1.5)), (0, (8, 2, 1, 2, 1, 2)), (0
 
 
 def draw_figure(columns: dict, out_path, title: str = '', reference: dict | None = None,
-                setpoint=None) -> Path:
+                setpoint=None, faults: list | None = None) -> Path:
     """Write Fig. 4 from {column: array} (the CSV layout) to ``out_path``; with
     ``reference`` ({t, x, y, z, theta_x, theta_y, theta_z: array}) also the
     reference (dashed) and the error actual - reference. ``setpoint``: the six
     desired lengths (L_i)_0, drawn as thin dashed black lines, so the final
-    sag of the legs below or above them shows."""
+    sag of the legs below or above them shows. ``faults``: dicts with
+    ``fault``, ``active_from_s`` and ``active_until_s`` (None: to the end;
+    times from the first sample), shaded on every panel."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -81,6 +85,8 @@ def draw_figure(columns: dict, out_path, title: str = '', reference: dict | None
             axes[3].plot(t, scale * (columns[name] - ref), label='%s [%s]' % (name, unit))
         axes[3].set_ylabel('error (actual - reference)')
     axes[-1].set_xlabel('time [s]')
+    if faults:
+        _shade_faults(axes, faults, t)
     for ax in axes:
         ax.grid(True, alpha=0.3)
         ax.legend(loc='best', fontsize='small', ncol=3)
@@ -91,6 +97,58 @@ def draw_figure(columns: dict, out_path, title: str = '', reference: dict | None
     fig.savefig(out_path, dpi=100)
     plt.close(fig)
     return out_path
+
+
+def _shade_faults(axes, faults, t) -> None:
+    """One shaded band per fault that acted, labelled on the first panel."""
+    finite = np.asarray(t, float)[np.isfinite(t)]
+    if not finite.size:
+        return
+    t0, t_end = float(finite[0]), float(finite[-1])
+    colors = ('tab:red', 'tab:orange', 'tab:purple', 'tab:brown', 'tab:pink', 'tab:olive')
+    shown = [f for f in faults if f.get('active_from_s') is not None]
+    for k, fault in enumerate(shown):
+        start = t0 + fault['active_from_s']
+        end = t_end if fault.get('active_until_s') is None else t0 + fault['active_until_s']
+        for i, ax in enumerate(axes):
+            ax.axvspan(start, max(end, start), color=colors[k % len(colors)], alpha=0.12,
+                       label='fault %s' % fault['fault'] if i == 0 else None)
+
+
+def load_faults(source) -> list | None:
+    """The faults of a run: ``faults.json`` beside a trajectory (``sim``), or
+    the last state of each ``fault: <fault>`` value of the plant's statuses in
+    a bag's /diagnostics (of its last run). None when the source has none."""
+    import json
+    source = Path(source)
+    is_bag = source.is_dir() and (source / 'metadata.yaml').exists()
+    if not is_bag:
+        path = (source if source.is_dir() else source.parent) / 'faults.json'
+        return json.loads(path.read_text()) if path.is_file() else None
+    from stewart63_ros import bagio
+    from stewart63_ros.core.faults import interval_from_status
+    found: dict = {}
+    run = None
+    try:
+        for _, _, msg in bagio.read_messages(source, ['/diagnostics']):
+            for status in msg.status:
+                if not status.name.endswith('/plant'):
+                    continue
+                values = {kv.key: kv.value for kv in status.values}
+                if values.get('run_number') != run:      # a reset: the last run's faults
+                    run, found = values.get('run_number'), {}
+                for key, text in values.items():
+                    if key.startswith('fault: '):
+                        found[key[len('fault: '):]] = text
+    except bagio.BagError:
+        return None         # no /diagnostics in the bag: nothing to shade
+    faults = []
+    for name, text in found.items():
+        interval = interval_from_status(text)
+        faults.append({'fault': name, 'status': text,
+                       'active_from_s': interval[0] if interval else None,
+                       'active_until_s': interval[1] if interval else None})
+    return faults or None
 
 
 def load_columns(source) -> dict:
@@ -148,6 +206,7 @@ def main(argv=None) -> int:
         source / 'reference.csv' if source.is_dir() else source.with_name('reference.csv'))
     try:
         columns = load_columns(source)
+        faults = load_faults(source)
         if args.reference or ref_path.is_file():
             from stewart63_ros.core.reference import CSV_COLUMNS, read_reference_csv
             times, poses = read_reference_csv(ref_path)
@@ -168,7 +227,7 @@ def main(argv=None) -> int:
         # a bag's times are stamps: the reference's time 0 is the first sample
         reference = dict(reference, t=reference['t'] + columns['t'][0])
     draw_figure(columns, out, title=args.title or run_title(source, columns),
-                reference=reference, setpoint=setpoint)
+                reference=reference, setpoint=setpoint, faults=faults)
     print(out)
     return 0
 

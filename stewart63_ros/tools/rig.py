@@ -2,7 +2,7 @@
 
     rig [--params FILE] [--mode realtime|lockstep] [--duration S] [--record DIR]
         [--namespace NS] [--nodes plant,controller,fk] [--realtime-priority P]
-        [--compose] [--control-law NAME] [--reference CSV]
+        [--compose] [--control-law NAME] [--reference CSV] [--fault FAULT]...
 
 One parameter file and one namespace for all. Every node waits until its
 peers are matched before the first sample, so a short run loses nothing at
@@ -15,7 +15,9 @@ With --compose the nodes (and the recorder) run as nodes of one process
 (``composed``), still over the DDS topics. --control-law sets the
 controller's ``control_law``; --reference hands a reference CSV to the
 controller (``reference_file``, time 0 = the first sample) and to the plant,
-which reports the true tracking error in its summary.
+which reports the true tracking error in its summary. --fault (repeatable)
+adds a fault to the plant's ``faults`` (docs/faults.md); the summary names
+each fault and when it acted.
 """
 from __future__ import annotations
 
@@ -381,6 +383,10 @@ def main(argv=None) -> int:
                         help='run plant and controller SCHED_FIFO at priority P (1-99), fk '
                         'at P-1 (needs root or CAP_SYS_NICE, else a warning): keeps other '
                         'work on the machine from delaying the loop (0: normal scheduling)')
+    parser.add_argument('--fault', action='append', default=[], metavar='FAULT',
+                        help='inject a fault KIND:LEG[:VALUE][@T_START[-T_END]] into the plant, '
+                        'e.g. actuator_dead:leg_4@2.0 (repeatable; added to the plant\'s '
+                        'faults of the parameter file; docs/faults.md)')
     parser.add_argument('--strict', action='store_true', help=STRICT_HELP)
     parser.add_argument('--view', action='store_true',
                         help='also serve the live 3D view of this rig in a web browser '
@@ -398,6 +404,19 @@ def main(argv=None) -> int:
             return 2
     if load_checked('rig', params, strict=args.strict) is None:
         return 2      # fail here, not in three processes
+    fault_extra = {}
+    if args.fault and 'plant' not in nodes_arg(args.nodes):
+        parser.error('--fault acts in the plant: it needs plant in --nodes')
+    if 'plant' in nodes_arg(args.nodes):
+        from stewart63_ros.core.faults import FaultError
+        from stewart63_ros.tools.sim import fault_list
+        try:     # the file's faults and --fault's: fail here, with the reason, not in the plant
+            faults = fault_list(params, args.fault)
+        except FaultError as exc:
+            print('rig: error: %s' % exc, file=sys.stderr)
+            return 2
+        if args.fault:
+            fault_extra['faults'] = [f.text for f in faults]
     announce_compile('rig', 'the nodes start by ')
     if args.duration is not None and not args.duration > 0:
         parser.error('--duration must be positive')
@@ -411,11 +430,13 @@ def main(argv=None) -> int:
             print('rig: error: %s' % exc, file=sys.stderr)
             return 2
         extra = control_params(args.control_law, args.reference)
+    if fault_extra:
+        extra.setdefault('plant', {}).update(fault_extra)
     if args.record and os.path.exists(args.record):
         print('rig: error: %s exists; record writes a new bag' % args.record, file=sys.stderr)
         return 2
 
-    nodes = tuple(n.strip() for n in args.nodes.split(',') if n.strip())
+    nodes = nodes_arg(args.nodes)
     unknown = [n for n in nodes if n not in NODES]
     if unknown or not nodes or len(set(nodes)) != len(nodes):
         parser.error('--nodes takes a comma-separated subset of %s, got %r'
@@ -474,6 +495,11 @@ def main(argv=None) -> int:
     return 0
 
 
+def nodes_arg(text: str) -> tuple:
+    """The node names of a ``--nodes`` value, as given."""
+    return tuple(n.strip() for n in text.split(',') if n.strip())
+
+
 def print_summary(rig, wall):
     """The plant's summary (error, latency, missed cycles), then what the
     other nodes of this rig saw: for a timed run and for a stopped one alike."""
@@ -500,6 +526,12 @@ def print_summary(rig, wall):
         if 'tracking_error' in summary:
             from stewart63_ros.tools.sim import format_tracking
             print('  ' + format_tracking(summary['tracking_error']))
+        if summary.get('resets'):
+            print('  resets %d (this summary is of run %d)' % (summary['resets'],
+                                                              summary['run_number']))
+        from stewart63_ros.tools.sim import format_fault
+        for fault in summary.get('faults', ()):
+            print('  ' + format_fault(fault))
     for node in ('controller', 'fk'):
         if node not in rig.nodes:
             continue

@@ -1,13 +1,18 @@
 """`sim`: the paper's scenario offline, in one process, without DDS.
 
     sim --params FILE --duration S --out DIR [--control continuous|sampled] [--rate HZ]
-        [--control-law NAME] [--reference CSV]
+        [--control-law NAME] [--reference CSV] [--fault KIND:LEG[:VALUE][@T0[-T1]]]...
 
 Writes DIR/trajectory.csv (docs/interface.md) and DIR/figure.png (Fig. 4),
 prints the final leg-length errors and the positioning error in %. With
 --reference, the reference motion is followed from t = 0, DIR/reference.csv
 holds it at the output times, the figure draws it against the actual motion,
 and the tracking error (max and RMS after the first second) is printed.
+With faults (--fault, repeatable, and the plant's ``faults`` in the
+parameter file; docs/faults.md) the control is sampled (at the plant's
+sensor_rate unless --rate says otherwise; --control continuous is refused),
+each fault's interval is printed and written to DIR/faults.json, and the
+figure shades it.
 """
 from __future__ import annotations
 
@@ -47,6 +52,32 @@ def format_tracking(err: dict) -> str:
                 err['orientation_rms_rad']))
 
 
+def fault_list(params_path, extra=()) -> list:
+    """The plant's ``faults`` of the parameter file, then ``extra`` (--fault),
+    parsed (FaultError naming the first bad one)."""
+    from stewart63_ros.core.faults import FaultError, parse_faults
+    from stewart63_ros.core.params import read_parameter_file
+    listed = read_parameter_file(params_path, 'plant').get('faults') or []
+    if isinstance(listed, str):
+        listed = [listed]
+    if not isinstance(listed, list):
+        raise FaultError('faults in %s: expected a list of strings, got %r'
+                         % (params_path, listed))
+    return parse_faults(list(listed) + list(extra))
+
+
+def format_fault(fault: dict) -> str:
+    """One line per fault, as `sim` and `rig` print them."""
+    if fault['active_from_s'] is None:
+        when = 'never active' + (' (removed)' if fault['state'] == 'removed' else '')
+    elif fault['active_until_s'] is None:
+        when = 'active from %.4f s to the end' % fault['active_from_s']
+    else:
+        when = 'active %.4f-%.4f s' % (fault['active_from_s'], fault['active_until_s'])
+    run = ' (run %d)' % fault['run'] if fault.get('run', 1) != 1 else ''
+    return 'fault %-34s %s%s' % (fault['fault'], when, run)
+
+
 def make_controller(params_path, law=None, reference_csv=None):
     """(controller, reference) for a run: None, None for plain eq. (40) towards the
     setpoint (the compiled paths); else a ``Controller`` with the law (``law`` or
@@ -74,8 +105,9 @@ def main(argv=None) -> int:
                         help='ROS 2 parameter file (default: the packaged config/stewart63.yaml)')
     parser.add_argument('--duration', type=float, default=10.0, help='simulated time [s] (10)')
     parser.add_argument('--out', required=True, help='output directory')
-    parser.add_argument('--control', choices=('continuous', 'sampled'), default='continuous',
-                        help='PD inside the ODE (RK45, as the paper) or sampled and held')
+    parser.add_argument('--control', choices=('continuous', 'sampled'), default=None,
+                        help='PD inside the ODE (RK45, as the paper) or sampled and held '
+                        '(default: continuous; sampled with faults)')
     parser.add_argument('--rate', type=float, default=None,
                         help='sample rate [Hz]: control rate for sampled (default: the '
                         "plant's sensor_rate), CSV rate for continuous (default 100, "
@@ -85,6 +117,10 @@ def main(argv=None) -> int:
                         "(default: the controller's control_law in the parameter file, else pd)")
     parser.add_argument('--reference', default=None, metavar='CSV',
                         help='reference motion t,x,y,z,theta_x,theta_y,theta_z to follow')
+    parser.add_argument('--fault', action='append', default=[], metavar='FAULT',
+                        help='inject a fault KIND:LEG[:VALUE][@T_START[-T_END]], e.g. '
+                        'sensor_stuck:leg_2@1.0 (repeatable; added to the plant\'s faults of '
+                        'the parameter file; docs/faults.md)')
     parser.add_argument('--no-figure', action='store_true', help='skip figure.png')
     parser.add_argument('--strict', action='store_true', help=STRICT_HELP)
     args = parser.parse_args(argv)
@@ -104,6 +140,19 @@ def main(argv=None) -> int:
     except (ParameterError, ReferenceError) as exc:
         print('sim: error: %s' % (exc,), file=sys.stderr)
         return 2
+    from stewart63_ros.core.faults import FaultError
+    try:
+        faults = fault_list(params_path, args.fault)
+    except FaultError as exc:
+        print('sim: error: %s' % (exc,), file=sys.stderr)
+        return 2
+    if faults:
+        if args.control == 'continuous':
+            print('sim: error: faults act on the sensor samples: use --control sampled '
+                  '(the default with faults)', file=sys.stderr)
+            return 2
+        args.control = 'sampled'
+    args.control = args.control or 'continuous'
 
     announce_compile('sim')
     from stewart63_ros.core.dynamics import Dynamics
@@ -115,7 +164,12 @@ def main(argv=None) -> int:
     try:
         if args.control == 'sampled':
             rate = args.rate or float(mech.extra.get('sensor_rate', 1000.0))
-            result = run_sampled(mech, args.duration, rate, dyn=dyn, controller=controller)
+            model = None
+            if faults:
+                from stewart63_ros.core.faults import FaultModel
+                model = FaultModel(faults, rate, int(mech.extra.get('sensor_seed', 0)))
+            result = run_sampled(mech, args.duration, rate, dyn=dyn, controller=controller,
+                                 faults=model)
         else:
             rate = args.rate or 100.0
             result = run_continuous(mech, args.duration, output_rate=rate, dyn=dyn,
@@ -139,6 +193,8 @@ def main(argv=None) -> int:
         write_reference_csv(out / 'reference.csv', result.times, poses)
         ref_columns = dict(zip(CSV_COLUMNS, np.column_stack([result.times, poses]).T))
     law = controller.law_name if controller is not None else 'pd'
+    if result.faults is not None:
+        (out / 'faults.json').write_text(json.dumps(result.faults, indent=1))
     if not args.no_figure:
         from stewart63_ros.core.trajectory import COLUMNS
         from stewart63_ros.tools.plot import draw_figure
@@ -146,12 +202,15 @@ def main(argv=None) -> int:
                     title='sim %s: %s, %s control, %g Hz, %g s, %s' % (
                         out, law, args.control, rate, args.duration,
                         Path(args.params).name if args.params else 'packaged parameters'),
-                    reference=ref_columns, setpoint=mech.setpoint_lengths)
+                    reference=ref_columns, setpoint=mech.setpoint_lengths,
+                    faults=result.faults)
     summary = summarize(mech, dyn, result)
     summary.update(control=args.control, control_law=law, rate_hz=rate,
                    wall_time_s=round(wall, 4), csv=str(out / 'trajectory.csv'))
     if not args.no_figure:
         summary['figure'] = str(out / 'figure.png')
+    if result.faults is not None:
+        summary['faults'] = str(out / 'faults.json')
     if reference is not None:
         from stewart63_ros.core.reference import tracking_errors
         summary['tracking_error'] = {k: (round(v, 9) if isinstance(v, float) else v) for k, v in
@@ -166,6 +225,8 @@ def main(argv=None) -> int:
         print('%-28s %s' % (key, json.dumps(value)))
     if 'tracking_error' in summary:
         print(format_tracking(summary['tracking_error']))
+    for fault in result.faults or ():
+        print(format_fault(fault))
     return 0
 
 

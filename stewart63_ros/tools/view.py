@@ -327,7 +327,26 @@ def live_panel(src: LiveSource) -> str:
             extra = ' — loop latency p50 %s ms, p99 %s ms' % (
                 values.get('latency/p50_ms', '?'), values['latency/p99_ms'])
         lines.append('`%s` **%s** %s%s' % (short, LEVELS.get(level, level), message, extra))
+        lines += run_lines(values)
     return '\n\n'.join(lines)
+
+
+def run_lines(values: dict) -> list:
+    """What a plant's status says about its run beyond the message: paused
+    or resetting (``run``), and each injected fault (``fault: <fault>``) with
+    its state, active ones first."""
+    lines = []
+    run = values.get('run')
+    if run in ('paused', 'reset', 'stepping'):
+        lines.append('&nbsp;&nbsp;run **%s** at sample %s (run %s)' % (
+            'resetting' if run == 'reset' else run, values.get('sample', '?'),
+            values.get('run_number', '?')))
+    faults = sorted(((k[len('fault: '):], v) for k, v in values.items()
+                     if k.startswith('fault: ')), key=lambda kv: not kv[1].startswith('active'))
+    for name, state in faults:
+        mark = '**' if state.startswith('active') else ''
+        lines.append('&nbsp;&nbsp;fault `%s`: %s%s%s' % (name, mark, state, mark))
+    return lines
 
 
 # ------------------------------------------------------------------ bag
