@@ -80,6 +80,10 @@ class RigNode(Node):
         self.create_timer(1.0, self.report)
         self.closing = False         # the next report is the last one (see close)
         self.flushed = ''           # how the flush at close ended, for the node's log
+        #: monotonic time by which close's flush must end (None: its own bound);
+        #: the nodes of one process share one (composed), so their stop stays
+        #: within the stop deadline however many of them wait
+        self.flush_deadline = None
         # The parts that do one job each: what the recorders say on
         # /diagnostics, the wait before the first message, the flush at the end.
         self.recorder_word = RecorderWord(self)
@@ -348,7 +352,10 @@ class RigNode(Node):
         self.closing = True
         self.report()
         started = time.monotonic()
-        how = self.flush(self.FLUSH_ON_SIGNAL if STOP.requested else self.FLUSH_AT_END)
+        timeout = self.FLUSH_ON_SIGNAL if STOP.requested else self.FLUSH_AT_END
+        if self.flush_deadline is not None:     # shared with the other nodes of a process
+            timeout = max(0.0, min(timeout, self.flush_deadline - started))
+        how = self.flush(timeout)
         self.flushed = '%s after %.3f s' % (how, time.monotonic() - started)
         if not self.summary_written:
             self.write_summary_file(self.summary())

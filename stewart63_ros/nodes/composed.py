@@ -219,7 +219,15 @@ class Composed:
         errors = []
         if self.loop is not None:
             self.loop.drain()
+        from stewart63_ros.nodes.base import RigNode
+        from stewart63_ros.nodes.launcher import STOP
+        # One flush bound for all the nodes, not one each: three nodes waiting
+        # in turn for a subscriber that never acknowledges would outlast the
+        # stop deadline (launcher.STOP_DEADLINE).
+        deadline = time.monotonic() + (RigNode.FLUSH_ON_SIGNAL if STOP.requested
+                                       else RigNode.FLUSH_AT_END)
         for node in self.nodes.values():      # final diagnostics, flushed
+            node.flush_deadline = deadline
             if self.recorder is not None:     # it confirms what it holds meanwhile
                 node.stop_flush.while_flushing = self.recorder.take_available
             try:

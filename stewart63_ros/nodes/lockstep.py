@@ -49,8 +49,10 @@ class ProgressPublisher:
         self._sent_ns = -1
 
     def note(self, ns: int) -> None:
-        """The sample stamped ``ns`` [ns] has been handled."""
-        if ns > self.handled_ns:
+        """The sample stamped ``ns`` [ns] has been handled (samples come in
+        order; a reset plant starts its stamps again, and so does this). A
+        stamp that could not be read (negative) changes nothing."""
+        if ns >= 0:
             self.handled_ns = ns
 
     def publish(self) -> None:
