@@ -360,7 +360,7 @@ class PlantNode(PlantControl, RigNode):
             if self.hold_due and not self.sample_boundary():     # pause, step, reset
                 return
             if self.peers is not None and not self.peers.hold(
-                    int(round(self.sample_time(self.k) * 1e9)), self.serve):
+                    self.k * self.peers.period_ns, self.serve):
                 return
             ns = self.publish_sample()
             # Sample 0 races discovery: our side of every match is complete,

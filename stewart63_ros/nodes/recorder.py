@@ -516,6 +516,7 @@ class Recorder:
             conn = self._add_connection(topic)
         last = self._last_stamp.get(topic, 0)
         per_source = self._per_source
+        note_gap = self._skip_counter(topic).note
         batch = []
         while got is not None:
             info = got[1]
@@ -527,8 +528,11 @@ class Recorder:
             batch.append((stamp, got[0]))
             gid = info.get('publisher_gid') if info else None
             if gid:                     # the sender's count, as in _on_message
-                self._count_gap(topic, bytes(gid['data']), info)
-                key = (topic, bytes(gid['data'][:12]))
+                full = bytes(gid['data'])
+                gap = note_gap(full, info)
+                if gap:
+                    self._note_lost(topic, gap)
+                key = (topic, full[:12])
                 seq = info.get('publication_sequence_number')
                 if seq:
                     per_source[key] = max(per_source[key], int(seq))
@@ -542,14 +546,23 @@ class Recorder:
             self._progress.note(header_stamp_ns(batch[-1][1]))
         return len(batch)
 
-    def _count_gap(self, topic, gid: bytes, info) -> None:
-        """Count the messages of the publisher ``gid`` on ``topic`` that never
-        reached the recorder (checks.SkipCounter)."""
+    def _skip_counter(self, topic):
+        """The checks.SkipCounter of ``topic``: gaps in each publisher's numbers."""
         counter = self._skips.get(topic)
         if counter is None:
             from stewart63_ros.nodes.checks import SkipCounter
             counter = self._skips[topic] = SkipCounter()
-        gap = counter.note(gid, info)
+        return counter
+
+    def _count_gap(self, topic, gid: bytes, info) -> None:
+        """Count the messages of the publisher ``gid`` on ``topic`` that never
+        reached the recorder."""
+        gap = self._skip_counter(topic).note(gid, info)
+        if gap:
+            self._note_lost(topic, gap)
+
+    def _note_lost(self, topic, gap: int) -> None:
+        """``gap`` messages of ``topic`` never reached the recorder: counted, said."""
         if gap:
             self.lost[topic] += gap
             self._next_report = 0.0     # say so at once
