@@ -397,6 +397,33 @@ class RosTest:
             raise errors[0]
 
 
+def rig_env(ros, monkeypatch) -> None:
+    """This process's environment for a ``Rig`` made in-process on the test's
+    domain (its children inherit it): loopback discovery, unbuffered logs."""
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(ros.domain_id))
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    monkeypatch.delenv('ROS_LOCALHOST_ONLY', raising=False)
+    monkeypatch.setenv('PYTHONUNBUFFERED', '1')
+
+
+def logs_of(log_dir, tail: int = 3000) -> str:
+    """The last ``tail`` characters of every log in ``log_dir``, for a failure message."""
+    return '\n'.join('--- %s ---\n%s' % (p.name, p.read_text(errors='replace')[-tail:])
+                     for p in sorted(Path(log_dir).glob('*.log')))
+
+
+def run_to_end(rig, timeout: float) -> tuple[bool, dict, str]:
+    """Start ``rig`` (a tools.rig.Rig), wait for the end of its run (bounded),
+    always stop it: (whether it ran to its end, exit codes, its logs)."""
+    ok = False
+    try:
+        rig.start()
+        ok = rig.wait(timeout=timeout)
+    finally:
+        codes = rig.stop()
+    return ok, codes, logs_of(rig.log_dir)
+
+
 SHM_DIR = Path('/dev/shm')
 
 

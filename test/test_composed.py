@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ros_harness import PYTHON, wait_line, wait_until
+from ros_harness import PYTHON, rig_env, run_to_end, wait_line, wait_until
 from test_rig import (
     assert_every_published_message_is_in_the_bag,
     by_stamp,
@@ -49,26 +49,13 @@ def mech():
     return load_mechanism(PARAMS)
 
 
-def rig_env(ros, monkeypatch):
-    monkeypatch.setenv('ROS_DOMAIN_ID', str(ros.domain_id))
-    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    monkeypatch.delenv('ROS_LOCALHOST_ONLY', raising=False)
-    monkeypatch.setenv('PYTHONUNBUFFERED', '1')
-
-
 def run(tmp_path, name, compose, record=True, duration=DURATION, extra_params=None):
     """One lockstep rig run to its end: (bag, summary, exit codes, logs)."""
     log_dir = tmp_path / name
     bag = tmp_path / (name + '_bag') if record else None
     rig = Rig(PARAMS, mode='lockstep', duration=duration, record=bag, log_dir=log_dir,
               compose=compose, extra_params=extra_params)
-    try:
-        rig.start()
-        ok = rig.wait(timeout=RUN_TIMEOUT)
-    finally:
-        codes = rig.stop()
-    logs = '\n'.join('--- %s ---\n%s' % (p.name, p.read_text(errors='replace')[-3000:])
-                     for p in sorted(log_dir.glob('*.log')))
+    ok, codes, logs = run_to_end(rig, RUN_TIMEOUT)
     return bag, rig.summary(), ok, codes, logs
 
 

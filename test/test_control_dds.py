@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ros_harness import wait_matched
+from ros_harness import rig_env, run_to_end, wait_matched
 
 from stewart63_ros.core.control import pd_forces
 from stewart63_ros.core.kinematics import LegState, leg_lengths
@@ -315,19 +315,10 @@ def test_lockstep_rig_with_a_reference_equals_sim(ros, monkeypatch, tmp_path, me
     final, _ = sensor_reading(Dynamics(mech), offline.states[-1])
     expected = tracking_errors(mech, reference, offline.times, offline.states)
 
-    monkeypatch.setenv('ROS_DOMAIN_ID', str(ros.domain_id))
-    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    monkeypatch.delenv('ROS_LOCALHOST_ONLY', raising=False)
+    rig_env(ros, monkeypatch)
     rig = Rig(PARAMS, mode='lockstep', duration=LOCKSTEP_DURATION, log_dir=tmp_path / 'rig',
               extra_params=control_params(law, ref_csv))
-    ok = False
-    try:
-        rig.start()
-        ok = rig.wait(timeout=150)
-    finally:
-        codes = rig.stop()
-    logs = '\n'.join('--- %s ---\n%s' % (p.name, p.read_text(errors='replace')[-1500:])
-                     for p in sorted((tmp_path / 'rig').glob('*.log')))
+    ok, codes, logs = run_to_end(rig, 150)
     assert ok and set(codes.values()) == {0}, '%s\n%s' % (codes, logs)
     summary = rig.summary()
     assert summary['samples'] == len(offline.times) and summary['force_timeouts'] == 0, summary

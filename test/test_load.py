@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 import test_rig
-from ros_harness import PYTHON, clean_dead_shm_segments, wait_until
+from ros_harness import PYTHON, clean_dead_shm_segments, logs_of, rig_env, wait_until
 from test_rig import (
     PARAMS,
     RATE,
@@ -113,9 +113,7 @@ def run_lockstep(ros, monkeypatch, tmp_path, during=None, duration=DURATION):
     """A recorded lockstep ``Rig`` of ``duration``; ``during(rig)`` runs in
     a thread once the plant has started its samples. Returns (bag, plant
     summary, fk summary, logs)."""
-    monkeypatch.setenv('ROS_DOMAIN_ID', str(ros.domain_id))
-    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    monkeypatch.delenv('ROS_LOCALHOST_ONLY', raising=False)
+    rig_env(ros, monkeypatch)
     bag, log_dir = tmp_path / 'bag', tmp_path / 'rig'
     rig = Rig(PARAMS, mode='lockstep', duration=duration, record=bag, log_dir=log_dir)
     thread, errors = None, []
@@ -140,8 +138,7 @@ def run_lockstep(ros, monkeypatch, tmp_path, during=None, duration=DURATION):
             with contextlib.suppress(ProcessLookupError):
                 os.kill(proc.pid, signal.SIGCONT)
         codes = rig.stop()
-    logs = '\n'.join('--- %s ---\n%s' % (p.name, p.read_text(errors='replace')[-3000:])
-                     for p in sorted(log_dir.glob('*.log')))
+    logs = logs_of(log_dir)
     assert not errors, errors
     assert ok, 'the rig did not finish its run: %s\n%s' % (codes, logs)
     assert codes == {'record': 0, 'controller': 0, 'fk': 0, 'plant': 0}, logs

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ros_harness import PYTHON, wait_line, wait_until
+from ros_harness import PYTHON, rig_env, run_to_end, wait_line, wait_until
 
 from stewart63_ros import bagio
 from stewart63_ros.bagio import header_stamp_ns as stamp_ns
@@ -75,22 +75,12 @@ def by_stamp(bag, topic) -> tuple[dict, int]:
 
 def run_rig(ros, monkeypatch, tmp_path, mode, duration):
     """A ``Rig`` (plant, controller, fk, record) run to its end; always stopped."""
-    monkeypatch.setenv('ROS_DOMAIN_ID', str(ros.domain_id))
-    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    monkeypatch.delenv('ROS_LOCALHOST_ONLY', raising=False)
-    monkeypatch.setenv('PYTHONUNBUFFERED', '1')
+    rig_env(ros, monkeypatch)
     bag = tmp_path / 'bag'
     rig = Rig(PARAMS, mode=mode, duration=duration, record=bag, log_dir=tmp_path / 'rig')
     wall = time.monotonic()
-    ok = False
-    try:
-        rig.start()
-        ok = rig.wait(timeout=RUN_TIMEOUT)
-    finally:
-        codes = rig.stop()
+    ok, codes, logs = run_to_end(rig, RUN_TIMEOUT)
     wall = time.monotonic() - wall
-    logs = '\n'.join('--- %s ---\n%s' % (p.name, p.read_text(errors='replace')[-2000:])
-                     for p in sorted((tmp_path / 'rig').glob('*.log')))
     assert ok, 'the rig did not finish its run: %s\n%s' % (codes, logs)
     assert codes == {'record': 0, 'controller': 0, 'fk': 0, 'plant': 0}, logs
     summary = rig.summary()

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_harness import logs_of, rig_env, run_to_end
 
 from stewart63_ros import bagio
 from stewart63_ros.bagio import header_stamp_ns as stamp_ns
@@ -54,18 +55,6 @@ def mech():
     return load_mechanism(PARAMS)
 
 
-def rig_env(ros, monkeypatch):
-    monkeypatch.setenv('ROS_DOMAIN_ID', str(ros.domain_id))
-    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    monkeypatch.delenv('ROS_LOCALHOST_ONLY', raising=False)
-    monkeypatch.setenv('PYTHONUNBUFFERED', '1')
-
-
-def logs_of(path: Path) -> str:
-    return '\n'.join('--- %s ---\n%s' % (p.name, p.read_text(errors='replace')[-3000:])
-                     for p in sorted(path.glob('*.log')))
-
-
 def level_of(status) -> int:
     level = status.level
     return level[0] if isinstance(level, (bytes, bytearray)) else int(level)
@@ -84,13 +73,7 @@ def test_every_fault_kind_on_the_lockstep_rig_is_sims(ros, monkeypatch, tmp_path
     bag = tmp_path / 'bag'
     rig = Rig(PARAMS, mode='lockstep', duration=RIG_DURATION, record=bag,
               log_dir=tmp_path / 'rig', extra_params={'plant': {'faults': RIG_FAULTS}})
-    ok = False
-    try:
-        rig.start()
-        ok = rig.wait(timeout=START_TIMEOUT)
-    finally:
-        codes = rig.stop()
-    logs = logs_of(tmp_path / 'rig')
+    ok, codes, logs = run_to_end(rig, START_TIMEOUT)
     assert ok and codes == {'record': 0, 'controller': 0, 'fk': 0, 'plant': 0}, logs
     summary = rig.summary()
     n = int(round(RIG_DURATION * RATE)) + 1
@@ -367,13 +350,7 @@ def test_the_example_fault_detector_trips_on_the_rig(ros, monkeypatch, tmp_path)
                   'control_law': 'stewart63_ros.examples.fault_detector:CheckedPD'},
                   # no answers after the trip: do not wait a second for each
                   'plant': {'faults': ['sensor_stuck:leg_2@0.1'], 'force_timeout': 0.01}})
-    ok = False
-    try:
-        rig.start()
-        ok = rig.wait(timeout=START_TIMEOUT)
-    finally:
-        codes = rig.stop()
-    logs = logs_of(tmp_path / 'rig')
+    ok, codes, logs = run_to_end(rig, START_TIMEOUT)
     assert ok and codes == {'controller': 0, 'fk': 0, 'plant': 0}, logs
     controller = json.loads((tmp_path / 'rig' / 'controller_summary.json').read_text())
     assert controller['values']['law_failures'] > 0, controller
