@@ -502,7 +502,7 @@ def test_known_keys_come_from_one_place():
 
 
 def test_every_key_the_code_reads_is_known():
-    """The registry (core/params.py NODE_KEYS and Mechanism) covers every
+    """The declarations (core/node_parameters.py) and Mechanism cover every
     parameter the code reads (found as docs/interface.md's test finds them)."""
     from test_interface_doc import parameters_read
 
@@ -512,7 +512,7 @@ def test_every_key_the_code_reads_is_known():
     examples |= {'plant', 'controller', 'fk'}   # rig's extra['plant'][...]: node names
     missing = {k: where for k, where in parameters_read().items()
                if k not in known_keys() and k not in examples}
-    assert missing == {}, 'add these to NODE_KEYS in core/params.py: %s' % missing
+    assert missing == {}, 'declare these in core/node_parameters.py: %s' % missing
 
 
 # -- 7. the README's examples ---------------------------------------------------------

@@ -70,7 +70,7 @@ def parameters_read() -> dict[str, str]:
             if isinstance(node, ast.Call) and node.args:
                 func = node.func
                 first = _const_str(node.args[0])
-                # self.param('x', ...), self.positive('x', ...), self.tunable('x', ...)
+                # self.param('x'), self.peer_names('x'), self.tunable('x', ...)
                 if isinstance(func, ast.Attribute) and isinstance(func.value, ast.Name) \
                         and func.value.id == 'self' and func.attr in accessors:
                     add(first, path, node)
@@ -78,8 +78,8 @@ def parameters_read() -> dict[str, str]:
                 elif isinstance(func, ast.Attribute) and func.attr == 'get' \
                         and _tail_name(func.value) in ('params', 'extra'):
                     add(first, path, node)
-                # _scalar(params, 'x'), _vector(params, 'x', n)
-                elif _tail_name(node.args[0]) == 'params' and len(node.args) > 1:
+                # _scalar(params, 'x'), read_declared(mech.extra, 'x')
+                elif _tail_name(node.args[0]) in ('params', 'extra') and len(node.args) > 1:
                     add(_const_str(node.args[1]), path, node)
             # params['x']
             elif isinstance(node, ast.Subscript) and _tail_name(node.value) in ('params', 'extra'):

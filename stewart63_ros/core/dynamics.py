@@ -43,6 +43,7 @@ from stewart63_ros.core._jit import njit, njit_kernel
 from stewart63_ros.core.control import pd_leg
 from stewart63_ros.core.fk import solve_linear
 from stewart63_ros.core.kinematics import LegState, leg_kernel
+from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.rotation import matrix_from_quaternion
 
 if TYPE_CHECKING:
@@ -57,8 +58,6 @@ POS, QUAT, VEL, OMEGA = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 13)
 #: End-stop model (docs/interface.md): past a stroke limit, a stiff
 #: spring-damper inside the leg pushes it back; override with the parameters
 #: ``endstop_stiffness`` [N/m] and ``endstop_damping`` [N s/m].
-DEFAULT_ENDSTOP_STIFFNESS = 2.0e6
-DEFAULT_ENDSTOP_DAMPING = 5.0e3
 
 NO_WRENCH = np.zeros(6)
 NO_GAINS = np.zeros((0, 6))
@@ -475,7 +474,7 @@ class Dynamics:
     The state ``y`` is a float array (13,): t [m], quaternion (x, y, z, w),
     v [m/s], omega [rad/s], all in the base frame (``POS``, ``QUAT``, ``VEL``,
     ``OMEGA``). ``endstop_stiffness`` / ``endstop_damping`` come from
-    ``mech.extra`` (defaults ``DEFAULT_ENDSTOP_*``).
+    ``mech.extra`` (declared in core/node_parameters.py).
 
     Args:
         mech: the mechanism.
@@ -492,8 +491,8 @@ class Dynamics:
         const[_LD], const[_LU] = mech.leg_lower_com, mech.leg_upper_com
         const[_IT] = mech.leg_lower_inertia[1] + mech.leg_upper_inertia[1]
         const[_CP], const[_CU] = mech.piston_damping, mech.ujoint_damping
-        const[_KSTOP] = float(extra.get('endstop_stiffness', DEFAULT_ENDSTOP_STIFFNESS))
-        const[_CSTOP] = float(extra.get('endstop_damping', DEFAULT_ENDSTOP_DAMPING))
+        const[_KSTOP] = read_declared(extra, 'endstop_stiffness')
+        const[_CSTOP] = read_declared(extra, 'endstop_damping')
         const[_LMIN], const[_LMAX] = mech.leg_length_min, mech.leg_length_max
         #: Arrays the compiled kernels take (see ``kernel_args``).
         self.constants = const

@@ -44,7 +44,7 @@ from typing import Iterable
 
 import numpy as np
 
-from stewart63_ros.core.params import LEG_NAMES
+from stewart63_ros.core.legs import LEG_NAMES
 
 #: kind -> (value: None (takes none) or (unit, check, what a value must be))
 KINDS: dict[str, tuple | None] = {

@@ -42,16 +42,12 @@ from numpy.typing import ArrayLike
 
 from stewart63_ros.core._jit import njit
 from stewart63_ros.core.kinematics import leg_kernel
+from stewart63_ros.core.node_parameters import DEFAULT_COND_THRESHOLD
 from stewart63_ros.core.rotation import euler_from_matrix, rotation_from_euler
 
 if TYPE_CHECKING:
     from stewart63_ros.core.params import Mechanism
 
-#: Flag a pose whose 6x6 Jacobian (rows [s_i, q_i x s_i], in metres) has a
-#: 2-norm condition number above this. Over 5000 random poses of the default
-#: workspace it stays between 3 and 6; at a singular pose it is infinite. At
-#: 100, a length error dL can move the estimate by ~100 dL: not to be trusted.
-DEFAULT_COND_THRESHOLD = 1.0e4
 #: Pair k's legs (0-based): legs 2k and 2k+1 meet at vertex k.
 PAIRS = ((0, 1), (2, 3), (4, 5))
 #: Platform sides (0-based vertices) in the order the equations are chained: 1-2, 2-3, 3-1.

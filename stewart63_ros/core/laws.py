@@ -51,6 +51,8 @@ from stewart63_ros.core.control import pd_law
 from stewart63_ros.core.dynamics import Dynamics, inverse_dynamics_forces
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.core.fk import ForwardKinematics, pose_and_twist
+from stewart63_ros.core.node_parameters import gain_vector, law_name
+from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.reference import (
     I_ACC,
     I_ALPHA,
@@ -72,35 +74,8 @@ from stewart63_ros.core.rotation import rotation_from_euler
 if TYPE_CHECKING:
     from stewart63_ros.core.params import Mechanism
 
-DEFAULT_CT_KP = 2500.0
-DEFAULT_CT_KD = 100.0
-
-
 class LawError(RuntimeError):
     """A law that raised or returned forces that cannot be applied."""
-
-
-def gain_vector(name: str, value: Any) -> np.ndarray:
-    """Six finite non-negative gains, or ParameterError with the reason.
-
-    Args:
-        name: the parameter's name, for the error.
-        value: the value as given (a sequence of six numbers).
-
-    Returns:
-        (6,) float array.
-    """
-    try:
-        arr = np.array(value, dtype=float).ravel()
-    except (TypeError, ValueError):
-        raise ParameterError(name, 'expected 6 numbers, got %r' % (value,)) from None
-    if arr.size != 6:
-        raise ParameterError(name, 'expected 6 numbers, got %d' % arr.size)
-    if not np.all(np.isfinite(arr)):
-        raise ParameterError(name, 'NaN or Inf in %s' % arr.tolist())
-    if np.any(arr < 0):
-        raise ParameterError(name, 'gains must be >= 0, got %s' % arr.tolist())
-    return arr
 
 
 # -- compiled kernels -----------------------------------------------------------------------
@@ -292,8 +267,8 @@ class ComputedTorqueLaw(_ModelLaw):
 
     def __init__(self, mech: Mechanism, params: Mapping[str, Any]) -> None:
         super().__init__(mech, params)
-        self.ct_kp = gain_vector('ct_kp', params.get('ct_kp', [DEFAULT_CT_KP] * 6))
-        self.ct_kd = gain_vector('ct_kd', params.get('ct_kd', [DEFAULT_CT_KD] * 6))
+        self.ct_kp = read_declared(params, 'ct_kp')
+        self.ct_kd = read_declared(params, 'ct_kd')
 
     def set_parameter(self, name: str, value: Any) -> None:
         """Change the gain ``name`` (one of ``parameters``); ParameterError to refuse."""
@@ -325,8 +300,7 @@ def law_class(name: str) -> type:
         ParameterError: (key ``control_law``) an unknown name, a module that
             cannot be imported, or no such class in it.
     """
-    if not isinstance(name, str) or not name:
-        raise ParameterError('control_law', 'expected a law name, got %r' % (name,))
+    law_name('control_law', name)
     if name in LAWS:
         return LAWS[name]
     if ':' not in name:
@@ -401,7 +375,7 @@ class Controller:
         self.params = dict(mech.to_params())
         self.params.update(params or {})
         self.max_force = float(mech.max_force)
-        name = law if law is not None else self.params.get('control_law', 'pd')
+        name = law if law is not None else read_declared(self.params, 'control_law')
         self.law = make_law(name, mech, self.params)
         self.law_name = name
         self.sample = ReferenceSample(np.zeros(SAMPLE_SIZE))

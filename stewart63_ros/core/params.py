@@ -18,12 +18,13 @@ import yaml
 
 # ParameterError lives in the leaf module errors; importing it from here works too.
 from stewart63_ros.core.errors import ParameterError
+
+# The legs' names live in the leaf module legs; importing them from here works too.
+from stewart63_ros.core.legs import LEG_NAMES, LEG_VERTEX  # noqa: F401
+from stewart63_ros.core.node_parameters import NODE_KEYS
+from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.rotation import rotation_from_euler
 from stewart63_ros.paths import default_params_path
-
-LEG_NAMES = tuple('leg_%d' % i for i in range(1, 7))
-#: Legs 2k-1 and 2k (1-based) meet at platform vertex k.
-LEG_VERTEX = np.array([0, 0, 1, 1, 2, 2])
 
 
 def _section_applies(key: str, node_name: str | None) -> int:
@@ -117,16 +118,6 @@ def _check_axisymmetric_inertia(key, axial_transverse):
     if axial > 2 * transverse * (1 + 1e-12):
         raise ParameterError(key, 'axial %g > 2 x transverse %g breaks the triangle inequality'
                              % (axial, transverse))
-
-
-def _check_nonnegative(key: str, value: Any) -> None:
-    """One number >= 0 (infinity included), or ParameterError."""
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ParameterError(key, 'expected a number, got %r' % (value,)) from None
-    if not number >= 0:        # NaN too
-        raise ParameterError(key, 'must be >= 0, got %r' % (value,))
 
 
 def inertia_matrix(six: np.ndarray) -> np.ndarray:
@@ -225,29 +216,6 @@ class Mechanism:
 
 
 _KNOWN = {f.name for f in dataclasses.fields(Mechanism)} - {'extra'}
-
-#: Every parameter an executable reads besides the mechanism (the fields of
-#: ``Mechanism``), by the node that reads it; 'all' are read by every node.
-#: This is the one list of known keys: a key found nowhere here or in
-#: ``Mechanism`` is reported as unknown (a typo?) by every executable that
-#: reads parameter files. A node that reads a new parameter: add its name
-#: here, under that node, and document it in docs/interface.md. A user's
-#: control law (``control_law: package.module:Class``) adds the keys its
-#: class lists in ``parameters``.
-NODE_KEYS: dict[str, set[str]] = {
-    'all': {'wait_for_subscribers', 'discovery_timeout', 'discovery_settle',
-            'realtime_priority', 'strict_parameters', 'use_sim_time', 'summary_file'},
-    'plant': {'sensor_rate', 'clock_mode', 'duration', 'force_timeout',
-              'lengths_subscribers', 'lengths_peers', 'sensor_noise', 'sensor_rate_noise',
-              'sensor_resolution',
-              'sensor_delay', 'sensor_seed', 'endstop_stiffness', 'endstop_damping',
-              'reference_file', 'lockstep_peers', 'lockstep_window', 'lockstep_peer_timeout',
-              'faults', 'step_count'},
-    'controller': {'watchdog_timeout', 'clock_mode', 'control_law', 'ct_kp', 'ct_kd',
-                   'max_leg_speed', 'max_leg_acceleration', 'reference_file'},
-    'fk': {'singularity_threshold', 'marker_rate', 'clock_mode'},
-}
-
 
 def known_keys(params: Mapping[str, Any] | None = None) -> set[str]:
     """Every key some executable reads: the mechanism's and every node's, and
@@ -408,8 +376,7 @@ def _mechanism_from_params(params: Mapping[str, Any]) -> Mechanism:
     # The end stops belong to the model the plant integrates (and sim); an
     # infinitely stiff one is allowed (the integrators then report it).
     for key in ('endstop_stiffness', 'endstop_damping'):
-        if key in params:
-            _check_nonnegative(key, params[key])
+        read_declared(params, key)
     if np.any(mech.setpoint_lengths <= 0):
         raise ParameterError('setpoint_lengths', 'lengths must be > 0')
     if mech.leg_lower_com > lmax or mech.leg_upper_com > lmax:

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from stewart63_ros.core.errors import ParameterError
+from stewart63_ros.core.node_parameters import read as read_declared
 
 
 class SensorModel:
@@ -20,19 +20,15 @@ class SensorModel:
         params: the plant's parameters (the keys above; missing ones are off).
 
     Raises:
-        ParameterError: a value that is not a finite number >= 0.
+        ParameterError: a value out of its declared range (core/node_parameters.py).
     """
 
     def __init__(self, params: Mapping[str, Any]) -> None:
-        self.noise = float(params.get('sensor_noise', 0.0))
-        self.rate_noise = float(params.get('sensor_rate_noise', 0.0))
-        self.resolution = float(params.get('sensor_resolution', 0.0))
-        self.delay = int(params.get('sensor_delay', 0))
-        for key in ('sensor_noise', 'sensor_rate_noise', 'sensor_resolution', 'sensor_delay'):
-            value = float(params.get(key, 0))
-            if not np.isfinite(value) or value < 0:
-                raise ParameterError(key, 'must be a finite number >= 0, got %r' % value)
-        self.rng = np.random.default_rng(int(params.get('sensor_seed', 0)))
+        self.noise = read_declared(params, 'sensor_noise')
+        self.rate_noise = read_declared(params, 'sensor_rate_noise')
+        self.resolution = read_declared(params, 'sensor_resolution')
+        self.delay = read_declared(params, 'sensor_delay')
+        self.rng = np.random.default_rng(read_declared(params, 'sensor_seed'))
         self.history = []
 
     def measure(self, lengths: np.ndarray,

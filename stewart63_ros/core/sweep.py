@@ -43,6 +43,7 @@ import numpy as np
 from stewart63_ros.core._jit import njit
 from stewart63_ros.core.dynamics import Dynamics, lengths_rates
 from stewart63_ros.core.laws import Controller, LawError
+from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.params import (
     ParameterError,
     known_keys,
@@ -185,7 +186,7 @@ def make_plan(params_path, variations, law: str | None = None,
     """
     plant = read_parameter_file(params_path, 'plant')
     controller = read_parameter_file(params_path, 'controller')
-    law = law or controller.get('control_law', 'pd')
+    law = law or read_declared(controller, 'control_law')
     plan = SweepPlan(plant, controller, law, float(duration), tuple(variations))
     keys = [v.key for v in plan.variations]
     for var in plan.variations:

@@ -8,6 +8,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from stewart63_ros import topics
+from stewart63_ros.core.node_parameters import BY_NAME as DECLARED
+from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.params import ParameterError, mechanism_from_params, unknown_keys
 from stewart63_ros.core.precompile import COMPILE_NOTICE, kernel_cache_cold
 from stewart63_ros.nodes.checks import SkipCounter
@@ -49,14 +51,14 @@ class RigNode(Node):
         self.mech = mechanism_from_params(self.params)
         if kernel_cache_cold():
             self.get_logger().info(COMPILE_NOTICE)
-        self.wait_for_subscribers = int(self.param('wait_for_subscribers', 0))
-        self.discovery_timeout = self.positive('discovery_timeout', 20.0)
+        self.wait_for_subscribers = self.param('wait_for_subscribers')
+        self.discovery_timeout = self.param('discovery_timeout')
         # A participant announces itself every 3 s after its first burst (Fast
         # DDS): one lost exchange and the graph shows a running recorder only
         # then (measured 0.6-1.4 s here, and more than 2 s in 1 of ~10 loaded
         # starts). 4 s outlasts one period.
-        self.discovery_settle = float(self.param('discovery_settle', 4.0))
-        if not 0 <= self.discovery_settle <= self.discovery_timeout:
+        self.discovery_settle = self.param('discovery_settle')
+        if not self.discovery_settle <= self.discovery_timeout:
             raise ParameterError('discovery_settle', 'must be from 0 to discovery_timeout '
                                  '(%g s), got %r' % (self.discovery_timeout,
                                                      self.discovery_settle))
@@ -65,7 +67,7 @@ class RigNode(Node):
         #: called by run_on after each batch of messages (fk's lockstep progress)
         self.after_batch = None
         #: where close() writes the node's summary as JSON ('' : nowhere)
-        self.summary_file = str(self.param('summary_file', ''))
+        self.summary_file = self.param('summary_file')
         self.summary_written = False
         self.realtime_priority = self._realtime_priority()
         self._executor = None       # made on first use: see executor_
@@ -94,10 +96,16 @@ class RigNode(Node):
     def tunable(self, name: str, apply) -> None:
         """Let parameter ``name`` change at run time (``ros2 param set``).
 
-        ``apply(value)`` checks the new value and puts it into effect at once,
-        or raises ``ParameterError`` with the reason: the change is then
-        refused and nothing changes.
+        ``apply(value)`` puts the new value into effect at once, or raises
+        ``ParameterError`` with the reason: the change is then refused and
+        nothing changes. A declared key (core/node_parameters.py) must be
+        declared changeable at run time, so that the interface page says so;
+        ``apply`` gets its value as its declaration's check returns it.
         """
+        declared = DECLARED.get(name)
+        if declared is not None and not declared.runtime:
+            raise ValueError('%s is declared fixed at start-up (core/node_parameters.py)'
+                             % name)
         self._tunable[name] = apply
 
     def _on_set_parameters(self, parameters):
@@ -111,8 +119,9 @@ class RigNode(Node):
                     '%s cannot be changed while the node runs (the model and the node '
                     'set-up are fixed at start-up); restart the node with the new value'
                     % param.name))
+            declared = DECLARED.get(param.name)
             try:
-                apply(param.value)
+                apply(declared.check(param.name, param.value) if declared else param.value)
             except ParameterError as exc:
                 return SetParametersResult(successful=False, reason=str(exc))
             self.params[param.name] = param.value
@@ -133,9 +142,7 @@ class RigNode(Node):
     def _check_unknown_keys(self) -> None:
         """Name every key no executable reads (a typo?): a warning, or with
         the parameter ``strict_parameters: true`` a ParameterError."""
-        strict = self.params.get('strict_parameters', False)
-        if not isinstance(strict, bool):
-            raise ParameterError('strict_parameters', 'must be true or false, got %r' % (strict,))
+        strict = self.param('strict_parameters')
         problems = unknown_keys(self.params)
         if problems and strict:
             raise ParameterError(problems[0].partition(':')[0], problems[0].partition(': ')[2]
@@ -143,34 +150,19 @@ class RigNode(Node):
         for problem in problems:
             self.get_logger().warning('%s; ignored' % problem)
 
-    def param(self, name, default):
-        return self.params.get(name, default)
+    def param(self, name: str):
+        """The value of the declared key ``name`` (core/node_parameters.py):
+        as given, or its default; checked (ParameterError: exit 2)."""
+        return read_declared(self.params, name)
 
-    def peer_names(self, name) -> list:
+    def peer_names(self, name: str) -> list:
         """Parameter ``name``: a list of node names, relative to this node's
         namespace unless they start with '/', as full names."""
-        value = self.param(name, [])
-        if isinstance(value, str) or not all(isinstance(v, str) and v.strip('/')
-                                             for v in value):
-            raise ParameterError(name, 'expected a list of node names, got %r' % (value,))
         return [v if v.startswith('/') else topics.node_full_name(self.get_namespace(), v)
-                for v in value]
-
-    def positive(self, name, default) -> float:
-        try:
-            value = float(self.param(name, default))
-        except (TypeError, ValueError):
-            raise ParameterError(name, 'expected a number, got %r'
-                                 % self.param(name, default)) from None
-        if not value > 0 or value == float('inf'):
-            raise ParameterError(name, 'must be a positive finite number, got %r' % value)
-        return value
+                for v in self.param(name)]
 
     def _realtime_priority(self) -> int:
-        value = self.param('realtime_priority', 0)
-        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 99:
-            raise ParameterError('realtime_priority', 'must be an integer from 0 (normal '
-                                 'scheduling) to 99, got %r' % (value,))
+        value = self.param('realtime_priority')
         if value:
             refused = realtime_scheduling(value)
             if refused:

@@ -139,15 +139,15 @@ class ControllerNode(RigNode):
     def __init__(self, options):
         super().__init__('controller')
         mech = self.mech
-        self.max_leg_speed = self.nonnegative('max_leg_speed', 0.0)
-        self.max_leg_acceleration = self.nonnegative('max_leg_acceleration', 0.0)
+        self.max_leg_speed = self.param('max_leg_speed')
+        self.max_leg_acceleration = self.param('max_leg_acceleration')
         self.control = Controller(mech, self.params)        # ParameterError: exit 2
         # Load the compiled laws now (0.7-1.7 s measured), not on the first sample: a
         # realtime plant would integrate that long without forces.
         self._warm_up()
         self.ref_start_ns = None        # the reference's time 0 on the sample clock
         self.reference_name = 'setpoint_lengths'
-        reference_file = str(self.param('reference_file', '') or '')
+        reference_file = self.param('reference_file')
         if reference_file:
             try:
                 reference = load_reference(mech, reference_file, self.max_leg_speed,
@@ -156,9 +156,7 @@ class ControllerNode(RigNode):
                 raise ParameterError('reference_file', str(exc)) from None
             self.control.set_reference(reference, 0.0)
             self.reference_name = reference_file
-        # Lockstep pauses are the plant's choice, not a failure: longer default.
-        lockstep = self.param('clock_mode', 'realtime') == 'lockstep'
-        self.watchdog_timeout = self.positive('watchdog_timeout', 2.0 if lockstep else 0.1)
+        self.watchdog_timeout = self.param('watchdog_timeout')   # longer in lockstep
         self.sample_gate = StampGate(RESTART_PAUSE)
         self.setpoint_gate = StampGate()
         self.pose_gate = StampGate()
@@ -202,16 +200,6 @@ class ControllerNode(RigNode):
         self.health.values['reference'] = self.reference_name
         self.withheld = 0
         self.watch_source(self.sub_samples, topics.LEG_LENGTHS, self.sample_gate)
-
-    def nonnegative(self, name, default) -> float:
-        try:
-            value = float(self.param(name, default))
-        except (TypeError, ValueError):
-            raise ParameterError(name, 'expected a number, got %r'
-                                 % (self.param(name, default),)) from None
-        if not (value >= 0 and np.isfinite(value)):
-            raise ParameterError(name, 'must be a finite number >= 0, got %r' % value)
-        return value
 
     def _warm_up(self, name=None):
         """Load the compiled kernels of law ``name`` (default: the active one), on a

@@ -22,9 +22,8 @@ from geometry_msgs.msg import PoseStamped, TwistStamped
 from sensor_msgs.msg import JointState
 
 from stewart63_ros import topics
-from stewart63_ros.core.fk import DEFAULT_COND_THRESHOLD, FKTracker, NoAssemblyError
+from stewart63_ros.core.fk import FKTracker, NoAssemblyError
 from stewart63_ros.core.kinematics import leg_lengths
-from stewart63_ros.core.params import ParameterError
 from stewart63_ros.core.rotation import rotation_from_euler
 from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
@@ -36,7 +35,7 @@ from stewart63_ros.nodes.rclpy_internals import raw_publisher
 class FKNode(RigNode):
     def __init__(self, options):
         super().__init__('fk')
-        threshold = self.positive('singularity_threshold', DEFAULT_COND_THRESHOLD)
+        threshold = self.param('singularity_threshold')
         self.tracker = FKTracker(self.mech, cond_threshold=threshold)
         self.warm_up()
         self.gate = StampGate(RESTART_PAUSE)
@@ -53,10 +52,7 @@ class FKNode(RigNode):
         self.send_twist = raw_publisher(self.pub_twist)
         wire.warm_up(('position',), ('velocity',))
         self.markers = None
-        rate = self.param('marker_rate', 30.0)
-        if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0 <= rate <= 200:
-            raise ParameterError('marker_rate', 'must be a number of Hz from 0 (no markers) '
-                                 'to 200, got %r' % (rate,))
+        rate = self.param('marker_rate')
         if rate:
             from stewart63_ros.nodes.markers import MarkerPublisher
             self.markers = MarkerPublisher(self, self.mech, float(rate), self.tracker.fk)
@@ -69,7 +65,7 @@ class FKNode(RigNode):
         # Every sample must reach fk; in lockstep it tells the plant how far it
         # has got (nodes/lockstep.py), so the plant never outruns it.
         self.health.every_message.add(topics.LEG_LENGTHS)
-        self.lockstep = self.param('clock_mode', 'realtime') == 'lockstep'
+        self.lockstep = self.param('clock_mode') == 'lockstep'
         self.progress = None
         if self.lockstep:
             from stewart63_ros.nodes.lockstep import ProgressPublisher

@@ -55,18 +55,13 @@ TRACKING_FROM = 1.0
 class PlantNode(PlantControl, RigNode):
     def __init__(self, options):
         super().__init__('plant')
-        self.rate = self.positive('sensor_rate', 1000.0)
-        self.mode = str(self.param('clock_mode', 'realtime'))
-        if self.mode not in ('realtime', 'lockstep'):
-            raise ParameterError('clock_mode',
-                                 "must be 'realtime' or 'lockstep', got %r" % self.mode)
-        self.duration = float(self.param('duration', 0.0))   # simulated seconds; 0 = forever
-        if not np.isfinite(self.duration) or self.duration < 0:
-            raise ParameterError('duration', 'must be >= 0 seconds')
-        self.force_timeout = self.positive('force_timeout', 1.0)
+        self.rate = self.param('sensor_rate')
+        self.mode = self.param('clock_mode')
+        self.duration = self.param('duration')      # simulated seconds; 0 = forever
+        self.force_timeout = self.param('force_timeout')
         # Matched leg_lengths subscriptions to wait for before the first sample
         # (rig: controller + fk + recorder).
-        self.lengths_subscribers = int(self.param('lengths_subscribers', 0))
+        self.lengths_subscribers = self.param('lengths_subscribers')
         # Nodes (names relative to this namespace) whose leg_lengths
         # subscription the graph must show before the first sample. A count
         # alone is not enough: a recorder started first fills it while fk,
@@ -77,13 +72,8 @@ class PlantNode(PlantControl, RigNode):
         # the plant never runs more than lockstep_window samples ahead of.
         self.peers = None
         lockstep_peers = self.peer_names('lockstep_peers')
-        window = self.param('lockstep_window', 200)
-        if isinstance(window, bool) or not isinstance(window, int) or not 1 <= window <= 900:
-            # Below the publishers' 1000-sample history: a sample a peer
-            # missed can still be re-sent.
-            raise ParameterError('lockstep_window', 'must be an integer number of samples '
-                                 'from 1 to 900, got %r' % (window,))
-        peer_timeout = self.positive('lockstep_peer_timeout', 10.0)
+        window = self.param('lockstep_window')
+        peer_timeout = self.param('lockstep_peer_timeout')
         if lockstep_peers and self.mode == 'lockstep':
             from stewart63_ros.nodes.lockstep import PeerWindow
             self.peers = PeerWindow(self, lockstep_peers, window,
@@ -95,7 +85,7 @@ class PlantNode(PlantControl, RigNode):
         # The reference motion the controller follows (rig --reference), read
         # here only to report the true tracking error in the summary.
         self.reference = None
-        reference_file = str(self.param('reference_file', '') or '')
+        reference_file = self.param('reference_file')
         if reference_file:
             from stewart63_ros.core.reference import ReferenceError, load_reference
             try:

@@ -26,8 +26,7 @@ import time
 
 import numpy as np
 
-from stewart63_ros.core.faults import FaultError, FaultModel, parse_faults
-from stewart63_ros.core.params import ParameterError
+from stewart63_ros.core.faults import FaultModel
 from stewart63_ros.core.sensor import SensorModel
 from stewart63_ros.core.simulate import initial_state
 from stewart63_ros.nodes.checks import RESTART_PAUSE
@@ -41,32 +40,15 @@ RESET_QUIET = 2.0 * RESTART_PAUSE
 HOLD_POLL = 0.1
 
 
-def faults_parameter(value) -> list:
-    """The Faults of a ``faults`` parameter value, or ParameterError('faults', why)."""
-    try:
-        return parse_faults(value)
-    except FaultError as exc:
-        raise ParameterError('faults', str(exc)) from None
-
-
-def step_count_parameter(value) -> int:
-    """A ``step_count`` value: an integer >= 1, or ParameterError."""
-    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 10**9:
-        raise ParameterError('step_count', 'must be an integer >= 1 (samples per ~/step), '
-                             'got %r' % (value,))
-    return value
-
-
 class PlantControl:
     """Faults, pause, step and reset for ``PlantNode`` (see the module's doc)."""
 
     def init_control(self) -> None:
         """Called by the plant's constructor once its model and loop state exist."""
         from std_srvs.srv import SetBool, Trigger
-        self.fault_model = FaultModel(faults_parameter(self.param('faults', [])), self.rate,
-                                      int(self.param('sensor_seed', 0)))
+        self.fault_model = FaultModel(self.param('faults'), self.rate, self.param('sensor_seed'))
         self.sample_complete = True     # the last sample carried all six readings
-        self.step_count = step_count_parameter(self.param('step_count', 1))
+        self.step_count = self.param('step_count')
         self.tunable('faults', self.set_faults)
         self.tunable('step_count', self.set_step_count)
         # Declared even when the file leaves them out: `ros2 param get` shows
@@ -93,15 +75,14 @@ class PlantControl:
 
     # -- faults ---------------------------------------------------------------------
     def set_faults(self, value) -> None:
-        """Run-time ``faults``: all parsed first, then put in force together."""
-        faults = faults_parameter(value)
-        for event in self.fault_model.set_faults(faults):
+        """Run-time ``faults`` (parsed by their declaration): in force together."""
+        for event in self.fault_model.set_faults(value):
             self.get_logger().warning(event)
         if self.started:
             self.report()
 
     def set_step_count(self, value) -> None:
-        self.step_count = step_count_parameter(value)
+        self.step_count = value
 
     def begin_faults(self) -> None:
         """Sample ``self.k`` begins: faults that start or end on it are logged

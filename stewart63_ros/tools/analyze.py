@@ -86,9 +86,10 @@ def build_parser() -> argparse.ArgumentParser:
 def law_of(args, params_path):
     """(law name or None, controller params, controller mechanism)."""
     from stewart63_ros.core.laws import law_class
+    from stewart63_ros.core.node_parameters import read as read_declared
     from stewart63_ros.core.params import load_mechanism, read_parameter_file
     params = read_parameter_file(params_path, 'controller')
-    law = args.control_law or params.get('control_law', 'pd')
+    law = args.control_law or read_declared(params, 'control_law')
     if law == 'none':
         return None, params, None
     law_class(law)                                   # ParameterError for an unknown law

@@ -83,16 +83,17 @@ def make_controller(params_path, law=None, reference_csv=None):
     setpoint (the compiled paths); else a ``Controller`` with the law (``law`` or
     the controller's ``control_law`` in the file) and the reference CSV, if any.
     Raises ParameterError or ReferenceError."""
+    from stewart63_ros.core.node_parameters import read as read_declared
     from stewart63_ros.core.params import read_parameter_file
     from stewart63_ros.core.reference import load_reference
     params = read_parameter_file(params_path, 'controller')
     mech = load_mechanism(params_path, node_name='controller')
-    law = law or params.get('control_law', 'pd')
+    law = law or read_declared(params, 'control_law')
     reference = None
     if reference_csv is not None:
         reference = load_reference(mech, reference_csv,
-                                   float(params.get('max_leg_speed', 0.0)),
-                                   float(params.get('max_leg_acceleration', 0.0)))
+                                   read_declared(params, 'max_leg_speed'),
+                                   read_declared(params, 'max_leg_acceleration'))
     if law == 'pd' and reference is None:
         return None, None
     from stewart63_ros.core.laws import Controller
@@ -163,11 +164,12 @@ def main(argv=None) -> int:
     start = time.perf_counter()
     try:
         if args.control == 'sampled':
-            rate = args.rate or float(mech.extra.get('sensor_rate', 1000.0))
+            from stewart63_ros.core.node_parameters import read as read_declared
+            rate = args.rate or read_declared(mech.extra, 'sensor_rate')
             model = None
             if faults:
                 from stewart63_ros.core.faults import FaultModel
-                model = FaultModel(faults, rate, int(mech.extra.get('sensor_seed', 0)))
+                model = FaultModel(faults, rate, read_declared(mech.extra, 'sensor_seed'))
             result = run_sampled(mech, args.duration, rate, dyn=dyn, controller=controller,
                                  faults=model)
         else:

@@ -1,0 +1,408 @@
+"""Every parameter a node reads besides the model, declared once.
+
+A declaration (``Declared``) holds what a user needs to know of a key: the
+nodes that read it, its default, unit, range, whether it may change while the
+node runs, one line of doc, and the check that turns a value as given into
+the value used (or raises ``ParameterError`` with the reason). From these
+declarations, and nowhere else, come:
+
+- the keys each node reads (``NODE_KEYS``; with the model's keys, the fields
+  of ``params.Mechanism``, every key an executable knows: a key outside both
+  is reported as unknown);
+- the value a node, ``sim`` or the core uses: ``read(params, name)``,
+  defaulted and checked;
+- the table "Node-specific keys" of docs/interface.md: ``markdown_table()``
+  (test/test_parameter_table.py keeps the page equal to it;
+  ``python test/test_parameter_table.py --write`` rewrites it).
+
+The model's keys (geometry, masses, gains, initial state) are the fields of
+``params.Mechanism``, checked together in ``params.mechanism_from_params``.
+
+A node that reads a new parameter: declare it here (it is then known,
+checked and documented), and read it with ``read`` (``RigNode.param``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+from stewart63_ros.core.errors import ParameterError
+from stewart63_ros.core.faults import FaultError, parse_faults
+
+#: The nodes of the rig. 'sim' stands for the offline executables that read
+#: a node's keys (``sim``, ``analyze``, ``sweep``).
+NODES = ('plant', 'controller', 'fk')
+ALL = ('plant', 'controller', 'fk')
+
+
+# -- checks: each takes (name, value as given) and returns the value used ----
+def _number(name: str, value: Any) -> float:
+    if isinstance(value, bool):
+        raise ParameterError(name, 'expected a number, got %r' % (value,))
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise ParameterError(name, 'expected a number, got %r' % (value,)) from None
+
+
+def positive(name: str, value: Any) -> float:
+    """A finite number > 0."""
+    number = _number(name, value)
+    if not number > 0 or number == math.inf:
+        raise ParameterError(name, 'must be a positive finite number, got %r' % (value,))
+    return number
+
+
+def nonnegative(name: str, value: Any) -> float:
+    """A finite number >= 0."""
+    number = _number(name, value)
+    if not (number >= 0 and math.isfinite(number)):
+        raise ParameterError(name, 'must be a finite number >= 0, got %r' % (value,))
+    return number
+
+
+def nonnegative_or_infinite(name: str, value: Any) -> float:
+    """A number >= 0, infinity allowed (an infinitely stiff end stop)."""
+    number = _number(name, value)
+    if not number >= 0:
+        raise ParameterError(name, 'must be a number >= 0, got %r' % (value,))
+    return number
+
+
+def integer(low: int | None = None, high: int | None = None, what: str = '') -> Callable:
+    """A check for an integer from ``low`` to ``high`` (None: unbounded).
+    A float with an integral value (YAML's ``2.0``) counts as that integer."""
+    def check(name: str, value: Any) -> int:
+        ok = not isinstance(value, bool) and (
+            isinstance(value, int) or (isinstance(value, float) and value.is_integer()))
+        if ok:
+            value = int(value)
+        if not ok or (low is not None and value < low) or (high is not None and value > high):
+            bounds = ('from %d to %d' % (low, high) if high is not None
+                      else '>= %d' % low if low is not None else '')
+            raise ParameterError(name, 'must be an integer%s %s, got %r'
+                                 % (' ' + what if what else '', bounds, value))
+        return value
+    check.range_text = ('integer %d–%d' % (low, high) if high is not None
+                        else 'integer ≥ %d' % low if low is not None else 'integer')
+    return check
+
+
+def number_from(low: float, high: float, what: str) -> Callable:
+    """A check for a number from ``low`` to ``high``."""
+    def check(name: str, value: Any) -> float:
+        number = _number(name, value)
+        if not low <= number <= high:
+            raise ParameterError(name, 'must be %s from %g to %g, got %r'
+                                 % (what, low, high, value))
+        return number
+    return check
+
+
+def one_of(*choices: str) -> Callable:
+    """A check for one of the strings ``choices``."""
+    def check(name: str, value: Any) -> str:
+        if value not in choices:
+            raise ParameterError(name, 'must be %s, got %r' % (
+                ' or '.join(repr(c) for c in choices), value))
+        return value
+    check.range_text = ', '.join('`%s`' % c for c in choices)
+    return check
+
+
+def boolean(name: str, value: Any) -> bool:
+    """true or false."""
+    if not isinstance(value, bool):
+        raise ParameterError(name, 'must be true or false, got %r' % (value,))
+    return value
+
+
+def text(name: str, value: Any) -> str:
+    """A string (a path); None or empty: none."""
+    if value is None:
+        return ''
+    if not isinstance(value, str):
+        raise ParameterError(name, 'expected a string, got %r' % (value,))
+    return value
+
+
+def node_names(name: str, value: Any) -> list[str]:
+    """A list of node names (resolved against the node's namespace by the node)."""
+    if isinstance(value, str) or not isinstance(value, (list, tuple)) or not all(
+            isinstance(v, str) and v.strip('/') for v in value):
+        raise ParameterError(name, 'expected a list of node names, got %r' % (value,))
+    return list(value)
+
+
+def gain_vector(name: str, value: Any) -> np.ndarray:
+    """Six finite non-negative gains, or ParameterError with the reason.
+
+    Args:
+        name: the parameter's name, for the error.
+        value: the value as given (a sequence of six numbers).
+
+    Returns:
+        (6,) float array.
+    """
+    try:
+        arr = np.array(value, dtype=float).ravel()
+    except (TypeError, ValueError):
+        raise ParameterError(name, 'expected 6 numbers, got %r' % (value,)) from None
+    if arr.size != 6:
+        raise ParameterError(name, 'expected 6 numbers, got %d' % arr.size)
+    if not np.all(np.isfinite(arr)):
+        raise ParameterError(name, 'NaN or Inf in %s' % arr.tolist())
+    if np.any(arr < 0):
+        raise ParameterError(name, 'gains must be >= 0, got %s' % arr.tolist())
+    return arr
+
+
+def faults(name: str, value: Any) -> list:
+    """A list of fault strings (core/faults.py), parsed."""
+    try:
+        return parse_faults(value)
+    except FaultError as exc:
+        raise ParameterError(name, str(exc)) from None
+
+
+def law_name(name: str, value: Any) -> str:
+    """A law's name (whether it exists is checked when the law is made)."""
+    if not isinstance(value, str) or not value:
+        raise ParameterError(name, 'expected a law name, got %r' % (value,))
+    return value
+
+
+# -- the declarations ---------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Declared:
+    """One parameter: who reads it, its default, unit, range, and its check.
+
+    Attributes:
+        name: the key.
+        nodes: the nodes that read it (``ALL`` for every node; 'sim' for the
+            offline executables).
+        default: the value when the key is missing, or a function of the
+            other parameters that gives it.
+        unit: the unit, '' for none.
+        range: the range column's words; '' for the check's own.
+        doc: one line for the interface page.
+        check: (name, value) -> the value used, or ParameterError.
+        runtime: the node lets it change while it runs (``ros2 param set``).
+        default_text: the default column's words, when not ``default`` itself.
+    """
+    name: str
+    nodes: tuple[str, ...]
+    default: Any
+    unit: str
+    range: str
+    doc: str
+    check: Callable[[str, Any], Any]
+    runtime: bool = False
+    default_text: str = ''
+
+
+def _watchdog_default(params: Mapping[str, Any]) -> float:
+    # Lockstep pauses are the plant's choice, not a failure: longer default.
+    return 2.0 if read(params, 'clock_mode') == 'lockstep' else 0.1
+
+
+#: fk flags a pose whose 6x6 Jacobian (rows [s_i, q_i x s_i], in metres) has a
+#: 2-norm condition number above this. Over 5000 random poses of the default
+#: workspace it stays between 3 and 6; at a singular pose it is infinite. At
+#: 100, a length error dL can move the estimate by ~100 dL: not to be trusted.
+DEFAULT_COND_THRESHOLD = 1.0e4
+#: computed_torque's default stiffness [1/s²] and damping [1/s] per task axis:
+#: 50 rad/s (8 Hz), critically damped.
+DEFAULT_CT_KP = 2500.0
+DEFAULT_CT_KD = 100.0
+#: The end stops' spring [N/m] and damper [N s/m] past the stroke.
+DEFAULT_ENDSTOP_STIFFNESS = 2.0e6
+DEFAULT_ENDSTOP_DAMPING = 5.0e3
+
+_NAMES_RANGE = 'list of names, relative to the plant\'s namespace unless they start with `/`'
+
+DECLARED: tuple[Declared, ...] = (
+    Declared('sensor_rate', ('plant', 'sim'), 1000.0, 'Hz', '', 'sample rate of '
+             '`leg_lengths`, and the physics step (also `sim --control sampled`)', positive),
+    Declared('clock_mode', ('plant', 'controller', 'fk'), 'realtime', '', '', 'see [Clock '
+             'modes](#clock-modes-plant-parameter-clock_mode); the controller takes its '
+             'watchdog default from it, fk its lockstep progress', one_of('realtime', 'lockstep')),
+    Declared('duration', ('plant',), 0.0, 's (simulated)', '', 'end the run after this '
+             'long; 0: run until stopped', nonnegative),
+    Declared('force_timeout', ('plant',), 1.0, 's', '', 'lockstep: how long to wait for the '
+             'force answering a sample before stepping on with the held one', positive),
+    Declared('summary_file', ALL, '', 'path', '', 'write a JSON summary at the end of the '
+             'run: the plant\'s ([Plant summary file](#plant-summary-file)), the '
+             'controller\'s and fk\'s (below that table); `rig` sets it for each node in its '
+             'log directory', text, default_text='"" (none)'),
+    Declared('lengths_subscribers', ('plant',), 0, 'count', '', 'matched `leg_lengths` '
+             'subscriptions to wait for before the first sample (`rig` sets controller + fk '
+             '+ recorder)', integer(0)),
+    Declared('lengths_peers', ('plant',), [], 'node names', _NAMES_RANGE, 'nodes whose '
+             '`leg_lengths` subscription the ROS graph must show (and the plant have '
+             'matched) before the first sample; `rig` sets its controller and fk. A count '
+             'alone would be filled by a recorder started first while fk is still loading',
+             node_names, default_text='[] (none)'),
+    Declared('lockstep_peers', ('plant',), [], 'node names', _NAMES_RANGE, 'lockstep: the '
+             'readers of `leg_lengths` the plant never runs more than `lockstep_window` '
+             'samples ahead of ([flow control](#lockstep-flow-control-and-what-is-counted-'
+             'as-lost)); `rig` sets its fk and its recorder', node_names,
+             default_text='[] (none)'),
+    Declared('lockstep_window', ('plant',), 200, 'samples', '', 'how far the plant may run '
+             'ahead of its slowest lockstep peer (below the publishers\' 1000-sample '
+             'history, so a sample a peer missed can still be re-sent)',
+             integer(1, 900, 'number of samples')),
+    Declared('lockstep_peer_timeout', ('plant',), 10.0, 's (wall clock)', '', 'a lockstep '
+             'peer that has not advanced for this long while the plant waits for it is '
+             'dropped (ERROR on `/diagnostics`)', positive),
+    Declared('sensor_noise', ('plant',), 0.0, 'm', '', 'Gaussian standard deviation '
+             'added to L', nonnegative),
+    Declared('sensor_rate_noise', ('plant',), 0.0, 'm/s', '', 'Gaussian standard '
+             'deviation added to dL/dt', nonnegative),
+    Declared('sensor_resolution', ('plant',), 0.0, 'm', '', 'quantisation step of L '
+             '(0: none)', nonnegative),
+    Declared('sensor_delay', ('plant',), 0, 'samples', '', 'transport delay of the '
+             'sensor', integer(0)),
+    Declared('sensor_seed', ('plant', 'sim'), 0, '', '', 'seed of the noise generator (and '
+             'of the faults\' noise)', integer()),
+    Declared('endstop_stiffness', ('plant', 'sim'), DEFAULT_ENDSTOP_STIFFNESS, 'N/m', '≥ 0 '
+             '(inf: rigid)', 'end-stop spring past `leg_length_min` / `leg_length_max` '
+             '([conventions](#frames-and-conventions))', nonnegative_or_infinite),
+    Declared('endstop_damping', ('plant', 'sim'), DEFAULT_ENDSTOP_DAMPING, 'N s/m', '≥ 0',
+             'end-stop damper', nonnegative_or_infinite),
+    Declared('faults', ('plant', 'sim'), [], 'fault strings', '`kind:leg[:value][@from[-to]]` '
+             '([faults.md](faults.md))', 'sensor and actuator faults injected on purpose',
+             faults, runtime=True, default_text='[] (none)'),
+    Declared('step_count', ('plant',), 1, 'samples', 'integer ≥ 1', 'lockstep: samples one '
+             '`~/step` lets through before the plant pauses again ([faults.md](faults.md))',
+             integer(1, 10**9, '(samples per ~/step)'), runtime=True),
+    Declared('control_law', ('controller', 'sim'), 'pd', '', '`pd`, `pd_gravity`, '
+             '`computed_torque`, `package.module:Class`', 'the control law ([Control '
+             'laws](#control-laws))', law_name, runtime=True),
+    Declared('ct_kp', ('controller', 'sim'), [DEFAULT_CT_KP] * 6, '1/s²', '6 numbers ≥ 0',
+             '`computed_torque` stiffness per task axis x, y, z, rx, ry, rz', gain_vector,
+             runtime=True, default_text='2500 ×6'),
+    Declared('ct_kd', ('controller', 'sim'), [DEFAULT_CT_KD] * 6, '1/s', '6 numbers ≥ 0',
+             '`computed_torque` damping per task axis', gain_vector, runtime=True,
+             default_text='100 ×6'),
+    Declared('max_leg_speed', ('controller', 'sim'), 0.0, 'm/s', '', 'refuse a reference '
+             'motion that moves a leg faster (naming time and leg); 0: off', nonnegative),
+    Declared('max_leg_acceleration', ('controller', 'sim'), 0.0, 'm/s²', '', 'refuse a '
+             'reference motion that accelerates a leg more; 0: off', nonnegative),
+    Declared('reference_file', ('controller', 'plant'), '', 'path', 'a [Reference '
+             'CSV](#reference-csv)', 'controller: follow it from the first sample (`rig '
+             '--reference` sets it); plant: report the true tracking error in its summary',
+             text, default_text='"" (none)'),
+    Declared('watchdog_timeout', ('controller',), _watchdog_default, 's (wall clock)', '',
+             'no valid sample for this long after the first one: forces withheld, ERROR on '
+             '`/diagnostics`, until samples return; after the plant of its namespace said '
+             'its run ended (`run: ended` on `/diagnostics`), an INFO line instead', positive,
+             default_text='0.1 (2 in lockstep)'),
+    Declared('singularity_threshold', ('fk',), DEFAULT_COND_THRESHOLD, '', '', 'Jacobian '
+             'condition number above which a pose is not published (reported instead)',
+             positive),
+    Declared('marker_rate', ('fk',), 30.0, 'Hz', '0–200', 'rate of `markers` (a timer '
+             'drawing the newest sample; only when a new sample came); 0: no markers',
+             number_from(0, 200, 'a number of Hz (0: no markers)')),
+    Declared('wait_for_subscribers', ALL, 0, 'count', '', 'before its first message, wait '
+             'until every data publisher of the node has this many matched subscriptions '
+             '(`rig --record` sets 1)', integer(0)),
+    Declared('discovery_timeout', ALL, 20.0, 's', '', 'bound on those waits (and on the '
+             'wait for every subscription the graph shows, see [Executables](#executables))',
+             positive),
+    Declared('discovery_settle', ALL, 4.0, 's', '0 ≤ value ≤ `discovery_timeout`', 'time '
+             'from the node\'s start given to discovery to show the subscriptions already '
+             'running, before the first message. A DDS participant re-announces itself '
+             'every 3 s: one lost discovery exchange shows a running recorder only then '
+             '(more than 2 s in about 1 of 10 loaded starts here)', nonnegative),
+    Declared('strict_parameters', ALL, False, '', '', 'true: an unknown key in what the '
+             'node reads stops it (exit status 2) instead of a warning', boolean),
+    Declared('realtime_priority', ALL, 0, '', '', 'not 0: the node\'s threads run '
+             'SCHED_FIFO at this priority (needs root or `CAP_SYS_NICE`; refused: a warning '
+             'and normal scheduling)', integer(0, 99, '(0: normal scheduling)')),
+    Declared('use_sim_time', ALL, False, '', '', 'rclpy\'s own: the node\'s clock follows '
+             '`/clock` (the plant publishes it in lockstep)', boolean),
+)
+
+BY_NAME: dict[str, Declared] = {d.name: d for d in DECLARED}
+
+#: The keys each node reads (besides the model's); 'sim' the offline tools'.
+NODE_KEYS: dict[str, frozenset[str]] = {
+    node: frozenset(d.name for d in DECLARED if node in d.nodes)
+    for node in (*NODES, 'sim')}
+
+
+def default(name: str, params: Mapping[str, Any] | None = None) -> Any:
+    """The default of ``name`` (given the other ``params``, for a default
+    that depends on them)."""
+    value = BY_NAME[name].default
+    return value(params or {}) if callable(value) else value
+
+
+def read(params: Mapping[str, Any], name: str) -> Any:
+    """The value of the declared key ``name`` a node uses: the given one, or
+    its default, checked.
+
+    Args:
+        params: the node's parameters ({key: value}).
+        name: a declared key.
+
+    Returns:
+        The checked value (e.g. a float for a ``positive`` key).
+
+    Raises:
+        ParameterError: the value does not pass the key's check.
+        KeyError: ``name`` is not declared (a programming error).
+    """
+    value = params.get(name)
+    if value is None:                   # missing, or YAML's ~
+        value = default(name, params)
+    return BY_NAME[name].check(name, value)
+
+
+# -- the interface page's table -----------------------------------------------
+def _code(value: Any) -> str:
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, str):
+        return '`%s`' % value
+    if isinstance(value, float):
+        return ('%g' % value).replace('e+0', 'e').replace('e+', 'e')
+    return str(value)
+
+
+def _range_text(declared: Declared) -> str:
+    if declared.range:
+        return declared.range
+    check = declared.check
+    return getattr(check, 'range_text', None) or {
+        positive: '> 0', nonnegative: '≥ 0', boolean: 'true, false', text: ''}.get(check, '')
+
+
+def markdown_table(packaged: Mapping[str, Any] | None = None) -> str:
+    """docs/interface.md's table "Node-specific keys", from the declarations.
+
+    Args:
+        packaged: the packaged file's keys (all sections): a default the file
+            overrides says so.
+
+    Returns:
+        The markdown table, one row per key, ending in a newline.
+    """
+    rows = ['| key | read by | unit | default | range | changeable at run time | meaning |',
+            '|---|---|---|---|---|---|---|']
+    for d in DECLARED:
+        nodes = 'all' if d.nodes == ALL else ', '.join(
+            '`sim`' if n == 'sim' else n for n in d.nodes)
+        shown = d.default_text or _code(d.default)
+        if packaged and d.name in packaged and not callable(d.default) \
+                and packaged[d.name] != d.default:
+            shown += ' (the packaged file sets %s)' % _code(packaged[d.name])
+        rows.append('| `%s` | %s | %s | %s | %s | %s | %s |' % (
+            d.name, nodes, d.unit, shown, _range_text(d), 'yes' if d.runtime else '', d.doc))
+    return '\n'.join(rows) + '\n'
+
