@@ -98,6 +98,21 @@ def test_the_keys_declared_changeable_at_run_time_are_the_ones_the_nodes_let_cha
     assert {'control_law', 'ct_kp', 'faults'} <= runtime
 
 
+def test_the_model_table_lists_exactly_the_mechanisms_keys():
+    """The model's keys are declared by ``params.Mechanism`` (checked together
+    by ``mechanism_from_params``); the page's model table has one row each."""
+    import dataclasses
+    import re
+
+    from stewart63_ros.core.params import Mechanism
+    text = DOC.read_text()
+    section = text[text.index('### The model (shared keys)'):text.index('### Node-specific keys')]
+    rows = re.findall(r'^\| `([a-z_]+)` \|', section, re.M)
+    assert sorted(rows) == sorted(f.name for f in dataclasses.fields(Mechanism)
+                                  if f.name != 'extra')
+    assert len(rows) == len(set(rows))
+
+
 if __name__ == '__main__':
     if sys.argv[1:] != ['--write']:
         sys.exit('usage: python test/test_parameter_table.py --write')
