@@ -163,3 +163,12 @@ def test_non_finite_derivative_mid_run_and_step_bound_fail_cleanly():
     # The bound on step attempts holds on a sound problem too.
     with pytest.raises(RuntimeError, match='max_steps = 50 '):
         run_continuous(load_mechanism(), DURATION, max_steps=50)
+
+
+def test_the_step_control_constants_are_scipys():
+    """dopri's step control matches solve_ivp's only with scipy's constants."""
+    from scipy.integrate._ivp import rk
+
+    from stewart63_ros.core import dopri
+    assert (dopri.SAFETY, dopri.MIN_FACTOR, dopri.MAX_FACTOR) == \
+        (rk.SAFETY, rk.MIN_FACTOR, rk.MAX_FACTOR)
