@@ -85,11 +85,18 @@ class PDController:
 
     @property
     def setpoint(self) -> np.ndarray:
-        """The lengths held (6,) [m]; setting it checks six finite values (ValueError)."""
+        """The lengths held (6,) [m], (L_i)_0 of eq. (40).
+
+        Setting it stores a float copy of six finite values (any sequence).
+
+        Raises:
+            ValueError: on setting anything but six finite values.
+        """
         return self._setpoint
 
     @setpoint.setter
     def setpoint(self, value: ArrayLike) -> None:
+        """Set the lengths held (6,) [m]; ValueError unless six finite values."""
         value = np.array(value, dtype=float)
         if value.shape != (6,) or not np.all(np.isfinite(value)):
             raise ValueError('setpoint must be six finite lengths')
