@@ -2,17 +2,20 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from numba import njit as _njit
 from numba.core.cpu import CPUTargetOptions as _Options
 
-#: A Python function handed to the decorators; typed as returned unchanged,
-#: since numba's dispatcher is called exactly as the function it compiles.
+if TYPE_CHECKING:
+    from numba.core.dispatcher import Dispatcher
+
+#: The Python function handed to the decorators (numba's stubs type the
+#: dispatcher by it, as ``Dispatcher[_F]``).
 _F = TypeVar('_F', bound=Callable[..., Any])
 
 
-def njit(func: _F) -> _F:
+def njit(func: _F) -> Dispatcher[_F]:
     """Compiled, cached on disk, releasing the GIL; strict IEEE arithmetic.
 
     Args:
@@ -20,8 +23,9 @@ def njit(func: _F) -> _F:
             the argument types of that call).
 
     Returns:
-        numba's dispatcher of ``func``: called as ``func`` is, with the same
-        results (to the rounding of strict IEEE arithmetic).
+        numba's ``Dispatcher`` of ``func``: called as ``func`` is, with the
+        same results (to the rounding of strict IEEE arithmetic); the Python
+        function is its ``py_func``.
     """
     return _njit(cache=True, fastmath=False, nogil=True)(func)
 
@@ -36,7 +40,7 @@ _KERNEL_OPTIONS = {name: value for name, value in (('_nrt', False), ('forceinlin
                    if hasattr(_Options, name)}
 
 
-def njit_kernel(func: _F) -> _F:
+def njit_kernel(func: _F) -> Dispatcher[_F]:
     """``njit`` for small allocation-free kernels, inlined into their callers.
 
     Args:
@@ -44,6 +48,6 @@ def njit_kernel(func: _F) -> _F:
             reference-counting runtime where numba allows it off).
 
     Returns:
-        numba's dispatcher of ``func``, called as ``func`` is.
+        numba's ``Dispatcher`` of ``func``, called as ``func`` is.
     """
     return _njit(cache=True, fastmath=False, nogil=True, **_KERNEL_OPTIONS)(func)

@@ -520,11 +520,11 @@ def summary(plan: SweepPlan,
         unit.
     """
     done = [r for r in rows if not r['diverged']]
-    out = {}
+    out: dict[str, dict[str, float]] = {}
     for key in [v.key for v in plan.variations] + list(METRICS[:-1]):
         data = np.array([r[key] for r in done], dtype=float)
         data = data[np.isfinite(data)]
-        stats = {'count': int(data.size)}
+        stats: dict[str, float] = {'count': int(data.size)}
         if data.size:
             stats.update({'p%d' % p: float(v) for p, v in zip(PERCENTILES,
                                                               np.percentile(data, PERCENTILES))})
