@@ -143,8 +143,14 @@ class Equilibrium:
 
 
 def setpoint_pose(mech: Mechanism) -> tuple[np.ndarray, np.ndarray]:
-    """(position (3,), rotation (3, 3)) of the setpoint: the forward kinematics of
-    ``setpoint_lengths``, the assembly mode nearest the initial pose.
+    """The setpoint's pose: the forward kinematics of ``setpoint_lengths``, the
+    assembly mode nearest the initial pose.
+
+    Args:
+        mech: the mechanism (``setpoint_lengths``, the initial pose).
+
+    Returns:
+        (position t (3,) [m], rotation R (3, 3), platform to base).
 
     Raises:
         AnalysisError: the setpoint lengths close no platform.
@@ -446,7 +452,17 @@ class LinearModel:
 
 
 def open_loop(mech: Mechanism, eq: Equilibrium, dyn: Dynamics | None = None) -> LinearModel:
-    """The plant alone about ``eq``: inputs the six piston forces, outputs the leg lengths."""
+    """The plant alone about ``eq``: inputs the six piston forces, outputs the leg lengths.
+
+    Args:
+        mech: the plant's mechanism.
+        eq: the equilibrium x0 (u0: its holding forces).
+        dyn: the model (default: a new ``Dynamics(mech)``).
+
+    Returns:
+        The open-loop ``LinearModel``: A (12, 12), B (12, 6) per newton,
+        C (6, 12), D = 0 (6, 6), u0 (6,) [N], y0 (6,) [m].
+    """
     dyn = dyn or Dynamics(mech)
     u0 = eq.forces
     zero = np.zeros(12)
@@ -719,7 +735,15 @@ def pair_eigenvalues(values: ArrayLike, vectors: np.ndarray) -> list[tuple[int, 
 
 
 def pair_figures(l1: complex, l2: complex) -> tuple[float, float, bool]:
-    """(natural frequency [Hz], damping ratio, stable) of an eigenvalue pair."""
+    """Natural frequency, damping ratio and stability of an eigenvalue pair.
+
+    Args:
+        l1, l2: the pair [1/s] (complex conjugates, or two real roots).
+
+    Returns:
+        (sqrt(|l1 l2|) / 2 pi [Hz], -(l1 + l2) / (2 sqrt(|l1 l2|)) (inf for a
+        zero frequency), both real parts negative).
+    """
     product = (l1 * l2).real
     omega = np.sqrt(abs(product))
     zeta = -(l1 + l2).real / (2.0 * omega) if omega > 0 else np.inf
@@ -734,6 +758,15 @@ def modes(model: LinearModel) -> Modes:
     with the larger real part (the slower, or the growing, root), rotation
     converted to Euler-angle increments (d theta = E(theta0)^-1 d phi), made
     real (the phase of its largest component removed) and scaled to +1 there.
+
+    Args:
+        model: the linear model (A (12, 12): a second-order system).
+
+    Returns:
+        The ``Modes``, six, slowest first.
+
+    Raises:
+        AnalysisError: the eigenvalues do not pair (``pair_eigenvalues``).
     """
     values, vectors = np.linalg.eig(model.A)
     e_inv = np.linalg.inv(euler_rate_matrix(model.equilibrium.theta))

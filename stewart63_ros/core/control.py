@@ -80,7 +80,14 @@ class PDController:
         self.setpoint = np.array(mech.setpoint_lengths if setpoint is None else setpoint, float)
 
     def __call__(self, lengths: np.ndarray, rates: np.ndarray) -> np.ndarray:
-        """The forces (6,) [N] for measured lengths and rates, float arrays (6,)."""
+        """Eq. (40) on the measured legs.
+
+        Args:
+            lengths, rates: float arrays (6,) L [m], dL/dt [m/s].
+
+        Returns:
+            (6,) piston forces [N], clipped to +-max_force.
+        """
         return pd_law(lengths, rates, self.setpoint, self.kp, self.kv, self.max_force)
 
     @property

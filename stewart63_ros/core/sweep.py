@@ -102,7 +102,17 @@ class SweepPlan:
 
 
 def parse_vary(text: str) -> Variation:
-    """``KEY=LO:HI`` or ``KEY[i]=LO:HI`` -> ``Variation``; SweepError if malformed."""
+    """``KEY=LO:HI`` or ``KEY[i]=LO:HI`` -> ``Variation`` (a ``--vary`` option).
+
+    Args:
+        text: the option's value; LO and HI in the key's unit.
+
+    Returns:
+        The ``Variation``.
+
+    Raises:
+        SweepError: malformed, LO or HI not finite numbers, or LO above HI.
+    """
     match = _VARY.match(text)
     if not match:
         raise SweepError('--vary %s: expected KEY=LO:HI or KEY[i]=LO:HI' % text)
