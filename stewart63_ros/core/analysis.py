@@ -41,8 +41,11 @@ marked unstable.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from stewart63_ros.core.dynamics import (
     NO_GAINS,
@@ -140,8 +143,14 @@ class Equilibrium:
 
 
 def setpoint_pose(mech: Mechanism) -> tuple[np.ndarray, np.ndarray]:
-    """(position (3,), rotation (3, 3)) of the setpoint: the forward kinematics of
-    ``setpoint_lengths``, the assembly mode nearest the initial pose.
+    """The setpoint's pose: the forward kinematics of ``setpoint_lengths``, the
+    assembly mode nearest the initial pose.
+
+    Args:
+        mech: the mechanism (``setpoint_lengths``, the initial pose).
+
+    Returns:
+        (position t (3,) [m], rotation R (3, 3), platform to base).
 
     Raises:
         AnalysisError: the setpoint lengths close no platform.
@@ -154,17 +163,37 @@ def setpoint_pose(mech: Mechanism) -> tuple[np.ndarray, np.ndarray]:
     return mode.position, mode.rotation
 
 
-def pose_lengths_condition(mech: Mechanism, position, rotation) -> tuple[np.ndarray, float]:
-    """Leg lengths (6,) [m] (eq. 5) and the Jacobian's condition number at a pose."""
+def pose_lengths_condition(mech: Mechanism, position: ArrayLike,
+                           rotation: ArrayLike) -> tuple[np.ndarray, float]:
+    """Leg lengths (6,) [m] (eq. 5) and the Jacobian's condition number at a pose.
+
+    Args:
+        mech: the mechanism.
+        position: t (3,) [m], base frame.
+        rotation: R (3, 3), platform to base.
+
+    Returns:
+        (lengths (6,) [m], 2-norm condition number of the Jacobian (rows
+        [s_i, q_i x s_i], metres)).
+    """
     from stewart63_ros.core.fk import ForwardKinematics
     fk = ForwardKinematics(mech)
     lengths, _ = lengths_rates(fk.base, fk.legp, _state13(position, rotation))
     return lengths, fk.condition(position, rotation)
 
 
-def check_pose(mech: Mechanism, position, rotation,
+def check_pose(mech: Mechanism, position: ArrayLike, rotation: ArrayLike,
                max_condition: float = DEFAULT_MAX_CONDITION) -> tuple[np.ndarray, float]:
     """Leg lengths and condition number of a pose the analysis can use.
+
+    Args:
+        mech: the mechanism (its stroke ``leg_length_min``, ``leg_length_max``).
+        position: t (3,) [m], base frame.
+        rotation: R (3, 3), platform to base.
+        max_condition: the largest Jacobian condition number accepted.
+
+    Returns:
+        (lengths (6,) [m], condition number), as ``pose_lengths_condition``.
 
     Raises:
         AnalysisError: a leg outside the stroke [leg_length_min, leg_length_max],
@@ -183,22 +212,42 @@ def check_pose(mech: Mechanism, position, rotation,
     return lengths, float(condition)
 
 
-def holding_forces(dyn: Dynamics, position, rotation) -> np.ndarray:
-    """(6,) piston forces [N] that hold platform and legs still at a pose against
-    gravity: H F = eta(q, 0), eq. (38) with zero twist and acceleration."""
+def holding_forces(dyn: Dynamics, position: ArrayLike, rotation: ArrayLike) -> np.ndarray:
+    """The piston forces that hold platform and legs still at a pose against
+    gravity: H F = eta(q, 0), eq. (38) with zero twist and acceleration.
+
+    Args:
+        dyn: the model.
+        position: t (3,) [m], base frame.
+        rotation: R (3, 3), platform to base.
+
+    Returns:
+        (6,) piston forces [N], positive extends (NaN where H is singular).
+    """
     zero = np.zeros(3)
     return inverse_dynamics_forces(*dyn.kernel_args(), np.asarray(rotation, float),
                                    np.asarray(position, float), zero, zero, np.zeros(6))
 
 
-def equilibrium(mech: Mechanism, pose=None, max_condition: float = DEFAULT_MAX_CONDITION,
+def equilibrium(mech: Mechanism, pose: ArrayLike | None = None,
+                max_condition: float = DEFAULT_MAX_CONDITION,
                 dyn: Dynamics | None = None) -> Equilibrium:
-    """The equilibrium at ``pose`` (x, y, z, theta_x, theta_y, theta_z) [m, rad];
-    default the setpoint's pose (``setpoint_pose``).
+    """The equilibrium at ``pose``; default the setpoint's pose (``setpoint_pose``).
+
+    Args:
+        mech: the mechanism.
+        pose: (6,) x, y, z [m], theta_x, theta_y, theta_z [rad] (R = Rz Ry Rx),
+            or None for the setpoint's pose.
+        max_condition: the largest Jacobian condition number accepted.
+        dyn: the model (default: a new ``Dynamics(mech)``).
+
+    Returns:
+        The ``Equilibrium``: pose, holding forces (6,) [N], lengths (6,) [m].
 
     Raises:
-        AnalysisError: the pose is outside the stroke, near-singular, or needs a
-            holding force beyond ``max_force``.
+        AnalysisError: a pose that is not six finite numbers, or one outside
+            the stroke, near-singular, or needing a holding force beyond
+            ``max_force``; the setpoint lengths close no platform.
     """
     if pose is None:
         position, rotation = setpoint_pose(mech)
@@ -228,9 +277,18 @@ def _state13(position, rotation, velocity=(0.0, 0.0, 0.0), omega=(0.0, 0.0, 0.0)
     return y
 
 
-def state13_from_chart(dx, eq: Equilibrium) -> np.ndarray:
-    """(13,) the dynamics' state at x0 + dx: position t0 + dx[0:3], rotation
-    exp([dx[3:6]]x) R0, velocity dx[6:9], angular velocity dx[9:12]."""
+def state13_from_chart(dx: ArrayLike, eq: Equilibrium) -> np.ndarray:
+    """The dynamics' state at x0 + dx: position t0 + dx[0:3], rotation
+    exp([dx[3:6]]x) R0, velocity dx[6:9], angular velocity dx[9:12].
+
+    Args:
+        dx: (12,) the chart's state about ``eq`` [m, rad, m/s, rad/s].
+        eq: the equilibrium x0.
+
+    Returns:
+        (13,) position [m], quaternion (x, y, z, w), velocity [m/s], angular
+        velocity [rad/s], base frame.
+    """
     dx = np.asarray(dx, dtype=float)
     y = np.empty(STATE_SIZE)
     y[0:3] = eq.position + dx[0:3]
@@ -239,9 +297,17 @@ def state13_from_chart(dx, eq: Equilibrium) -> np.ndarray:
     return y
 
 
-def chart_from_state13(y, eq: Equilibrium) -> np.ndarray:
-    """(12,) dx of a 13-state (or (N, 12) of (N, 13)): the inverse of
-    ``state13_from_chart``, phi = log(R R0^T)."""
+def chart_from_state13(y: ArrayLike, eq: Equilibrium) -> np.ndarray:
+    """The chart's dx of the dynamics' states: the inverse of ``state13_from_chart``,
+    phi = log(R R0^T).
+
+    Args:
+        y: (13,) a state, or (N, 13) states, as the dynamics' (quaternion x, y, z, w).
+        eq: the equilibrium x0.
+
+    Returns:
+        (12,) dx, or (N, 12) for (N, 13) [m, rad, m/s, rad/s].
+    """
     y = np.asarray(y, dtype=float)
     single = y.ndim == 1
     y = np.atleast_2d(y)
@@ -252,10 +318,17 @@ def chart_from_state13(y, eq: Equilibrium) -> np.ndarray:
     return dx[0] if single else dx
 
 
-def left_jacobian_inverse(phi) -> np.ndarray:
-    """(3, 3) J_l(phi)^-1 of SO(3): phi' = J_l^-1 omega when R = exp([phi]x) R0 and
+def left_jacobian_inverse(phi: ArrayLike) -> np.ndarray:
+    """J_l(phi)^-1 of SO(3): phi' = J_l^-1 omega when R = exp([phi]x) R0 and
     omega is R's base-frame angular velocity (Barfoot, State Estimation for
-    Robotics, eq. 7.77): 1 - [phi]/2 + (1/a^2 - (1 + cos a)/(2 a sin a)) [phi]^2."""
+    Robotics, eq. 7.77): 1 - [phi]/2 + (1/a^2 - (1 + cos a)/(2 a sin a)) [phi]^2.
+
+    Args:
+        phi: (3,) rotation vector [rad] (a series below |phi| = 1e-4).
+
+    Returns:
+        (3, 3) J_l(phi)^-1.
+    """
     phi = np.asarray(phi, dtype=float)
     a = float(np.linalg.norm(phi))
     k = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
@@ -264,9 +337,20 @@ def left_jacobian_inverse(phi) -> np.ndarray:
     return np.eye(3) - 0.5 * k + c * (k @ k)
 
 
-def chart_derivative(dyn: Dynamics, eq: Equilibrium, dx, forces) -> np.ndarray:
-    """(12,) d(dx)/dt of the nonlinear model under piston forces (6,) [N], no end
-    stops (the pose lies inside the stroke): eq. (38) through ``derivative_pd``."""
+def chart_derivative(dyn: Dynamics, eq: Equilibrium, dx: np.ndarray,
+                     forces: ArrayLike) -> np.ndarray:
+    """d(dx)/dt of the nonlinear model under piston forces, no end stops (the pose
+    lies inside the stroke): eq. (38) through ``derivative_pd``.
+
+    Args:
+        dyn: the model.
+        eq: the equilibrium x0.
+        dx: (12,) the chart's state about ``eq`` [m, rad, m/s, rad/s].
+        forces: (6,) piston forces [N], held.
+
+    Returns:
+        (12,) d(dx)/dt [m/s, rad/s, m/s^2, rad/s^2].
+    """
     y = state13_from_chart(dx, eq)
     dy = derivative_pd(*dyn.kernel_args(), y, np.asarray(forces, float), NO_WRENCH, False,
                        NO_GAINS, 0.0)
@@ -277,8 +361,18 @@ def chart_derivative(dyn: Dynamics, eq: Equilibrium, dx, forces) -> np.ndarray:
     return out
 
 
-def chart_outputs(dyn: Dynamics, eq: Equilibrium, dx) -> tuple[np.ndarray, np.ndarray]:
-    """Leg lengths (6,) [m] and rates (6,) [m/s] at x0 + dx (eqs. 5, 13)."""
+def chart_outputs(dyn: Dynamics, eq: Equilibrium,
+                  dx: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """Leg lengths and rates at x0 + dx (eqs. 5, 13): what the sensors measure.
+
+    Args:
+        dyn: the model.
+        eq: the equilibrium x0.
+        dx: (12,) the chart's state about ``eq`` [m, rad, m/s, rad/s].
+
+    Returns:
+        (lengths (6,) [m], rates (6,) [m/s]).
+    """
     return lengths_rates(dyn.base_points, dyn.leg_points, state13_from_chart(dx, eq))
 
 
@@ -318,9 +412,16 @@ class LinearModel:
 
     @property
     def closed_loop(self) -> bool:
+        """True under a control law (inputs: leg-length references), False open loop."""
         return self.law is not None
 
     def input_meanings(self) -> list[str]:
+        """What each of the six inputs is, with its unit, in leg order.
+
+        Returns:
+            Six strings: piston forces F_i [N] (open loop) or leg-length
+            references (L_i)_ref [m] (closed loop).
+        """
         if self.closed_loop:
             return ['leg-length reference (L_%d)_ref [m] of the %s law' % (i + 1, self.law)
                     for i in range(6)]
@@ -351,7 +452,17 @@ class LinearModel:
 
 
 def open_loop(mech: Mechanism, eq: Equilibrium, dyn: Dynamics | None = None) -> LinearModel:
-    """The plant alone about ``eq``: inputs the six piston forces, outputs the leg lengths."""
+    """The plant alone about ``eq``: inputs the six piston forces, outputs the leg lengths.
+
+    Args:
+        mech: the plant's mechanism.
+        eq: the equilibrium x0 (u0: its holding forces).
+        dyn: the model (default: a new ``Dynamics(mech)``).
+
+    Returns:
+        The open-loop ``LinearModel``: A (12, 12), B (12, 6) per newton,
+        C (6, 12), D = 0 (6, 6), u0 (6,) [N], y0 (6,) [m].
+    """
     dyn = dyn or Dynamics(mech)
     u0 = eq.forces
     zero = np.zeros(12)
@@ -369,16 +480,28 @@ def _law_controller(mech, params, law, eq: Equilibrium, references):
     return Controller(mech, params, law=law, reference=ref)
 
 
-def law_jacobians(dyn: Dynamics, eq: Equilibrium, law: str, references, params=None,
-                  controller_mech: Mechanism | None = None) -> tuple:
+def law_jacobians(dyn: Dynamics, eq: Equilibrium, law: str, references: ArrayLike,
+                  params: Mapping[str, Any] | None = None,
+                  controller_mech: Mechanism | None = None,
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Forces of a law (through ``laws.Controller``, as the controller node runs it)
     and their derivatives at the equilibrium, by central differences.
 
     Args:
+        dyn: the plant's model.
+        eq: the equilibrium x0.
+        law: the law's name (``pd``, ``pd_gravity``, ``computed_torque``,
+            ``package.module:Class``).
         references: (6,) the leg-length references about which to differentiate [m].
+        params: the controller's parameters (over its mechanism's), or None.
+        controller_mech: the controller's mechanism (default ``dyn.mech``).
 
     Returns:
-        (forces (6,) [N], K_x (6, 12) = dF/dx, K_r (6, 6) = dF/d(reference)).
+        (forces (6,) [N], K_x (6, 12) = dF/dx, K_r (6, 6) = dF/d(reference)
+        [N/m]); K_x's columns in the chart's units (N/m, N/rad, N s/m, N s/rad).
+
+    Raises:
+        AnalysisError: the law raised (``LawError``) at the pose.
     """
     from stewart63_ros.core.laws import LawError
     mech = controller_mech or dyn.mech
@@ -409,17 +532,26 @@ def _pd_gains(mech, params):
     return np.asarray(law.kp, float), np.asarray(law.kv, float)
 
 
-def holding_references(dyn: Dynamics, eq: Equilibrium, law: str, params=None,
+def holding_references(dyn: Dynamics, eq: Equilibrium, law: str,
+                       params: Mapping[str, Any] | None = None,
                        controller_mech: Mechanism | None = None,
-                       iterations: int = 20) -> tuple:
+                       iterations: int = 20) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The leg-length references u0 for which the law gives the holding forces at
     rest at the pose, with the law's Jacobians there.
 
     Newton on F(x0, r) = F_hold from r = L0 (for ``pd`` the first step is exact:
     r = L0 + F_hold / Kp; for laws that hold the pose by themselves r = L0).
 
+    Args:
+        dyn: the plant's model.
+        eq: the equilibrium x0 (its holding forces are the target).
+        law: the law's name, as ``law_jacobians``.
+        params: the controller's parameters, or None.
+        controller_mech: the controller's mechanism (default ``dyn.mech``).
+        iterations: the most Newton steps.
+
     Returns:
-        (u0 (6,) [m], K_x (6, 12), K_r (6, 6)).
+        (u0 (6,) [m], K_x (6, 12), K_r (6, 6) [N/m]), as ``law_jacobians`` at u0.
 
     Raises:
         AnalysisError: the law's forces do not depend on the references, or
@@ -445,15 +577,33 @@ def holding_references(dyn: Dynamics, eq: Equilibrium, law: str, params=None,
                         'the holding forces (off by %.3g N)' % (law, np.max(np.abs(miss))))
 
 
-def closed_loop(mech: Mechanism, eq: Equilibrium, law: str, params=None,
-                dyn: Dynamics | None = None, controller_mech: Mechanism | None = None,
+def closed_loop(mech: Mechanism, eq: Equilibrium, law: str,
+                params: Mapping[str, Any] | None = None, dyn: Dynamics | None = None,
+                controller_mech: Mechanism | None = None,
                 numeric: bool = False) -> LinearModel:
     """The plant under a control law about ``eq``: inputs the six leg-length references.
 
     ``pd`` (eq. 40) is folded in analytically unless ``numeric``; any other law
     (``pd_gravity``, ``computed_torque``, ``package.module:Class``) is
-    differenced through ``laws.Controller``. ``params``: the controller's
-    parameter dictionary (gains), default the mechanism's.
+    differenced through ``laws.Controller``.
+
+    Args:
+        mech: the plant's mechanism.
+        eq: the equilibrium x0.
+        law: the law's name.
+        params: the controller's parameter dictionary (gains), over the
+            controller mechanism's own; None for those alone.
+        dyn: the plant's model (default: a new ``Dynamics(mech)``).
+        controller_mech: the controller's mechanism (default ``mech``).
+        numeric: difference ``pd`` through ``laws.Controller`` too.
+
+    Returns:
+        The closed-loop ``LinearModel``: A (12, 12), B (12, 6) per metre of
+        reference, C (6, 12), D = 0 (6, 6), u0 (6,) the references [m].
+
+    Raises:
+        AnalysisError: the law cannot hold the pose (a zero gain, no
+            convergence) or fails there.
     """
     dyn = dyn or Dynamics(mech)
     plant = open_loop(mech, eq, dyn)
@@ -476,8 +626,8 @@ def closed_loop(mech: Mechanism, eq: Equilibrium, law: str, params=None,
     return LinearModel(A, B, plant.C.copy(), np.zeros((6, 6)), plant.x0, u0, plant.y0, eq, law)
 
 
-def linearize(mech: Mechanism, law: str | None = None, pose=None, params=None,
-              max_condition: float = DEFAULT_MAX_CONDITION,
+def linearize(mech: Mechanism, law: str | None = None, pose: ArrayLike | None = None,
+              params: Mapping[str, Any] | None = None, max_condition: float = DEFAULT_MAX_CONDITION,
               controller_mech: Mechanism | None = None) -> LinearModel:
     """The linear model about the equilibrium at ``pose`` (default: the setpoint's).
 
@@ -525,6 +675,13 @@ class Modes:
     pose: np.ndarray
 
     def to_json(self) -> dict:
+        """The modes as plain JSON types.
+
+        Returns:
+            {'frequencies_hz', 'damping_ratios', 'mode_shapes', 'pose': lists as
+            the attributes, 'stable': six bools, 'eigenvalues': (6, 2) pairs
+            [real, imag] [1/s]}.
+        """
         return {
             'frequencies_hz': self.frequencies_hz.tolist(),
             'damping_ratios': self.damping_ratios.tolist(),
@@ -536,7 +693,7 @@ class Modes:
         }
 
 
-def pair_eigenvalues(values, vectors) -> list[tuple[int, int]]:
+def pair_eigenvalues(values: ArrayLike, vectors: np.ndarray) -> list[tuple[int, int]]:
     """Index pairs of the eigenvalues of a second-order system (12 -> 6 pairs).
 
     Complex conjugates pair with each other. The real eigenvalues left over
@@ -545,7 +702,14 @@ def pair_eigenvalues(values, vectors) -> list[tuple[int, int]]:
     of one overdamped (or divergent) mode move the same coordinates.
 
     Args:
-        values: (2n,) eigenvalues; vectors: (2n, 2n) eigenvectors as columns.
+        values: (2n,) eigenvalues [1/s], complex; vectors: (2n, 2n) eigenvectors
+            as columns (``np.linalg.eig``), positions in their first n rows.
+
+    Returns:
+        n pairs (i, j) of indices into ``values``: the complex pairs first.
+
+    Raises:
+        AnalysisError: an odd number of real eigenvalues.
     """
     values = np.asarray(values)
     n = len(values)
@@ -571,7 +735,15 @@ def pair_eigenvalues(values, vectors) -> list[tuple[int, int]]:
 
 
 def pair_figures(l1: complex, l2: complex) -> tuple[float, float, bool]:
-    """(natural frequency [Hz], damping ratio, stable) of an eigenvalue pair."""
+    """Natural frequency, damping ratio and stability of an eigenvalue pair.
+
+    Args:
+        l1, l2: the pair [1/s] (complex conjugates, or two real roots).
+
+    Returns:
+        (sqrt(|l1 l2|) / 2 pi [Hz], -(l1 + l2) / (2 sqrt(|l1 l2|)) (inf for a
+        zero frequency), both real parts negative).
+    """
     product = (l1 * l2).real
     omega = np.sqrt(abs(product))
     zeta = -(l1 + l2).real / (2.0 * omega) if omega > 0 else np.inf
@@ -586,6 +758,15 @@ def modes(model: LinearModel) -> Modes:
     with the larger real part (the slower, or the growing, root), rotation
     converted to Euler-angle increments (d theta = E(theta0)^-1 d phi), made
     real (the phase of its largest component removed) and scaled to +1 there.
+
+    Args:
+        model: the linear model (A (12, 12): a second-order system).
+
+    Returns:
+        The ``Modes``, six, slowest first.
+
+    Raises:
+        AnalysisError: the eigenvalues do not pair (``pair_eigenvalues``).
     """
     values, vectors = np.linalg.eig(model.A)
     e_inv = np.linalg.inv(euler_rate_matrix(model.equilibrium.theta))
@@ -607,10 +788,11 @@ def modes(model: LinearModel) -> Modes:
 
 
 # -- frequency responses ----------------------------------------------------------------------
-def frequency_response(model: LinearModel, frequencies_hz) -> np.ndarray:
+def frequency_response(model: LinearModel, frequencies_hz: ArrayLike) -> np.ndarray:
     """G(j 2 pi f) = C (j 2 pi f I - A)^-1 B + D at each frequency.
 
     Args:
+        model: the linear model.
         frequencies_hz: (F,) [Hz].
 
     Returns:
@@ -625,10 +807,19 @@ def frequency_response(model: LinearModel, frequencies_hz) -> np.ndarray:
     return model.C[None] @ np.linalg.solve(pencil, rhs) + model.D[None]
 
 
-def frequency_table(frequencies_hz, response) -> list[tuple]:
-    """Rows (f_hz, input, output, magnitude, phase_deg) of ``frequency_response``'s
-    result, by input, then output, then frequency; the phase is unwrapped along
-    frequency (continuous, in degrees)."""
+def frequency_table(frequencies_hz: ArrayLike,
+                    response: np.ndarray) -> list[tuple[float, str, str, float, float]]:
+    """``frequency_response``'s result as rows, by input, then output, then frequency.
+
+    Args:
+        frequencies_hz: (F,) [Hz].
+        response: (F, 6, 6) complex, [f, output, input] (``frequency_response``).
+
+    Returns:
+        36 F rows (f [Hz], input leg name, output leg name, magnitude (output
+        units per input unit), phase [deg]); the phase is unwrapped along
+        frequency (continuous).
+    """
     f = np.asarray(frequencies_hz, dtype=float)
     rows = []
     for i in range(response.shape[2]):
@@ -641,10 +832,17 @@ def frequency_table(frequencies_hz, response) -> list[tuple]:
     return rows
 
 
-def strongest_couplings(response, count: int = 3) -> list[tuple[int, int]]:
-    """(output, input) of the ``count`` off-diagonal responses with the largest peak
-    magnitude; of responses whose peaks agree to 1e-6 (legs that mirror each
-    other) only the first."""
+def strongest_couplings(response: np.ndarray, count: int = 3) -> list[tuple[int, int]]:
+    """The off-diagonal responses with the largest peak magnitude over frequency; of
+    responses whose peaks agree to 1e-6 (legs that mirror each other) only the first.
+
+    Args:
+        response: (F, 6, 6) complex, [f, output, input] (``frequency_response``).
+        count: how many to return (fewer when fewer are distinct).
+
+    Returns:
+        Up to ``count`` (output, input) 0-based leg indices, strongest first.
+    """
     peak = np.max(np.abs(response), axis=0)
     chosen, seen = [], []
     for flat in np.argsort(peak, axis=None)[::-1]:

@@ -80,16 +80,30 @@ class PDController:
         self.setpoint = np.array(mech.setpoint_lengths if setpoint is None else setpoint, float)
 
     def __call__(self, lengths: np.ndarray, rates: np.ndarray) -> np.ndarray:
-        """The forces (6,) [N] for measured lengths and rates, float arrays (6,)."""
+        """Eq. (40) on the measured legs.
+
+        Args:
+            lengths, rates: float arrays (6,) L [m], dL/dt [m/s].
+
+        Returns:
+            (6,) piston forces [N], clipped to +-max_force.
+        """
         return pd_law(lengths, rates, self.setpoint, self.kp, self.kv, self.max_force)
 
     @property
     def setpoint(self) -> np.ndarray:
-        """The lengths held (6,) [m]; setting it checks six finite values (ValueError)."""
+        """The lengths held (6,) [m], (L_i)_0 of eq. (40).
+
+        Setting it stores a float copy of six finite values (any sequence).
+
+        Raises:
+            ValueError: on setting anything but six finite values.
+        """
         return self._setpoint
 
     @setpoint.setter
     def setpoint(self, value: ArrayLike) -> None:
+        """Set the lengths held (6,) [m]; ValueError unless six finite values."""
         value = np.array(value, dtype=float)
         if value.shape != (6,) or not np.all(np.isfinite(value)):
             raise ValueError('setpoint must be six finite lengths')

@@ -39,12 +39,17 @@ derivative fails at once, and the number of step attempts is bounded.
 from __future__ import annotations
 
 import warnings
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.integrate import RK45 as _RK45
 
 from stewart63_ros.core._jit import njit
 from stewart63_ros.core.dynamics import derivative_pd
+
+if TYPE_CHECKING:
+    from stewart63_ros.core.dynamics import Dynamics
 
 #: scipy's step-control constants (scipy.integrate's RK solvers keep them in a
 #: private module; test_integrators checks these equal them).
@@ -239,16 +244,43 @@ def _dopri45_pd(const, base, plat, inertia_body, y0, forces, wrench, endstops, p
     return ys, nfev, accepted, rejected, 0
 
 
-def solve_pd(dyn, y0, t_eval, forces=None, wrench=None, gains=None, max_force=0.0,
-             endstops=True, rtol=1e-8, atol=1e-10, max_step=np.inf, max_steps=MAX_STEPS):
-    """Integrate the dynamics of ``dyn`` (a ``Dynamics``) from t_eval[0] to t_eval[-1].
+def solve_pd(dyn: Dynamics, y0: ArrayLike, t_eval: ArrayLike, forces: ArrayLike | None = None,
+             wrench: tuple[ArrayLike, ArrayLike] | None = None,
+             gains: ArrayLike | None = None, max_force: float = 0.0, endstops: bool = True,
+             rtol: float = 1e-8, atol: float = 1e-10, max_step: float = np.inf,
+             max_steps: int = MAX_STEPS) -> tuple[np.ndarray, dict[str, int]]:
+    """Integrate the dynamics of ``dyn`` from t_eval[0] to t_eval[-1]: scipy's RK45, compiled.
 
     dy/dt is ``derivative_pd``: piston forces ``forces`` (held) plus, with
     ``gains`` = [setpoint; kp; kv] (3, 6), the PD law of eq. (40) evaluated
-    inside the ODE. Returns (states (len(t_eval), 13), info dict with nfev,
-    accepted, rejected). Raises ValueError on a non-finite initial state or
-    bad ``t_eval``, RuntimeError if the integration fails (as scipy's
-    ``sol.success`` False) or takes more than ``max_steps`` step attempts.
+    inside the ODE.
+
+    Args:
+        dyn: the model (``Dynamics``).
+        y0: the initial state (13,), at t_eval[0].
+        t_eval: (T,) output times [s], T >= 2, non-decreasing.
+        forces: (6,) piston forces [N], held (default zeros).
+        wrench: (F_ext [N], M_ext [N m]), each (3,), platform frame, at its
+            origin; None for none.
+        gains: (3, 6) [setpoint [m]; kp [N/m]; kv [N s/m]] for eq. (40) inside
+            the ODE, or None for none.
+        max_force: the PD law's saturation [N].
+        endstops: whether the end stops act.
+        rtol, atol: scipy's tolerances (rtol below 100 eps is raised to it,
+            with a warning, as scipy does).
+        max_step: the longest step [s].
+        max_steps: the most step attempts.
+
+    Returns:
+        (states (T, 13) at ``t_eval``, quaternions as integrated (not
+        normalised); {'nfev', 'accepted', 'rejected'}: right-hand-side
+        evaluations and steps).
+
+    Raises:
+        ValueError: a non-finite or misshapen initial state, a bad ``t_eval``,
+            or non-positive tolerances.
+        RuntimeError: the integration failed (as scipy's ``sol.success``
+            False) or took more than ``max_steps`` step attempts.
     """
     from stewart63_ros.core.dynamics import NO_GAINS, STATE_SIZE, wrench6
     y0 = np.array(y0, dtype=float)

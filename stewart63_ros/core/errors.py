@@ -18,7 +18,7 @@ class ParameterError(ValueError):
         problem: what is wrong with it, for a person to read.
     """
 
-    def __init__(self, key: str, problem: str):
+    def __init__(self, key: str, problem: str) -> None:
         super().__init__('%s: %s' % (key, problem))
         self.key = key
         self.problem = problem

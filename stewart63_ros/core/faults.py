@@ -40,7 +40,7 @@ import dataclasses
 import math
 import re
 from collections import deque
-from typing import Iterable
+from typing import Any, Iterable
 
 import numpy as np
 
@@ -86,20 +86,33 @@ class Fault:
 
     @property
     def sensor(self) -> bool:
+        """True for a sensor fault (``sensor_*``), False for an actuator fault."""
         return self.kind.startswith('sensor_')
 
     def scheduled(self, t: float) -> bool:
-        """The fault acts on a sample at time ``t`` [s] of the run."""
+        """Whether the fault acts on a sample at time ``t`` [s] of the run.
+
+        Args:
+            t: the sample's run time [s] (k / rate).
+
+        Returns:
+            True when start <= t < end (to ``EPS``).
+        """
         return self.start - EPS <= t < self.end - EPS
 
 
-def parse_fault(text) -> Fault:
-    """``KIND:LEG[:VALUE][@T_START[-T_END]]`` -> Fault, or FaultError naming it.
+def parse_fault(text: str) -> Fault:
+    """``KIND:LEG[:VALUE][@T_START[-T_END]]`` -> Fault.
 
     Args:
         text: the fault as written (surrounding blanks are ignored).
+
     Returns:
-        the Fault; its ``text`` is the stripped string, its name everywhere.
+        The Fault; its ``text`` is the stripped string, its name everywhere.
+
+    Raises:
+        FaultError: not a string, or a malformed or out-of-range fault; the
+            message names it and says why.
     """
     if not isinstance(text, str):
         raise FaultError('bad fault %r: expected a string KIND:LEG[:VALUE][@T_START[-T_END]]'
@@ -153,15 +166,19 @@ def parse_fault(text) -> Fault:
     return Fault(text, kind, leg, legs, value, start, end)
 
 
-def parse_faults(texts) -> list[Fault]:
+def parse_faults(texts: Iterable[str] | str | None) -> list[Fault]:
     """A list of fault strings (a ``faults`` parameter, repeated ``--fault``s).
 
     Args:
         texts: an iterable of strings; None or an empty list: no faults; one
             string: one fault. A blank string stands for no fault, so that
             ``ros2 param set /plant faults "['']"`` (a string list) clears them.
+
     Returns:
-        the Faults in order; FaultError for the first bad one or a repeated one.
+        The Faults in order.
+
+    Raises:
+        FaultError: not an iterable, the first bad fault, or a repeated one.
     """
     if texts is None:
         return []
@@ -198,7 +215,13 @@ class FaultState:
     samples: int = 1                 # sensor_delay: the delay in samples
 
     def status(self) -> str:
-        """The text /diagnostics shows under ``fault: <fault>``."""
+        """The text /diagnostics shows under ``fault: <fault>``.
+
+        Returns:
+            'scheduled from S s[ to E s]', 'removed before it started',
+            'active since S s[ (until E s)]' or 'ended: active S-E s[, removed]'
+            (run times, ``interval_from_status`` reads them back).
+        """
         f = self.fault
         if self.started is None:
             if self.removed:
@@ -211,7 +234,15 @@ class FaultState:
         return 'ended: active %s-%s s%s' % (_fmt(self.started), _fmt(self.ended),
                                             ', removed' if self.removed else '')
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
+        """What the fault did, as plain JSON types (``sim``'s summary, ``Result.faults``).
+
+        Returns:
+            {'fault', 'kind', 'leg': str, 'value': float or None, 'start_s',
+            'end_s' (None: never) [s], 'run': int, 'active_from_s',
+            'active_until_s': run times [s] or None, 'state': 'scheduled',
+            'active', 'ended' or 'removed'}.
+        """
         f = self.fault
         return {'fault': f.text, 'kind': f.kind, 'leg': f.leg, 'value': f.value,
                 'start_s': f.start, 'end_s': None if f.end == math.inf else f.end,
@@ -224,9 +255,16 @@ class FaultState:
 _INTERVAL = re.compile(r'active (?:since (%s) s|(%s)-(%s) s)' % (_NUMBER, _NUMBER, _NUMBER))
 
 
-def interval_from_status(text: str):
-    """(start, end or None) [s, run time] from a ``FaultState.status`` text;
-    None for a fault that has not acted."""
+def interval_from_status(text: str) -> tuple[float, float | None] | None:
+    """When a fault acted, read back from its ``FaultState.status`` text.
+
+    Args:
+        text: a status text (or any text containing one).
+
+    Returns:
+        (start [s], end [s] or None while active), run times; None for a
+        fault that has not acted.
+    """
     match = _INTERVAL.search(text)
     if match is None:
         return None
@@ -245,7 +283,8 @@ class FaultModel:
             model's noise).
     """
 
-    def __init__(self, faults: Iterable[Fault] = (), rate: float = 1000.0, seed: int = 0):
+    def __init__(self, faults: Iterable[Fault] = (), rate: float = 1000.0,
+                 seed: int = 0) -> None:
         self.rate = float(rate)
         self.period = 1.0 / self.rate
         self.seed = int(seed)
@@ -267,6 +306,7 @@ class FaultModel:
     # -- configuration ------------------------------------------------------------------
     @property
     def faults(self) -> list[Fault]:
+        """The faults of this run (removed ones not), in order."""
         return [s.fault for s in self.states]
 
     def set_faults(self, faults: Iterable[Fault]) -> list[str]:
@@ -274,8 +314,13 @@ class FaultModel:
 
         A fault already there (the same text) keeps its state; a new one
         acts from the next sample its times include; a removed one that had
-        acted is kept, ended now, for the record. Returns what changed, one
-        line each, for the log.
+        acted is kept, ended now, for the record.
+
+        Args:
+            faults: the new list (``parse_faults``).
+
+        Returns:
+            What changed, one line each, for the log.
         """
         faults = list(faults)
         old = {s.fault.text: s for s in self.states}
@@ -326,6 +371,9 @@ class FaultModel:
     def begin(self, k: int) -> list[str]:
         """Start sample ``k`` of the run (t = k / rate): faults start and end here.
 
+        Args:
+            k: the sample's index in the run, from 0.
+
         Returns:
             one line per fault that started or ended on this sample (empty
             on most samples).
@@ -349,11 +397,13 @@ class FaultModel:
             self._order()
         return events
 
-    def sense(self, lengths: np.ndarray, rates: np.ndarray):
+    def sense(self, lengths: np.ndarray,
+              rates: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
         """What the sensors report on this sample.
 
         Args:
-            lengths, rates: the six readings without faults [m], [m/s].
+            lengths, rates: the six readings without faults (6,) [m], [m/s].
+
         Returns:
             (lengths, rates, complete): new arrays when a fault acted (the
             inputs are not changed); ``complete`` is False when a leg's
@@ -386,8 +436,16 @@ class FaultModel:
         return lengths, rates, complete
 
     def actuate(self, forces: np.ndarray) -> np.ndarray:
-        """The forces the pistons apply for the commanded ``forces`` [N]
-        (a new array when a fault acted; the input is not changed)."""
+        """The forces the pistons apply for the commanded ones; remembered for
+        ``actuator_stuck``.
+
+        Args:
+            forces: (6,) the commanded piston forces [N].
+
+        Returns:
+            (6,) the applied forces [N]: a new array when a fault acted (the
+            input is not changed), else ``forces`` itself.
+        """
         if self._actuator:
             forces = np.array(forces, dtype=float)
             for state in self._actuator:
@@ -407,6 +465,7 @@ class FaultModel:
     # -- reports -----------------------------------------------------------------------------
     @property
     def active(self) -> list[FaultState]:
+        """The states of the faults acting now, in list order."""
         return [s for s in self.states if s.active]
 
     def active_text(self) -> str:
@@ -417,7 +476,7 @@ class FaultModel:
         return 'faults active: ' + ', '.join('%s (since %g s)' % (s.fault.text, s.started)
                                              for s in active)
 
-    def status_values(self) -> dict:
+    def status_values(self) -> dict[str, str]:
         """{'fault: <fault>': status text} for every fault of this run and the
         ones removed from it (the /diagnostics values)."""
         out = {}
@@ -425,6 +484,6 @@ class FaultModel:
             out['fault: ' + state.fault.text] = state.status()
         return out
 
-    def summary(self) -> list[dict]:
+    def summary(self) -> list[dict[str, Any]]:
         """Every fault of every run so far (``FaultState.summary``), in order."""
         return [s.summary() for s in self.past + self.states]

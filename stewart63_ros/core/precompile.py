@@ -17,7 +17,11 @@ import numpy as np
 
 
 def clear_cache() -> int:
-    """Delete numba's cached kernels of this package; returns how many files."""
+    """Delete numba's cached kernels of this package (``__pycache__/*.nbi``, ``*.nbc``).
+
+    Returns:
+        How many files were deleted.
+    """
     package = Path(__file__).resolve().parents[1]
     stale = [p for pattern in ('*.nbi', '*.nbc') for p in package.rglob('__pycache__/' + pattern)]
     for path in stale:
@@ -51,7 +55,14 @@ def kernel_cache_cold() -> bool:
     return False
 
 
-def main():
+def main() -> None:
+    """Compile every kernel into numba's cache: ``python -m stewart63_ros.core.precompile``.
+
+    Clears the cache (``clear_cache``), then calls each compiled path once on
+    the default mechanism (dynamics, PD law, forward kinematics, the sampled
+    and continuous loops, the control laws and reference, the analysis, the
+    workspace grid and the sweep's leg lengths) and prints the time taken.
+    """
     start = time.perf_counter()
     clear_cache()
     from stewart63_ros.core.control import PDController

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -46,6 +46,7 @@ from stewart63_ros.core.rotation import (
 from stewart63_ros.core.trajectory import COLUMNS
 
 if TYPE_CHECKING:
+    from stewart63_ros.core.faults import FaultModel
     from stewart63_ros.core.params import Mechanism
 
 #: A controller for ``run_sampled`` / ``run_continuous``: ``PDController``,
@@ -207,7 +208,7 @@ def _is_pd(controller) -> bool:
 def run_sampled(mech: Mechanism, duration: float, rate: float,
                 controller: ControllerLike | None = None, y0: ArrayLike | None = None,
                 dyn: Dynamics | None = None, loop: str = 'compiled',
-                faults=None) -> Result:
+                faults: FaultModel | Iterable[str] | None = None) -> Result:
     """Eq. (40) sampled at ``rate`` Hz with zero-order hold; RK4 in between.
 
     Sample k at t_k = k / rate: measure L, dL/dt; F_k = PD; hold F_k over
@@ -228,10 +229,12 @@ def run_sampled(mech: Mechanism, duration: float, rate: float,
             loop (``run_faulted``); None: none.
 
     Returns:
-        One row per sample, N = duration * rate + 1.
+        One row per sample, N = duration * rate + 1: times (N,) [s], states
+        (N, 13), forces (N, 6) [N] held from each time.
 
     Raises:
         ValueError: an unknown ``loop``.
+        FaultError: a bad fault string.
     """
     if loop not in ('compiled', 'python'):
         raise ValueError("loop must be 'compiled' or 'python', not %r" % (loop,))
@@ -264,7 +267,8 @@ def run_sampled(mech: Mechanism, duration: float, rate: float,
     return Result(np.arange(n + 1) * period, states, forces, contact, 4 * steps * n)
 
 
-def run_faulted(mech: Mechanism, duration: float, rate: float, faults,
+def run_faulted(mech: Mechanism, duration: float, rate: float,
+                faults: FaultModel | Iterable[str] | None,
                 controller: ControllerLike | None = None, y0: ArrayLike | None = None,
                 dyn: Dynamics | None = None) -> Result:
     """``run_sampled`` with sensor and actuator faults, as the lockstep plant runs it.
@@ -278,11 +282,16 @@ def run_faulted(mech: Mechanism, duration: float, rate: float, faults,
     Args:
         mech, duration, rate, controller, y0, dyn: as ``run_sampled``.
         faults: a ``FaultModel`` (used as it is: a fresh one for a fresh
-            run) or fault strings (a model at ``rate``, seed 0).
+            run) or fault strings (a model at ``rate``, seed 0; None: none).
+
     Returns:
-        a Result: ``forces`` the controller's commands, ``applied`` what the
-        pistons applied, ``measured`` what the sensors reported, ``faults``
-        each fault's summary.
+        A Result, N = duration * rate + 1 rows: ``forces`` (N, 6) [N] the
+        controller's commands, ``applied`` (N, 6) [N] what the pistons
+        applied, ``measured`` (N, 12) what the sensors reported (L_1..L_6
+        [m], dL_1/dt..dL_6/dt [m/s]), ``faults`` each fault's summary.
+
+    Raises:
+        FaultError: a bad fault string.
     """
     from stewart63_ros.core.faults import FaultModel, parse_faults
     if not isinstance(faults, FaultModel):

@@ -37,6 +37,8 @@ import multiprocessing
 import os
 import re
 import time
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -100,7 +102,17 @@ class SweepPlan:
 
 
 def parse_vary(text: str) -> Variation:
-    """``KEY=LO:HI`` or ``KEY[i]=LO:HI`` -> ``Variation``; SweepError if malformed."""
+    """``KEY=LO:HI`` or ``KEY[i]=LO:HI`` -> ``Variation`` (a ``--vary`` option).
+
+    Args:
+        text: the option's value; LO and HI in the key's unit.
+
+    Returns:
+        The ``Variation``.
+
+    Raises:
+        SweepError: malformed, LO or HI not finite numbers, or LO above HI.
+    """
     match = _VARY.match(text)
     if not match:
         raise SweepError('--vary %s: expected KEY=LO:HI or KEY[i]=LO:HI' % text)
@@ -121,8 +133,19 @@ def _is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-def apply_values(params: dict, variations, values) -> dict:
-    """A copy of ``params`` with each variation set to its value (lists copied)."""
+def apply_values(params: dict, variations: Iterable[Variation],
+                 values: Iterable[float]) -> dict:
+    """A copy of ``params`` with each variation set to its value (lists copied).
+
+    Args:
+        params: a flat parameter dictionary (not changed).
+        variations: the varied parameters.
+        values: one value per variation, in their order (a list element's
+            list is written back flat, as floats).
+
+    Returns:
+        The new dictionary.
+    """
     out = dict(params)
     for var, value in zip(variations, values):
         if var.index is None:
@@ -169,8 +192,8 @@ def _build(plan: SweepPlan, values):
     return mech, Controller(mechanism_from_params(ctrl_params), ctrl_params, law=plan.law)
 
 
-def make_plan(params_path, variations, law: str | None = None,
-              duration: float = 10.0) -> SweepPlan:
+def make_plan(params_path: str | os.PathLike, variations: Iterable[Variation],
+              law: str | None = None, duration: float = 10.0) -> SweepPlan:
     """Read the parameter file, check every variation at both ends of its range.
 
     Args:
@@ -179,8 +202,11 @@ def make_plan(params_path, variations, law: str | None = None,
         law: the control law (default: the controller's ``control_law``, else pd).
         duration: simulated time per run [s].
 
+    Returns:
+        The ``SweepPlan`` (output at ``OUTPUT_RATE``).
+
     Raises:
-        SweepError: an unknown key, a list varied whole, an index out of range,
+        SweepError: a key varied twice, an unknown key, a list varied whole, an index out of range,
             or a range end the parameter validation refuses (its message).
         ParameterError: the file itself is invalid.
     """
@@ -204,10 +230,24 @@ def make_plan(params_path, variations, law: str | None = None,
     return plan
 
 
-def draw_values(variations, runs: int, seed: int | None = None, grid: bool = False):
-    """(N, K) parameter values: ``runs`` uniform draws (numpy's default_rng(seed)),
-    or with ``grid`` n = round(runs^(1/K)) evenly spaced values per key, every
-    combination (n^K rows, first key slowest)."""
+def draw_values(variations: Sequence[Variation], runs: int, seed: int | None = None,
+                grid: bool = False) -> np.ndarray:
+    """The parameter values of the runs, drawn from each variation's [low, high].
+
+    Args:
+        variations: the K varied parameters.
+        runs: N, how many runs (>= 1).
+        seed: the seed of numpy's ``default_rng`` for the uniform draws.
+        grid: instead of draws, n = round(runs^(1/K)) evenly spaced values per
+            key, every combination (n^K rows, first key slowest).
+
+    Returns:
+        (N, K) values in the variations' units, one row per run ((runs, 0)
+        without variations).
+
+    Raises:
+        SweepError: ``runs`` below 1.
+    """
     if runs < 1:
         raise SweepError('--runs must be at least 1, got %d' % runs)
     k = len(variations)
@@ -224,17 +264,37 @@ def draw_values(variations, runs: int, seed: int | None = None, grid: bool = Fal
 
 
 @njit
-def leg_lengths_of_states(base, plat, states):
-    """(N, 6) leg lengths [m] of (N, 13) states (eq. 5): the sensors' ``lengths_rates``."""
+def leg_lengths_of_states(base: np.ndarray, plat: np.ndarray,
+                          states: np.ndarray) -> np.ndarray:
+    """Leg lengths of many states (eq. 5): the sensors' ``lengths_rates``. Compiled.
+
+    Args:
+        base, plat: (6, 3) b_i and each leg's vertex p_k(i) [m]
+            (``Dynamics.base_points``, ``Dynamics.leg_points``).
+        states: (N, 13) states, as the dynamics'.
+
+    Returns:
+        (N, 6) leg lengths [m].
+    """
     out = np.empty((states.shape[0], 6))
     for k in range(states.shape[0]):
         out[k] = lengths_rates(base, plat, states[k])[0]
     return out
 
 
-def settling_time(times, lengths, band: float = SETTLING_BAND,
+def settling_time(times: np.ndarray, lengths: np.ndarray, band: float = SETTLING_BAND,
                   tail: float = UNSETTLED_TAIL) -> float:
-    """The 2 % settling time of leg lengths (N, 6) at ``times`` (N,) (see ``METRICS``)."""
+    """The 2 % settling time of leg lengths (see ``METRICS``).
+
+    Args:
+        times: (N,) output times [s], increasing.
+        lengths: (N, 6) leg lengths at those times [m].
+        band: the band, a fraction of the largest leg travel.
+        tail: settling within this last fraction of the run counts as not settled.
+
+    Returns:
+        The settling time [s] (0.0 when no leg moves); NaN when not settled.
+    """
     final = lengths[-1]
     travel = float(np.max(np.abs(final - lengths[0])))
     if travel == 0.0:
@@ -249,8 +309,17 @@ def settling_time(times, lengths, band: float = SETTLING_BAND,
     return settled
 
 
-def run_one(plan: SweepPlan, values) -> dict:
-    """One run with ``values`` (K,) of the varied keys: {metric: value, 'failure': str}."""
+def run_one(plan: SweepPlan, values: Iterable[float]) -> dict[str, Any]:
+    """One run: the plant (and a law other than ``pd``) built with ``values``, simulated.
+
+    Args:
+        plan: the sweep.
+        values: (K,) one value per variation of ``plan``.
+
+    Returns:
+        {metric: value for each of ``METRICS``, 'failure': str ('' when the
+        run finished)}; a failed run has ``diverged`` 1 and NaN metrics.
+    """
     row = {'final_error_percent': math.nan, 'max_force': math.nan,
            'settling_time_s': math.nan, 'endstop_samples': 0, 'diverged': 1, 'failure': ''}
     try:
@@ -280,8 +349,17 @@ def run_one(plan: SweepPlan, values) -> dict:
     return row
 
 
-def run_chunk(plan: SweepPlan, chunk) -> list:
-    """Rows of a chunk [(run index, values (K,)), ...]: the unit of work of a worker."""
+def run_chunk(plan: SweepPlan,
+              chunk: Iterable[tuple[int, Iterable[float]]]) -> list[dict[str, Any]]:
+    """The runs of a chunk: the unit of work of a worker.
+
+    Args:
+        plan: the sweep.
+        chunk: [(run index, values (K,)), ...] (``chunks_of``).
+
+    Returns:
+        ``run_one``'s rows, each with its 'run' index, in chunk order.
+    """
     rows = []
     for index, values in chunk:
         row = run_one(plan, values)
@@ -290,23 +368,48 @@ def run_chunk(plan: SweepPlan, chunk) -> list:
     return rows
 
 
-def chunks_of(values, parts: int) -> list:
-    """Split the runs into about ``parts`` chunks of (index, values) pairs."""
+def chunks_of(values: np.ndarray | Sequence[Sequence[float]],
+              parts: int) -> list[list[tuple[int, tuple[float, ...]]]]:
+    """Split the runs into about ``parts`` chunks of (index, values) pairs.
+
+    Args:
+        values: (N, K) the runs' values (``draw_values``).
+        parts: how many chunks to aim for (at least one run per chunk).
+
+    Returns:
+        Chunks of equal size (the last smaller) of (run index, K floats), in
+        run order.
+    """
     items = [(i, tuple(float(v) for v in row)) for i, row in enumerate(values)]
     size = max(1, math.ceil(len(items) / max(1, parts)))
     return [items[k:k + size] for k in range(0, len(items), size)]
 
 
-def warm_up(plan: SweepPlan, values) -> None:
-    """Load (or compile) the kernels of a run in this process, before forking workers."""
+def warm_up(plan: SweepPlan, values: Iterable[float]) -> None:
+    """Load (or compile) the kernels of a run in this process, before forking workers.
+
+    Args:
+        plan: the sweep (run for at most 0.05 s here).
+        values: (K,) one run's values.
+    """
     short = dataclasses.replace(plan, duration=min(plan.duration, 0.05))
     run_one(short, values)
 
 
-def run_local(plan: SweepPlan, values, workers: int | None = None) -> tuple[list, int, float]:
+def run_local(plan: SweepPlan, values: np.ndarray,
+              workers: int | None = None) -> tuple[list[dict[str, Any]], int, float]:
     """All runs on this machine: ``workers`` processes (default: one per core),
-    forked after ``warm_up`` so that none of them compiles. Returns (rows in
-    run order, workers used, wall time of the runs [s])."""
+    forked after ``warm_up`` so that none of them compiles.
+
+    Args:
+        plan: the sweep.
+        values: (N, K) the runs' values.
+        workers: how many processes (1: in this process).
+
+    Returns:
+        (``run_one`` rows with their 'run' index, in run order; workers used;
+        wall time of the runs [s]).
+    """
     workers = max(1, int(workers or os.cpu_count() or 1))
     chunks = chunks_of(values, workers * 8)
     warm_up(plan, values[0])
@@ -322,14 +425,27 @@ def run_local(plan: SweepPlan, values, workers: int | None = None) -> tuple[list
     return sorted(rows, key=lambda r: r['run']), workers, time.perf_counter() - start
 
 
-def run_dask(plan: SweepPlan, values, scheduler: str | None = None,
-             local_workers: int | None = None) -> tuple[list, int, float]:
+def run_dask(plan: SweepPlan, values: np.ndarray, scheduler: str | None = None,
+             local_workers: int | None = None) -> tuple[list[dict[str, Any]], int, float]:
     """All runs on a Dask cluster: the scheduler at ``scheduler`` (``tcp://host:8786``),
     or a ``distributed.LocalCluster`` of ``local_workers`` processes (one thread
     each) started for the sweep. Workers need this package importable (the
     same version). Every worker runs ``warm_up`` first (loads the kernels), then
-    the clock starts. Returns (rows in run order, workers used, wall time of
-    the runs [s])."""
+    the clock starts.
+
+    Args:
+        plan: the sweep.
+        values: (N, K) the runs' values.
+        scheduler: the scheduler's address, or None for a local cluster.
+        local_workers: the local cluster's processes (default 1).
+
+    Returns:
+        (``run_one`` rows with their 'run' index, in run order; workers used;
+        wall time of the runs [s]).
+
+    Raises:
+        ImportError: ``distributed`` is not installed.
+    """
     from distributed import Client, LocalCluster
     cluster = None
     if scheduler is None:
@@ -354,12 +470,26 @@ def run_dask(plan: SweepPlan, values, scheduler: str | None = None,
     return sorted(rows, key=lambda r: r['run']), workers, wall
 
 
-def run_sweep(plan: SweepPlan, values, workers: int | None = None,
-              scheduler: str | None = None, dask_local: int | None = None) -> dict:
-    """Every run, locally or on Dask; {'rows', 'wall_time_s', 'workers', 'engine'}.
+def run_sweep(plan: SweepPlan, values: np.ndarray | Sequence[Sequence[float]],
+              workers: int | None = None, scheduler: str | None = None,
+              dask_local: int | None = None) -> dict[str, Any]:
+    """Every run, locally (``run_local``) or on Dask (``run_dask``).
 
     The wall time counts the runs only, after every worker has loaded the
-    kernels (cluster start-up and compilation excluded)."""
+    kernels (cluster start-up and compilation excluded).
+
+    Args:
+        plan: the sweep.
+        values: (N, K) the runs' values (``draw_values``).
+        workers: local processes (default: one per core).
+        scheduler: a Dask scheduler's address; dask_local: processes of a
+            local Dask cluster instead (either one selects Dask).
+
+    Returns:
+        {'rows': the rows in run order, each with its values under the
+        variations' keys, 'wall_time_s': float [s], 'workers': int, 'engine':
+        'processes' or 'dask ...'}.
+    """
     values = np.asarray(values, dtype=float).reshape(len(values), len(plan.variations))
     if scheduler is None and dask_local is None:
         rows, used, wall = run_local(plan, values, workers)
@@ -374,19 +504,37 @@ def run_sweep(plan: SweepPlan, values, workers: int | None = None,
 
 
 def columns(plan: SweepPlan) -> list[str]:
-    """Columns of runs.csv: run, each varied key, the metrics, failure."""
+    """Columns of runs.csv: run, each varied key, the metrics, failure.
+
+    Args:
+        plan: the sweep.
+
+    Returns:
+        The column names in order.
+    """
     return ['run'] + [v.key for v in plan.variations] + list(METRICS) + ['failure']
 
 
-def summary(plan: SweepPlan, rows) -> dict:
+def summary(plan: SweepPlan,
+            rows: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, float]]:
     """Percentiles (0, 5, 25, 50, 75, 95, 100), mean and count of every numeric
-    column over the runs that finished; ``diverged``: how many did not."""
+    column over the runs that finished; ``diverged``: how many did not.
+
+    Args:
+        plan: the sweep.
+        rows: the runs' rows (``run_sweep``'s 'rows').
+
+    Returns:
+        {varied key or metric: {'count': int (finite values), 'p0' ... 'p100',
+        'mean' (when count > 0)}, 'diverged': {'count': int}}, in the column's
+        unit.
+    """
     done = [r for r in rows if not r['diverged']]
-    out = {}
+    out: dict[str, dict[str, float]] = {}
     for key in [v.key for v in plan.variations] + list(METRICS[:-1]):
         data = np.array([r[key] for r in done], dtype=float)
         data = data[np.isfinite(data)]
-        stats = {'count': int(data.size)}
+        stats: dict[str, float] = {'count': int(data.size)}
         if data.size:
             stats.update({'p%d' % p: float(v) for p, v in zip(PERCENTILES,
                                                               np.percentile(data, PERCENTILES))})
@@ -396,10 +544,17 @@ def summary(plan: SweepPlan, rows) -> dict:
     return out
 
 
-def write_run_parameters(params_path, out_path, variations, values) -> None:
+def write_run_parameters(params_path: str | os.PathLike, out_path: str | os.PathLike,
+                         variations: Iterable[Variation], values: Iterable[float]) -> None:
     """Write the parameter file of one run: ``params_path`` with each varied key
     set in every section that has it (in the wildcard section ``/**`` when
-    none has it), so that ``sim --params out_path`` reproduces the run."""
+    none has it), so that ``sim --params out_path`` reproduces the run.
+
+    Args:
+        params_path: the sweep's ROS 2 parameter file (read).
+        out_path: the run's parameter file (written, YAML).
+        variations: the varied parameters; values: (K,) the run's values.
+    """
     from pathlib import Path
 
     import yaml

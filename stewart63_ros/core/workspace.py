@@ -19,8 +19,10 @@ the lengths, the condition number and the holding forces of every point.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from stewart63_ros.core._jit import njit
 from stewart63_ros.core.dynamics import Dynamics, inverse_dynamics_forces
@@ -92,22 +94,39 @@ class WorkspaceMap:
     axes: tuple
 
 
-def default_bounds(mech: Mechanism) -> tuple:
-    """(xmin, xmax, ymin, ymax, zmin, zmax) [m]: the base points' circle in x and y,
-    the base plane to the longest leg in z."""
+def default_bounds(mech: Mechanism) -> tuple[float, float, float, float, float, float]:
+    """The default box of the grid: the base points' circle in x and y, the base
+    plane to the longest leg in z.
+
+    Args:
+        mech: the mechanism (``base_points``, ``leg_length_max``).
+
+    Returns:
+        (xmin, xmax, ymin, ymax, zmin, zmax) [m], base frame.
+    """
     radius = float(np.max(np.linalg.norm(np.asarray(mech.base_points)[:, :2], axis=1)))
     return (-radius, radius, -radius, radius, 0.0, float(mech.leg_length_max))
 
 
 def grid_axis(low: float, high: float, step: float, through: float) -> np.ndarray:
-    """Values of [low, high] spaced by ``step`` with one of them at ``through``."""
+    """Values of [low, high] spaced by ``step`` with one of them at ``through``.
+
+    Args:
+        low, high: the interval [m]; step: the spacing [m] (> 0).
+        through: a value on the axis [m] (inside the interval or not).
+
+    Returns:
+        (n,) increasing values [m] (empty when none lies in the interval).
+    """
     first = through - step * np.floor((through - low) / step + 1e-9)
     count = int(np.floor((high - first) / step + 1e-9)) + 1
     return first + step * np.arange(max(count, 0))
 
 
-def workspace_map(mech: Mechanism, rotation, step: float = DEFAULT_STEP,
-                  max_condition: float = 100.0, bounds=None, through=None) -> WorkspaceMap:
+def workspace_map(mech: Mechanism, rotation: ArrayLike, step: float = DEFAULT_STEP,
+                  max_condition: float = 100.0,
+                  bounds: Sequence[float] | None = None,
+                  through: ArrayLike | None = None) -> WorkspaceMap:
     """Reachability of every grid point at ``rotation`` (see the module docstring).
 
     Args:
@@ -120,6 +139,9 @@ def workspace_map(mech: Mechanism, rotation, step: float = DEFAULT_STEP,
 
     Returns:
         The ``WorkspaceMap`` (points ordered x slowest, z fastest).
+
+    Raises:
+        ValueError: ``step`` is not a positive finite length.
     """
     if not (np.isfinite(step) and step > 0):
         raise ValueError('step must be a positive length, got %r' % (step,))
