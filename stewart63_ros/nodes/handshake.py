@@ -1,7 +1,7 @@
 """The /diagnostics handshake between the rig's nodes, its recorder and ``rig``.
 
-One place for its words (docs/interface.md, "Diagnostics", and docs/bags.md,
-"Readiness handshake"):
+The one place for its words; what it does, step by step, for users:
+docs/interface.md, "The handshake between nodes, recorder and rig".
 
 - at start-up the recorder's status names, under ``matched_publishers``, the
   nodes every one of whose publishers it has matched; a starting node waits

@@ -1,4 +1,4 @@
-"""Starting and stopping a node process: options, rclpy, signals, exit codes."""
+"""Starting and stopping a process of the rig: options, rclpy, stop signals, exit codes."""
 from __future__ import annotations
 
 import argparse
@@ -20,43 +20,79 @@ def make_parser(prog: str, description: str) -> argparse.ArgumentParser:
 
 
 class StopSignals:
-    """SIGINT and SIGTERM: the first one stops the node, every later one only counts.
+    """SIGINT and SIGTERM: the first one asks for a stop, every later one is only noted.
 
-    A terminal's Ctrl-C under ``ros2 launch`` reaches a node twice (from the
-    terminal's process group and forwarded by launch), then comes launch's
-    SIGTERM: a second KeyboardInterrupt inside ``close()`` would cut the
-    flush to the recorder short and end the process with a traceback.
+    The one stop-signal handler of every process of the rig: the nodes
+    (``STOP`` below), ``rig``, ``record``, ``play`` and ``view``. A
+    terminal's Ctrl-C under ``ros2 launch`` reaches a process twice (from
+    the terminal's process group and forwarded by launch), then comes
+    launch's SIGTERM: a second KeyboardInterrupt inside ``close()`` would cut
+    the flush to the recorder short and end the process with a traceback.
 
-    Outside a hot loop the first signal raises KeyboardInterrupt (start-up,
-    compiling kernels, waiting for peers). A hot loop sets ``interruptible``
-    False and checks ``requested`` once per message instead: interrupted
-    between publishing a message and counting it, a node would report one
-    message fewer than the recorder got.
+    What differs between the processes is chosen here:
+
+    - ``on_stop``: called on every signal, so it must be safe to call again
+      and from a signal handler (``Recorder.request_stop``, ``Event.set``):
+      for a tool whose loop waits for its own stop request.
+    - ``deadline``: the first signal starts the stop deadline
+      (``arm_stop_deadline``). For a process that only stops itself (a node,
+      ``record``); not for ``rig``, whose stop of its children takes longer
+      by design, nor for ``play``, which a test may run in its own process.
+    - ``interrupt``: the first signal raises KeyboardInterrupt wherever the
+      main thread waits (a node's start-up, compiling kernels, waiting for
+      peers), once. ``rig`` turns it on with ``interrupt_from_now()`` once
+      its options are read; ``record``, ``play`` and ``view`` never raise,
+      their loops stop through ``on_stop``. A node's hot loop sets
+      ``interruptible`` False and checks ``requested`` once per message
+      instead: interrupted between publishing a message and counting it, a
+      node would report one message fewer than the recorder got.
+
+    ``restore()`` puts back the handlers ``install()`` replaced: for a tool's
+    ``main`` that a test or a script may call in its own process (``play``).
     """
 
-    def __init__(self):
-        self.received = []
+    def __init__(self, on_stop=None, *, deadline=True, interrupt=True):
+        self.on_stop = on_stop
+        self.deadline = deadline
+        self.received = []      # the signals' names, in order
         self.requested = False
         self.interruptible = True
-        self.armed = True       # False once the node is closing: nothing to interrupt
+        self.armed = interrupt  # False once raised, or once closing: nothing to interrupt
+        self.previous = {}
 
     def install(self):
         for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, self)
+            self.previous[sig] = signal.signal(sig, self)
         return self
+
+    def restore(self) -> None:
+        """Put back the handlers ``install`` replaced."""
+        for sig, handler in self.previous.items():
+            signal.signal(sig, handler)
+        self.previous = {}
+
+    def interrupt_from_now(self) -> None:
+        """From here the first stop signal raises KeyboardInterrupt; one that
+        came before raises it now (``rig`` then starts nothing)."""
+        self.armed = True
+        if self.requested:
+            self.armed = False
+            raise KeyboardInterrupt
 
     def __call__(self, signum, frame):
         self.received.append(signal.Signals(signum).name)
-        if not self.requested:
+        if not self.requested and self.deadline:
             arm_stop_deadline()
         self.requested = True
+        if self.on_stop is not None:
+            self.on_stop()
         if self.armed and self.interruptible:
             self.armed = False
             raise KeyboardInterrupt
 
 
-#: This process's stop signals (one per process, like the handlers).
-STOP = StopSignals()
+#: This process's stop signals when it runs a node (one per process, like the handlers).
+STOP = StopSignals(deadline=True, interrupt=True)
 
 
 def _first_line(exc) -> str:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import collections
 import queue
-import signal
 import sys
 import threading
 import time
@@ -29,6 +28,7 @@ from stewart63_ros.bagio import (
     read_raw,
     resolve_bag_topics,
 )
+from stewart63_ros.nodes.launcher import StopSignals
 from stewart63_ros.nodes.ros_args import rclpy_args, split_ros_args
 
 
@@ -316,9 +316,7 @@ def main(argv=None) -> int:
                     start_offset=args.start_offset, clock_hz=args.clock,
                     namespace=args.namespace, ros_args=ros_args)
 
-    def on_signal(signum, frame):
-        player.request_stop()
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    signals = StopSignals(player.request_stop, deadline=False, interrupt=False).install()
     try:
         player.open()
         if args.wait_subscribers > 0:
@@ -342,8 +340,7 @@ def main(argv=None) -> int:
             player.close(ack_timeout=1.0)
         except Exception:  # noqa: BLE001 - the outcome is already decided; tear-down is best effort
             pass
-        for s, h in old.items():
-            signal.signal(s, h)
+        signals.restore()       # main may run inside another program (a test)
 
 
 if __name__ == '__main__':

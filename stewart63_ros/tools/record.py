@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import sys
 import threading
 import time
@@ -20,7 +19,7 @@ from pathlib import Path
 
 from stewart63_ros.bagio import BagError
 from stewart63_ros.nodes.launcher import (
-    arm_stop_deadline,
+    StopSignals,
     dump_stacks_on_sigusr1,
     ignore_stop_signals,
 )
@@ -106,9 +105,7 @@ def main(argv=None) -> int:
                    batch_period=max(0.0, args.batch_period))
     stop = threading.Event()
 
-    def on_signal(signum, frame):
-        if not stop.is_set():
-            arm_stop_deadline()
+    def stop_recording():
         stop.set()
         try:
             rec.request_stop()
@@ -117,8 +114,7 @@ def main(argv=None) -> int:
     # Kept until the process ends: a second signal (Ctrl-C twice, SIGINT then
     # SIGTERM from a launcher) while the bag is closed and rclpy shuts down
     # must not kill the process half way.
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, on_signal)
+    StopSignals(stop_recording, deadline=True, interrupt=False).install()
     try:
         try:
             rec.open()

@@ -325,27 +325,18 @@ class _DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 
 def main(argv=None) -> int:
-    from stewart63_ros.nodes.launcher import dump_stacks_on_sigusr1
-    dump_stacks_on_sigusr1()
+    from stewart63_ros.nodes.launcher import StopSignals, dump_stacks_on_sigusr1
     # The first SIGINT or SIGTERM stops the rig (KeyboardInterrupt wherever it
     # waits, also in start()); later ones, and any once the rig is stopping
     # its nodes anyway, are only noted: a terminal's Ctrl-C under a launcher
     # arrives twice, then a SIGTERM, and must not cut the stop short. Set
     # first thing: one that comes while the options are read (nothing
-    # started yet) is noted, and the rig then starts nothing.
-    stopping = []
-    armed = [False]
-
-    def on_signal(signum, frame):
-        if not stopping:
-            stopping.append(signal.Signals(signum).name)
-        if armed[0]:
-            armed[0] = False
-            raise KeyboardInterrupt
-    # Explicitly for SIGINT too: a rig started as a background job of a
-    # script inherits SIGINT ignored, and `kill -INT` must stop it all the same.
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
+    # started yet) is noted, and the rig then starts nothing. Explicitly for
+    # SIGINT too: a rig started as a background job of a script inherits
+    # SIGINT ignored, and `kill -INT` must stop it all the same. No stop
+    # deadline: stopping the children (Rig.stop) may take longer.
+    signals = StopSignals(deadline=False, interrupt=False).install()
+    dump_stacks_on_sigusr1()
     parser = argparse.ArgumentParser(prog='rig', description=__doc__.split('\n\n')[0],
                                      formatter_class=_DefaultsFormatter)
     parser.add_argument('--params', metavar='FILE',
@@ -453,14 +444,12 @@ def main(argv=None) -> int:
     ok = False
     start = time.monotonic()
     try:
-        armed[0] = True
-        if stopping:        # came while the options were read
-            raise KeyboardInterrupt
+        signals.interrupt_from_now()    # raises at once for a signal during the options
         rig.start()
         if args.view:
             print('rig: live view at %s' % rig.start_view(args.view_port), flush=True)
         print('rig: %s, logs in %s' % (', '.join(rig.procs), rig.log_dir), flush=True)
-        while not stopping:
+        while not signals.requested:
             ok = rig.wait(timeout=0.2)
             if ok or rig.failed() or any(
                     p.poll() is not None for n, p in rig.procs.items() if n != rig.runner()):
@@ -470,7 +459,7 @@ def main(argv=None) -> int:
     except RuntimeError as exc:
         print('rig: error: %s' % exc, file=sys.stderr)
     finally:
-        armed[0] = False
+        signals.armed = False
         # Who had failed before the stop: a node interrupted while it was still
         # starting (importing, compiling) ends with whatever code that gives.
         failed_before = set(rig.failed())
@@ -480,15 +469,16 @@ def main(argv=None) -> int:
     wall = time.monotonic() - start
     died = {n: c for n, c in codes.items() if c not in (0, None)}
     for name in died:
-        how = 'exited' if name in failed_before or not stopping else 'ended, while stopping,'
+        how = ('exited' if name in failed_before or not signals.requested
+               else 'ended, while stopping,')
         print('rig: %s %s with %s: %s' % (name, how, died[name], rig.log_tail(name)),
               file=sys.stderr)
-    if stopping:
-        print('rig: stopped by %s after %.2f s wall' % (stopping[0], wall))
+    if signals.requested:
+        print('rig: stopped by %s after %.2f s wall' % (signals.received[0], wall))
     print_summary(rig, wall)
     if args.record:
         print('  bag: %s' % args.record)
-    if stopping:
+    if signals.requested:
         return 1 if failed_before else 0
     if died or not ok:
         return 1

@@ -596,7 +596,7 @@ def run_bag(server, mech, bag_run: BagRun, stop):
 
 
 def main(argv=None) -> int:
-    from stewart63_ros.nodes.launcher import dump_stacks_on_sigusr1
+    from stewart63_ros.nodes.launcher import StopSignals, dump_stacks_on_sigusr1
     dump_stacks_on_sigusr1()
     parser = argparse.ArgumentParser(
         prog='view', description=__doc__.split('\n\n')[0],
@@ -645,12 +645,7 @@ def main(argv=None) -> int:
         'bag %s' % args.bag if args.bag else 'live, namespace %s' % (args.namespace or '/')),
         flush=True)
     stop = threading.Event()
-    import signal
-
-    def on_signal(*_):
-        stop.set()
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
+    StopSignals(stop.set, deadline=False, interrupt=False).install()
     try:
         if bag_run is not None:
             run_bag(server, mech, bag_run, stop)
