@@ -334,3 +334,15 @@ def test_lockstep_rig_with_a_reference_equals_sim(ros, monkeypatch, tmp_path, me
                 'orientation_max_rad', 'orientation_rms_rad'):
         assert abs(got[key] - expected[key]) <= 1e-9, (key, got[key], expected[key])
     assert got['samples'] == expected['samples']
+
+
+def test_a_stalled_controller_reads_its_queue_before_its_watchdog_judges(ros):
+    """A controller starved of CPU wakes to its due watchdog and a queued sample
+    at once: the sample proves the sensor alive, so no ERROR (a loaded machine's
+    stall is not a lost sensor). test/watchdog_probe.py stages it in one process."""
+    import json
+    proc = ros.python(str(REPO / 'test' / 'watchdog_probe.py'), name='watchdog_probe')
+    assert proc.wait(60) == 0, proc.describe()
+    result = json.loads(proc.stdout().strip().splitlines()[-1])
+    assert result == {'first_handled': True, 'tripped': False, 'fault': '', 'received': 2}, \
+        result

@@ -58,7 +58,7 @@ from stewart63_ros.nodes.checks import (
 )
 from stewart63_ros.nodes.commands import CommandInput
 from stewart63_ros.nodes.launcher import run
-from stewart63_ros.nodes.rclpy_internals import raw_publisher
+from stewart63_ros.nodes.rclpy_internals import raw_publisher, take, take_with_info
 
 #: The one joint of a pose_trajectory.
 PLATFORM_JOINT = 'platform'
@@ -189,8 +189,8 @@ class ControllerNode(RigNode):
                                                                      'plant'))
         self.source_ended = False       # or why the plant is silent: 'ended', 'paused', ...
         self.plant_run = None
-        self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics,
-                                 topics.DIAGNOSTICS_QOS)
+        self.sub_diagnostics = self.create_subscription(
+            DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics, topics.DIAGNOSTICS_QOS)
         # Run-time tuning: the law, every built-in law's gains, the active law's own.
         self.tunable('control_law', self.set_law)
         for name in LAW_PARAMETERS:
@@ -396,9 +396,25 @@ class ControllerNode(RigNode):
     def run(self):
         self.run_on(self.sub_samples)
 
+    def read_queued(self) -> None:
+        """Handle what already waits in this process's queues: every
+        /diagnostics message, then the newest sample, as the loop would."""
+        for msg in iter(lambda: take(self.sub_diagnostics), None):
+            self.on_diagnostics(msg)
+        taken = take_with_info(self.sub_samples)
+        if taken is not None:
+            self.sub_samples.callback(*taken)
+
     def watchdog(self):
         if self.last_sample_wall is None or self.tripped:
             return
+        if time.monotonic() - self.last_sample_wall <= self.watchdog_timeout:
+            return
+        # A controller starved of CPU wakes to this due timer and its queued
+        # messages at once, and the timer may run first: read the queues
+        # before judging (a waiting sample, the plant's "run: reset"), so a
+        # stall of this process is not taken for a lost sensor.
+        self.read_queued()
         silent = time.monotonic() - self.last_sample_wall
         if silent > self.watchdog_timeout:
             self.tripped = True
