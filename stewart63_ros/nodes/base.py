@@ -1,7 +1,6 @@
 """RigNode: the rclpy Node every stewart63 node derives from."""
 from __future__ import annotations
 
-import gc
 import time
 
 from rclpy.executors import SingleThreadedExecutor
@@ -15,22 +14,25 @@ from stewart63_ros.core.precompile import COMPILE_NOTICE, kernel_cache_cold
 from stewart63_ros.nodes.checks import SkipCounter
 from stewart63_ros.nodes.diagnostics import Health
 from stewart63_ros.nodes.handshake import RecorderWord
+from stewart63_ros.nodes.hotloop import HotLoop
 from stewart63_ros.nodes.launcher import STOP
 from stewart63_ros.nodes.parameters import load_parameters, ros_parameters
-from stewart63_ros.nodes.rclpy_internals import DirectTake, run_timer_if_ready, take
 from stewart63_ros.nodes.realtime import realtime_scheduling
 from stewart63_ros.nodes.startup import StartupBarrier
 from stewart63_ros.nodes.stopping import Flush
 
 
-class RigNode(Node):
+class RigNode(HotLoop, Node):
     """Loads the mechanism from the node's parameters and owns the diagnostics.
+
+    Its hot loop (``run_on``, ``housekeeping``, ``drive_by``): nodes/hotloop.py.
 
     Node-specific keys shared by all nodes (docs/interface.md, "Parameters"):
     ``wait_for_subscribers`` (int, 0): before its first message, wait until
     every data publisher of this node has that many matched subscriptions
     (``rig --record`` sets 1 so that the recorder misses nothing);
-    ``discovery_timeout`` (s, 20): the bound on that wait;
+    ``discovery_timeout`` (s, 20): the bound on that wait (who waits for whom
+    before the first sample: nodes/startup.py);
     ``realtime_priority`` (0..99, 0): when not 0, the node's threads run
     SCHED_FIFO at that priority (where the OS allows it; a warning and normal
     scheduling where it does not), so that other work on the machine cannot
@@ -221,96 +223,6 @@ class RigNode(Node):
             self.get_logger().warning('%s: a new run of its source (%s): accepted, %d so far'
                                    % (topic, gate.new_run, gate.restarts + 1))
         gate.accept(ns, source)
-
-    # -- hot loops -----------------------------------------------------------
-    #: s: the longest a node in a hot loop (run_on, the plant's loops) goes
-    #: without an executor turn, for what only the executor serves: parameter
-    #: services and QoS event reports. A turn costs 150-500 us of Python (the
-    #: executor rebuilds its wait set of some 30 entities), so it is kept rare:
-    #: the node's timers are run directly when due, and its other
-    #: subscriptions are taken directly (see housekeeping).
-    EXECUTOR_PERIOD = 0.1
-
-    def start_hot_loop(self, hot) -> DirectTake:
-        """Set up housekeeping around the 1 kHz subscription ``hot``.
-
-        Also takes everything made so far (modules, kernels, middleware
-        objects: hundreds of thousands) out of Python's cyclic garbage
-        collector: a full collection over them stops the process for 20-40 ms
-        at some point of every run, 20-40 missed 1 kHz cycles; what the loop
-        makes is still collected.
-        """
-        gc.collect()
-        gc.freeze()
-        # From here a stop signal is a flag the loop checks (see StopSignals).
-        STOP.interruptible = False
-        if STOP.requested:
-            raise KeyboardInterrupt
-        self._side_subs = [s for s in self.subscriptions if s is not hot]
-        self._next_turn = 0.0
-        self._next_executor_turn = 0.0
-        return DirectTake(self, hot)
-
-    def housekeeping(self, now: float, turn_ok: bool = True) -> float:
-        """Between two messages of the hot loop: take what came in on the
-        node's other subscriptions (a microsecond each when nothing did), then,
-        if one is due, either run the due timers or give the executor a turn
-        (one of the two, to keep each call short). ``turn_ok=False`` puts that
-        off (the caller is short of time), by 0.1 s at most. Returns the
-        monotonic time of the next due one: the caller should not block past it.
-        """
-        for sub in self._side_subs:
-            msg = take(sub)
-            if msg is not None:
-                sub.callback(msg)
-        if now < self._next_turn or not (turn_ok or now > self._next_turn + 0.1):
-            return self._next_turn
-        if not self._run_due_timers() and now >= self._next_executor_turn:
-            self.executor_.spin_once(timeout_sec=0)
-            self._next_executor_turn = time.monotonic() + self.EXECUTOR_PERIOD
-        now = time.monotonic()
-        wake = self._next_executor_turn
-        for timer in self.timers:
-            left = timer.time_until_next_call()
-            if left is not None:
-                wake = min(wake, now + max(0.0, left * 1e-9))
-        self._next_turn = wake
-        return wake
-
-    def _run_due_timers(self) -> bool:
-        """Call the node's due timers as the executor would; True if any was."""
-        ran = False
-        for timer in list(self.timers):
-            ran = run_timer_if_ready(timer) or ran
-        return ran
-
-    #: the most messages taken in one batch before housekeeping (run_on)
-    BATCH_MAX = 1000
-
-    def run_on(self, subscription, batch_period: float = 0.0):
-        """Serve ``subscription`` directly (see DirectTake), with housekeeping
-        after every message: a turn of the executor then falls in the time
-        the peer needs to send the next one.
-
-        ``batch_period`` > 0 [s]: after a message, take what else is queued,
-        then let the next ones gather that long (or until housekeeping is
-        due) before waiting again: one wake-up per batch instead of one per
-        message, for a node nothing waits on (every message is still
-        served, in order)."""
-        import rclpy
-        self.wait_for_matches()
-        direct = self.start_hot_loop(subscription)
-        while rclpy.ok() and not STOP.requested:
-            wake = self.housekeeping(time.monotonic())
-            if direct.poll(wake - time.monotonic()) and batch_period > 0:
-                n = 1
-                while n < self.BATCH_MAX and not STOP.requested and direct.poll(0.0):
-                    n += 1
-                if self.after_batch is not None:
-                    self.after_batch()
-                pause = min(batch_period, wake - time.monotonic())
-                if pause > 0 and not STOP.requested:
-                    time.sleep(pause)
 
     def flush(self, timeout: float = 2.0) -> str:
         """Let the recorder receive everything before exiting (``stopping.Flush``)."""

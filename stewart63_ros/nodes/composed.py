@@ -28,27 +28,38 @@ NODE_NAMES = ('plant', 'controller', 'fk')
 class Peers:
     """The subscriptions the composed loop serves, taken in the order a sample travels.
 
-    Stands in for the plant's ``DirectTake`` on ``leg_forces`` (same
-    ``poll``): before looking for a force it serves the nodes that answer the
-    sample, and it waits on all of their subscriptions at once.
+    The loop the plant is driven by (``HotLoop.drive_by``): ``start`` is given
+    the plant's ``DirectTake`` on ``leg_forces`` and the plant's loop polls
+    this instead (same ``poll``): before looking for a force it serves the
+    nodes that answer the sample, and it waits on all of their subscriptions
+    at once.
     """
 
-    def __init__(self, context, own, answer_first=(), then=(), recorder=None, period=1e-3,
+    def __init__(self, context, answer_first=(), then=(), recorder=None, period=1e-3,
                  side_period=None, batch_then=False):
-        from stewart63_ros.nodes.rclpy_internals import WaitAny
-        self.own = own                          # DirectTake of the plant's leg_forces, or None
+        self.context = context
+        self.own = None                         # DirectTake of the plant's leg_forces, or None
         self.answer_first = list(answer_first)  # (node, DirectTake): the controller
         self.then = list(then)                  # (node, DirectTake): fk
         self.recorder = recorder
         self.period = period
-        subs = [d.sub for _, d in self.answer_first + self.then] + ([own.sub] if own else [])
-        self.waiter = WaitAny(context, subs)
+        self.waiter = None                      # made by start
         self.nodes = [n for n, _ in self.answer_first + self.then]
         self.next_side = 0.0
         if side_period is not None:
             self.side_period = side_period
         # Lockstep: fk's samples in batches, with the other side work (see serve).
         self.batch_then = batch_then
+
+    def start(self, own=None) -> Peers:
+        """The loop begins; ``own``: the plant's DirectTake on ``leg_forces``
+        (None: no plant in this process). Returns the loop, for the plant to
+        poll (see ``HotLoop.start_hot_loop``)."""
+        from stewart63_ros.nodes.rclpy_internals import WaitAny
+        self.own = own
+        subs = [d.sub for _, d in self.answer_first + self.then] + ([own.sub] if own else [])
+        self.waiter = WaitAny(self.context, subs)
+        return self
 
     #: s: how often the loop looks at the peers' other subscriptions
     #: (setpoints), timers and parameter services when they are not due
@@ -165,7 +176,8 @@ class Composed:
         nodes = self.nodes
         peers = [nodes[n] for n in ('controller', 'fk') if n in nodes]
         # Each node waits for its own subscribers (the recorder, with
-        # wait_for_subscribers), as when it runs alone; the plant last.
+        # wait_for_subscribers), as when it runs alone; the plant last
+        # (the start-up order: nodes/startup.py).
         for node in peers:
             node.wait_for_matches()
         directs = {n: nodes[n].start_hot_loop(nodes[n].sub_samples)
@@ -179,37 +191,25 @@ class Composed:
             for node in nodes.values():
                 node.EXECUTOR_PERIOD = Peers.LOCKSTEP_EXECUTOR_PERIOD
 
-        def make_peers(own, period):
-            self.loop = Peers(context, own,
-                         [(nodes[n], directs[n]) for n in ('controller',) if n in directs],
-                         [(nodes[n], directs[n]) for n in ('fk',) if n in directs],
-                         self.recorder, period, side_period, batch_then=lockstep)
-            return self.loop
+        loop = Peers(context,
+                     [(nodes[n], directs[n]) for n in ('controller',) if n in directs],
+                     [(nodes[n], directs[n]) for n in ('fk',) if n in directs],
+                     self.recorder, plant.period if plant is not None else 1e-3,
+                     side_period, batch_then=lockstep)
         if plant is None:
             import rclpy
 
             from stewart63_ros.nodes.launcher import STOP
-            loop = make_peers(None, 1e-3)
+            self.loop = loop.start()
             while rclpy.ok() and not STOP.requested:
                 loop.poll(0.1)
             return 0
-        # The plant's own loops, unchanged, with every take of a force going
-        # through the composed loop (see Peers), and the plant's housekeeping
-        # (its other subscriptions, timers, executor) at the pace of the
-        # others', not after every sample: at ten thousand samples a second
-        # that pass would cost more than the controller's work.
-        start, housekeeping = plant.start_hot_loop, plant.housekeeping
-        due = [0.0]
-
-        def start_hot_loop(hot):
-            return make_peers(start(hot), plant.period)
-
-        def paced_housekeeping(now, turn_ok=True):
-            if now >= due[0]:
-                due[0] = min(housekeeping(now, turn_ok), now + side_period)
-            return due[0]
-        plant.start_hot_loop = start_hot_loop
-        plant.housekeeping = paced_housekeeping
+        # The plant's own loops, unchanged, driven by this one: every take of
+        # a force goes through it (see Peers), and the plant's housekeeping
+        # (its other subscriptions, timers, executor) keeps the pace of the
+        # others', not after every sample.
+        self.loop = loop
+        plant.drive_by(loop)
         return plant.run()
 
     def close(self):
@@ -217,7 +217,7 @@ class Composed:
             return
         self.closed = True
         errors = []
-        if self.loop is not None:
+        if self.loop is not None and self.loop.waiter is not None:     # it has started
             self.loop.drain()
         from stewart63_ros.nodes.base import RigNode
         from stewart63_ros.nodes.launcher import STOP

@@ -24,13 +24,11 @@ import sys
 import time
 
 import numpy as np
-from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
-from rosgraph_msgs.msg import Clock
+from geometry_msgs.msg import WrenchStamped
 from sensor_msgs.msg import JointState
 
 from stewart63_ros import topics
-from stewart63_ros.core.dynamics import OMEGA, POS, QUAT, VEL, Dynamics
-from stewart63_ros.core.params import ParameterError
+from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.sensor import SensorModel
 from stewart63_ros.core.simulate import initial_state, substeps_for
 from stewart63_ros.nodes import wire
@@ -46,26 +44,26 @@ from stewart63_ros.nodes.checks import (
 from stewart63_ros.nodes.commands import CommandInput
 from stewart63_ros.nodes.launcher import STOP, run
 from stewart63_ros.nodes.plant_control import PlantControl
-from stewart63_ros.nodes.rclpy_internals import raw_publisher
-
-#: The tracking error in the summary counts samples from this time [s] on.
-TRACKING_FROM = 1.0
+from stewart63_ros.nodes.plant_outputs import SampleOutputs
+from stewart63_ros.nodes.plant_summary import TRACKING_FROM, TrackingError, run_summary
+from stewart63_ros.nodes.startup import PlantStartup
 
 
 class PlantNode(PlantControl, RigNode):
+    """The plant node (see the module's doc). Its parts: the samples out
+    (plant_outputs.SampleOutputs), what it waits for before the first one
+    (startup.PlantStartup), faults and simulation control (a PlantControl),
+    the run's summary (plant_summary)."""
+
     def __init__(self, options):
         super().__init__('plant')
         self.rate = self.param('sensor_rate')
         self.mode = self.param('clock_mode')
         self.duration = self.param('duration')      # simulated seconds; 0 = forever
         self.force_timeout = self.param('force_timeout')
-        # Matched leg_lengths subscriptions to wait for before the first sample
-        # (rig: controller + fk + recorder).
+        # Matched leg_lengths subscriptions, and the nodes whose subscription
+        # the graph must show, before the first sample (nodes/startup.py).
         self.lengths_subscribers = self.param('lengths_subscribers')
-        # Nodes (names relative to this namespace) whose leg_lengths
-        # subscription the graph must show before the first sample. A count
-        # alone is not enough: a recorder started first fills it while fk,
-        # still loading, has no subscription yet, and fk misses the run.
         self.lengths_peers = self.peer_names('lengths_peers')
         # Lockstep flow control (nodes/lockstep.py): the readers of
         # leg_lengths outside the control loop (fk, the rig's recorder) that
@@ -84,16 +82,8 @@ class PlantNode(PlantControl, RigNode):
         self.sensor = SensorModel(self.params)
         # The reference motion the controller follows (rig --reference), read
         # here only to report the true tracking error in the summary.
-        self.reference = None
         reference_file = self.param('reference_file')
-        if reference_file:
-            from stewart63_ros.core.reference import ReferenceError, load_reference
-            try:
-                self.reference = load_reference(self.mech, reference_file)
-            except ReferenceError as exc:
-                raise ParameterError('reference_file', str(exc)) from None
-        self.tracking = np.zeros(8)
-        self.ref_sample = np.empty(36)
+        self.tracking = TrackingError(self.mech, reference_file) if reference_file else None
 
         self.dyn = Dynamics(self.mech)
         self.period = 1.0 / self.rate
@@ -107,7 +97,6 @@ class PlantNode(PlantControl, RigNode):
         self.force = np.zeros(6)
         self.force_ns = None            # stamp of the sample the held force answers
         self.wrench = None
-        self.sent_wall = {}             # sample stamp -> wall time it was published
         self.force_gate = StampGate(RESTART_PAUSE)
         self.wrench_gate = StampGate()
         self.timeouts = 0
@@ -115,29 +104,14 @@ class PlantNode(PlantControl, RigNode):
         self.late = 0
         self.endstop_samples = 0
 
-        self.pub_lengths = self.publisher(JointState, topics.LEG_LENGTHS, topics.STREAM_PUB)
-        self.pub_pose = self.publisher(PoseStamped, topics.TRUE_POSE, topics.STREAM_PUB)
-        self.pub_twist = self.publisher(TwistStamped, topics.TRUE_TWIST, topics.STREAM_PUB)
-        self.pub_clock = (self.publisher(Clock, topics.CLOCK, topics.STREAM_PUB)
-                          if self.mode == 'lockstep' else None)
-        # Serialized messages out and forces in: see nodes/wire.py.
-        self.lengths_out = wire.JointStateTemplates(('position', 'velocity')).get('base')
-        self.pose_out = wire.pose_template('base')
-        self.twist_out = wire.twist_template('base')
-        self.clock_out = wire.clock_template()
-        wire.warm_up(('effort',))
-        self.send_lengths = raw_publisher(self.pub_lengths)
-        self.send_pose = raw_publisher(self.pub_pose)
-        self.send_twist = raw_publisher(self.pub_twist)
-        self.send_clock = raw_publisher(self.pub_clock) if self.pub_clock is not None else None
-        # Who listens to /clock and ground_truth, looked up every
-        # LISTENERS_PERIOD rather than on every sample (see listeners).
-        self.to_clock = self.to_pose = self.to_twist = False
-        self.listeners_due = 0.0
+        self.outputs = SampleOutputs(self, lockstep=self.mode == 'lockstep')
+        # The same dict as the outputs': on_forces pops the answered samples.
+        self.sent_wall = self.outputs.sent_wall
         self.sub_forces = self.create_subscription(JointState, topics.LEG_FORCES,
                                                    self.on_forces, topics.LATEST_SUB, raw=True)
         self.wrench_in = CommandInput(self, WrenchStamped, topics.EXTERNAL_WRENCH, self.on_wrench)
         self.watch_source(self.sub_forces, topics.LEG_FORCES, self.force_gate)
+        self.plant_startup = PlantStartup(self)
         self.t0_wall = None
         self.t0_mono = None         # realtime: monotonic time of sample 0
         self.t_phys = 0.0           # realtime: simulated time the state is at
@@ -187,28 +161,20 @@ class PlantNode(PlantControl, RigNode):
         base = 0.0 if self.mode == 'lockstep' else self.t0_wall
         return base + k * self.period
 
-    #: s: how often the plant looks up the subscriptions matched on /clock and
-    #: ground_truth (a lookup costs a few microseconds, a sample's budget at
-    #: ten thousand samples a second is a hundred).
-    LISTENERS_PERIOD = 0.005
-
-    def listeners(self, now: float) -> None:
-        self.listeners_due = now + self.LISTENERS_PERIOD
-        self.to_clock = bool(self.pub_clock is not None and self.pub_clock.get_subscription_count())
-        self.to_pose = bool(self.pub_pose.get_subscription_count())
-        self.to_twist = bool(self.pub_twist.get_subscription_count())
-
     def publish_sample(self):
+        """Sample ``self.k`` out: the sensors' readings (faults applied) and the
+        rest (see SampleOutputs); returns its stamp [ns]."""
+        out = self.outputs
         now = time.perf_counter()
-        if now >= self.listeners_due:
-            self.listeners(now)
+        if now >= out.listeners_due:
+            out.listeners(now)
         ns = int(round(self.sample_time(self.k) * 1e9))
         sec, nanosec = divmod(ns, 1_000_000_000)
         if self.fault_model.states:
             self.begin_faults()
         lengths, rates = self.dyn.lengths_and_rates(self.y)
-        if self.reference is not None and self.k * self.period >= TRACKING_FROM - 1e-12:
-            self.add_tracking(lengths)
+        if self.tracking is not None and self.k * self.period >= TRACKING_FROM - 1e-12:
+            self.tracking.add(self.k * self.period, lengths, self.y)
         listed = lengths.tolist()           # (min and max of six: cheaper on a list)
         if min(listed) < self.mech.leg_length_min or max(listed) > self.mech.leg_length_max:
             self.endstop_samples += 1
@@ -216,30 +182,8 @@ class PlantNode(PlantControl, RigNode):
                                    % self.endstop_samples)
         lengths, rates = self.sensor.measure(lengths, rates)
         lengths, rates, self.sample_complete = self.fault_model.sense(lengths, rates)
-        data = self.lengths_out.fill(sec, nanosec, position=lengths, velocity=rates)
-        self.sent_wall[ns] = time.perf_counter()
-        if len(self.sent_wall) > 1000:   # answers that never came
-            self.sent_wall.pop(next(iter(self.sent_wall)))
-        self.send_lengths(data)
-        # The rest goes out while the controller works on the sample.
-        if self.to_clock:
-            self.send_clock(self.clock_out.fill(sec, nanosec))
-            self.health.published[topics.CLOCK] += 1
-        self.publish_truth(sec, nanosec)
-        self.health.published[topics.LEG_LENGTHS] += 1
+        out.send(ns, sec, nanosec, lengths, rates, self.y)
         return ns
-
-    def publish_truth(self, sec, nanosec):
-        """ground_truth pose and twist, to whoever listens (the topics are
-        VOLATILE: with no subscriber matched there is nobody to send them to)."""
-        y = self.y
-        if self.to_pose:
-            quat = y[QUAT] / np.sqrt(y[QUAT] @ y[QUAT])
-            self.send_pose(self.pose_out.fill(sec, nanosec, position=y[POS], orientation=quat))
-            self.health.published[topics.TRUE_POSE] += 1
-        if self.to_twist:
-            self.send_twist(self.twist_out.fill(sec, nanosec, linear=y[VEL], angular=y[OMEGA]))
-            self.health.published[topics.TRUE_TWIST] += 1
 
     def step(self):
         """Lockstep: one sample period with the force answering this sample."""
@@ -266,28 +210,7 @@ class PlantNode(PlantControl, RigNode):
 
     # -- main loops -----------------------------------------------------------
     def run(self):
-        # Lockstep cannot start before the controller is there to answer.
-        need_forces = 1 if self.mode == 'lockstep' else 0
-
-        def missing():
-            out = []
-            if self.sub_forces.get_publisher_count() < need_forces:
-                out.append('a %s publisher (a controller: lockstep steps only on its '
-                           'answers)' % self.sub_forces.topic_name)
-            have = self.pub_lengths.get_subscription_count()
-            if have < self.lengths_subscribers:
-                out.append('%s: %d of %d subscriptions matched (lengths_subscribers)'
-                           % (self.pub_lengths.topic_name, have, self.lengths_subscribers))
-            shown = {topics.endpoint_node_name(info) for info in
-                     self.get_subscriptions_info_by_topic(self.pub_lengths.topic_name)}
-            for peer in self.lengths_peers:
-                if peer not in shown:
-                    out.append('%s: no subscription from %s yet (lengths_peers)'
-                               % (self.pub_lengths.topic_name, peer))
-            if self.peers is not None:
-                out += self.peers.missing_publishers()
-            return out
-        self.wait_for_matches(missing)
+        self.wait_for_matches(self.plant_startup.missing)     # the start-up order: startup.py
         self.forces_in = self.start_hot_loop(self.sub_forces)
         self.announce_run('running')
         self.t0_wall = time.time()
@@ -419,42 +342,8 @@ class PlantNode(PlantControl, RigNode):
             raise RuntimeError('the simulation diverged (non-finite state)')
         self.t_phys = t
 
-    def add_tracking(self, lengths):
-        """The true tracking error of this sample (reference time = k / rate)."""
-        from stewart63_ros.core.reference import accumulate_tracking
-        from stewart63_ros.core.rotation import matrix_from_quaternion
-        self.reference.sample(self.k * self.period, self.ref_sample)
-        quat = self.y[QUAT] / np.sqrt(self.y[QUAT] @ self.y[QUAT])
-        accumulate_tracking(self.tracking, lengths, self.ref_sample, self.y[POS],
-                            matrix_from_quaternion(quat), True)
-
     def write_summary(self, stopped=False):
-        lengths, _ = self.dyn.lengths_and_rates(self.y)
-        setpoint = self.mech.setpoint_lengths
-        errors = 100.0 * np.abs(lengths - setpoint) / setpoint
-        summary = {
-            'clock_mode': self.mode, 'rate_hz': self.rate, 'samples': self.k + 1,
-            'sim_time_s': self.k * self.period,
-            'final_leg_lengths_m': lengths.tolist(),
-            'final_leg_errors_percent': errors.tolist(),
-            'positioning_error_percent': float(errors.max()),
-            'loop_latency': self.health.latency.summary(),
-            'force_timeouts': self.timeouts, 'missed_cycles': self.missed,
-            'late_cycles': self.late, 'endstop_samples': self.endstop_samples,
-            'wall_time_s': time.time() - self.t0_wall,
-            'skipped': dict(self.health.skipped),
-            'stopped_by_signal': stopped,
-            'run_number': self.run_number, 'resets': self.resets,
-            'faults': self.fault_model.summary(),
-        }
-        if self.peers is not None:
-            summary['lockstep_peers'] = {
-                'window': self.peers.window, 'held_s': round(self.peers.held_s, 3),
-                'held_samples': self.peers.holds, 'dropped': dict(self.peers.dropped)}
-        if self.reference is not None:
-            from stewart63_ros.core.reference import tracking_summary
-            summary['tracking_error'] = dict(from_s=TRACKING_FROM,
-                                             **tracking_summary(self.tracking))
+        summary = run_summary(self, stopped)
         self.write_summary_file(summary)
         self.get_logger().info('done: %d samples, final error %.3f %%, latency %s' % (
             summary['samples'], summary['positioning_error_percent'], summary['loop_latency']))

@@ -258,7 +258,8 @@ class PlantControl:
         self.sent_wall.clear()
         self.sensor = SensorModel(self.params)      # its noise starts over, as on a restart
         self.fault_model.reset()
-        self.tracking[:] = 0.0
+        if self.tracking is not None:
+            self.tracking.reset()
         # The new run's answers carry stamps from 0 again (lockstep): not from the past.
         self.force_gate.last_ns = None
         self.get_logger().warning('reset: run %d starts from the initial state'

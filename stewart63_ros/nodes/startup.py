@@ -1,4 +1,41 @@
-"""A node's start-up barrier: nothing is published before its subscribers are there."""
+"""The rig's start-up order: who waits for whom before the plant's first sample.
+
+The plant's samples drive every other node (the controller answers them, fk
+poses them, the recorder writes them), so the nodes start in this order, and
+nothing anybody publishes is lost:
+
+1. ``rig --record``: the recorder first. ``record`` prints ``READY`` once it
+   has a subscription on every topic (tools/record.py); ``rig`` waits for
+   that line (tools/rig.py, ``Rig.start``). Composed, the recorder is opened
+   before the nodes are made (nodes/composed.py).
+2. The controller and fk. Each node waits before its first message
+   (``RigNode.wait_for_matches``: ``StartupBarrier`` below) until every data
+   publisher has ``wait_for_subscribers`` matched subscriptions (``rig``
+   sets 1 when it records) and every subscription the ROS graph shows on its
+   topic, after ``discovery_settle`` s for the graph to show what already
+   runs; then a new match settles for ``MATCH_SETTLE`` s, and a recorder
+   that the graph shows on its topics must name the node under
+   ``matched_publishers`` on /diagnostics (nodes/handshake.py: the
+   recorder's side of the match, which only the recorder sees).
+3. ``rig --record``: the recorder prints ``MATCHED`` once it has matched the
+   controller's and fk's publishers; ``rig`` waits for that line, then
+   starts the plant.
+4. The plant waits as every node does (2.), and for what its samples need
+   (``PlantStartup``): in lockstep a ``leg_forces`` publisher (a controller:
+   lockstep steps only on its answers); ``lengths_subscribers`` matched
+   subscriptions on ``leg_lengths`` (``rig``: controller + fk + recorder, +1
+   for a controller run elsewhere); a subscription on ``leg_lengths`` from
+   each node named in ``lengths_peers`` (a count alone is not enough: a
+   recorder started first fills it while fk, still loading, has none yet, and
+   fk would miss the run); in lockstep the progress publisher of each node
+   named in ``lockstep_peers`` (nodes/lockstep.py). ``rig`` writes these
+   parameters for the plant (``Rig.overlay``).
+5. Composed (``rig --compose``): one process, the same waits in the same
+   order: controller, then fk, then the plant (``Composed.run``).
+
+Every wait is bounded by ``discovery_timeout``: a node still missing a peer
+then starts anyway, with a warning in its log and on /diagnostics.
+"""
 from __future__ import annotations
 
 import time
@@ -7,7 +44,7 @@ from stewart63_ros import topics
 
 
 class StartupBarrier:
-    """``wait(extra)`` before a RigNode's first message (its ``wait_for_matches``).
+    """``wait(extra)`` before a RigNode's first message (its ``wait_for_matches``; 2.).
 
     Uses the node's ``data_publishers``, ``optional_publishers``, health
     publisher, ``wait_for_subscribers``, ``discovery_settle``,
@@ -108,3 +145,36 @@ class StartupBarrier:
         node.health.warning = 'started before all subscribers matched'
         return False
 
+
+class PlantStartup:
+    """What the plant waits for besides its subscribers (4. in the module's doc):
+    its parameters ``lengths_subscribers`` and ``lengths_peers`` (full
+    names), the controller's answers in lockstep, and its lockstep peers
+    (``peers``: a ``lockstep.PeerWindow``, or None)."""
+
+    def __init__(self, plant):
+        self.plant = plant
+        # Lockstep cannot start before the controller is there to answer.
+        self.need_forces = 1 if plant.mode == 'lockstep' else 0
+
+    def missing(self) -> list[str]:
+        """What the plant still waits for (empty: nothing)."""
+        plant = self.plant
+        out = []
+        if plant.sub_forces.get_publisher_count() < self.need_forces:
+            out.append('a %s publisher (a controller: lockstep steps only on its '
+                       'answers)' % plant.sub_forces.topic_name)
+        lengths = plant.outputs.pub_lengths
+        have = lengths.get_subscription_count()
+        if have < plant.lengths_subscribers:
+            out.append('%s: %d of %d subscriptions matched (lengths_subscribers)'
+                       % (lengths.topic_name, have, plant.lengths_subscribers))
+        shown = {topics.endpoint_node_name(info) for info in
+                 plant.get_subscriptions_info_by_topic(lengths.topic_name)}
+        for peer in plant.lengths_peers:
+            if peer not in shown:
+                out.append('%s: no subscription from %s yet (lengths_peers)'
+                           % (lengths.topic_name, peer))
+        if plant.peers is not None:
+            out += plant.peers.missing_publishers()
+        return out

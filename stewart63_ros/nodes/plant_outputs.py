@@ -1,0 +1,93 @@
+"""The plant's samples out: leg_lengths, ground_truth pose and twist, /clock.
+
+``SampleOutputs`` is the plant's publishing part: it owns the publishers,
+their serialized-message templates (nodes/wire.py) and the wall time each
+sample went out (the loop latency starts there). ``leg_lengths`` goes out on
+every sample; /clock (lockstep) and ground_truth only while somebody
+subscribes to them: they are VOLATILE, so no subscriber can tell.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped, TwistStamped
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+
+from stewart63_ros import topics
+from stewart63_ros.core.dynamics import OMEGA, POS, QUAT, VEL
+from stewart63_ros.nodes import wire
+from stewart63_ros.nodes.rclpy_internals import raw_publisher
+
+
+class SampleOutputs:
+    """What the plant publishes per sample (see the module's doc).
+
+    Args:
+        node: the plant (a RigNode): the publishers are its data publishers.
+        lockstep: publish /clock too (simulated time).
+    """
+
+    #: s: how often the plant looks up the subscriptions matched on /clock and
+    #: ground_truth (a lookup costs a few microseconds, a sample's budget at
+    #: ten thousand samples a second is a hundred).
+    LISTENERS_PERIOD = 0.005
+    #: the most samples whose send time is kept for an answer (the others
+    #: never got one)
+    SENT_KEPT = 1000
+
+    def __init__(self, node, lockstep: bool):
+        self.health = node.health
+        self.pub_lengths = node.publisher(JointState, topics.LEG_LENGTHS, topics.STREAM_PUB)
+        self.pub_pose = node.publisher(PoseStamped, topics.TRUE_POSE, topics.STREAM_PUB)
+        self.pub_twist = node.publisher(TwistStamped, topics.TRUE_TWIST, topics.STREAM_PUB)
+        self.pub_clock = (node.publisher(Clock, topics.CLOCK, topics.STREAM_PUB)
+                          if lockstep else None)
+        # Serialized messages out and forces in: see nodes/wire.py.
+        self.lengths_out = wire.JointStateTemplates(('position', 'velocity')).get('base')
+        self.pose_out = wire.pose_template('base')
+        self.twist_out = wire.twist_template('base')
+        self.clock_out = wire.clock_template()
+        wire.warm_up(('effort',))
+        self.send_lengths = raw_publisher(self.pub_lengths)
+        self.send_pose = raw_publisher(self.pub_pose)
+        self.send_twist = raw_publisher(self.pub_twist)
+        self.send_clock = raw_publisher(self.pub_clock) if self.pub_clock is not None else None
+        # Who listens to /clock and ground_truth, looked up every
+        # LISTENERS_PERIOD rather than on every sample (see listeners).
+        self.to_clock = self.to_pose = self.to_twist = False
+        self.listeners_due = 0.0
+        self.sent_wall = {}             # sample stamp -> wall time it was published
+
+    def listeners(self, now: float) -> None:
+        """Look up who subscribes to /clock and ground_truth (at ``now``, perf_counter)."""
+        self.listeners_due = now + self.LISTENERS_PERIOD
+        self.to_clock = bool(self.pub_clock is not None and self.pub_clock.get_subscription_count())
+        self.to_pose = bool(self.pub_pose.get_subscription_count())
+        self.to_twist = bool(self.pub_twist.get_subscription_count())
+
+    def send(self, ns: int, sec: int, nanosec: int, lengths, rates, y) -> None:
+        """One sample stamped ``ns`` (= ``sec``, ``nanosec``): the measured
+        ``lengths`` and ``rates`` first, then the rest, from the state ``y``,
+        while the controller works on the sample."""
+        data = self.lengths_out.fill(sec, nanosec, position=lengths, velocity=rates)
+        sent_wall = self.sent_wall
+        sent_wall[ns] = time.perf_counter()
+        if len(sent_wall) > self.SENT_KEPT:   # answers that never came
+            sent_wall.pop(next(iter(sent_wall)))
+        self.send_lengths(data)
+        published = self.health.published
+        if self.to_clock:
+            self.send_clock(self.clock_out.fill(sec, nanosec))
+            published[topics.CLOCK] += 1
+        # ground_truth, to whoever listens (with no subscriber matched on a
+        # VOLATILE topic there is nobody to send it to).
+        if self.to_pose:
+            quat = y[QUAT] / np.sqrt(y[QUAT] @ y[QUAT])
+            self.send_pose(self.pose_out.fill(sec, nanosec, position=y[POS], orientation=quat))
+            published[topics.TRUE_POSE] += 1
+        if self.to_twist:
+            self.send_twist(self.twist_out.fill(sec, nanosec, linear=y[VEL], angular=y[OMEGA]))
+            published[topics.TRUE_TWIST] += 1
+        published[topics.LEG_LENGTHS] += 1
