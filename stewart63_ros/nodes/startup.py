@@ -18,8 +18,8 @@ nothing anybody publishes is lost:
    ``matched_publishers`` on /diagnostics (nodes/handshake.py: the
    recorder's side of the match, which only the recorder sees).
 3. ``rig --record``: the recorder prints ``MATCHED`` once it has matched the
-   controller's and fk's publishers; ``rig`` waits for that line, then
-   starts the plant.
+   publishers of the controller and fk run here (``recorder_waits_for``,
+   below); ``rig`` waits for that line, then starts the plant.
 4. The plant waits as every node does (2.), and for what its samples need
    (``PlantStartup``): in lockstep a ``leg_forces`` publisher (a controller:
    lockstep steps only on its answers); ``lengths_subscribers`` matched
@@ -29,7 +29,8 @@ nothing anybody publishes is lost:
    recorder started first fills it while fk, still loading, has none yet, and
    fk would miss the run); in lockstep the progress publisher of each node
    named in ``lockstep_peers`` (nodes/lockstep.py). ``rig`` writes these
-   parameters for the plant (``Rig.overlay``).
+   parameters for the plant (``plant_startup_parameters``, below, through
+   ``Rig.overlay``).
 5. Composed (``rig --compose``): one process, the same waits in the same
    order: controller, then fk, then the plant (``Composed.run``).
 
@@ -41,6 +42,39 @@ from __future__ import annotations
 import time
 
 from stewart63_ros import topics
+
+
+def plant_startup_parameters(nodes, record: bool, mode: str, compose: bool) -> dict:
+    """The plant's start-up parameters for a rig (4. in the module's doc).
+
+    Args:
+        nodes: the nodes this rig runs here ('plant', 'controller', 'fk').
+        record: the rig records (its recorder is one more reader).
+        mode: the plant's ``clock_mode``.
+        compose: the nodes share one process (``rig --compose``).
+
+    Returns:
+        {key: value} for the plant's section of the rig's parameter file.
+    """
+    wait = 1 if record else 0
+    # A plant whose controller runs elsewhere (--nodes) waits for that one
+    # too, or a realtime run would start without control.
+    remote = 0 if 'controller' in nodes else 1
+    out = {'lengths_subscribers': sum(n in nodes for n in ('controller', 'fk')) + wait + remote,
+           'lengths_peers': ['controller'] + (['fk'] if 'fk' in nodes else [])}
+    if mode == 'lockstep' and not compose:
+        # The readers outside the control loop hold the plant back rather
+        # than lose samples (nodes/lockstep.py). Composed, one loop serves
+        # them all and none can fall behind.
+        out['lockstep_peers'] = (['fk'] if 'fk' in nodes else []) + (['record'] if record else [])
+    return out
+
+
+def recorder_waits_for(nodes) -> list[str]:
+    """The topics whose publishers ``rig``'s recorder must match (``MATCHED``)
+    before the plant starts: those of the controller and fk run here."""
+    return [t for n, t in (('controller', topics.LEG_FORCES), ('fk', topics.PLATFORM_POSE))
+            if n in nodes]
 
 
 class StartupBarrier:

@@ -82,22 +82,12 @@ class Rig:
     def overlay(self) -> Path:
         """A second parameter file with what the rig decides; it comes after the
         user's file, so it wins over the user's node sections (a ``-p`` does not)."""
-        wait = 1 if self.record else 0
-        shared = {'clock_mode': self.mode, 'wait_for_subscribers': wait}
-        # The plant starts once its local peers (and the recorder) have matched
-        # its samples; a plant whose controller runs elsewhere (--nodes) waits
-        # for that one too, or a realtime run would start without control.
-        remote = 0 if 'controller' in self.nodes else 1
+        from stewart63_ros.nodes.startup import plant_startup_parameters
+        # Who waits for whom before the first sample: nodes/startup.py.
+        shared = {'clock_mode': self.mode, 'wait_for_subscribers': 1 if self.record else 0}
         plant = dict(shared, summary_file=str(self.summary_file),
-                     lengths_subscribers=sum(n in self.nodes for n in ('controller', 'fk'))
-                     + wait + remote,
-                     lengths_peers=['controller'] + (['fk'] if 'fk' in self.nodes else []))
-        if self.mode == 'lockstep' and not self.compose:
-            # The readers outside the control loop hold the plant back
-            # rather than lose samples (nodes/lockstep.py). Composed, one
-            # loop serves them all and none can fall behind.
-            plant['lockstep_peers'] = ((['fk'] if 'fk' in self.nodes else [])
-                                       + (['record'] if self.record else []))
+                     **plant_startup_parameters(self.nodes, bool(self.record), self.mode,
+                                                self.compose))
         if self.duration:
             plant['duration'] = float(self.duration)
         doc = {'/**': {'ros__parameters': shared}, '/**/plant': {'ros__parameters': plant}}
@@ -143,22 +133,17 @@ class Rig:
         return proc
 
     def start(self):
-        """Recorder first; then controller and fk; the plant once they are matched.
-
-        The plant is the source of every message (the others answer its
-        samples), so starting it last, after the recorder has matched the
-        other nodes' publishers, means nothing published is missed.
-        """
+        """Recorder first; then controller and fk; the plant once they are
+        matched (the order and its reasons: nodes/startup.py)."""
         if self.compose:
             argv = ['--nodes', ','.join(self.nodes)]
             if self.record:
                 argv += ['--record', str(self.record)]
             self.spawn('composed', argv + self.ros_args('composed'))
             return
+        from stewart63_ros.nodes.startup import recorder_waits_for
         downstream = [n for n in self.nodes if n != 'plant']
-        # What the recorder waits for: the publishers of the nodes run here.
-        wanted = [t for n, t in (('controller', 'leg_forces'), ('fk', 'platform_pose'))
-                  if n in self.nodes]
+        wanted = recorder_waits_for(self.nodes)
         if self.record:
             argv = [str(self.record)]
             if wanted:
