@@ -264,3 +264,16 @@ def test_no_reference_to_documents_a_user_does_not_have():
             if pattern.search(line):
                 hits.append('%s:%d: %s' % (path.relative_to(ROOT), number, line.strip()))
     assert hits == [], '\n'.join(hits)
+
+
+def test_the_tables_of_executables_list_every_console_script():
+    """README's "What is in the box" and the interface's "Executables": one
+    row per executable a user can run, no more, no fewer."""
+    scripts = sorted(console_scripts())
+    for path, heading in ((ROOT / 'README.md', '## What is in the box'),
+                          (DOC, '### Executables')):
+        text = path.read_text()
+        section = text[text.index(heading):]
+        section = section[:section.index('\n\n', section.index('|'))]
+        rows = re.findall(r'^\| `([\w-]+)` \|', section, re.M)
+        assert sorted(rows) == scripts, (path.name, sorted(set(scripts) ^ set(rows)))
