@@ -9,6 +9,41 @@ import numpy as np
 from stewart63_ros.nodes import handshake
 from stewart63_ros.nodes.checks import Rejected
 
+#: the ``hardware_id`` of every status of the package's nodes
+HARDWARE_ID = 'stewart63_ros'
+
+
+def counted(prefix: str, counter) -> list[tuple[str, str]]:
+    """A status's counts: ``(prefix + key, count)`` per entry of ``counter``, in key order."""
+    return [(prefix + key, str(n)) for key, n in sorted(counter.items())]
+
+
+class StatusPublisher:
+    """A node's status on /diagnostics, under the node's own name (``name``):
+    what ``Health`` and the recorder (nodes/recorder_status.py) publish through."""
+
+    def __init__(self, node):
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        from stewart63_ros import topics
+        self.node = node
+        # 'stewart63/controller' in the root namespace, 'stewart63/rig2/controller'
+        # in /rig2: /diagnostics is absolute, so two rigs must not share a name.
+        self.name = topics.status_name(node.get_fully_qualified_name())
+        self.pub = node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
+                                         topics.DIAGNOSTICS_QOS)
+
+    def publish(self, level, message: str, values, stamp=None) -> None:
+        """One status: ``level`` (a DiagnosticStatus level), ``message`` and
+        ``values``, (key, text) pairs; stamped ``stamp``, or now."""
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+        status = DiagnosticStatus(level=level, name=self.name, message=message,
+                                  hardware_id=HARDWARE_ID,
+                                  values=[KeyValue(key=k, value=v) for k, v in values])
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = stamp if stamp is not None else self.node.get_clock().now().to_msg()
+        self.pub.publish(msg)
+
 
 class LatencyStats:
     """Recent latencies [s]: percentiles over a sliding window, max over all.
@@ -44,14 +79,8 @@ class Health:
     """
 
     def __init__(self, node, name: str):
-        from diagnostic_msgs.msg import DiagnosticArray
-
-        from stewart63_ros import topics
         self.node = node
         self.name = name
-        # 'stewart63/controller' in the root namespace, 'stewart63/rig2/controller'
-        # in /rig2: /diagnostics is absolute, so two rigs must not share a name.
-        self.status_name = topics.status_name(node.get_fully_qualified_name())
         self.received = collections.Counter()
         self.published = collections.Counter()
         self.rejected = collections.Counter()
@@ -71,8 +100,9 @@ class Health:
         self._last_report = time.monotonic()
         self._received_at_report = collections.Counter()
         self._rejected_at_report = 0
-        self.pub = node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
-                                         topics.DIAGNOSTICS_QOS)
+        self.out = StatusPublisher(node)
+        self.status_name = self.out.name
+        self.pub = self.out.pub
 
     def reject(self, topic: str, exc: Rejected) -> None:
         self.rejected['%s/%s' % (topic, exc.reason)] += 1
@@ -97,7 +127,7 @@ class Health:
         also says how many messages the node published on each topic
         (``final/<full topic name>``), so that a recorder can confirm it holds
         them all (see RigNode.flush)."""
-        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+        from diagnostic_msgs.msg import DiagnosticStatus
 
         from stewart63_ros import topics
         now = time.monotonic()
@@ -122,31 +152,23 @@ class Health:
         values = []
         for topic, n in sorted(self.received.items()):
             rate = (n - self._received_at_report[topic]) / period
-            values.append(KeyValue(key='rate_hz/' + topic, value='%.1f' % rate))
-            values.append(KeyValue(key='received/' + topic, value=str(n)))
-        for topic, n in sorted(self.published.items()):
-            values.append(KeyValue(key='published/' + topic, value=str(n)))
-        for topic, n in sorted(self.skipped.items()):
-            values.append(KeyValue(key='skipped/' + topic, value=str(n)))
-        values.append(KeyValue(key='rejected_total', value=str(rejected_total)))
-        for key, n in sorted(self.rejected.items()):
-            values.append(KeyValue(key='rejected/' + key, value=str(n)))
+            values.append(('rate_hz/' + topic, '%.1f' % rate))
+            values.append(('received/' + topic, str(n)))
+        values += counted('published/', self.published)
+        values += counted('skipped/', self.skipped)
+        values.append(('rejected_total', str(rejected_total)))
+        values += counted('rejected/', self.rejected)
         for key, val in self.latency.summary().items():
             text = str(val) if isinstance(val, int) else '%.4g' % val   # counts in full
-            values.append(KeyValue(key='latency/' + key, value=text))
-        for key, val in self.values.items():
-            values.append(KeyValue(key=key, value=str(val)))
+            values.append(('latency/' + key, text))
+        values += [(key, str(val)) for key, val in self.values.items()]
         if final:
-            values.append(KeyValue(key=handshake.FINAL, value='true'))
+            values.append((handshake.FINAL, 'true'))
             for topic, n in sorted(self.published.items()):
                 full = self.node.resolve_topic_name(topic)
                 if full != topics.DIAGNOSTICS:
-                    values.append(KeyValue(key=handshake.FINAL_PREFIX + full, value=str(n)))
-        status = DiagnosticStatus(level=level, name=self.status_name,
-                                  message=message, hardware_id='stewart63_ros', values=values)
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = stamp if stamp is not None else self.node.get_clock().now().to_msg()
-        self.pub.publish(msg)
+                    values.append((handshake.FINAL_PREFIX + full, str(n)))
+        self.out.publish(level, message, values, stamp)
         self.published['/diagnostics'] += 1
         self._last_report = now
         self._received_at_report = collections.Counter(self.received)
