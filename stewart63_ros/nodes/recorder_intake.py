@@ -7,17 +7,9 @@ wait-set loop takes a topic's whole queue and writes it as one batch.
 from __future__ import annotations
 
 import time
-from functools import partial
-from itertools import chain
 
 from stewart63_ros.nodes.rclpy_internals import take_with_info
 from stewart63_ros.nodes.recorder_bag import header_stamp_ns
-
-
-def _taken(subscription):
-    """Every message ``subscription`` holds, (data, info), taken as the loop
-    over it goes (no Python frame per message but the take's own)."""
-    return iter(partial(take_with_info, subscription), None)
 
 
 class Intake:
@@ -46,15 +38,16 @@ class Intake:
         return self.bag.add_connection(topic, self.subs.types[topic],
                                        self.subs.offered_qos(topic))
 
-    def write(self, topic, messages) -> int:
-        """The one path of every message into the bag: ``messages``, (data,
-        info) pairs in the order taken, stamped, written as one batch and
-        counted per topic, per sender (``RecorderStatus.per_source``, for
-        the handshake) and per gap in a sender's numbers (``losses``).
-        Returns how many were written.
+    def write(self, topic, got, sub=None) -> int:
+        """The one path of every message into the bag: ``got``, a (data, info)
+        pair as taken, then (if ``sub`` is given) everything else ``sub``
+        holds, in order: stamped, written as one batch and counted per topic,
+        per sender (``RecorderStatus.per_source``, for the handshake) and per
+        gap in a sender's numbers (``losses``). Returns how many were written.
 
-        The wait-set loop hands a topic's whole queue here at once: keep the
-        loop free of calls and allocations it can do without.
+        The wait-set loop hands a topic's whole queue here at once, thousands
+        of messages a second: the loop makes no call and no allocation it
+        can do without.
         """
         bag = self.bag
         last = bag.last_stamp.get(topic, 0)
@@ -62,7 +55,8 @@ class Intake:
         note_gap = self.losses.counter(topic).note
         batch = []
         append = batch.append
-        for data, info in messages:
+        while got is not None:
+            data, info = got
             stamp = info.get('received_timestamp') if info else None
             stamp = int(stamp) if stamp else time.time_ns()
             # Reliable topics are delivered in order; a sample re-sent after a
@@ -91,6 +85,7 @@ class Intake:
                     per_source[key] = max(per_source[key], int(seq))
                 else:
                     per_source[key] += 1
+            got = take_with_info(sub) if sub is not None else None
         if not batch:
             return 0
         bag.last_stamp[topic] = last
@@ -112,7 +107,7 @@ class Intake:
         copies = self.subs.copies.get(topic)
         if copies is not None and not copies.first(tag, bytes(data)):
             return      # a latched sample's copy through the other subscription
-        self.write(topic, ((data, info),))
+        self.write(topic, (data, info))
         if topic == self.diag_topic:
             gid = info.get('publisher_gid') if info else None
             if gid:
@@ -127,24 +122,25 @@ class Intake:
             if volatile is None and topic != self.diag_topic:
                 got = take_with_info(sub)
                 if got is not None:     # (most turns find most topics empty)
-                    n += self.write(topic, chain((got,), _taken(sub)))
+                    n += self.write(topic, got, sub)
                 continue
             if volatile is None:        # /diagnostics: rare, and read (see on_message)
-                for data, info in _taken(sub):
-                    self.on_message(topic, data, info)
+                while (got := take_with_info(sub)) is not None:
+                    self.on_message(topic, got[0], got[1])
                     n += 1
                 continue
             # A latched command topic: both subscriptions' messages in the
             # order they were received, so copies meet and the bag's order
             # is the publishers'.
-            taken = [(info.get('received_timestamp', 0), tag, data, info)
-                     for tag, each in (('main', sub), ('volatile', volatile))
-                     for data, info in _taken(each)]
+            taken = []
+            for tag, each in (('main', sub), ('volatile', volatile)):
+                while (got := take_with_info(each)) is not None:
+                    taken.append((got[1].get('received_timestamp', 0), tag, got[0], got[1]))
             taken.sort(key=lambda item: (item[0], item[1]))
             for _, tag, data, info in taken:
                 self.on_message(topic, data, info, tag)
                 n += 1
-        if self.status.waiting:
+        if self.status.finals:
             self.status.confirm()
         if n and self.progress is not None:
             self.progress.publish()

@@ -77,16 +77,13 @@ class RecorderStatus:
         #: the last message number per (topic, sending participant): how many
         #: each process published, also for a recorder started after it
         self.per_source: collections.Counter = collections.Counter()
-        self._finals: dict[tuple, tuple] = {}   # (status, participant) -> (counts, since)
+        #: the last statuses of stopping nodes still to confirm:
+        #: (status name, participant) -> (counts wanted per topic, since when)
+        self.finals: dict[tuple, tuple] = {}
         self._matched_nodes: list[str] = []
         self._next_report = 0.0
         self._own_gid = None        # its status publisher's, from the graph
         losses.on_loss = self.report_soon
-
-    @property
-    def waiting(self) -> bool:
-        """Whether a stopping node's last status waits for a confirmation."""
-        return bool(self._finals)
 
     def report_soon(self) -> None:
         """Publish the status at the next ``report``, not a period later."""
@@ -122,21 +119,21 @@ class RecorderStatus:
             wanted = handshake.final_counts({kv.key: kv.value for kv in status.values})
             if wanted is None:
                 continue
-            self._finals[status.name, source] = (wanted, time.monotonic())
+            self.finals[status.name, source] = (wanted, time.monotonic())
 
     def confirm(self) -> None:
         """Say on /diagnostics (``confirms``: the statuses' names) which stopping
         nodes' messages the bag now holds, on the topics it records."""
         done = []
         now = time.monotonic()
-        for key, (wanted, since) in list(self._finals.items()):
+        for key, (wanted, since) in list(self.finals.items()):
             name, source = key
             if all(self.per_source[topic, source] >= n for topic, n in wanted.items()
                    if topic in self.subscribed):
                 done.append(name)
-                del self._finals[key]
+                del self.finals[key]
             elif now - since > self.FINAL_WAIT:
-                del self._finals[key]
+                del self.finals[key]
         if done:
             self.publish('holds every message of ' + ', '.join(done),
                          **{handshake.CONFIRMS: ','.join(done)})
