@@ -152,7 +152,7 @@ class BagOut:
         self.batch = None       # BatchWriter of ``writer``
         self.counts: dict[str, int] = {}
         self.conns: dict[str, object] = {}      # full topic -> rosbags Connection
-        #: full topic -> the last bag time [ns] written (see Recorder._write)
+        #: full topic -> the last bag time [ns] written (see Intake.write)
         self.last_stamp: dict[str, int] = {}
 
     def check_new(self) -> None:

@@ -68,7 +68,7 @@ class RecordedTopics:
         latched publisher sent before recording started, but matches no
         volatile publisher (``ros2 topic pub`` by default); the VOLATILE one
         matches both, and a latched sample that comes through both is
-        written once (``copies``, used by Recorder._on_message)."""
+        written once (``copies``, used by Intake.on_message)."""
         from rclpy.qos import DurabilityPolicy, QoSProfile
         cls = message_class(type_name)
         qos = qos or T.recorder_qos(full)
