@@ -13,11 +13,6 @@ from stewart63_ros.nodes.checks import Rejected
 HARDWARE_ID = 'stewart63_ros'
 
 
-def counted(prefix: str, counter) -> list[tuple[str, str]]:
-    """A status's counts: ``(prefix + key, count)`` per entry of ``counter``, in key order."""
-    return [(prefix + key, str(n)) for key, n in sorted(counter.items())]
-
-
 class StatusPublisher:
     """A node's status on /diagnostics, under the node's own name (``name``):
     what ``Health`` and the recorder (nodes/recorder_status.py) publish through."""
@@ -33,13 +28,14 @@ class StatusPublisher:
         self.pub = node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
                                          topics.DIAGNOSTICS_QOS)
 
-    def publish(self, level, message: str, values, stamp=None) -> None:
+    def publish(self, level, message: str, values: list, stamp=None) -> None:
         """One status: ``level`` (a DiagnosticStatus level), ``message`` and
-        ``values``, (key, text) pairs; stamped ``stamp``, or now."""
-        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+        ``values`` (diagnostic_msgs KeyValue: the keys written out where they
+        are made, for test/test_interface_doc.py to find); stamped ``stamp``,
+        or now."""
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
         status = DiagnosticStatus(level=level, name=self.name, message=message,
-                                  hardware_id=HARDWARE_ID,
-                                  values=[KeyValue(key=k, value=v) for k, v in values])
+                                  hardware_id=HARDWARE_ID, values=values)
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = stamp if stamp is not None else self.node.get_clock().now().to_msg()
         self.pub.publish(msg)
@@ -127,7 +123,7 @@ class Health:
         also says how many messages the node published on each topic
         (``final/<full topic name>``), so that a recorder can confirm it holds
         them all (see RigNode.flush)."""
-        from diagnostic_msgs.msg import DiagnosticStatus
+        from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
         from stewart63_ros import topics
         now = time.monotonic()
@@ -152,22 +148,26 @@ class Health:
         values = []
         for topic, n in sorted(self.received.items()):
             rate = (n - self._received_at_report[topic]) / period
-            values.append(('rate_hz/' + topic, '%.1f' % rate))
-            values.append(('received/' + topic, str(n)))
-        values += counted('published/', self.published)
-        values += counted('skipped/', self.skipped)
-        values.append(('rejected_total', str(rejected_total)))
-        values += counted('rejected/', self.rejected)
+            values.append(KeyValue(key='rate_hz/' + topic, value='%.1f' % rate))
+            values.append(KeyValue(key='received/' + topic, value=str(n)))
+        for topic, n in sorted(self.published.items()):
+            values.append(KeyValue(key='published/' + topic, value=str(n)))
+        for topic, n in sorted(self.skipped.items()):
+            values.append(KeyValue(key='skipped/' + topic, value=str(n)))
+        values.append(KeyValue(key='rejected_total', value=str(rejected_total)))
+        for key, n in sorted(self.rejected.items()):
+            values.append(KeyValue(key='rejected/' + key, value=str(n)))
         for key, val in self.latency.summary().items():
             text = str(val) if isinstance(val, int) else '%.4g' % val   # counts in full
-            values.append(('latency/' + key, text))
-        values += [(key, str(val)) for key, val in self.values.items()]
+            values.append(KeyValue(key='latency/' + key, value=text))
+        for key, val in self.values.items():
+            values.append(KeyValue(key=key, value=str(val)))
         if final:
-            values.append((handshake.FINAL, 'true'))
+            values.append(KeyValue(key=handshake.FINAL, value='true'))
             for topic, n in sorted(self.published.items()):
                 full = self.node.resolve_topic_name(topic)
                 if full != topics.DIAGNOSTICS:
-                    values.append((handshake.FINAL_PREFIX + full, str(n)))
+                    values.append(KeyValue(key=handshake.FINAL_PREFIX + full, value=str(n)))
         self.out.publish(level, message, values, stamp)
         self.published['/diagnostics'] += 1
         self._last_report = now

@@ -9,7 +9,7 @@ import sys
 import time
 
 from stewart63_ros.nodes import handshake
-from stewart63_ros.nodes.diagnostics import StatusPublisher, counted
+from stewart63_ros.nodes.diagnostics import StatusPublisher
 from stewart63_ros.nodes.recorder_topics import own_endpoint
 
 
@@ -141,9 +141,13 @@ class RecorderStatus:
     def publish(self, message, **keys) -> None:
         """One status of the recorder: ``keys``, the count recorded and lost
         per topic; WARN once messages were lost."""
-        from diagnostic_msgs.msg import DiagnosticStatus
+        from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
         lost = self.losses.lost
-        values = list(keys.items()) + counted('recorded/', self.counts) + counted('lost/', lost)
+        values = [KeyValue(key=k, value=v) for k, v in keys.items()]
+        values += [KeyValue(key='recorded/' + topic, value=str(n))
+                   for topic, n in sorted(self.counts.items())]
+        values += [KeyValue(key='lost/' + topic, value=str(n))
+                   for topic, n in sorted(lost.items())]
         level = DiagnosticStatus.OK
         if lost:
             level = DiagnosticStatus.WARN
