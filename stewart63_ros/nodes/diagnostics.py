@@ -3,11 +3,17 @@ from __future__ import annotations
 
 import collections
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from stewart63_ros.nodes import handshake
-from stewart63_ros.nodes.checks import Rejected
+
+if TYPE_CHECKING:
+    # Only a hint: checks imports core.params (scipy, a fifth of a second),
+    # which the recorder, publishing through StatusPublisher, does not need
+    # before it is ready.
+    from stewart63_ros.nodes.checks import Rejected
 
 #: the ``hardware_id`` of every status of the package's nodes
 HARDWARE_ID = 'stewart63_ros'
