@@ -3,11 +3,48 @@ from __future__ import annotations
 
 import collections
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from stewart63_ros.nodes import handshake
-from stewart63_ros.nodes.checks import Rejected
+
+if TYPE_CHECKING:
+    # Only a hint: checks imports core.params (scipy, a fifth of a second),
+    # which the recorder, publishing through StatusPublisher, does not need
+    # before it is ready.
+    from stewart63_ros.nodes.checks import Rejected
+
+#: the ``hardware_id`` of every status of the package's nodes
+HARDWARE_ID = 'stewart63_ros'
+
+
+class StatusPublisher:
+    """A node's status on /diagnostics, under the node's own name (``name``):
+    what ``Health`` and the recorder (nodes/recorder_status.py) publish through."""
+
+    def __init__(self, node):
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        from stewart63_ros import topics
+        self.node = node
+        # 'stewart63/controller' in the root namespace, 'stewart63/rig2/controller'
+        # in /rig2: /diagnostics is absolute, so two rigs must not share a name.
+        self.name = topics.status_name(node.get_fully_qualified_name())
+        self.pub = node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
+                                         topics.DIAGNOSTICS_QOS)
+
+    def publish(self, level, message: str, values: list, stamp=None) -> None:
+        """One status: ``level`` (a DiagnosticStatus level), ``message`` and
+        ``values`` (diagnostic_msgs KeyValue: the keys written out where they
+        are made, for test/test_interface_doc.py to find); stamped ``stamp``,
+        or now."""
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+        status = DiagnosticStatus(level=level, name=self.name, message=message,
+                                  hardware_id=HARDWARE_ID, values=values)
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = stamp if stamp is not None else self.node.get_clock().now().to_msg()
+        self.pub.publish(msg)
 
 
 class LatencyStats:
@@ -44,14 +81,8 @@ class Health:
     """
 
     def __init__(self, node, name: str):
-        from diagnostic_msgs.msg import DiagnosticArray
-
-        from stewart63_ros import topics
         self.node = node
         self.name = name
-        # 'stewart63/controller' in the root namespace, 'stewart63/rig2/controller'
-        # in /rig2: /diagnostics is absolute, so two rigs must not share a name.
-        self.status_name = topics.status_name(node.get_fully_qualified_name())
         self.received = collections.Counter()
         self.published = collections.Counter()
         self.rejected = collections.Counter()
@@ -71,8 +102,9 @@ class Health:
         self._last_report = time.monotonic()
         self._received_at_report = collections.Counter()
         self._rejected_at_report = 0
-        self.pub = node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
-                                         topics.DIAGNOSTICS_QOS)
+        self.out = StatusPublisher(node)
+        self.status_name = self.out.name
+        self.pub = self.out.pub
 
     def reject(self, topic: str, exc: Rejected) -> None:
         self.rejected['%s/%s' % (topic, exc.reason)] += 1
@@ -97,7 +129,7 @@ class Health:
         also says how many messages the node published on each topic
         (``final/<full topic name>``), so that a recorder can confirm it holds
         them all (see RigNode.flush)."""
-        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+        from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
         from stewart63_ros import topics
         now = time.monotonic()
@@ -142,11 +174,7 @@ class Health:
                 full = self.node.resolve_topic_name(topic)
                 if full != topics.DIAGNOSTICS:
                     values.append(KeyValue(key=handshake.FINAL_PREFIX + full, value=str(n)))
-        status = DiagnosticStatus(level=level, name=self.status_name,
-                                  message=message, hardware_id='stewart63_ros', values=values)
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = stamp if stamp is not None else self.node.get_clock().now().to_msg()
-        self.pub.publish(msg)
+        self.out.publish(level, message, values, stamp)
         self.published['/diagnostics'] += 1
         self._last_report = now
         self._received_at_report = collections.Counter(self.received)
