@@ -26,6 +26,11 @@ FINAL = 'final'
 FINAL_PREFIX = 'final/'
 RUN = 'run'
 RUN_ENDED = 'ended'
+#: What ``record`` prints on its standard output, one line each, for ``rig``
+#: (start-up order: nodes/startup.py): subscribed to every topic; matched
+#: the publishers it was told to wait for.
+READY_LINE = 'READY'
+MATCHED_LINE = 'MATCHED'
 
 
 def final_counts(values: dict) -> dict[str, int] | None:

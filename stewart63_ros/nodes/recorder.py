@@ -29,11 +29,8 @@ from stewart63_ros.nodes.recorder_status import LossCount, RecorderStatus
 from stewart63_ros.nodes.recorder_topics import RecordedTopics, message_class
 
 # BatchWriter, qos_to_rosbags and message_class are imported from here too.
-__all__ = ['MATCHED_LINE', 'READY_LINE', 'BatchWriter', 'Recorder', 'header_stamp_ns',
+__all__ = ['BatchWriter', 'Recorder', 'header_stamp_ns',
            'message_class', 'qos_to_rosbags']
-
-READY_LINE = 'READY'
-MATCHED_LINE = 'MATCHED'
 
 
 class Recorder:

@@ -18,12 +18,13 @@ import time
 from pathlib import Path
 
 from stewart63_ros.bagio import BagError
+from stewart63_ros.nodes.handshake import MATCHED_LINE, READY_LINE
 from stewart63_ros.nodes.launcher import (
     StopSignals,
     dump_stacks_on_sigusr1,
     ignore_stop_signals,
 )
-from stewart63_ros.nodes.recorder import MATCHED_LINE, READY_LINE, Recorder
+from stewart63_ros.nodes.recorder import Recorder
 from stewart63_ros.nodes.ros_args import rclpy_args, split_ros_args
 
 

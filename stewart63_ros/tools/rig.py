@@ -141,6 +141,7 @@ class Rig:
                 argv += ['--record', str(self.record)]
             self.spawn('composed', argv + self.ros_args('composed'))
             return
+        from stewart63_ros.nodes.handshake import MATCHED_LINE, READY_LINE
         from stewart63_ros.nodes.startup import recorder_waits_for
         downstream = [n for n in self.nodes if n != 'plant']
         wanted = recorder_waits_for(self.nodes)
@@ -152,11 +153,11 @@ class Rig:
             if self.namespace:
                 argv += ['--namespace', self.namespace]
             self.spawn('record', argv)
-            self.wait_for_line('record', 'READY', 30)
+            self.wait_for_line('record', READY_LINE, 30)
         for name in downstream:
             self.spawn(name, self.ros_args(name))
         if self.record and wanted:
-            self.wait_for_line('record', 'MATCHED', START_TIMEOUT + 10)
+            self.wait_for_line('record', MATCHED_LINE, START_TIMEOUT + 10)
         if 'plant' in self.nodes:
             self.spawn('plant', self.ros_args('plant'))
 
