@@ -30,8 +30,11 @@ import sys
 import time
 from pathlib import Path
 
-from stewart63_ros.core.params import ParameterError, default_params_path
-from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked
+# Light imports only up to main's first line, which installs the stop
+# handlers: a Ctrl-C while numpy and scipy load (a third of a second) could
+# otherwise be swallowed by a library's bare ``except`` and never stop the rig.
+from stewart63_ros.core.errors import ParameterError
+from stewart63_ros.paths import default_params_path
 
 NODES = ('plant', 'controller', 'fk')
 #: Bound on the nodes' start-up until the recorder has matched them [s]. It
@@ -323,6 +326,7 @@ def main(argv=None) -> int:
     # deadline: stopping the children (Rig.stop) may take longer.
     signals = StopSignals(deadline=False, interrupt=False).install()
     dump_stacks_on_sigusr1()
+    from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked
     parser = argparse.ArgumentParser(prog='rig', description=__doc__.split('\n\n')[0],
                                      formatter_class=_DefaultsFormatter)
     parser.add_argument('--params', metavar='FILE',
