@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import yaml
 
-from stewart63_ros.nodes.startup import plant_startup_parameters, recorder_waits_for
+from stewart63_ros.nodes.handshake import plant_startup_parameters, recorder_waits_for
 from stewart63_ros.tools.rig import Rig
 
 

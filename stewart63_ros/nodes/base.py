@@ -32,7 +32,7 @@ class RigNode(HotLoop, Node):
     every data publisher of this node has that many matched subscriptions
     (``rig --record`` sets 1 so that the recorder misses nothing);
     ``discovery_timeout`` (s, 20): the bound on that wait (who waits for whom
-    before the first sample: nodes/startup.py);
+    before the first sample: nodes/handshake.py);
     ``realtime_priority`` (0..99, 0): when not 0, the node's threads run
     SCHED_FIFO at that priority (where the OS allows it; a warning and normal
     scheduling where it does not), so that other work on the machine cannot

@@ -177,7 +177,7 @@ class Composed:
         peers = [nodes[n] for n in ('controller', 'fk') if n in nodes]
         # Each node waits for its own subscribers (the recorder, with
         # wait_for_subscribers), as when it runs alone; the plant last
-        # (the start-up order: nodes/startup.py).
+        # (the start-up order: nodes/handshake.py).
         for node in peers:
             node.wait_for_matches()
         directs = {n: nodes[n].start_hot_loop(nodes[n].sub_samples)

@@ -1,7 +1,46 @@
-"""The /diagnostics handshake between the rig's nodes, its recorder and ``rig``.
+"""The handshake between the rig's nodes, its recorder and ``rig``: its words
+and its order, in one place (for users: docs/interface.md, "The handshake
+between nodes, recorder and rig").
 
-The one place for its words; what it does, step by step, for users:
-docs/interface.md, "The handshake between nodes, recorder and rig".
+**Start-up: who waits for whom before the plant's first sample.**
+The plant's samples drive every other node (the controller answers them, fk
+poses them, the recorder writes them), so the nodes start in this order, and
+nothing anybody publishes is lost:
+
+1. ``rig --record``: the recorder first. ``record`` prints ``READY`` once it
+   has a subscription on every topic (tools/record.py); ``rig`` waits for
+   that line (tools/rig.py, ``Rig.start``). Composed, the recorder is opened
+   before the nodes are made (nodes/composed.py).
+2. The controller and fk. Each node waits before its first message
+   (``RigNode.wait_for_matches``: ``startup.StartupBarrier``) until every data
+   publisher has ``wait_for_subscribers`` matched subscriptions (``rig``
+   sets 1 when it records) and every subscription the ROS graph shows on its
+   topic, after ``discovery_settle`` s for the graph to show what already
+   runs; then a new match settles for ``MATCH_SETTLE`` s, and a recorder
+   that the graph shows on its topics must name the node under
+   ``matched_publishers`` on /diagnostics (below: the recorder's side of
+   the match, which only the recorder sees).
+3. ``rig --record``: the recorder prints ``MATCHED`` once it has matched the
+   publishers of the controller and fk run here (``recorder_waits_for``,
+   below); ``rig`` waits for that line, then starts the plant.
+4. The plant waits as every node does (2.), and for what its samples need
+   (``startup.PlantStartup``): in lockstep a ``leg_forces`` publisher (a controller:
+   lockstep steps only on its answers); ``lengths_subscribers`` matched
+   subscriptions on ``leg_lengths`` (``rig``: controller + fk + recorder, +1
+   for a controller run elsewhere); a subscription on ``leg_lengths`` from
+   each node named in ``lengths_peers`` (a count alone is not enough: a
+   recorder started first fills it while fk, still loading, has none yet, and
+   fk would miss the run); in lockstep the progress publisher of each node
+   named in ``lockstep_peers`` (nodes/lockstep.py). ``rig`` writes these
+   parameters for the plant (``plant_startup_parameters``, below, through
+   ``Rig.overlay``).
+5. Composed (``rig --compose``): one process, the same waits in the same
+   order: controller, then fk, then the plant (``Composed.run``).
+
+Every wait is bounded by ``discovery_timeout``: a node still missing a peer
+then starts anyway, with a warning in its log and on /diagnostics.
+
+**The words on /diagnostics.**
 
 - at start-up the recorder's status names, under ``matched_publishers``, the
   nodes every one of whose publishers it has matched; a starting node waits
@@ -27,7 +66,7 @@ FINAL_PREFIX = 'final/'
 RUN = 'run'
 RUN_ENDED = 'ended'
 #: What ``record`` prints on its standard output, one line each, for ``rig``
-#: (start-up order: nodes/startup.py): subscribed to every topic; matched
+#: (the start-up order above): subscribed to every topic; matched
 #: the publishers it was told to wait for.
 READY_LINE = 'READY'
 MATCHED_LINE = 'MATCHED'
@@ -47,6 +86,39 @@ def final_counts(values: dict) -> dict[str, int] | None:
                 pass
     return out
 
+
+
+def plant_startup_parameters(nodes, record: bool, mode: str, compose: bool) -> dict:
+    """The plant's start-up parameters for a rig (4. in the module's doc).
+
+    Args:
+        nodes: the nodes this rig runs here ('plant', 'controller', 'fk').
+        record: the rig records (its recorder is one more reader).
+        mode: the plant's ``clock_mode``.
+        compose: the nodes share one process (``rig --compose``).
+
+    Returns:
+        {key: value} for the plant's section of the rig's parameter file.
+    """
+    wait = 1 if record else 0
+    # A plant whose controller runs elsewhere (--nodes) waits for that one
+    # too, or a realtime run would start without control.
+    remote = 0 if 'controller' in nodes else 1
+    out = {'lengths_subscribers': sum(n in nodes for n in ('controller', 'fk')) + wait + remote,
+           'lengths_peers': ['controller'] + (['fk'] if 'fk' in nodes else [])}
+    if mode == 'lockstep' and not compose:
+        # The readers outside the control loop hold the plant back rather
+        # than lose samples (nodes/lockstep.py). Composed, one loop serves
+        # them all and none can fall behind.
+        out['lockstep_peers'] = (['fk'] if 'fk' in nodes else []) + (['record'] if record else [])
+    return out
+
+
+def recorder_waits_for(nodes) -> list[str]:
+    """The topics whose publishers ``rig``'s recorder must match (``MATCHED``)
+    before the plant starts: those of the controller and fk run here."""
+    return [t for n, t in (('controller', topics.LEG_FORCES), ('fk', topics.PLATFORM_POSE))
+            if n in nodes]
 
 class RecorderWord:
     """What the rig's recorders say to this node on /diagnostics.

@@ -62,7 +62,7 @@ class PlantNode(PlantControl, RigNode):
         self.duration = self.param('duration')      # simulated seconds; 0 = forever
         self.force_timeout = self.param('force_timeout')
         # Matched leg_lengths subscriptions, and the nodes whose subscription
-        # the graph must show, before the first sample (nodes/startup.py).
+        # the graph must show, before the first sample (nodes/handshake.py).
         self.lengths_subscribers = self.param('lengths_subscribers')
         self.lengths_peers = self.peer_names('lengths_peers')
         # Lockstep flow control (nodes/lockstep.py): the readers of
@@ -210,7 +210,7 @@ class PlantNode(PlantControl, RigNode):
 
     # -- main loops -----------------------------------------------------------
     def run(self):
-        self.wait_for_matches(self.plant_startup.missing)     # the start-up order: startup.py
+        self.wait_for_matches(self.plant_startup.missing)     # the start-up order: handshake.py
         self.forces_in = self.start_hot_loop(self.sub_forces)
         self.announce_run('running')
         self.t0_wall = time.time()

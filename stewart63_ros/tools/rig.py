@@ -85,8 +85,8 @@ class Rig:
     def overlay(self) -> Path:
         """A second parameter file with what the rig decides; it comes after the
         user's file, so it wins over the user's node sections (a ``-p`` does not)."""
-        from stewart63_ros.nodes.startup import plant_startup_parameters
-        # Who waits for whom before the first sample: nodes/startup.py.
+        from stewart63_ros.nodes.handshake import plant_startup_parameters
+        # Who waits for whom before the first sample: nodes/handshake.py.
         shared = {'clock_mode': self.mode, 'wait_for_subscribers': 1 if self.record else 0}
         plant = dict(shared, summary_file=str(self.summary_file),
                      **plant_startup_parameters(self.nodes, bool(self.record), self.mode,
@@ -137,15 +137,14 @@ class Rig:
 
     def start(self):
         """Recorder first; then controller and fk; the plant once they are
-        matched (the order and its reasons: nodes/startup.py)."""
+        matched (the order and its reasons: nodes/handshake.py)."""
         if self.compose:
             argv = ['--nodes', ','.join(self.nodes)]
             if self.record:
                 argv += ['--record', str(self.record)]
             self.spawn('composed', argv + self.ros_args('composed'))
             return
-        from stewart63_ros.nodes.handshake import MATCHED_LINE, READY_LINE
-        from stewart63_ros.nodes.startup import recorder_waits_for
+        from stewart63_ros.nodes.handshake import MATCHED_LINE, READY_LINE, recorder_waits_for
         downstream = [n for n in self.nodes if n != 'plant']
         wanted = recorder_waits_for(self.nodes)
         if self.record:
