@@ -101,9 +101,10 @@ class FakeRecorder:
 
 
 def test_record_asks_for_the_stop_on_every_signal_and_exits_0(deadlines, monkeypatch, tmp_path):
+    from stewart63_ros.nodes import recorder
     from stewart63_ros.tools import record
     made = []
-    monkeypatch.setattr(record, 'Recorder',
+    monkeypatch.setattr(recorder, 'Recorder',       # record's main imports it from there
                         lambda *a, **k: made.append(FakeRecorder()) or made[-1])
     try:
         assert record.main([str(tmp_path / 'bag')]) == 0
@@ -159,3 +160,34 @@ def test_play_stops_on_a_second_signal_too_and_puts_the_handlers_back(deadlines,
     assert deadlines == []          # a test may run it in its own process
     assert signal.getsignal(signal.SIGINT) is mine
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+
+
+class RecorderMadeAfterTheSignal(FakeRecorder):
+    """Notes whether the stop was asked for before its recording began."""
+
+    def run(self, duration=None, stop_event=None):
+        self.stopped_before_run = stop_event.is_set()
+
+    def close(self):
+        self.closed = True
+
+
+def test_record_stopped_before_its_recorder_exists_records_nothing_and_exits_0(
+        deadlines, monkeypatch, tmp_path):
+    """A signal while ``record`` still loads its modules (before the Recorder
+    exists) is kept: the recorder, once made, stops at once, exit 0."""
+    from stewart63_ros.nodes import recorder
+    from stewart63_ros.tools import record
+    made = []
+
+    def make(*args, **kwargs):
+        signal.raise_signal(signal.SIGINT)      # before the Recorder is returned
+        made.append(RecorderMadeAfterTheSignal())
+        return made[-1]
+    monkeypatch.setattr(recorder, 'Recorder', make)
+    try:
+        assert record.main([str(tmp_path / 'bag')]) == 0
+    finally:
+        faulthandler.unregister(signal.SIGUSR1)
+    assert made[0].stopped_before_run and made[0].closed
+    assert deadlines == [True]

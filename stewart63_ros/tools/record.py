@@ -17,14 +17,14 @@ import threading
 import time
 from pathlib import Path
 
-from stewart63_ros.bagio import BagError
-from stewart63_ros.nodes.handshake import MATCHED_LINE, READY_LINE
+# Light imports only up to main's first line, which installs the stop
+# handlers (the recorder's modules, rclpy and rosbags, load after them): a
+# Ctrl-C while they load could otherwise be swallowed by a library's catch-all.
 from stewart63_ros.nodes.launcher import (
     StopSignals,
     dump_stacks_on_sigusr1,
     ignore_stop_signals,
 )
-from stewart63_ros.nodes.recorder import Recorder
 from stewart63_ros.nodes.ros_args import rclpy_args, split_ros_args
 
 
@@ -80,7 +80,25 @@ def _write_ready_file(path, text):
 
 
 def main(argv=None) -> int:
+    made = []                   # the Recorder, once made
+    stop = threading.Event()
+
+    def stop_recording():
+        stop.set()
+        for rec in made:
+            try:
+                rec.request_stop()
+            except RuntimeError:     # already closed: nothing left to stop
+                pass
+    # Kept until the process ends: a second signal (Ctrl-C twice, SIGINT then
+    # SIGTERM from a launcher) while the bag is closed and rclpy shuts down
+    # must not kill the process half way. One before the recorder exists:
+    # it records nothing and ends at once, cleanly.
+    StopSignals(stop_recording, deadline=True, interrupt=False).install()
     dump_stacks_on_sigusr1()
+    from stewart63_ros.bagio import BagError
+    from stewart63_ros.nodes.handshake import MATCHED_LINE, READY_LINE
+    from stewart63_ros.nodes.recorder import Recorder
     argv = list(sys.argv[1:] if argv is None else argv)
     argv, ros = split_ros_args(argv)
     ros_args = rclpy_args('record', ros)
@@ -104,18 +122,7 @@ def main(argv=None) -> int:
     rec = Recorder(bag, args.topics, namespace=args.namespace, ros_args=ros_args,
                    flush_period=args.flush_period, fast_path=not args.executor,
                    batch_period=max(0.0, args.batch_period))
-    stop = threading.Event()
-
-    def stop_recording():
-        stop.set()
-        try:
-            rec.request_stop()
-        except RuntimeError:     # already closed: nothing left to stop
-            pass
-    # Kept until the process ends: a second signal (Ctrl-C twice, SIGINT then
-    # SIGTERM from a launcher) while the bag is closed and rclpy shuts down
-    # must not kill the process half way.
-    StopSignals(stop_recording, deadline=True, interrupt=False).install()
+    made.append(rec)
     try:
         try:
             rec.open()
