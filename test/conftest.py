@@ -32,3 +32,16 @@ def default_mech(default_params_file):
     """The default mechanism (validated)."""
     from stewart63_ros.core.params import load_mechanism
     return load_mechanism(default_params_file)
+
+
+@pytest.fixture(scope='module')
+def mech(default_mech):
+    """The default mechanism by its short name (a test file may define its own)."""
+    return default_mech
+
+
+@pytest.fixture(scope='module')
+def dyn(mech):
+    """The dynamics of ``mech`` (eq. 38), one per test module."""
+    from stewart63_ros.core.dynamics import Dynamics
+    return Dynamics(mech)

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stewart63_ros.core.dynamics import POS, Dynamics
+from stewart63_ros.core.dynamics import POS
 from stewart63_ros.core.faults import (
     KINDS,
     FaultError,
@@ -38,16 +38,6 @@ RATE = 1000.0
 DURATION = 2.0
 START = 1.0                  # s: most faults start here, when the platform has settled
 K0 = int(START * RATE)       # the first faulted sample
-
-
-@pytest.fixture(scope='module')
-def mech(default_mech):
-    return default_mech
-
-
-@pytest.fixture(scope='module')
-def dyn(mech):
-    return Dynamics(mech)
 
 
 @pytest.fixture(scope='module')

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stewart63_ros.core.dynamics import POS, QUAT, Dynamics
+from stewart63_ros.core.dynamics import POS, QUAT
 from stewart63_ros.core.kinematics import jacobian, leg_lengths
 from stewart63_ros.core.laws import Controller, LawError, PDGravityLaw
 from stewart63_ros.core.params import ParameterError
@@ -39,16 +39,6 @@ from stewart63_ros.core.rotation import quaternion_from_euler, rotation_from_eul
 from stewart63_ros.core.simulate import initial_state, run_continuous, run_sampled
 
 RATE = 1000.0
-
-
-@pytest.fixture(scope='module')
-def mech(default_mech):
-    return default_mech
-
-
-@pytest.fixture(scope='module')
-def dyn(mech):
-    return Dynamics(mech)
 
 
 def six_axis_reference(mech, duration=6.0, step=0.01):
