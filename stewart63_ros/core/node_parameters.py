@@ -36,7 +36,8 @@ from stewart63_ros.core.faults import FaultError, parse_faults
 #: The nodes of the rig. 'sim' stands for the offline executables that read
 #: a node's keys (``sim``, ``analyze``, ``sweep``).
 NODES = ('plant', 'controller', 'fk')
-ALL = ('plant', 'controller', 'fk')
+#: A key every node reads.
+ALL = NODES
 
 
 # -- checks: each takes (name, value as given) and returns the value used ----
