@@ -52,13 +52,6 @@ class PlantControl:
         self.step_count = self.param('step_count')
         self.tunable('faults', self.set_faults)
         self.tunable('step_count', self.set_step_count)
-        # Declared even when the file leaves them out: `ros2 param get` shows
-        # them, and a run-time value must have their types (a string list).
-        from rclpy.parameter import Parameter
-        if not self.has_parameter('faults'):
-            self.declare_parameter('faults', Parameter.Type.STRING_ARRAY)
-        if not self.has_parameter('step_count'):
-            self.declare_parameter('step_count', self.step_count)
         self.paused = False
         self.step_left = 0              # samples a ~/step still lets through
         self.reset_requested = False
