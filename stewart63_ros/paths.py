@@ -1,8 +1,17 @@
-"""Where the package's files are. Standard library only: the launch files
-import it in a Python that may have ``launch`` but not numpy or scipy."""
+"""Where the package's files are, and the clock mode a rig runs in. Standard
+library only: the launch files import it in a Python that may have ``launch``
+but not numpy or scipy (and ``rig`` before its stop handlers are in place)."""
 from __future__ import annotations
 
 from pathlib import Path
+
+#: The clock mode a rig runs in unless told otherwise (``rig --mode``, ``demo
+#: --mode``, the launch files' ``clock_mode:=``), written once. The packaged
+#: file sets the same for every node (its ``/**`` section), so that a plant,
+#: controller and fk each started by hand with it agree. A node given no
+#: ``clock_mode`` runs in the declared default (core/node_parameters.py),
+#: ``realtime``: alone, it runs; in lockstep it would wait for a controller.
+RIG_CLOCK_MODE = 'lockstep'
 
 
 def default_params_path() -> Path:

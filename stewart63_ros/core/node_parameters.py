@@ -33,6 +33,7 @@ import numpy as np
 
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.core.faults import FaultError, parse_faults
+from stewart63_ros.paths import RIG_CLOCK_MODE  # noqa: F401 - the rig's, beside the default
 
 #: The nodes of the rig. 'sim' stands for the offline executables that read
 #: a node's keys (``sim``, ``analyze``, ``sweep``).
@@ -237,6 +238,7 @@ DEFAULT_CT_KD = 100.0
 #: The end stops' spring [N/m] and damper [N s/m] past the stroke.
 DEFAULT_ENDSTOP_STIFFNESS = 2.0e6
 DEFAULT_ENDSTOP_DAMPING = 5.0e3
+
 
 _NAMES_RANGE = 'list of names, relative to the plant\'s namespace unless they start with `/`'
 

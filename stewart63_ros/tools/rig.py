@@ -34,7 +34,7 @@ from pathlib import Path
 # handlers: a Ctrl-C while numpy and scipy load (a third of a second) could
 # otherwise be swallowed by a library's bare ``except`` and never stop the rig.
 from stewart63_ros.core.errors import ParameterError
-from stewart63_ros.paths import default_params_path
+from stewart63_ros.paths import RIG_CLOCK_MODE, default_params_path
 
 NODES = ('plant', 'controller', 'fk')
 #: Bound on the nodes' start-up until the recorder has matched them [s]. It
@@ -61,7 +61,7 @@ def default_log_dir(record=None, namespace='') -> Path:
 class Rig:
     """The processes of one rig; ``start()``, ``wait()``, ``stop()``."""
 
-    def __init__(self, params, mode='lockstep', duration=None, record=None, namespace='',
+    def __init__(self, params, mode=RIG_CLOCK_MODE, duration=None, record=None, namespace='',
                  log_dir=None, extra_params=None, nodes=NODES, realtime_priority=0,
                  compose=False):
         self.params = str(params)
@@ -330,7 +330,7 @@ def main(argv=None) -> int:
                                      formatter_class=_DefaultsFormatter)
     parser.add_argument('--params', metavar='FILE',
                         help='parameter file (default: the packaged %s)' % default_params_path())
-    parser.add_argument('--mode', choices=('realtime', 'lockstep'), default='lockstep',
+    parser.add_argument('--mode', choices=('realtime', 'lockstep'), default=RIG_CLOCK_MODE,
                         help='clock mode of the plant')
     parser.add_argument('--duration', type=float, metavar='S',
                         help='simulated seconds, then stop (default: run until Ctrl-C)')
