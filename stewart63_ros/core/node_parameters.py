@@ -13,10 +13,15 @@ declarations, and nowhere else, come:
   defaulted and checked;
 - the table "Node-specific keys" of docs/interface.md: ``markdown_table()``
   (test/test_parameter_table.py keeps the page equal to it;
-  ``python test/test_parameter_table.py --write`` rewrites it).
+  ``python test/test_parameter_table.py --write`` rewrites it);
+- what ``ros2 param describe`` shows of each key on each node
+  (``describe``: description with unit, range, read-only; nodes/parameters.py
+  makes the ParameterDescriptor of it) and the value's ROS type (``ros_value``).
 
 The model's keys (geometry, masses, gains, initial state) are the fields of
-``params.Mechanism``, checked together in ``params.mechanism_from_params``.
+``params.Mechanism``, checked together in ``params.mechanism_from_params``;
+their unit, words and range are declared here too (``MODEL``, which writes
+the page's model table: ``model_markdown_table()``).
 
 A node that reads a new parameter: declare it here (it is then known,
 checked and documented), and read it with ``read`` (``RigNode.param``).

@@ -156,9 +156,10 @@ def declare_parameters(node, kind: str, params: dict) -> None:
     The values are ours (this module's precedence), not rcl's.
 
     rclpy types a declared value by itself (an empty list as bytes), and no
-    value goes into a read-only parameter: so each key is declared with its
-    type alone, then set to its value, then given its descriptor (read-only
-    too). This runs before the node's own set-parameters callback exists.
+    value goes into a read-only parameter once declared: so a key whose
+    value rclpy would type otherwise (``[]``) is declared with its type
+    alone, then set to its value, then given its descriptor (read-only too).
+    This runs before the node's own set-parameters callback exists.
     """
     from rclpy.parameter import Parameter
     keys = node_keys(kind)
@@ -173,7 +174,11 @@ def declare_parameters(node, kind: str, params: dict) -> None:
             continue
         desc = descriptor(name, kind)
         value = ros_value(name, value, kind)
-        if desc.dynamic_typing:
+        try:
+            typed = Parameter.Type.from_parameter_value(value).value == desc.type
+        except TypeError:
+            typed = False
+        if desc.dynamic_typing or typed:
             node.declare_parameter(name, value, desc, ignore_override=True)
             continue
         kind_of = Parameter.Type(desc.type)
