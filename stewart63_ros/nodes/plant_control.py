@@ -73,9 +73,7 @@ class PlantControl:
         """Run-time ``faults`` (parsed by their declaration): in force together,
         or ParameterError (a new fault whose times are past: nothing changes)."""
         try:
-            # (the new run's sample 0 during a reset's quiet)
-            events = self.fault_model.set_faults(
-                value, next_sample=0 if self.resetting else self.next_sample())
+            events = self.fault_model.set_faults(value, next_sample=self.next_sample())
         except FaultError as exc:
             raise ParameterError('faults', str(exc)) from None
         for event in events:
@@ -112,7 +110,10 @@ class PlantControl:
 
     # -- services ----------------------------------------------------------------------
     def next_sample(self) -> int:
-        """The sample the loop publishes next (a request acts before it)."""
+        """The sample the loop publishes next (a request acts before it; during
+        a reset's quiet, the new run's first)."""
+        if self.resetting:
+            return 0
         return self.k if self.holding or self.forces_in is None else self.k + 1
 
     def on_pause(self, request, response):
