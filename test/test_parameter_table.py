@@ -179,6 +179,30 @@ def test_the_model_table_lists_exactly_the_mechanisms_keys():
     assert len(rows) == len(set(rows))
 
 
+def test_the_rigs_clock_mode_is_written_once_and_the_packaged_file_sets_it_for_every_node():
+    """``rig``, ``demo`` and the launch files default to paths.RIG_CLOCK_MODE;
+    the packaged file sets that mode in its ``/**`` section (every node reads
+    it) and in no node's section; a node given none runs in the declared
+    default."""
+    import inspect
+
+    import yaml
+
+    from stewart63_ros.paths import RIG_CLOCK_MODE
+    from stewart63_ros.tools.rig import Rig
+    doc = yaml.safe_load(default_params_path().read_text())
+    assert doc['/**']['ros__parameters']['clock_mode'] == RIG_CLOCK_MODE
+    assert [k for k, v in doc.items() if k != '/**' and 'clock_mode' in v['ros__parameters']] \
+        == []
+    assert inspect.signature(Rig).parameters['mode'].default == RIG_CLOCK_MODE
+    written = [path.name for path in [*(REPO / 'stewart63_ros').rglob('*.py'),
+                                      *(REPO / 'launch').glob('*.py')]
+               if "default='lockstep'" in path.read_text()
+               or "default_value='lockstep'" in path.read_text()]
+    assert written == []
+    assert declared.default('clock_mode') == 'realtime'
+
+
 if __name__ == '__main__':
     if sys.argv[1:] != ['--write']:
         sys.exit('usage: python test/test_parameter_table.py --write')
