@@ -209,9 +209,13 @@ def start_rig(ros, monkeypatch, tmp_path, mode, compose=False, extra=None):
     rig = Rig(PARAMS, mode=mode, duration=None, log_dir=tmp_path / 'rig', compose=compose,
               extra_params=extra)
     rig.start()
-    client.wait_ready(rig)
-    assert ros.spin_until(lambda: len(client.samples) >= 10, START_TIMEOUT), logs_of(
-        tmp_path / 'rig')
+    try:
+        client.wait_ready(rig)
+        assert ros.spin_until(lambda: len(client.samples) >= 10, START_TIMEOUT), logs_of(
+            tmp_path / 'rig')
+    except BaseException:
+        rig.stop()          # a rig that did not come up: no node left running
+        raise
     return rig, client
 
 
