@@ -333,3 +333,52 @@ def test_plan_writes_poses_and_a_reference_the_rig_accepts(tmp_path, mech):
             assert np.allclose(pose, want, atol=1e-6), (row, pose)
     assert json.loads((tmp_path / 'plan' / 'plan.json').read_text())['o3_per_m'] > 0
     assert calibrate.main(['plan', '--poses', '5', '--out', str(tmp_path / 'p2')]) == 2
+
+
+# -- bags ---------------------------------------------------------------------------------
+def write_bag(path, meas, pose_stamps_ns, length_stamps_ns):
+    """A bag with tracker/pose and leg_lengths, one pose and one reading a stamp."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from stewart63_ros import bagio
+    store = bagio.typestore()
+    pose_t = store.types['geometry_msgs/msg/PoseStamped']
+    joint_t = store.types['sensor_msgs/msg/JointState']
+    header_t = store.types['std_msgs/msg/Header']
+    time_t = store.types['builtin_interfaces/msg/Time']
+    point_t = store.types['geometry_msgs/msg/Point']
+    quat_t = store.types['geometry_msgs/msg/Quaternion']
+    pose_msg_t = store.types['geometry_msgs/msg/Pose']
+    quats = Rotation.from_matrix(meas.rotations).as_quat()
+
+    def header(ns):
+        return header_t(stamp=time_t(sec=ns // 10**9, nanosec=ns % 10**9), frame_id='base')
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        poses = writer.add_connection('/tracker/pose', pose_t.__msgtype__, typestore=store)
+        legs = writer.add_connection('/leg_lengths', joint_t.__msgtype__, typestore=store)
+        for n in range(meas.count):
+            msg = pose_t(header=header(pose_stamps_ns[n]), pose=pose_msg_t(
+                position=point_t(*meas.positions[n]), orientation=quat_t(*quats[n])))
+            writer.write(poses, pose_stamps_ns[n], store.serialize_cdr(msg, msg.__msgtype__))
+            msg = joint_t(header=header(length_stamps_ns[n]),
+                          name=['leg_%d' % (i + 1) for i in range(6)],
+                          position=meas.readings[n], velocity=np.zeros(6), effort=np.zeros(0))
+            writer.write(legs, length_stamps_ns[n], store.serialize_cdr(msg, msg.__msgtype__))
+
+
+def test_a_bag_is_matched_by_stamp_and_mismatched_stamps_are_refused(tmp_path, mech, truth,
+                                                                     planned, capsys):
+    meas = tracked(truth, planned.positions, planned.rotations, np.random.default_rng(10))
+    stamps = [10**9 + n * 10**7 for n in range(meas.count)]
+    write_bag(tmp_path / 'good', meas, stamps, stamps)
+    assert calibrate.main(['fit', '--measurements', str(tmp_path / 'good'),
+                           '--out', str(tmp_path / 'out')]) == 0
+    report = json.loads((tmp_path / 'out' / 'report.json').read_text())
+    assert report['source']['used'] == meas.count and report['source']['unmatched'] == 0
+    # The tracker's clock 3 ms behind the sensors': refused, not fitted.
+    write_bag(tmp_path / 'skewed', meas, [s - 3_000_000 for s in stamps], stamps)
+    code = calibrate.main(['fit', '--measurements', str(tmp_path / 'skewed'),
+                           '--out', str(tmp_path / 'out2')])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and 'mismatched stamps' in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / 'out2' / 'calibrated.yaml').exists()

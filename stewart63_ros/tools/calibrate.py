@@ -23,13 +23,19 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
+# One BLAS thread, set before numpy loads it: the fit's tall SVDs (thousands
+# of readings by 33) took 1.4 s each with two threads on this shared two-core
+# machine under load, and 0.04 s with one (measured 2026-11-25).
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
-from stewart63_ros.core.params import ParameterError, default_params_path
+import numpy as np  # noqa: E402
+
+from stewart63_ros.core.params import ParameterError, default_params_path  # noqa: E402
 
 PROG = 'calibrate'
 MEASUREMENT_COLUMNS = ('x', 'y', 'z', 'qx', 'qy', 'qz', 'qw', 'L1', 'L2', 'L3', 'L4', 'L5', 'L6')
