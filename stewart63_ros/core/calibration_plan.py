@@ -4,7 +4,7 @@ Observability index: O3, the smallest singular value of the whitened
 identification Jacobian (core/calibration.py), i.e. E-optimality. The
 standard deviation of the worst-determined combination of parameters is
 noise / O3, and that combination is what a calibration fails on (a base
-point moved along its leg against that leg's offset, FACTS.md): maximising
+point moved along its leg against that leg's offset, docs/calibration.md): maximising
 O3 bounds every parameter's uncertainty at once, in metres, for the stated
 tracker noise. O1 (the geometric mean of the singular values, D-optimality)
 rewards making the already well-determined directions better while a weak
