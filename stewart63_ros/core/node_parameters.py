@@ -149,14 +149,7 @@ def gain_vector(name: str, value: Any) -> np.ndarray:
     Returns:
         (6,) float array.
     """
-    try:
-        arr = np.array(value, dtype=float).ravel()
-    except (TypeError, ValueError):
-        raise ParameterError(name, 'expected 6 numbers, got %r' % (value,)) from None
-    if arr.size != 6:
-        raise ParameterError(name, 'expected 6 numbers, got %d' % arr.size)
-    if not np.all(np.isfinite(arr)):
-        raise ParameterError(name, 'NaN or Inf in %s' % arr.tolist())
+    arr = six_lengths(name, value)
     if np.any(arr < 0):
         raise ParameterError(name, 'gains must be >= 0, got %s' % arr.tolist())
     return arr

@@ -318,6 +318,12 @@ def run_machine(args, mech, params_path: Path) -> int:
         plant.update({'tracker_rate': args.tracker_rate,
                       'tracker_position_noise': args.tracker_noise[0],
                       'tracker_orientation_noise': args.tracker_noise[1]})
+        from stewart63_ros.core.params import read_parameter_file
+        from stewart63_ros.core.sensor import TrackerModel
+        try:        # a rate the plant would refuse: refused here
+            TrackerModel(dict(read_parameter_file(params_path, 'plant'), **plant))
+        except ParameterError as exc:
+            raise InputError(str(exc)) from None
     out = Path(args.out)
     out.write_text('# a machine built off the drawing %s (calibrate machine --seed %d: points '
                    '+-%g m, offsets +-%g m)\n' % (params_path, args.seed, args.points,
@@ -331,12 +337,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split('\n\n')[0])
     sub = parser.add_subparsers(dest='command', required=True)
 
-    def common(p, noise=True):
+    def common(p):
         p.add_argument('--params', metavar='FILE',
                        help='the drawing: a parameter file (default: the packaged %s)'
                        % default_params_path())
-        if noise:
-            p.add_argument('--tracker-noise', type=float, nargs=2, default=(1e-4, 1e-4),
+        p.add_argument('--tracker-noise', type=float, nargs=2, default=(1e-4, 1e-4),
                            metavar=('POS', 'ANG'),
                            help="the tracker's standard deviations per axis: position [m] "
                            'and angle [rad] (default 1e-4 1e-4)')
@@ -379,7 +384,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     machine = sub.add_parser('machine', help='a parameter file of a machine built off its '
                              'drawing, for the simulation')
-    common(machine, noise=False)
+    common(machine)
     machine.add_argument('--out', required=True, metavar='FILE')
     machine.add_argument('--seed', type=int, default=0)
     machine.add_argument('--points', type=float, default=0.005, metavar='M',
@@ -389,14 +394,29 @@ def build_parser() -> argparse.ArgumentParser:
     machine.add_argument('--tracker-rate', type=float, default=100.0, metavar='HZ',
                          help="the plant's simulated tracker on tracker/pose (default 100; "
                          '0: none)')
-    machine.add_argument('--tracker-noise', type=float, nargs=2, default=(1e-4, 1e-4),
-                         metavar=('POS', 'ANG'), help="the simulated tracker's standard "
-                         'deviations: position [m], angle [rad] (default 1e-4 1e-4)')
     return parser
+
+
+def option_problem(args) -> str:
+    """Why an option's value cannot be used ('' if all can)."""
+    checks = [('--tracker-noise', min(args.tracker_noise) >= 0)]
+    if args.command == 'fit':
+        checks += [('--stamp-tolerance', args.stamp_tolerance > 0), ('--still', args.still >= 0),
+                   ('--reading-noise', args.reading_noise >= 0)]
+    elif args.command == 'machine':
+        checks += [('--points', args.points >= 0), ('--offsets', args.offsets >= 0),
+                   ('--tracker-rate', args.tracker_rate >= 0)]
+    for name, ok in checks:
+        if not ok:       # NaN fails every comparison
+            return '%s must be a number >= 0 (> 0 for --stamp-tolerance)' % name
+    return ''
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    problem = option_problem(args)
+    if problem:
+        return _fail(problem)
     from stewart63_ros.tools.cli import load_checked
     params_path = Path(args.params or default_params_path())
     mech = load_checked(PROG, params_path)
@@ -410,6 +430,8 @@ def main(argv=None) -> int:
         return run_machine(args, mech, params_path)
     except InputError as exc:
         return _fail(exc)
+    except OSError as exc:
+        return _fail('%s: %s' % (exc.filename or 'output', exc.strerror))
 
 
 if __name__ == '__main__':
