@@ -153,7 +153,7 @@ def measurements(positions: ArrayLike, quaternions: ArrayLike,
         CalibrationError: wrong shapes, a NaN or Inf (naming the first row,
             1-based), a quaternion that is not of unit length.
     """
-    from scipy.spatial.transform import Rotation
+    from stewart63_ros.core.rotation import rotation_from_quaternion
     positions = np.asarray(positions, dtype=float)
     quaternions = np.asarray(quaternions, dtype=float)
     readings = np.asarray(readings, dtype=float)
@@ -172,7 +172,7 @@ def measurements(positions: ArrayLike, quaternions: ArrayLike,
     if off.size:
         raise CalibrationError('row %d: the quaternion (qx, qy, qz, qw) has length %.6g, '
                                'not 1' % (off[0] + 1, norms[off[0]]))
-    return Measurements(positions, Rotation.from_quat(quaternions).as_matrix(), readings)
+    return Measurements(positions, rotation_from_quaternion(quaternions), readings)
 
 
 # -- the model -----------------------------------------------------------------
@@ -367,10 +367,11 @@ def parameter_groups(directions: np.ndarray, share: float = 0.05) -> list[dict]:
 
 def _pose_cause(meas: Measurements) -> str:
     """Why poses may leave parameters unseen, in words ('' if nothing obvious)."""
-    from scipy.spatial.transform import Rotation
-    tilt = np.linalg.norm(Rotation.from_matrix(meas.rotations).as_rotvec()[:, :2], axis=1)
+    from stewart63_ros.core.rotation import rotvec_from_rotation
+    rotvec = rotvec_from_rotation(meas.rotations)
+    tilt = np.linalg.norm(rotvec[:, :2], axis=1)
     heights = np.ptp(meas.positions[:, 2])
-    angles = np.ptp(Rotation.from_matrix(meas.rotations).as_rotvec(), axis=0)
+    angles = np.ptp(rotvec, axis=0)
     causes = []
     if np.all(angles < 1e-6):
         causes.append('every pose has the same orientation (each vertex and its two base '

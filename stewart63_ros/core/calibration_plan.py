@@ -80,11 +80,10 @@ def candidate_poses(mech: Mechanism, count: int, rng: np.random.Generator,
     Raises:
         PlanError: fewer than ``count`` feasible poses in 50 x ``count`` draws.
     """
-    from scipy.spatial.transform import Rotation
-
     from stewart63_ros.core.analysis import AnalysisError, holding_forces, setpoint_pose
     from stewart63_ros.core.dynamics import Dynamics
     from stewart63_ros.core.fk import ForwardKinematics
+    from stewart63_ros.core.rotation import quaternion_of_rotvec_times, rotation_from_quaternion
     try:
         centre, centre_rot = setpoint_pose(mech)
     except AnalysisError as exc:
@@ -101,8 +100,8 @@ def candidate_poses(mech: Mechanism, count: int, rng: np.random.Generator,
     for _ in range(50):
         batch = 4 * count
         pos = centre + rng.uniform(-1, 1, (batch, 3)) * half[:3]
-        rot = (Rotation.from_rotvec(rng.uniform(-1, 1, (batch, 3)) * half[3:])
-               * Rotation.from_matrix(centre_rot)).as_matrix()
+        rot = rotation_from_quaternion(quaternion_of_rotvec_times(
+            rng.uniform(-1, 1, (batch, 3)) * half[3:], centre_rot))
         meas = cal.Measurements(pos, rot, np.zeros((batch, 6)))
         lengths = cal.predict_readings(cal.parameter_vector(mech), meas) \
             - cal.leg_length_offset(mech)
@@ -212,16 +211,16 @@ def tour(mech: Mechanism, positions: np.ndarray, rotations: np.ndarray,
     Returns:
         The order, a permutation of range(N).
     """
-    from scipy.spatial.transform import Rotation
+    from stewart63_ros.core.rotation import quaternion_from_rotation, rotvec_between
     size = float(np.max(np.linalg.norm(mech.platform_points - mech.platform_points.mean(0),
                                        axis=1)))
     left = list(range(len(positions)))
     here_t, here_r = start
     order = []
     while left:
-        dist = [np.linalg.norm(positions[j] - here_t) + size * np.linalg.norm(
-            (Rotation.from_matrix(rotations[j]) * Rotation.from_matrix(here_r).inv())
-            .as_rotvec()) for j in left]
+        turns = rotvec_between(quaternion_from_rotation(rotations[left]), here_r)
+        dist = np.linalg.norm(positions[left] - here_t, axis=1) + size * np.linalg.norm(
+            turns, axis=1)
         nxt = left.pop(int(np.argmin(dist)))
         order.append(nxt)
         here_t, here_r = positions[nxt], rotations[nxt]

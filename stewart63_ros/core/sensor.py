@@ -114,7 +114,10 @@ class TrackerModel:
         Returns:
             (position (3,), unit quaternion (4,)) with the noise added.
         """
-        from scipy.spatial.transform import Rotation
+        from stewart63_ros.core.rotation import (
+            quaternion_of_rotvec_times,
+            rotation_from_quaternion,
+        )
         position = position + self.rng.normal(0.0, self.position_noise, 3)
-        turn = Rotation.from_rotvec(self.rng.normal(0.0, self.orientation_noise, 3))
-        return position, (turn * Rotation.from_quat(quaternion)).as_quat()
+        turn = self.rng.normal(0.0, self.orientation_noise, 3)
+        return position, quaternion_of_rotvec_times(turn, rotation_from_quaternion(quaternion))
