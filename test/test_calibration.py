@@ -382,3 +382,20 @@ def test_a_bag_is_matched_by_stamp_and_mismatched_stamps_are_refused(tmp_path, m
     err = capsys.readouterr().err.strip()
     assert code == 2 and 'mismatched stamps' in err and len(err.splitlines()) == 1, err
     assert not (tmp_path / 'out2' / 'calibrated.yaml').exists()
+
+
+def test_rig_refuses_a_plant_file_it_cannot_use(tmp_path):
+    from argparse import Namespace
+
+    from stewart63_ros.tools.rig import plant_params_problem
+    params = str(calibrate.default_params_path())
+    machine = tmp_path / 'machine.yaml'
+    assert calibrate.main(['machine', '--out', str(machine)]) == 0
+    ok = Namespace(compose=False, nodes='plant,controller,fk', plant_params=str(machine))
+    assert plant_params_problem(ok, params) == ''
+    composed = Namespace(compose=True, nodes='plant,controller,fk', plant_params=str(machine))
+    assert 'not with --compose' in plant_params_problem(composed, params)
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('/**:\n  ros__parameters:\n    leg_length_offset: [0.0, 0.0]\n')
+    broken = Namespace(compose=False, nodes='plant,controller,fk', plant_params=str(bad))
+    assert 'leg_length_offset: expected 6 numbers' in plant_params_problem(broken, params)

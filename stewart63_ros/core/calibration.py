@@ -454,6 +454,8 @@ class Fit:
         estimate: (33,) the fitted ones.
         covariance: (33, 33) of the estimate [m^2] (zero along held directions).
         held: (33, h) the directions held at the drawing (orthonormal columns).
+        held_std: (h,) each held direction's standard deviation from the data
+            [m], as judged against the tolerance.
         analysis: the identifiability of the poses fitted.
         noise_scale: fitted noise / stated noise (1: the stated noise is right).
         rms_before: RMS of reading residuals at the drawing [m].
@@ -466,6 +468,7 @@ class Fit:
     estimate: np.ndarray
     covariance: np.ndarray
     held: np.ndarray
+    held_std: np.ndarray
     analysis: Identifiability
     noise_scale: float
     rms_before: float
@@ -572,7 +575,8 @@ def fit(mech: Mechanism, meas: Measurements, noise: NoiseModel | None = None,
     raw_before = predict_readings(nominal, meas) - meas.readings
     raw_after = predict_readings(estimate, meas) - meas.readings
     return Fit(nominal=nominal, estimate=estimate, covariance=basis @ cov_z @ basis.T,
-               held=held, analysis=analysis, noise_scale=float(np.sqrt(variance)),
+               held=held, held_std=analysis.predicted_std[weak] * scale, analysis=analysis,
+               noise_scale=float(np.sqrt(variance)),
                rms_before=float(np.sqrt(np.mean(raw_before ** 2))),
                rms_after=float(np.sqrt(np.mean(raw_after ** 2))), outliers=outliers,
                residual_count=m, cost_evaluations=int(first.nfev + final.nfev))
@@ -695,9 +699,7 @@ def report(fit_result: Fit, held_out: dict | None = None,
         'outliers': f.outliers,
         'readings': f.residual_count,
         'unidentifiable': [{'combination': describe_direction(f.held[:, j]),
-                            'predicted_std_m': float(
-                                f.noise_scale / analysis.singular_values[
-                                    np.argmax(np.abs(analysis.directions.T @ f.held[:, j]))])}
+                            'predicted_std_m': float(f.held_std[j])}
                            for j in range(f.held.shape[1])],
         'singular_values': analysis.singular_values.tolist(),
         'direction_std_m': (analysis.predicted_std * f.noise_scale).tolist(),
