@@ -47,7 +47,7 @@ def fk_error(bag):
     return position, angle
 
 
-def test_plan_run_record_fit_on_the_lockstep_rig(ros, tmp_path, capsys):
+def test_plan_run_record_fit_on_the_lockstep_rig(ros, tmp_path):
     machine = tmp_path / 'machine.yaml'
     assert calibrate.main(['machine', '--seed', '4', '--out', str(machine),
                            '--tracker-rate', '50', '--tracker-noise', str(TRACKER_NOISE),
