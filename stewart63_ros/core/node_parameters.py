@@ -169,14 +169,7 @@ def gain_vector(name: str, value: Any) -> np.ndarray:
     Returns:
         (6,) float array.
     """
-    try:
-        arr = np.array(value, dtype=float).ravel()
-    except (TypeError, ValueError):
-        raise ParameterError(name, 'expected 6 numbers, got %r' % (value,)) from None
-    if arr.size != 6:
-        raise ParameterError(name, 'expected 6 numbers, got %d' % arr.size)
-    if not np.all(np.isfinite(arr)):
-        raise ParameterError(name, 'NaN or Inf in %s' % arr.tolist())
+    arr = six_lengths(name, value)
     if np.any(arr < 0):
         raise ParameterError(name, 'gains must be >= 0, got %s' % arr.tolist())
     return arr
@@ -188,6 +181,19 @@ def faults(name: str, value: Any) -> list:
         return parse_faults(value)
     except FaultError as exc:
         raise ParameterError(name, str(exc)) from None
+
+
+def six_lengths(name: str, value: Any) -> np.ndarray:
+    """Six finite numbers [m] (of either sign)."""
+    try:
+        arr = np.array(value, dtype=float).ravel()
+    except (TypeError, ValueError):
+        raise ParameterError(name, 'expected 6 numbers, got %r' % (value,)) from None
+    if arr.size != 6:
+        raise ParameterError(name, 'expected 6 numbers, got %d' % arr.size)
+    if not np.all(np.isfinite(arr)):
+        raise ParameterError(name, 'NaN or Inf in %s' % arr.tolist())
+    return arr
 
 
 def law_name(name: str, value: Any) -> str:
@@ -348,6 +354,20 @@ DECLARED: tuple[Declared, ...] = (
              'and normal scheduling)', integer(0, 99, '(0: normal scheduling)')),
     Declared('use_sim_time', ALL, False, '', '', 'rclpy\'s own: the node\'s clock follows '
              '`/clock` (the plant publishes it in lockstep)', boolean),
+    # Calibration (docs/calibration.md).
+    Declared('leg_length_offset', ('plant', 'controller', 'fk'), [0.0] * 6, 'm',
+             '6 numbers', 'each length sensor\'s zero offset: reading = true length + '
+             'offset. The plant adds it to the lengths it publishes; controller and fk '
+             'subtract it from every reading; `calibrate fit` identifies it '
+             '([calibration.md](calibration.md))', six_lengths, default_text='0 ×6'),
+    Declared('tracker_rate', ('plant',), 0.0, 'Hz', '0 or a divisor of `sensor_rate`',
+             'a simulated tracker: publish the true pose with noise on `tracker/pose` at '
+             'this rate; 0: no tracker ([calibration.md](calibration.md))', nonnegative),
+    Declared('tracker_position_noise', ('plant',), 1.0e-4, 'm', '', 'the simulated '
+             'tracker\'s Gaussian position noise per axis', nonnegative),
+    Declared('tracker_orientation_noise', ('plant',), 1.0e-4, 'rad', '', 'the simulated '
+             'tracker\'s Gaussian angle noise per axis (a rotation vector, base frame)',
+             nonnegative),
 )
 
 BY_NAME: dict[str, Declared] = {d.name: d for d in DECLARED}
