@@ -1,7 +1,7 @@
 """`scenario`: run scenario files and give each expectation a verdict (docs/scenarios.md).
 
     scenario run FILE... [--junit F] [--out DIR] [--jobs N | --scheduler ADDRESS]
-             [--no-figures]
+             [--domain ID] [--no-figures]
 
 Runs every scenario of the files (``run: sim`` in process, ``lockstep`` and
 ``realtime`` by starting ``rig`` with a bag and a summary in a temporary
@@ -76,8 +76,12 @@ def _domain_range() -> list[int]:
 
 
 @contextlib.contextmanager
-def leased_domain(wait: float = 600.0):
-    """A ROS domain id no other process on this machine holds while the block runs."""
+def leased_domain(fixed: int | None = None, wait: float = 120.0):
+    """A ROS domain id no other process on this machine holds while the block
+    runs (``fixed``: that id, unleased: the caller vouches for it)."""
+    if fixed is not None:
+        yield fixed
+        return
     DOMAIN_LOCKS.mkdir(parents=True, exist_ok=True)
     ids = _domain_range()
     deadline = time.monotonic() + wait
@@ -154,7 +158,11 @@ def trace_from_rig(scenario, bag: Path, summary: dict):
         elif np.all(np.isfinite(lengths_msgs[s])):
             withheld[k] = True
         rows[k] = held
+    # Sample k's stamp is k periods after the first: k / rate, as sim's times.
+    rate = float(summary.get('rate_hz') or 0.0)
     times = (np.array(stamps, dtype=np.int64) - stamps[0]) * 1e-9
+    if rate > 0:
+        times = np.round(times * rate) / rate
     _, reference = build_controller(scenario)
     expected = int(summary.get('samples', len(stamps)))
     lost = sum(int(v) for v in (summary.get('skipped') or {}).values())
@@ -175,10 +183,11 @@ def _stop_group(proc: subprocess.Popen) -> None:
             proc.wait(wait)
 
 
-def run_rig(scenario, workdir: Path):
+def run_rig(scenario, workdir: Path, domain: int | None = None):
     """Run a scenario with ``rig --mode lockstep|realtime`` on a leased ROS domain.
 
-    Returns its ``Trace``; RuntimeError when the rig fails (its log's tail)."""
+    ``domain``: run on that id instead of a leased one. Returns its
+    ``Trace``; RuntimeError when the rig fails (its log's tail)."""
     params = workdir / 'params.yaml'
     write_parameter_file(scenario, params)
     bag, logs = workdir / 'bag', workdir / 'logs'
@@ -192,7 +201,7 @@ def run_rig(scenario, workdir: Path):
     for fault in scenario.faults:
         cmd += ['--fault', fault]
     bound = RIG_START_BOUND + 60.0 * scenario.duration
-    with leased_domain() as domain:
+    with leased_domain(domain) as domain:
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED='1',
                    ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
         env.pop('ROS_LOCALHOST_ONLY', None)
@@ -215,7 +224,7 @@ def run_rig(scenario, workdir: Path):
 
 
 # -- running --------------------------------------------------------------------
-def run_one(scenario, keep_trace: bool = True) -> Outcome:
+def run_one(scenario, keep_trace: bool = True, domain: int | None = None) -> Outcome:
     """One scenario, its verdicts (a run that fails: every verdict fails, with the reason)."""
     from stewart63_ros.core.laws import LawError
     from stewart63_ros.core.scenario import ScenarioError, evaluate, failed_run_verdicts, run_sim
@@ -225,7 +234,7 @@ def run_one(scenario, keep_trace: bool = True) -> Outcome:
             trace = run_sim(scenario)
         else:
             with tempfile.TemporaryDirectory(prefix='scenario_') as tmp:
-                trace = run_rig(scenario, Path(tmp))
+                trace = run_rig(scenario, Path(tmp), domain)
     except (RuntimeError, ScenarioError, LawError, ValueError, ArithmeticError, OSError) as exc:
         return Outcome(scenario, failed_run_verdicts(scenario.expect, scenario.duration),
                        str(exc), time.perf_counter() - start)
@@ -257,14 +266,18 @@ def _chunks(items: Sequence, parts: int) -> list[list]:
 
 
 def run_all(scenarios: Sequence, jobs: int = 1, scheduler: str | None = None,
-            keep_traces: bool = True) -> list[Outcome]:
+            keep_traces: bool = True, domain: int | None = None) -> list[Outcome]:
     """Every scenario: in this process (``jobs`` 1), on ``jobs`` forked local
     processes, or on the Dask cluster at ``scheduler``; outcomes in input order.
 
     Rig scenarios run one per task (each starts its own rig on its own domain);
-    sim scenarios in chunks, after the kernels are loaded in every worker."""
+    sim scenarios in chunks, after the kernels are loaded in every worker. With
+    a fixed ``domain`` the rig scenarios run one after the other, here."""
     warm_up(scenarios)
     rigs = [i for i, s in enumerate(scenarios) if s.run != 'sim']
+    serial = []
+    if domain is not None:
+        serial, rigs = rigs, []
     sims = [i for i, s in enumerate(scenarios) if s.run == 'sim']
     workers = max(1, jobs)
     tasks = [[i] for i in rigs] + _chunks(sims, workers * 4)
@@ -290,6 +303,8 @@ def run_all(scenarios: Sequence, jobs: int = 1, scheduler: str | None = None,
     for task, outcomes in zip(tasks, results):
         for i, outcome in zip(task, outcomes):
             out[i] = outcome
+    for i in serial:
+        out[i] = run_one(scenarios[i], keep_traces, domain)
     return [o for o in out if o is not None]
 
 
@@ -461,6 +476,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help='run on N local processes (1: in this process)')
     engine.add_argument('--scheduler', default=None, metavar='ADDRESS',
                         help='run on the Dask cluster of this scheduler (tcp://host:8786)')
+    run.add_argument('--domain', type=int, default=None, metavar='ID',
+                     help='run the rig scenarios on this ROS domain id, one after the other '
+                     '(default: each on a leased free id, in parallel)')
     run.add_argument('--no-figures', action='store_true', help='a report without figures')
     return parser
 
@@ -470,6 +488,8 @@ def main(argv=None) -> int:
     from stewart63_ros.core.scenario import ScenarioError
     if args.jobs < 1:
         return _fail('--jobs must be at least 1, got %d' % args.jobs)
+    if args.domain is not None and not 0 <= args.domain <= 232:
+        return _fail('--domain must be a ROS domain id from 0 to 232, got %d' % args.domain)
     try:
         _domain_range()
         scenarios = load_files(args.files)
@@ -484,7 +504,8 @@ def main(argv=None) -> int:
     announce_compile(PROG)
     start = time.perf_counter()
     try:
-        outcomes = run_all(scenarios, args.jobs, args.scheduler, keep_traces=not args.no_figures)
+        outcomes = run_all(scenarios, args.jobs, args.scheduler,
+                           keep_traces=not args.no_figures, domain=args.domain)
     except OSError as exc:
         return _fail('Dask scheduler %s: %s' % (args.scheduler, exc))
     wall = time.perf_counter() - start
