@@ -187,6 +187,22 @@ def _num(value: float) -> str:
 
 
 # -- reading a file ------------------------------------------------------------
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, refusing a key given twice in one mapping (plain
+    YAML keeps the last one silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if key in seen:
+                raise ScenarioError('line %d: %s: given twice in one mapping (for two '
+                                    'windows of a metric, give a list of bounds)'
+                                    % (key_node.start_mark.line + 1, key))
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
 def _hint(key: str, known: Iterable[str]) -> str:
     close = difflib.get_close_matches(str(key), list(known), n=1, cutoff=0.6)
     return ' (did you mean %s?)' % close[0] if close else ' (known: %s)' % ', '.join(known)
@@ -229,7 +245,8 @@ def parse_expectations(where: str, doc: Any, duration: float) -> tuple[Expectati
 
     Args:
         where: the scenario's place in its file, for messages.
-        doc: {metric: {max|min: B, from: T0, to: T1}}.
+        doc: {metric: {max|min: B, from: T0, to: T1}}, or {metric: [such
+            a mapping, ...]} for several windows of one metric.
         duration: the run's duration [s] (a window must lie inside it).
 
     Returns:
@@ -247,30 +264,39 @@ def parse_expectations(where: str, doc: Any, duration: float) -> tuple[Expectati
                                 'supervisor node (CONTRACT section 10)' % at)
         if metric not in METRICS:
             raise ScenarioError('%s: unknown metric%s' % (at, _hint(metric, METRICS)))
-        spec = _mapping(at, spec)
-        _unknown(at, spec, EXPECT_KEYS)
-        bounds = [k for k in ('max', 'min') if k in spec]
-        if not bounds:
-            raise ScenarioError('%s: needs a bound, max: B or min: B' % at)
-        t_from = spec.get('from')
-        t_to = spec.get('to')
-        windowed = t_from is not None or t_to is not None
-        if windowed and not METRICS[metric][1]:
-            raise ScenarioError('%s: counts the whole run, a window (from/to) cannot apply'
-                                % at)
-        if t_from is not None:
-            t_from = _number(at + '.from', t_from, nonnegative=True)
-        if t_to is not None:
-            t_to = _number(at + '.to', t_to, nonnegative=True)
-        lo = t_from or 0.0
-        hi = duration if t_to is None else t_to
-        if not lo < hi or hi > duration + 1e-9:
-            raise ScenarioError('%s: the window %g-%g s must lie inside the run (0-%g s) and '
-                                'end after it starts' % (at, lo, hi, duration))
-        for kind in bounds:
-            limit = _number('%s.%s' % (at, kind), spec[kind])
-            out.append(Expectation(metric, kind, limit, t_from, t_to))
+        specs = spec if isinstance(spec, list) else [spec]
+        for k, one in enumerate(specs):
+            out.extend(_expectations(metric, one, '%s[%d]' % (at, k) if len(specs) > 1 else at,
+                                     duration))
     return tuple(out)
+
+
+def _expectations(metric: str, spec: Any, at: str, duration: float) -> list[Expectation]:
+    out = []
+    spec = _mapping(at, spec)
+    _unknown(at, spec, EXPECT_KEYS)
+    bounds = [k for k in ('max', 'min') if k in spec]
+    if not bounds:
+        raise ScenarioError('%s: needs a bound, max: B or min: B' % at)
+    t_from = spec.get('from')
+    t_to = spec.get('to')
+    windowed = t_from is not None or t_to is not None
+    if windowed and not METRICS[metric][1]:
+        raise ScenarioError('%s: counts the whole run, a window (from/to) cannot apply'
+                            % at)
+    if t_from is not None:
+        t_from = _number(at + '.from', t_from, nonnegative=True)
+    if t_to is not None:
+        t_to = _number(at + '.to', t_to, nonnegative=True)
+    lo = t_from or 0.0
+    hi = duration if t_to is None else t_to
+    if not lo < hi or hi > duration + 1e-9:
+        raise ScenarioError('%s: the window %g-%g s must lie inside the run (0-%g s) and '
+                            'end after it starts' % (at, lo, hi, duration))
+    for kind in bounds:
+        limit = _number('%s.%s' % (at, kind), spec[kind])
+        out.append(Expectation(metric, kind, limit, t_from, t_to))
+    return out
 
 
 def parse_wrench(where: str, doc: Any, duration: float) -> tuple[WrenchInterval, ...]:
@@ -479,7 +505,9 @@ def load_scenarios(path: str | os.PathLike) -> list[Scenario]:
     """
     path = Path(path)
     try:
-        doc = yaml.safe_load(path.read_text())
+        doc = yaml.load(path.read_text(), Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
+    except ScenarioError as exc:
+        raise ScenarioError('%s: %s' % (path, exc)) from None
     except OSError as exc:
         raise ScenarioError('%s: cannot read (%s)' % (path, exc.strerror)) from None
     except yaml.YAMLError as exc:
@@ -496,7 +524,8 @@ def load_scenarios(path: str | os.PathLike) -> list[Scenario]:
     out: list[Scenario] = []
     for i, item in enumerate(items):
         where = '%s: scenarios[%d]' % (path, i)
-        if isinstance(item, Mapping) and isinstance(item.get('name'), str):
+        if isinstance(item, Mapping) and isinstance(item.get('name'), str) and (
+                'matrix' not in item):
             where += ' (%s)' % item['name']
         item = _mapping(where, item)
         for place, single in expand_matrix(item, where):
