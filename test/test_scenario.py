@@ -342,6 +342,7 @@ def test_same_file_same_values_and_parallel_equals_serial():
     assert values(serial) == values(again) == values(parallel)
 
 
+@pytest.mark.slow
 def test_the_package_suite_passes_and_gives_a_report(tmp_path):
     """`make test` runs the package's own scenarios (sim), as a CI job would."""
     files = sorted(str(p) for p in (REPO / 'scenarios').glob('*.yaml'))
@@ -357,6 +358,7 @@ def test_the_package_suite_passes_and_gives_a_report(tmp_path):
     assert (tmp_path / 'report' / 'report.md').read_text().count('![') == len(names)
 
 
+@pytest.mark.slow
 def test_a_lab_runs_scenarios_from_its_own_pytest_file(tmp_path):
     """The pytest plugin (entry point pytest11): a file and a dict, one pass, one fail."""
     write(tmp_path, PASSING, 'mine.yaml')

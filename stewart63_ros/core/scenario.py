@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import itertools
 import math
 import os
@@ -538,6 +539,14 @@ def load_scenarios(path: str | os.PathLike) -> list[Scenario]:
 
 
 # -- building a run ------------------------------------------------------------
+@functools.lru_cache(maxsize=32)
+def _file_section(path: str, node: str, mtime_ns: int) -> Mapping[str, Any]:
+    """A node's parameters of a file, read once per version of the file (YAML
+    parsing would otherwise cost more than a 10 s run)."""
+    from stewart63_ros.core.params import read_parameter_file
+    return read_parameter_file(path, node)
+
+
 def node_parameters(scenario: Scenario, node: str) -> dict:
     """The parameters a node of the scenario reads: its file's, then the overrides.
 
@@ -551,9 +560,12 @@ def node_parameters(scenario: Scenario, node: str) -> dict:
     Raises:
         ScenarioError: the parameter file cannot be read.
     """
-    from stewart63_ros.core.params import read_parameter_file
     try:
-        params = read_parameter_file(scenario.params_file, node)
+        params = dict(_file_section(scenario.params_file, node,
+                                    os.stat(scenario.params_file).st_mtime_ns))
+    except OSError as exc:
+        raise ScenarioError('params_file: cannot read %s (%s)'
+                            % (scenario.params_file, exc.strerror)) from None
     except ParameterError as exc:
         raise ScenarioError('params_file: %s' % exc) from None
     params.update(scenario.params)
