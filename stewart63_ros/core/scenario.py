@@ -262,7 +262,7 @@ def parse_expectations(where: str, doc: Any, duration: float) -> tuple[Expectati
         at = '%s.expect.%s' % (where, metric)
         if metric in PENDING_METRICS:
             raise ScenarioError('%s: not yet available: supervisor trips come with the '
-                                'supervisor node (CONTRACT section 10)' % at)
+                                'supervisor node, not yet in this package' % at)
         if metric not in METRICS:
             raise ScenarioError('%s: unknown metric%s' % (at, _hint(metric, METRICS)))
         specs = spec if isinstance(spec, list) else [spec]
@@ -331,8 +331,9 @@ def parse_wrench(where: str, doc: Any, duration: float) -> tuple[WrenchInterval,
             raise ScenarioError('%s: from %g must be before to %g' % (at, t_from, t_to))
         if 'force' not in item and 'torque' not in item:
             raise ScenarioError('%s: needs force: [fx, fy, fz] or torque: [mx, my, mz]' % at)
-        out.append(WrenchInterval(t_from, t_to, _vector3(at + '.force', item.get('force', [0, 0, 0])),
-                                  _vector3(at + '.torque', item.get('torque', [0, 0, 0]))))
+        force = _vector3(at + '.force', item.get('force', [0, 0, 0]))
+        torque = _vector3(at + '.torque', item.get('torque', [0, 0, 0]))
+        out.append(WrenchInterval(t_from, t_to, force, torque))
     out.sort(key=lambda w: w.t_from)
     for a, b in zip(out, out[1:]):
         if b.t_from < a.t_to:

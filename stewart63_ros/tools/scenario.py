@@ -368,7 +368,7 @@ _ERROR_AXES = {'tracking_error_max_m': 1e3, 'tracking_error_rms_m': 1e3}
 
 def draw_outcome(outcome: Outcome, path: Path) -> Path:
     """The scenario's figure: the largest leg error and the largest |F| against
-    time; each expectation's window shaded (red when it failed), a failed
+    time; each expectation's window a band along the top (red when it failed), a failed
     bound drawn as a dashed line where it has the axes' unit, and the time it
     failed as a vertical line."""
     import matplotlib
@@ -385,11 +385,15 @@ def draw_outcome(outcome: Outcome, path: Path) -> Path:
     ax_f.plot(t, np.abs(trace.forces).max(axis=1), color='#55a868', lw=1)
     ax_f.set_ylabel('max |F| [N]')
     ax_f.set_xlabel('t [s]')
+    # Each expectation's window: a band of its own along the top of its axes.
+    bands = {ax_e: 0, ax_f: 0}
     for v in outcome.verdicts:
         exp = v.expectation
         ax = ax_f if exp.metric == 'max_force' else ax_e
         color = '#c0392b' if not v.passed else '#999999'
-        ax.axvspan(*v.window, color=color, alpha=0.12 if v.passed else 0.18, lw=0)
+        top = 1.0 - 0.05 * bands[ax]
+        bands[ax] += 1
+        ax.axvspan(*v.window, ymin=top - 0.04, ymax=top, color=color, alpha=0.6, lw=0)
         if not v.passed:
             if exp.metric == 'max_force':
                 ax.axhline(exp.limit, color=color, ls='--', lw=1, label='%s %s %g N' % (
