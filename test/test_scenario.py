@@ -40,6 +40,11 @@ JUNIT_XSD = """<?xml version="1.0" encoding="UTF-8"?>
       </xs:extension>
     </xs:simpleContent>
   </xs:complexType>
+  <xs:attributeGroup name="counts">
+    <xs:attribute name="failures" type="xs:nonNegativeInteger"/>
+    <xs:attribute name="errors" type="xs:nonNegativeInteger"/>
+    <xs:attribute name="time" type="xs:decimal"/>
+  </xs:attributeGroup>
   <xs:element name="testsuites">
     <xs:complexType>
       <xs:sequence>
@@ -68,10 +73,8 @@ JUNIT_XSD = """<?xml version="1.0" encoding="UTF-8"?>
             </xs:sequence>
             <xs:attribute name="name" type="xs:string" use="required"/>
             <xs:attribute name="tests" type="xs:nonNegativeInteger" use="required"/>
-            <xs:attribute name="failures" type="xs:nonNegativeInteger"/>
-            <xs:attribute name="errors" type="xs:nonNegativeInteger"/>
+            <xs:attributeGroup ref="counts"/>
             <xs:attribute name="skipped" type="xs:nonNegativeInteger"/>
-            <xs:attribute name="time" type="xs:decimal"/>
             <xs:attribute name="timestamp" type="xs:dateTime"/>
             <xs:attribute name="hostname" type="xs:string"/>
           </xs:complexType>
@@ -79,9 +82,7 @@ JUNIT_XSD = """<?xml version="1.0" encoding="UTF-8"?>
       </xs:sequence>
       <xs:attribute name="name" type="xs:string"/>
       <xs:attribute name="tests" type="xs:nonNegativeInteger"/>
-      <xs:attribute name="failures" type="xs:nonNegativeInteger"/>
-      <xs:attribute name="errors" type="xs:nonNegativeInteger"/>
-      <xs:attribute name="time" type="xs:decimal"/>
+      <xs:attributeGroup ref="counts"/>
     </xs:complexType>
   </xs:element>
 </xs:schema>
@@ -121,6 +122,10 @@ def test_a_passing_scenario_exits_0_and_writes_valid_junit_and_a_report(tmp_path
     xml = validate_junit(junit)
     cases = [case for suite in xml for case in suite]
     assert [c.name for c in cases] == ['paper']
+    broken = tmp_path / 'broken.xml'        # the schema does check: a test case needs a name
+    broken.write_text(junit.read_text().replace('testcase name="paper"', 'testcase'))
+    with pytest.raises(Exception, match='name'):
+        validate_junit(broken)
     assert cases[0].is_passed
     report = (tmp_path / 'out' / 'report.md').read_text()
     assert '1 of 1 scenarios pass' in report

@@ -22,7 +22,6 @@ import argparse
 import concurrent.futures
 import contextlib
 import dataclasses
-import fcntl
 import json
 import math
 import multiprocessing
@@ -39,8 +38,6 @@ from pathlib import Path
 from typing import Any
 
 PROG = 'scenario'
-#: The lock files of leased ROS domain ids (shared with test/ros_harness.py).
-DOMAIN_LOCKS = Path(tempfile.gettempdir()) / 'stewart63_ros_domains'
 #: Bound on a rig's start-up (loading or compiling the kernels, discovery) [s].
 RIG_START_BOUND = 240.0
 
@@ -82,18 +79,15 @@ def leased_domain(fixed: int | None = None, wait: float = 120.0):
     if fixed is not None:
         yield fixed
         return
-    DOMAIN_LOCKS.mkdir(parents=True, exist_ok=True)
+    from stewart63_ros.paths import try_lock_domain
     ids = _domain_range()
     deadline = time.monotonic() + wait
     start = (os.getpid() * 7) % len(ids)
     while True:
         for k in range(len(ids)):
             domain = ids[(start + k) % len(ids)]
-            fd = os.open(DOMAIN_LOCKS / ('%d.lock' % domain), os.O_CREAT | os.O_RDWR, 0o666)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
-                os.close(fd)
+            fd = try_lock_domain(domain)
+            if fd is None:
                 continue
             try:
                 yield domain
