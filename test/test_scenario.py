@@ -348,6 +348,30 @@ def test_same_file_same_values_and_parallel_equals_serial():
 
 
 @pytest.mark.slow
+def test_a_dask_cluster_gives_the_serial_verdicts():
+    distributed = pytest.importorskip('distributed')
+    scenarios = tool.load_files([REPO / 'scenarios' / 'paper.yaml'])[:2]
+    scenarios = [dataclasses.replace(s, duration=1.0, expect=tuple(
+        e for e in s.expect if (e.t_to or 0) <= 1.0 and (e.t_from or 0) < 1.0))
+        for s in scenarios]
+    cluster = distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                       host='127.0.0.1', dashboard_address=None)
+    try:
+        remote = tool.run_all(scenarios, scheduler=cluster.scheduler_address, keep_traces=False)
+    finally:
+        cluster.close()
+    here = tool.run_all(scenarios, keep_traces=False)
+    assert [[(v.value, v.passed) for v in o.verdicts] for o in remote] == [
+        [(v.value, v.passed) for v in o.verdicts] for o in here]
+
+
+def test_a_missing_file_is_one_line_and_exit_2(tmp_path, capsys):
+    assert tool.main(['run', str(tmp_path / 'none.yaml')]) == 2
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and 'none.yaml: cannot read (No such file or directory)' in err
+
+
+@pytest.mark.slow
 def test_the_package_suite_passes_and_gives_a_report(tmp_path):
     """`make test` runs the package's own scenarios (sim), as a CI job would."""
     files = sorted(str(p) for p in (REPO / 'scenarios').glob('*.yaml'))
