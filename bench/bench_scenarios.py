@@ -4,7 +4,8 @@ The sim figure: the paper's scenario as a matrix of 100 values of
 ``platform_mass`` (eq. 40 sampled at 1 kHz, the compiled loop), five
 expectations each, on local worker processes after the kernels are loaded
 (``tools.scenario.run_all``, as ``scenario run --jobs N``); target < 10 s
-wall. The rig figure: 10 lockstep scenarios (the paper's, ``--rig-duration``
+wall. Also the CPU time of one such scenario, run serially (a loaded
+machine stretches the wall time, not this). The rig figure: 10 lockstep scenarios (the paper's, ``--rig-duration``
 s each), each starting `rig` on its own leased ROS domain, ``--rig-jobs`` at
 a time. Prints wall times and scenarios per second; never asserts.
 Run: .venv/bin/python bench/bench_scenarios.py [--runs 100] [--jobs 2]
@@ -49,9 +50,18 @@ def measure(runs=100, jobs=2, rig_runs=10, rig_duration=2.0, rig_jobs=2, domain=
         outcomes = run_all(sims, jobs=jobs, keep_traces=False)
         wall = time.perf_counter() - start
         passed = sum(o.passed for o in outcomes)
-        print('%d sim scenarios of 10 s (%d passed), %d workers: %.2f s wall, %.0f scenarios/s'
-              % (len(sims), passed, jobs, wall, len(sims) / wall))
+        print('%d sim scenarios of 10 s (%d passed), %d workers: %.2f s wall, %.0f scenarios/s; '
+              'median wall per scenario in its worker %.0f ms'
+              % (len(sims), passed, jobs, wall, len(sims) / wall,
+                 1e3 * float(np.median([o.wall_s for o in outcomes]))))
         out['scenario_sim_%d_s' % runs] = wall
+        # CPU time per scenario in this process: what a loaded machine does not change
+        cpu = time.process_time()
+        run_all(sims[:10], jobs=1, keep_traces=False)
+        cpu = (time.process_time() - cpu) / 10
+        print('CPU per scenario (serial, 10 of them): %.1f ms; %d of them on %d idle cores: '
+              '%.2f s' % (1e3 * cpu, len(sims), jobs, cpu * len(sims) / jobs))
+        out['scenario_sim_cpu_ms'] = 1e3 * cpu
         if rig_runs:
             rigs = load_scenarios(scenario_file(Path(tmp), rig_runs, 'lockstep', rig_duration))
             start = time.perf_counter()
