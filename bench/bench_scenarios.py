@@ -5,9 +5,10 @@ The sim figure: the paper's scenario as a matrix of 100 values of
 expectations each, on local worker processes after the kernels are loaded
 (``tools.scenario.run_all``, as ``scenario run --jobs N``); target < 10 s
 wall. Also the CPU time of one such scenario, run serially (a loaded
-machine stretches the wall time, not this). The rig figure: 10 lockstep scenarios (the paper's, ``--rig-duration``
-s each), each starting `rig` on its own leased ROS domain, ``--rig-jobs`` at
-a time. Prints wall times and scenarios per second; never asserts.
+machine stretches the wall time, not this). The rig figure: 10 lockstep
+scenarios (the paper's, ``--rig-duration`` s each), each starting `rig` on
+its own leased ROS domain, ``--rig-jobs`` at a time (``--domain``: one
+after the other on that id). Prints wall times and scenarios per second; never asserts.
 Run: .venv/bin/python bench/bench_scenarios.py [--runs 100] [--jobs 2]
      [--rig-runs 10] [--rig-duration 2] [--rig-jobs 2] [--no-rig] [--domain ID]
 """

@@ -274,6 +274,8 @@ def test_a_law_that_raises_has_every_sample_withheld(tmp_path, capsys):
      'must lie inside the run'),
     ('  - name: a\n    expect: {lost_messages: {max: 0, from: 1}}\n',
      'counts the whole run'),
+    ('  - name: a\n    duration: 2\n    wrench: [{from: 2, to: 3, force: [0, 0, 1]}]\n'
+     '    expect: {max_force: {max: 1}}\n', 'it would never act'),
     ('  - name: a\n    run: lockstep\n    wrench: [{force: [0, 0, 1]}]\n'
      '    expect: {max_force: {max: 1}}\n', 'a wrench schedule runs in sim only'),
     ('  - name: a\n    matrix: {params.platform_mas: [1, 2]}\n    expect: {max_force: {max: 1}}\n',

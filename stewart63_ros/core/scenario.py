@@ -329,6 +329,9 @@ def parse_wrench(where: str, doc: Any, duration: float) -> tuple[WrenchInterval,
         t_to = _number(at + '.to', item.get('to', duration), nonnegative=True)
         if not t_from < t_to:
             raise ScenarioError('%s: from %g must be before to %g' % (at, t_from, t_to))
+        if t_from >= duration:
+            raise ScenarioError('%s: from %g s is at or after the end of the run (%g s): '
+                                'it would never act' % (at, t_from, duration))
         if 'force' not in item and 'torque' not in item:
             raise ScenarioError('%s: needs force: [fx, fy, fz] or torque: [mx, my, mz]' % at)
         force = _vector3(at + '.force', item.get('force', [0, 0, 0]))
@@ -684,6 +687,7 @@ def run_sim(scenario: Scenario) -> Trace:
     """
     from stewart63_ros.core.dynamics import Dynamics
     from stewart63_ros.core.faults import FaultModel, parse_faults
+    from stewart63_ros.core.laws import PDLaw
     from stewart63_ros.core.node_parameters import read as read_declared
     from stewart63_ros.core.simulate import run_sampled
     mech = build_plant(scenario)
@@ -698,7 +702,7 @@ def run_sim(scenario: Scenario) -> Trace:
         faults = FaultModel(parse_faults(plant_faults), rate,
                             read_declared(mech.extra, 'sensor_seed'))
     dyn = Dynamics(mech)
-    if reference is None and type(controller.law).__name__ == 'PDLaw' and faults is None:
+    if reference is None and type(controller.law) is PDLaw and faults is None:
         # eq. (40) towards the setpoint: the compiled loop (the same numbers)
         from stewart63_ros.core.control import PDController
         law: Any = PDController(build_controller_mechanism(scenario))
