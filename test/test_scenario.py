@@ -417,3 +417,20 @@ def test_scenario_errors_are_scenarioerror():
     with pytest.raises(ScenarioError, match='matrix'):
         from stewart63_ros.core.scenario import scenario_from_dict
         scenario_from_dict({'name': 'a', 'matrix': {'duration': [1]}, 'expect': {}})
+
+
+def test_a_run_that_diverges_is_an_error_in_junit_and_exit_1(tmp_path, capsys):
+    path = write(tmp_path, """
+    scenarios:
+      - name: unstable
+        duration: 1.0
+        params: {kp: [1.0e9, 1.0e9, 1.0e9, 1.0e9, 1.0e9, 1.0e9], max_force: 1.0e12}
+        expect:
+          max_force: {max: 3000}
+    """)
+    junit = tmp_path / 'j.xml'
+    assert tool.main(['run', str(path), '--junit', str(junit), '--out', str(tmp_path / 'o')]) == 1
+    assert 'the run failed: the simulation diverged' in capsys.readouterr().out
+    case, = [c for s in validate_junit(junit) for c in s]
+    error, = case.result
+    assert error.type == 'RunFailed' and 'diverged' in error.message
