@@ -29,3 +29,26 @@ def default_params_path() -> Path:
         if (folder / 'stewart63.yaml').is_file():
             return folder / 'stewart63.yaml'
     raise FileNotFoundError('config/stewart63.yaml not found in %s' % [str(c) for c in candidates])
+
+
+def domain_lock_dir() -> Path:
+    """The lock files by which processes on this machine lease ROS domain ids
+    (test/ros_harness.py, the benchmarks, ``scenario``)."""
+    import tempfile
+    return Path(tempfile.gettempdir()) / 'stewart63_ros_domains'
+
+
+def try_lock_domain(domain: int) -> int | None:
+    """The open, exclusively locked lock file of ``domain`` (close it to
+    release the id), or None when another process holds it."""
+    import fcntl
+    import os
+    folder = domain_lock_dir()
+    folder.mkdir(parents=True, exist_ok=True)
+    fd = os.open(folder / ('%d.lock' % domain), os.O_CREAT | os.O_RDWR, 0o666)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return None
+    return fd
