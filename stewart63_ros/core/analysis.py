@@ -56,7 +56,8 @@ from stewart63_ros.core.dynamics import (
     inverse_dynamics_forces,
     lengths_rates,
 )
-from stewart63_ros.core.params import LEG_NAMES, Mechanism
+from stewart63_ros.core.legs import LEG_NAMES
+from stewart63_ros.core.mechanism import Mechanism
 from stewart63_ros.core.rotation import (
     euler_from_matrix,
     euler_rate_matrix,

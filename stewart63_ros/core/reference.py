@@ -36,7 +36,7 @@ from stewart63_ros.core._jit import njit
 from stewart63_ros.core.kinematics import leg_kernel
 
 if TYPE_CHECKING:
-    from stewart63_ros.core.params import Mechanism
+    from stewart63_ros.core.mechanism import Mechanism
 
 #: Layout of a reference sample: position t (3), rotation R row-major (9),
 #: velocity v (3), angular velocity omega (3), acceleration (3), angular

@@ -79,10 +79,10 @@ def format_fault(fault: dict) -> str:
 
 
 def make_controller(params_path, law=None, reference_csv=None):
-    """(controller, reference) for a run: None, None for plain eq. (40) towards the
-    setpoint (the compiled paths); else a ``Controller`` with the law (``law`` or
-    the controller's ``control_law`` in the file) and the reference CSV, if any.
-    Raises ParameterError or ReferenceError."""
+    """(controller, reference) for a run: a ``Controller`` with the law (``law`` or
+    the controller's ``control_law`` in the file) and the reference CSV (None:
+    hold the setpoint, eq. (40) towards fixed lengths runs compiled, as
+    ``Controller.pd_gains`` says). Raises ParameterError or ReferenceError."""
     from stewart63_ros.core.node_parameters import read as read_declared
     from stewart63_ros.core.params import read_parameter_file
     from stewart63_ros.core.reference import load_reference
@@ -94,8 +94,6 @@ def make_controller(params_path, law=None, reference_csv=None):
         reference = load_reference(mech, reference_csv,
                                    read_declared(params, 'max_leg_speed'),
                                    read_declared(params, 'max_leg_acceleration'))
-    if law == 'pd' and reference is None:
-        return None, None
     from stewart63_ros.core.laws import Controller
     return Controller(mech, params, law=law, reference=reference), reference
 
@@ -194,7 +192,7 @@ def main(argv=None) -> int:
         poses = reference.poses(result.times)
         write_reference_csv(out / 'reference.csv', result.times, poses)
         ref_columns = dict(zip(CSV_COLUMNS, np.column_stack([result.times, poses]).T))
-    law = controller.law_name if controller is not None else 'pd'
+    law = controller.law_name
     if result.faults is not None:
         (out / 'faults.json').write_text(json.dumps(result.faults, indent=1))
     if not args.no_figure:
