@@ -169,14 +169,16 @@ def test_every_module_imports(name):
 
 def test_rotations_go_through_core_rotation():
     """One place for the orientation convention: scipy's Rotation (and its
-    Euler angles) only in core/rotation.py."""
+    Euler angles), and the hand-written quaternion <-> matrix conversions of
+    the compiled paths, only in core/rotation.py."""
     offenders = []
     for name, path in modules().items():
         if name == 'stewart63_ros.core.rotation':
             continue
         for number, line in enumerate(path.read_text().splitlines(), 1):
             if any(word in line for word in ('scipy.spatial.transform', '.from_euler(',
-                                             '.as_euler(', 'Rotation.')):
+                                             '.as_euler(', 'Rotation.', '1 - 2 * (',
+                                             '1.0 - 2.0 * (', 'sqrt(1.0 + tr')):
                 offenders.append('%s:%d' % (path.relative_to(REPO), number))
     assert offenders == [], offenders
 

@@ -44,7 +44,7 @@ from stewart63_ros.core.control import PDGains, pd_leg
 from stewart63_ros.core.kinematics import LegState, leg_kernel
 from stewart63_ros.core.linalg import solve_linear
 from stewart63_ros.core.node_parameters import read as read_declared
-from stewart63_ros.core.rotation import matrix_from_quaternion
+from stewart63_ros.core.rotation import matrix_from_quaternion, rotation_rows
 
 if TYPE_CHECKING:
     from stewart63_ros.core.mechanism import Mechanism
@@ -79,14 +79,6 @@ def _unit_quaternion(x, y, z, w):
     """The quaternion (x, y, z, w) divided by its norm."""
     n = np.sqrt(x ** 2 + y ** 2 + z ** 2 + w ** 2)
     return x / n, y / n, z / n, w / n
-
-
-@njit_kernel
-def _rotation_rows(x, y, z, w):
-    """R of the unit quaternion (x, y, z, w), as a tuple of its three rows."""
-    return ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
-            (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
-            (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
 
 
 @njit_kernel
@@ -293,7 +285,7 @@ def lengths_rates(base: np.ndarray, plat: np.ndarray,
         (L (6,) [m], dL/dt (6,) [m/s]).
     """
     quat, pos, vel, omega = _state_tuples(y)
-    rot = _rotation_rows(*quat)
+    rot = rotation_rows(*quat)
     L = np.empty(6)
     Ldot = np.empty(6)
     for i in range(6):
@@ -347,7 +339,7 @@ def _derivative_into(const, base, plat, inertia_body, y, forces, wrench, endstop
     With ``pd`` = [setpoint; kp; kv] (3, 6) the PD law of eq. (40) adds its
     force from the same L, dL/dt (continuous control inside the ODE)."""
     quat, pos, vel, omega = _state_tuples(y)
-    rot = _rotation_rows(*quat)
+    rot = rotation_rows(*quat)
     _terms_into(const, base, plat, inertia_body, rot, pos, vel, omega, work)
     # Piston forces: applied, plus eq. (40), plus the end stops.
     with_pd = pd.shape[0] == 3
