@@ -40,7 +40,7 @@ def modules() -> dict[str, Path]:
 #: Floor 0: the core's leaf modules.
 LEAVES = frozenset('stewart63_ros.core.' + m for m in (
     '_jit', 'errors', 'legs', 'rotation', 'linalg', 'control', 'mechanism', 'faults',
-    'node_parameters', 'trajectory'))
+    'node_names', 'node_parameters', 'stamps', 'trajectory'))
 FLOOR_NAMES = ('core leaf', 'core', 'nodes/runtime', 'tools')
 
 
@@ -200,3 +200,13 @@ def test_package_xml_lists_every_ros_package_imported():
                 if top == 'rclpy' or top.endswith(('_msgs', '_interfaces')):
                     used.add(top)
     assert used - declared == set(), 'add to package.xml: %s' % sorted(used - declared)
+
+
+def test_one_list_of_the_rigs_nodes():
+    """rig, composed and the parameter declarations name the same nodes: the
+    leaf node_names holds the list (rig imports it before its stop handlers)."""
+    from stewart63_ros.core import node_names, node_parameters
+    from stewart63_ros.nodes import composed
+    from stewart63_ros.tools import rig
+    assert rig.NODES is composed.NODE_NAMES is node_names.NODES
+    assert tuple(node_parameters.NODES) == node_names.NODES
