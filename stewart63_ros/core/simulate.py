@@ -38,6 +38,7 @@ from stewart63_ros.core.dynamics import (
     lengths_rates,
     rk4,
 )
+from stewart63_ros.core.faults import FaultModel, parse_faults
 from stewart63_ros.core.laws import Controller, PDController
 from stewart63_ros.core.rotation import (
     euler_from_quaternion,
@@ -47,7 +48,6 @@ from stewart63_ros.core.rotation import (
 from stewart63_ros.core.trajectory import COLUMNS
 
 if TYPE_CHECKING:
-    from stewart63_ros.core.faults import FaultModel
     from stewart63_ros.core.mechanism import Mechanism
 
 #: Longest RK4 step of the sampled/plant integrator [s]. 1 ms keeps the
@@ -294,7 +294,6 @@ def run_faulted(mech: Mechanism, duration: float, rate: float,
     Raises:
         FaultError: a bad fault string.
     """
-    from stewart63_ros.core.faults import FaultModel, parse_faults
     if not isinstance(faults, FaultModel):
         faults = FaultModel(parse_faults(faults), rate)
     dyn = dyn or Dynamics(mech)
