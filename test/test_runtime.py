@@ -10,19 +10,23 @@ milliseconds a test (the rig tests check the same over DDS, in seconds).
 - the flush at stop (nodes/stopping.py): done on the recorder's word, on the
   acknowledgements, or at the timeout;
 - the source watch (nodes/sources.py): two publishers on one input, restarts;
-- the skip counter (nodes/checks.py): messages that never arrived;
 - the handshake (nodes/handshake.py): its words and the plant's start-up keys.
+
+The skip counter (nodes/checks.py) and the stamp gate have theirs in
+test_load.py and test_sources.py.
 """
 from __future__ import annotations
 
+import contextlib
 import time
 from types import SimpleNamespace
 
 import pytest
+from test_sources import Clock, feed
 
 from stewart63_ros import topics
 from stewart63_ros.nodes import handshake, hotloop, lockstep, sources, startup, stopping
-from stewart63_ros.nodes.checks import SkipCounter, StampGate
+from stewart63_ros.nodes.checks import Rejected, StampGate
 from stewart63_ros.nodes.launcher import STOP
 
 MS = 1_000_000          # ns
@@ -145,21 +149,6 @@ def stop_flag():
     saved = STOP.requested, STOP.interruptible
     yield STOP
     STOP.requested, STOP.interruptible = saved
-
-
-# -- the skip counter ---------------------------------------------------------------------
-def test_skip_counter_counts_the_messages_a_publisher_sent_that_never_came():
-    skips = SkipCounter()
-    a, b = b'A' * 16, b'B' * 16
-    assert [skips.note(a, {'publication_sequence_number': n}) for n in (1, 2, 5, 6)] == [
-        0, 0, 2, 0]
-    # a second publisher has its own numbers; a restarted one starts again at 1
-    assert skips.note(b, {'publication_sequence_number': 40}) == 0
-    assert skips.note(b, {'publication_sequence_number': 43}) == 2
-    assert skips.note(a, {'publication_sequence_number': 1}) == 0
-    # no sequence number, or no source: nothing can be told, nothing counted
-    assert skips.note(a, None) == 0 and skips.note(None, {'publication_sequence_number': 9}) == 0
-    assert skips.skipped == 4
 
 
 # -- the lockstep window ------------------------------------------------------------------
@@ -351,35 +340,30 @@ def test_startup_barrier_waits_for_a_recorder_to_name_the_node():
 
 
 # -- the source watch ---------------------------------------------------------------------
-class Clock:
-    def __init__(self):
-        self.t = 100.0
-
-    def __call__(self):
-        return self.t
-
-
-def feed(gate, ns, source):
-    try:
-        ns = gate.check_ns(ns, source)
-        gate.check_source(source)
-    except Exception:   # noqa: BLE001 - a refused sample is what a second source gets
-        return
-    gate.accept(ns, source)
+def offer(gate, ns, source):
+    """A sample through the gate as a node takes it; one refused (a second
+    source) is dropped, as the node drops it."""
+    with contextlib.suppress(Rejected):
+        feed(gate, ns, source)
 
 
-def test_source_watch_reports_two_publishers_on_one_input_once_and_clears():
+def watched(publishers=2):
+    """(clock, gate, node, input subscription, SourceWatch) of one node's input."""
     clock = Clock()
     gate = StampGate(0.5, clock)
     node = Node()
-    sub = Sub('/a/leg_lengths', publishers=2)
-    watch = sources.SourceWatch(node, sub, 'leg_lengths', gate)
+    sub = Sub('/a/leg_lengths', publishers=publishers)
+    return clock, gate, node, sub, sources.SourceWatch(node, sub, 'leg_lengths', gate)
+
+
+def test_source_watch_reports_two_publishers_on_one_input_once_and_clears():
+    clock, gate, node, sub, watch = watched()
     assert node.timers == [(watch.SOURCE_CHECK_PERIOD, watch.check)]
     node.started = True
     for k in range(5):
         clock.t += 0.001
-        feed(gate, k * MS, b'A' * 16)
-        feed(gate, k * MS + 1, b'B' * 16)
+        offer(gate, k * MS, b'A' * 16)
+        offer(gate, k * MS + 1, b'B' * 16)
     watch.check()
     watch.check()
     h = node.health
@@ -389,7 +373,7 @@ def test_source_watch_reports_two_publishers_on_one_input_once_and_clears():
     # one source again: the collision ends after COLLISION_CLEAR_AFTER
     watch.COLLISION_CLEAR_AFTER = 0.0
     clock.t += 2.0
-    feed(gate, 10 * MS, b'A' * 16)
+    offer(gate, 10 * MS, b'A' * 16)
     sub.publishers = 1
     watch.check()
     watch.check()
@@ -398,14 +382,10 @@ def test_source_watch_reports_two_publishers_on_one_input_once_and_clears():
 
 
 def test_source_watch_counts_restarts_and_warns_of_a_silent_second_publisher():
-    clock = Clock()
-    gate = StampGate(0.5, clock)
-    node = Node()
-    sub = Sub('/a/leg_lengths', publishers=2)
-    watch = sources.SourceWatch(node, sub, 'leg_lengths', gate)
-    feed(gate, 5 * MS, b'A' * 16)
+    clock, gate, node, sub, watch = watched()
+    offer(gate, 5 * MS, b'A' * 16)
     clock.t += 2.0                      # the plant restarted: its stamps begin again
-    feed(gate, 0, b'A' * 16)
+    offer(gate, 0, b'A' * 16)
     watch.check()
     assert node.health.values['source_restarts'] == 1
     assert node.health.collision == ''
