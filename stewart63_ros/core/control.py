@@ -100,27 +100,6 @@ def pd_law(lengths: np.ndarray, rates: np.ndarray, setpoint: np.ndarray, kp: np.
     return out
 
 
-@njit
-def pd_tracking(lengths: np.ndarray, rates: np.ndarray, ref_lengths: np.ndarray,
-                ref_rates: np.ndarray, kp: np.ndarray, kv: np.ndarray,
-                max_force: float) -> np.ndarray:
-    """Eq. (40) on six legs towards moving lengths (a reference), compiled, saturated.
-
-    Args:
-        lengths, rates: float arrays (6,) [m, m/s], measured.
-        ref_lengths, ref_rates: float arrays (6,) [m, m/s], desired.
-        kp, kv: float arrays (6,) [N/m, N s/m]; max_force: the saturation [N].
-
-    Returns:
-        (6,) piston forces [N].
-    """
-    out = np.empty(lengths.shape[0])
-    for i in range(lengths.shape[0]):
-        out[i] = pd_leg(lengths[i], rates[i], ref_lengths[i], ref_rates[i], kp[i], kv[i],
-                        max_force)
-    return out
-
-
 def pd_forces(lengths: ArrayLike, rates: ArrayLike, setpoint: ArrayLike, kp: ArrayLike,
               kv: ArrayLike, max_force: float) -> np.ndarray:
     """``pd_law`` for any six-number sequences (tests, scripts).

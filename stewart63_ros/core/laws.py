@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from stewart63_ros.core._jit import njit
-from stewart63_ros.core.control import PDGains, pd_force, pd_law, pd_tracking, saturated
+from stewart63_ros.core.control import PDGains, pd_force, pd_law, pd_leg, saturated
 from stewart63_ros.core.dynamics import Dynamics, inverse_dynamics_forces
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.core.fk import ForwardKinematics, pose_and_twist
@@ -91,6 +91,17 @@ def _saturate(f, max_force):
 
 
 # -- laws as kernels ------------------------------------------------------------------------
+@njit
+def _pd(lengths, rates, ref, kp, kv, max_force):
+    """Eq. (40) towards the reference's lengths and rates, saturated (the sample
+    array whole: two slices per call would cost more than the law)."""
+    out = np.empty(6)
+    for i in range(6):
+        out[i] = pd_leg(lengths[i], rates[i], ref[I_LEN + i], ref[I_RATE + i], kp[i], kv[i],
+                        max_force)
+    return out
+
+
 @njit
 def _pd_gravity(const, base, plat, inertia, lengths, rates, pos, rot, ref, kp, kv, max_force):
     """Eq. (40) plus the holding forces H^-1 eta(q, 0) at the pose (t, R)."""
@@ -196,9 +207,7 @@ class PDLaw(_LegGains):
     def __call__(self, t: float, lengths: np.ndarray, rates: np.ndarray,
                  ref: ReferenceSample) -> np.ndarray:
         """The forces (6,) [N], saturated, for one sample (the module's law interface)."""
-        a = ref.array
-        return pd_tracking(lengths, rates, a[R_LEN], a[R_RATE], self.kp, self.kv,
-                           self.max_force)
+        return _pd(lengths, rates, ref.array, self.kp, self.kv, self.max_force)
 
 
 class _ModelLaw:
