@@ -44,6 +44,7 @@ from stewart63_ros.core.reference import (
 from stewart63_ros.core.simulate import run_continuous, run_sampled
 from stewart63_ros.core.trajectory import COLUMNS, write_csv
 from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked
+from stewart63_ros.tools.plot import draw_figure
 
 
 def summarize(mech, dyn, result) -> dict:
@@ -199,8 +200,6 @@ def main(argv=None) -> int:
     if result.faults is not None:
         (out / 'faults.json').write_text(json.dumps(result.faults, indent=1))
     if not args.no_figure:
-        # Here, not at the top: matplotlib (PLOTCOST) only for a figure.
-        from stewart63_ros.tools.plot import draw_figure
         draw_figure({name: table[:, i] for i, name in enumerate(COLUMNS)}, out / 'figure.png',
                     title='sim %s: %s, %s control, %g Hz, %g s, %s' % (
                         out, law, args.control, rate, args.duration,
