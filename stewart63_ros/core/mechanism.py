@@ -3,9 +3,9 @@ gains and scenario (``Mechanism``), and the checks that make one from a flat
 parameter dictionary (``validated``).
 
 A leaf module: it imports nothing of the package but other leaf modules
-(``errors``, ``legs``, ``rotation``, ``node_parameters``), so every module can name ``Mechanism``
-in its type hints without an import circle (test/test_imports.py). Reading
-the parameter file is ``params``' job.
+(``errors``, ``legs``, ``rotation``, ``node_parameters``), so every module
+can name ``Mechanism`` in its type hints without an import circle
+(test/test_imports.py). Reading the parameter file is ``params``' job.
 """
 from __future__ import annotations
 
