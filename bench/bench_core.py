@@ -10,8 +10,8 @@ import time
 
 import numpy as np
 
-from stewart63_ros.core.control import PDController
 from stewart63_ros.core.dynamics import Dynamics
+from stewart63_ros.core.laws import PDController
 from stewart63_ros.core.params import load_mechanism
 from stewart63_ros.core.simulate import initial_state, run_continuous, run_sampled
 
@@ -33,13 +33,13 @@ def measure(repeat=7, verbose=True):
     (median of ``repeat`` runs); prints the comparison lines too."""
     mech = load_mechanism()
     dyn = Dynamics(mech)
-    law = PDController(mech)
+    gains = PDController(mech).pd_gains()
     y = initial_state(mech)
     forces = np.full(6, 100.0)
     eval_us = per_call(lambda: dyn.derivative(y, forces)) * 1e6
     print('dynamics evaluation (derivative, Python call):  %7.2f us' % eval_us)
     print('dynamics + PD law (continuous RHS):              %7.2f us'
-          % (per_call(lambda: dyn.derivative_with(y, law)) * 1e6))
+          % (per_call(lambda: dyn.derivative_with(y, gains)) * 1e6))
     print('one RK4 step of 1 ms (4 evaluations, compiled):  %7.2f us'
           % (per_call(lambda: dyn.step(y, forces, 1e-3), 5000) * 1e6))
     scenarios = (

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from stewart63_ros.core.stamps import stamp_ns
 from stewart63_ros.core.trajectory import COLUMNS
 
 #: Key of ``metadata.yaml``'s ``custom_data`` holding the namespace a bag was
@@ -194,7 +195,7 @@ def bag_info(bag_dir) -> dict:
 
 def header_stamp_ns(msg) -> int:
     """A stamped message's ``header.stamp`` in integer nanoseconds."""
-    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+    return stamp_ns(msg.header.stamp)
 
 
 def trajectory_from_bag(bag_dir, *, relative_time: bool = True,

@@ -40,7 +40,8 @@ import dataclasses
 
 import numpy as np
 
-from stewart63_ros.core.params import LEG_VERTEX, Mechanism
+from stewart63_ros.core.legs import LEG_VERTEX
+from stewart63_ros.core.mechanism import Mechanism
 from stewart63_ros.core.rotation import (
     euler_rate_matrix,
     quaternion_from_rotation,

@@ -139,7 +139,7 @@ def test_the_scan_sees_the_core():
              for name, _, _ in _public_functions(ast.parse(path.read_text()))}
     # a plain function, a method, a property, a numba kernel, __init__, __call__
     assert {'leg_lengths', 'Dynamics.derivative', 'Equilibrium.theta', 'pd_law',
-            'PDController.__init__', 'PDController.__call__', 'main'} <= names
+            'PDController.__init__', 'Controller.__call__', 'main'} <= names
     assert len(names) > 200
 
 

@@ -1,6 +1,20 @@
-"""The package's import graph: every module imports, and no two modules of
+"""The package's import graph: every module imports, no two modules of
 stewart63_ros import each other, directly or through others (function-level
-imports included: a cycle hidden in a function is still a cycle)."""
+and type-hint imports included: a cycle hidden in a function or behind
+``if TYPE_CHECKING:`` is still a cycle), and no module imports up a floor.
+
+The floors (docs/design.md), lowest first; a module imports only from its
+own floor or those below:
+
+0. core leaf modules (``LEAVES``): import nothing of the package but other
+   leaf modules. ``Mechanism``, the linear solver and eq. (40) live here, so
+   every module may name them, even in type hints, without a circle.
+1. the core (``stewart63_ros.core``) and the package's ROS-free modules
+   beside it (paths, topics, bagio, middleware, mujoco_model).
+2. the nodes and their runtime (``stewart63_ros.nodes``).
+3. the tools, the examples and the pytest plugin (``stewart63_ros.tools``,
+   ``stewart63_ros.examples``, ``stewart63_ros.pytest_plugin``).
+"""
 from __future__ import annotations
 
 import ast
@@ -24,25 +38,31 @@ def modules() -> dict[str, Path]:
     return out
 
 
-def _runtime_nodes(tree):
-    """Every node of ``tree`` but those under ``if TYPE_CHECKING:`` (imports for
-    type hints only, which never run)."""
-    stack = [tree]
-    while stack:
-        node = stack.pop()
-        yield node
-        for child in ast.iter_child_nodes(node):
-            if isinstance(child, ast.If) and 'TYPE_CHECKING' in ast.unparse(child.test):
-                stack.extend(child.orelse)
-                continue
-            stack.append(child)
+#: Floor 0: the core's leaf modules.
+LEAVES = frozenset('stewart63_ros.core.' + m for m in (
+    '_jit', 'errors', 'legs', 'rotation', 'linalg', 'control', 'mechanism', 'faults',
+    'node_names', 'node_parameters', 'stamps', 'trajectory'))
+FLOOR_NAMES = ('core leaf', 'core', 'nodes/runtime', 'tools')
+
+
+def floor(name: str) -> int:
+    """The floor of module ``name`` (0 lowest; module docstring)."""
+    if name in LEAVES:
+        return 0
+    if name.startswith(('stewart63_ros.tools', 'stewart63_ros.examples',
+                        'stewart63_ros.pytest_plugin')):
+        return 3
+    if name.startswith('stewart63_ros.nodes'):
+        return 2
+    return 1
 
 
 def imported(path: Path, name: str, known: dict[str, Path]) -> set[str]:
-    """The package's modules that ``path`` (module ``name``) imports, anywhere in it."""
+    """The package's modules that ``path`` (module ``name``) imports, anywhere in
+    it: at module level, in functions and under ``if TYPE_CHECKING:``."""
     package = name if path.name == '__init__.py' else name.rpartition('.')[0]
     out = set()
-    for node in _runtime_nodes(ast.parse(path.read_text(), str(path))):
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
             targets = [alias.name for alias in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -96,16 +116,44 @@ def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
     return found
 
 
-def test_the_graph_sees_function_level_imports():
+def test_the_graph_sees_function_level_and_type_hint_imports(tmp_path):
     edges = graph()
-    assert 'stewart63_ros.core.kinematics' in edges['stewart63_ros.core.params']
+    assert 'stewart63_ros.core.laws' in edges['stewart63_ros.core.params']     # in a function
     assert 'stewart63_ros.core.errors' in edges['stewart63_ros.core.params']
     assert cycles({'a': {'b'}, 'b': {'c'}, 'c': {'a'}, 'd': {'a'}}) == [['a', 'b', 'c']]
+    hinted = tmp_path / 'm.py'
+    hinted.write_text('from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n'
+                      '    from stewart63_ros.core.params import Mechanism\n')
+    assert imported(hinted, 'stewart63_ros.core.m', modules()) == {'stewart63_ros.core.params'}
 
 
 def test_no_import_cycle_in_the_package():
     found = cycles(graph())
     assert found == [], 'modules that import each other: %s' % found
+
+
+def up_a_floor(edges: dict[str, set[str]]) -> list[str]:
+    """Every import of a module on a higher floor than the importer's."""
+    return ['%s (%s) imports %s (%s)' % (a, FLOOR_NAMES[floor(a)], b, FLOOR_NAMES[floor(b)])
+            for a in sorted(edges) for b in sorted(edges[a]) if floor(b) > floor(a)]
+
+
+def test_the_floor_rule_sees_an_import_up_a_floor():
+    assert up_a_floor({'stewart63_ros.core.laws': {'stewart63_ros.nodes.wire'}}) == [
+        'stewart63_ros.core.laws (core) imports stewart63_ros.nodes.wire (nodes/runtime)']
+    assert up_a_floor({'stewart63_ros.core.mechanism': {'stewart63_ros.core.params'}}) == [
+        'stewart63_ros.core.mechanism (core leaf) imports stewart63_ros.core.params (core)']
+    assert up_a_floor({'stewart63_ros.tools.rig': {'stewart63_ros.nodes.wire',
+                                                   'stewart63_ros.core.legs'}}) == []
+
+
+def test_no_module_imports_up_a_floor():
+    found = up_a_floor(graph())
+    assert found == [], 'imports up a floor (module docstring):\n' + '\n'.join(found)
+
+
+def test_every_leaf_module_exists():
+    assert LEAVES <= set(modules())
 
 
 @pytest.mark.parametrize('name', sorted(modules()))
@@ -123,14 +171,16 @@ def test_every_module_imports(name):
 
 def test_rotations_go_through_core_rotation():
     """One place for the orientation convention: scipy's Rotation (and its
-    Euler angles) only in core/rotation.py."""
+    Euler angles), and the hand-written quaternion <-> matrix conversions of
+    the compiled paths, only in core/rotation.py."""
     offenders = []
     for name, path in modules().items():
         if name == 'stewart63_ros.core.rotation':
             continue
         for number, line in enumerate(path.read_text().splitlines(), 1):
             if any(word in line for word in ('scipy.spatial.transform', '.from_euler(',
-                                             '.as_euler(', 'Rotation.')):
+                                             '.as_euler(', 'Rotation.', '1 - 2 * (',
+                                             '1.0 - 2.0 * (', 'sqrt(1.0 + tr')):
                 offenders.append('%s:%d' % (path.relative_to(REPO), number))
     assert offenders == [], offenders
 
@@ -152,3 +202,13 @@ def test_package_xml_lists_every_ros_package_imported():
                 if top == 'rclpy' or top.endswith(('_msgs', '_interfaces')):
                     used.add(top)
     assert used - declared == set(), 'add to package.xml: %s' % sorted(used - declared)
+
+
+def test_one_list_of_the_rigs_nodes():
+    """rig, composed and the parameter declarations name the same nodes: the
+    leaf node_names holds the list (rig imports it before its stop handlers)."""
+    from stewart63_ros.core import node_names, node_parameters
+    from stewart63_ros.nodes import composed
+    from stewart63_ros.tools import rig
+    assert rig.NODES is composed.NODE_NAMES is node_names.NODES
+    assert tuple(node_parameters.NODES) == node_names.NODES

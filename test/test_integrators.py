@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from stewart63_ros.core.control import PDController
 from stewart63_ros.core.dynamics import QUAT, Dynamics
+from stewart63_ros.core.laws import PDController
 from stewart63_ros.core.params import load_mechanism
 from stewart63_ros.core.simulate import (
     initial_state,
@@ -39,7 +39,8 @@ def dyn(mech):
 
 def scipy_reference(dyn, law, y0, t_eval, rtol, atol):
     """solve_ivp RK45 on the public dynamics + PD right-hand side; quaternions normalised."""
-    sol = solve_ivp(lambda _t, y: dyn.derivative_with(y, law), (t_eval[0], t_eval[-1]), y0,
+    gains = law.pd_gains()
+    sol = solve_ivp(lambda _t, y: dyn.derivative_with(y, gains), (t_eval[0], t_eval[-1]), y0,
                     method='RK45', t_eval=t_eval, rtol=rtol, atol=atol)
     assert sol.success, sol.message
     states = sol.y.T.copy()

@@ -61,6 +61,39 @@ def test_pd_through_the_law_interface_is_eq40_to_the_bit(mech, dyn):
     assert np.array_equal(plain.states, law.states)
 
 
+def test_one_fast_path_for_eq40_gives_the_general_paths_numbers(mech, dyn):
+    """The controller node, sim and sweep take one fast path for the built-in pd
+    law towards fixed lengths (``pd_gains``); it answers what the law itself
+    answers through a reference sample, to the bit, saturated or not, and a
+    gain changed at run time reaches it at once."""
+    ctl = Controller(mech, law='pd')
+    gains = ctl.pd_gains()
+    assert gains is not None and np.array_equal(gains.setpoint, mech.setpoint_lengths)
+    rng = np.random.default_rng(3)
+    sample = ctl.sample
+    for scale in (1e-3, 1.0):           # inside the saturation, and far beyond it
+        lengths = mech.setpoint_lengths + scale * rng.normal(size=6)
+        rates = scale * rng.normal(size=6)
+        fast = ctl.forces(0.1, lengths, rates)
+        assert np.array_equal(fast, ctl.law(0.1, lengths, rates, sample))
+    assert np.any(np.abs(fast) == mech.max_force)
+    ctl.set_parameter('kp', [1000.0] * 6)
+    assert np.array_equal(ctl.pd_gains().kp, [1000.0] * 6)
+    # run_sampled: the compiled loop for it, the python loop its numbers
+    compiled = run_sampled(mech, 0.05, RATE, dyn=dyn, controller=ctl)
+    python = run_sampled(mech, 0.05, RATE, dyn=dyn, controller=ctl, loop='python')
+    assert np.array_equal(compiled.forces, python.forces)
+    assert not np.array_equal(compiled.forces, run_sampled(mech, 0.05, RATE, dyn=dyn).forces)
+    # any other law, or a moving reference: no fast path
+    t, poses = six_axis_reference(mech, 1.0)
+    moving = Reference.from_poses(mech, t, poses)
+    assert Controller(mech, law='pd', reference=moving).pd_gains() is None
+    assert Controller(mech, law='pd_gravity').pd_gains() is None
+    ctl.law = lambda t, L, Ld, ref: np.zeros(6)        # a law swapped in by hand
+    assert ctl.pd_gains() is None and np.array_equal(ctl.forces(0.2, lengths, rates),
+                                                     np.zeros(6))
+
+
 @pytest.mark.parametrize('control', ['continuous', 'sampled'])
 def test_pd_gravity_removes_the_static_sag(mech, dyn, control):
     errors = {}

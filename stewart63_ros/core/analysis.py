@@ -56,7 +56,11 @@ from stewart63_ros.core.dynamics import (
     inverse_dynamics_forces,
     lengths_rates,
 )
-from stewart63_ros.core.params import LEG_NAMES, Mechanism
+from stewart63_ros.core.fk import ForwardKinematics
+from stewart63_ros.core.laws import Controller, LawError, make_law
+from stewart63_ros.core.legs import LEG_NAMES
+from stewart63_ros.core.mechanism import Mechanism
+from stewart63_ros.core.reference import Reference
 from stewart63_ros.core.rotation import (
     euler_from_matrix,
     euler_rate_matrix,
@@ -155,7 +159,6 @@ def setpoint_pose(mech: Mechanism) -> tuple[np.ndarray, np.ndarray]:
     Raises:
         AnalysisError: the setpoint lengths close no platform.
     """
-    from stewart63_ros.core.fk import ForwardKinematics
     try:
         mode = ForwardKinematics(mech).all_modes(mech.setpoint_lengths)[0]
     except ValueError as exc:
@@ -176,7 +179,6 @@ def pose_lengths_condition(mech: Mechanism, position: ArrayLike,
         (lengths (6,) [m], 2-norm condition number of the Jacobian (rows
         [s_i, q_i x s_i], metres)).
     """
-    from stewart63_ros.core.fk import ForwardKinematics
     fk = ForwardKinematics(mech)
     lengths, _ = lengths_rates(fk.base, fk.legp, _state13(position, rotation))
     return lengths, fk.condition(position, rotation)
@@ -474,8 +476,6 @@ def open_loop(mech: Mechanism, eq: Equilibrium, dyn: Dynamics | None = None) -> 
 
 
 def _law_controller(mech, params, law, eq: Equilibrium, references):
-    from stewart63_ros.core.laws import Controller
-    from stewart63_ros.core.reference import Reference
     ref = Reference.constant_lengths(mech, references, near=(eq.position, eq.rotation))
     return Controller(mech, params, law=law, reference=ref)
 
@@ -503,7 +503,6 @@ def law_jacobians(dyn: Dynamics, eq: Equilibrium, law: str, references: ArrayLik
     Raises:
         AnalysisError: the law raised (``LawError``) at the pose.
     """
-    from stewart63_ros.core.laws import LawError
     mech = controller_mech or dyn.mech
     references = np.asarray(references, dtype=float)
 
@@ -527,7 +526,6 @@ def law_jacobians(dyn: Dynamics, eq: Equilibrium, law: str, references: ArrayLik
 
 
 def _pd_gains(mech, params):
-    from stewart63_ros.core.laws import make_law
     law = make_law('pd', mech, dict(params or {}))
     return np.asarray(law.kp, float), np.asarray(law.kv, float)
 

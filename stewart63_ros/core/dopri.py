@@ -39,17 +39,13 @@ derivative fails at once, and the number of step attempts is bounded.
 from __future__ import annotations
 
 import warnings
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.integrate import RK45 as _RK45
 
 from stewart63_ros.core._jit import njit
-from stewart63_ros.core.dynamics import derivative_pd
-
-if TYPE_CHECKING:
-    from stewart63_ros.core.dynamics import Dynamics
+from stewart63_ros.core.dynamics import NO_GAINS, STATE_SIZE, Dynamics, derivative_pd, wrench6
 
 #: scipy's step-control constants (scipy.integrate's RK solvers keep them in a
 #: private module; test_integrators checks these equal them).
@@ -282,7 +278,6 @@ def solve_pd(dyn: Dynamics, y0: ArrayLike, t_eval: ArrayLike, forces: ArrayLike 
         RuntimeError: the integration failed (as scipy's ``sol.success``
             False) or took more than ``max_steps`` step attempts.
     """
-    from stewart63_ros.core.dynamics import NO_GAINS, STATE_SIZE, wrench6
     y0 = np.array(y0, dtype=float)
     if y0.shape != (STATE_SIZE,):
         raise ValueError('initial state must have %d components, got shape %s'

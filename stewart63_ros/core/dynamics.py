@@ -40,15 +40,14 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from stewart63_ros.core._jit import njit, njit_kernel
-from stewart63_ros.core.control import pd_leg
-from stewart63_ros.core.fk import solve_linear
+from stewart63_ros.core.control import PDGains, pd_leg
 from stewart63_ros.core.kinematics import LegState, leg_kernel
+from stewart63_ros.core.linalg import solve_linear
 from stewart63_ros.core.node_parameters import read as read_declared
-from stewart63_ros.core.rotation import matrix_from_quaternion
+from stewart63_ros.core.rotation import matrix_from_quaternion, rotation_rows
 
 if TYPE_CHECKING:
-    from stewart63_ros.core.control import PDController
-    from stewart63_ros.core.params import Mechanism
+    from stewart63_ros.core.mechanism import Mechanism
 
 #: State vector layout: position t (3), quaternion (x, y, z, w) (4),
 #: velocity dt/dt (3), angular velocity omega (3); all in the base frame.
@@ -80,14 +79,6 @@ def _unit_quaternion(x, y, z, w):
     """The quaternion (x, y, z, w) divided by its norm."""
     n = np.sqrt(x ** 2 + y ** 2 + z ** 2 + w ** 2)
     return x / n, y / n, z / n, w / n
-
-
-@njit_kernel
-def _rotation_rows(x, y, z, w):
-    """R of the unit quaternion (x, y, z, w), as a tuple of its three rows."""
-    return ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
-            (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
-            (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
 
 
 @njit_kernel
@@ -294,7 +285,7 @@ def lengths_rates(base: np.ndarray, plat: np.ndarray,
         (L (6,) [m], dL/dt (6,) [m/s]).
     """
     quat, pos, vel, omega = _state_tuples(y)
-    rot = _rotation_rows(*quat)
+    rot = rotation_rows(*quat)
     L = np.empty(6)
     Ldot = np.empty(6)
     for i in range(6):
@@ -348,7 +339,7 @@ def _derivative_into(const, base, plat, inertia_body, y, forces, wrench, endstop
     With ``pd`` = [setpoint; kp; kv] (3, 6) the PD law of eq. (40) adds its
     force from the same L, dL/dt (continuous control inside the ODE)."""
     quat, pos, vel, omega = _state_tuples(y)
-    rot = _rotation_rows(*quat)
+    rot = rotation_rows(*quat)
     _terms_into(const, base, plat, inertia_body, rot, pos, vel, omega, work)
     # Piston forces: applied, plus eq. (40), plus the end stops.
     with_pd = pd.shape[0] == 3
@@ -356,7 +347,7 @@ def _derivative_into(const, base, plat, inertia_body, y, forces, wrench, endstop
         L, Ldot = work[_L, i], work[_LDOT, i]
         f = forces[i]
         if with_pd:
-            f = f + pd_leg(L, Ldot, pd[0, i], pd[1, i], pd[2, i], max_force)
+            f = f + pd_leg(L, Ldot, pd[0, i], 0.0, pd[1, i], pd[2, i], max_force)
         if endstops:
             f = f + _endstop_leg(const, L, Ldot)
         work[_F, i] = f
@@ -614,21 +605,20 @@ class Dynamics:
         """
         return lengths_rates(self.base_points, self.leg_points, np.asarray(y, float))
 
-    def derivative_with(self, y: ArrayLike, controller: PDController,
+    def derivative_with(self, y: ArrayLike, gains: PDGains,
                         wrench: tuple[ArrayLike, ArrayLike] | None = None) -> np.ndarray:
         """dy/dt under continuous PD control, eq. (40) inside the ODE.
 
         Args:
             y: the state (13,).
-            controller: a ``PDController`` (its setpoint, gains, saturation).
+            gains: eq. (40)'s setpoint, gains and saturation (``Controller.pd_gains()``).
             wrench: (F_ext, M_ext), platform frame; None: none.
 
         Returns:
             dy/dt (13,).
         """
-        gains = np.vstack([controller.setpoint, controller.kp, controller.kv])
         return derivative_pd(*self.kernel_args(), np.asarray(y, float), np.zeros(6),
-                              wrench6(wrench), True, gains, controller.max_force)
+                              wrench6(wrench), True, gains.rows(), float(gains.max_force))
 
     def legs(self, y: np.ndarray) -> LegState:
         """The six legs (``LegState``, with rates) at the state y (13,)."""

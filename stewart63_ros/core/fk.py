@@ -42,11 +42,16 @@ from numpy.typing import ArrayLike
 
 from stewart63_ros.core._jit import njit
 from stewart63_ros.core.kinematics import leg_kernel
+from stewart63_ros.core.linalg import solve_linear
 from stewart63_ros.core.node_parameters import DEFAULT_COND_THRESHOLD
-from stewart63_ros.core.rotation import euler_from_matrix, rotation_from_euler
+from stewart63_ros.core.rotation import (
+    euler_from_matrix,
+    quaternion_of_matrix,
+    rotation_from_euler,
+)
 
 if TYPE_CHECKING:
-    from stewart63_ros.core.params import Mechanism
+    from stewart63_ros.core.mechanism import Mechanism
 
 #: Pair k's legs (0-based): legs 2k and 2k+1 meet at vertex k.
 PAIRS = ((0, 1), (2, 3), (4, 5))
@@ -99,7 +104,7 @@ class FKResult:
     @property
     def quaternion(self) -> np.ndarray:
         """(x, y, z, w) with w >= 0."""
-        return _quaternion(self.rotation)
+        return quaternion_of_matrix(self.rotation)
 
     def __repr__(self) -> str:
         return ('FKResult(position=%s, theta=%s, condition=%.3g%s)'
@@ -114,39 +119,6 @@ def _arr(x) -> np.ndarray:
 
 
 # -- numba kernels: Newton on the six leg equations ----------------------------
-
-@njit
-def _quaternion(rot):
-    """Unit quaternion (x, y, z, w), w >= 0, of a rotation matrix.
-
-    Shepperd's method (J. Guidance and Control 1(3), 1978): take the square
-    root of the largest of 1 + trace, 1 + 2 R_ii - trace, so it never divides
-    by a small number. scipy's Rotation does the same but costs ~100x more
-    per call, which matters at 1 kHz.
-    """
-    tr = rot[0, 0] + rot[1, 1] + rot[2, 2]
-    q = np.empty(4)
-    if tr >= rot[0, 0] and tr >= rot[1, 1] and tr >= rot[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + tr)
-        q[3], q[0] = 0.25 * s, (rot[2, 1] - rot[1, 2]) / s
-        q[1], q[2] = (rot[0, 2] - rot[2, 0]) / s, (rot[1, 0] - rot[0, 1]) / s
-    elif rot[0, 0] >= rot[1, 1] and rot[0, 0] >= rot[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + 2.0 * rot[0, 0] - tr)
-        q[3], q[0] = (rot[2, 1] - rot[1, 2]) / s, 0.25 * s
-        q[1], q[2] = (rot[0, 1] + rot[1, 0]) / s, (rot[0, 2] + rot[2, 0]) / s
-    elif rot[1, 1] >= rot[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + 2.0 * rot[1, 1] - tr)
-        q[3], q[0] = (rot[0, 2] - rot[2, 0]) / s, (rot[0, 1] + rot[1, 0]) / s
-        q[1], q[2] = 0.25 * s, (rot[1, 2] + rot[2, 1]) / s
-    else:
-        s = 2.0 * np.sqrt(1.0 + 2.0 * rot[2, 2] - tr)
-        q[3], q[0] = (rot[1, 0] - rot[0, 1]) / s, (rot[0, 2] + rot[2, 0]) / s
-        q[1], q[2] = (rot[1, 2] + rot[2, 1]) / s, 0.25 * s
-    if q[3] < 0.0:
-        for i in range(4):
-            q[i] = -q[i]
-    return q
-
 
 @njit
 def _rotate_left(w, rot):
@@ -190,50 +162,6 @@ def _legs(base, legp, t, rot, lengths, jac, res):
         res[i] = lengths[i] - length
         worst = max(worst, abs(res[i]))
     return worst
-
-
-@njit
-def solve_linear(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """x = a^-1 b by Gaussian elimination with partial pivoting; NaN when singular.
-
-    Compiled; ``a`` and ``b`` are left untouched. Cheaper than a LAPACK call at 6x6.
-
-    Args:
-        a: (n, n) float array; b: (n,) float array.
-
-    Returns:
-        x (n,); all NaN when ``a`` is singular.
-    """
-    a = a.copy()
-    x = b.copy()
-    n = b.shape[0]
-    for k in range(n):
-        p = k
-        for i in range(k + 1, n):
-            if abs(a[i, k]) > abs(a[p, k]):
-                p = i
-        if a[p, k] == 0.0:
-            x[:] = np.nan
-            return x
-        if p != k:
-            for j in range(n):
-                tmp = a[k, j]
-                a[k, j] = a[p, j]
-                a[p, j] = tmp
-            tmp = x[k]
-            x[k] = x[p]
-            x[p] = tmp
-        for i in range(k + 1, n):
-            f = a[i, k] / a[k, k]
-            for j in range(k + 1, n):
-                a[i, j] -= f * a[k, j]
-            x[i] -= f * x[k]
-    for i in range(n - 1, -1, -1):
-        v = x[i]
-        for j in range(i + 1, n):
-            v -= a[i, j] * x[j]
-        x[i] = v / a[i, i]
-    return x
 
 
 @njit

@@ -14,7 +14,7 @@ from numpy.typing import ArrayLike
 from stewart63_ros.core._jit import njit_kernel
 
 if TYPE_CHECKING:
-    from stewart63_ros.core.params import Mechanism
+    from stewart63_ros.core.mechanism import Mechanism
 
 
 def vertex_vectors(mech: Mechanism, rot: np.ndarray) -> np.ndarray:
@@ -41,7 +41,7 @@ def leg_vectors(mech: Mechanism, position: ArrayLike, rot: np.ndarray) -> np.nda
     Returns:
         (6, 3) S_i [m], from each U-joint to its platform vertex, base frame.
     """
-    return vertex_vectors(mech, rot) + np.asarray(position) - mech.base_points
+    return mech.leg_vectors(position, rot)
 
 
 def leg_lengths(mech: Mechanism, position: ArrayLike, rot: np.ndarray) -> np.ndarray:

@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from stewart63_ros.core._jit import njit
-from stewart63_ros.core.control import pd_law
+from stewart63_ros.core.control import PDGains, pd_force, pd_law, pd_leg, saturated
 from stewart63_ros.core.dynamics import Dynamics, inverse_dynamics_forces
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.core.fk import ForwardKinematics, pose_and_twist
@@ -72,7 +72,7 @@ from stewart63_ros.core.reference import (
 from stewart63_ros.core.rotation import rotation_from_euler
 
 if TYPE_CHECKING:
-    from stewart63_ros.core.params import Mechanism
+    from stewart63_ros.core.mechanism import Mechanism
 
 class LawError(RuntimeError):
     """A law that raised or returned forces that cannot be applied."""
@@ -86,18 +86,19 @@ def _saturate(f, max_force):
         if not np.isfinite(f[i]):
             return False
     for i in range(f.size):
-        f[i] = min(max(f[i], -max_force), max_force)
+        f[i] = saturated(f[i], max_force)
     return True
 
 
 # -- laws as kernels ------------------------------------------------------------------------
 @njit
 def _pd(lengths, rates, ref, kp, kv, max_force):
-    """Eq. (40) towards the reference's lengths and rates, saturated."""
+    """Eq. (40) towards the reference's lengths and rates, saturated (the sample
+    array whole: two slices per call would cost more than the law)."""
     out = np.empty(6)
     for i in range(6):
-        f = kp[i] * (ref[I_LEN + i] - lengths[i]) - kv[i] * (rates[i] - ref[I_RATE + i])
-        out[i] = min(max(f, -max_force), max_force)
+        out[i] = pd_leg(lengths[i], rates[i], ref[I_LEN + i], ref[I_RATE + i], kp[i], kv[i],
+                        max_force)
     return out
 
 
@@ -109,9 +110,8 @@ def _pd_gravity(const, base, plat, inertia, lengths, rates, pos, rot, ref, kp, k
                                    zero)
     out = np.empty(6)
     for i in range(6):
-        f = (kp[i] * (ref[I_LEN + i] - lengths[i]) - kv[i] * (rates[i] - ref[I_RATE + i])
-             + hold[i])
-        out[i] = min(max(f, -max_force), max_force)
+        f = pd_force(lengths[i], rates[i], ref[I_LEN + i], ref[I_RATE + i], kp[i], kv[i])
+        out[i] = saturated(f + hold[i], max_force)
     return out
 
 
@@ -176,7 +176,22 @@ class PoseEstimator:
 
 
 # -- the built-in laws ------------------------------------------------------------------------
-class PDLaw:
+class _LegGains:
+    """The gains of eq. (40), ``kp`` [N/m] and ``kv`` [N s/m] per leg: read and
+    checked here only (``gain_vector``), at start and at every change."""
+
+    parameters = ('kp', 'kv')
+
+    def _read_gains(self, mech: Mechanism, params: Mapping[str, Any]) -> None:
+        for name in self.parameters:
+            self.set_parameter(name, params.get(name, getattr(mech, name)))
+
+    def set_parameter(self, name: str, value: Any) -> None:
+        """Change the gain ``name`` (one of ``parameters``); ParameterError to refuse."""
+        setattr(self, name, gain_vector(name, value))
+
+
+class PDLaw(_LegGains):
     """``pd``: eq. (40) on every leg, towards the reference's lengths and rates.
 
     Args:
@@ -184,17 +199,10 @@ class PDLaw:
         params: the controller's parameters (``kp``, ``kv``: six gains each).
     """
 
-    parameters = ('kp', 'kv')
-
     def __init__(self, mech: Mechanism, params: Mapping[str, Any]) -> None:
         self.max_force = float(mech.max_force)
-        self.kp = gain_vector('kp', params.get('kp', mech.kp))
-        self.kv = gain_vector('kv', params.get('kv', mech.kv))
+        self._read_gains(mech, params)
         self.estimate = None
-
-    def set_parameter(self, name: str, value: Any) -> None:
-        """Change the gain ``name`` (one of ``parameters``); ParameterError to refuse."""
-        setattr(self, name, gain_vector(name, value))
 
     def __call__(self, t: float, lengths: np.ndarray, rates: np.ndarray,
                  ref: ReferenceSample) -> np.ndarray:
@@ -216,7 +224,7 @@ class _ModelLaw:
         return self.estimator.position, self.estimator.rotation
 
 
-class PDGravityLaw(_ModelLaw):
+class PDGravityLaw(_LegGains, _ModelLaw):
     """``pd_gravity``: eq. (40) plus the forces holding the mechanism against gravity.
 
     Args:
@@ -224,14 +232,9 @@ class PDGravityLaw(_ModelLaw):
         params: the controller's parameters (``kp``, ``kv``).
     """
 
-    parameters = ('kp', 'kv')
-
     def __init__(self, mech: Mechanism, params: Mapping[str, Any]) -> None:
         super().__init__(mech, params)
-        self.kp = gain_vector('kp', params.get('kp', mech.kp))
-        self.kv = gain_vector('kv', params.get('kv', mech.kv))
-
-    set_parameter = PDLaw.set_parameter
+        self._read_gains(mech, params)
 
     def holding_forces(self, position: ArrayLike, rotation: ArrayLike) -> np.ndarray:
         """H^-1 eta(q, 0): piston forces that hold the mechanism still at this pose.
@@ -365,9 +368,6 @@ class Controller:
         ParameterError: the law cannot be built from the parameters.
     """
 
-    #: run_sampled passes the sample time: controller(lengths, rates, t)
-    timed = True
-
     def __init__(self, mech: Mechanism, params: Mapping[str, Any] | None = None,
                  law: str | None = None, reference: Reference | None = None,
                  start: float | None = 0.0) -> None:
@@ -386,16 +386,36 @@ class Controller:
         """Follow ``reference`` from ``start`` on the sample clock (None: the next sample)."""
         self.reference = reference
         self.start = start
-        # Towards fixed lengths, eq. (40) needs no reference sample per call.
-        self._fixed = reference.kind == 'lengths'
-        if self._fixed:
+        if reference.kind == 'lengths':     # fixed: sampled once, here
             reference.sample(0.0, self.sample.array)
+        self._choose_path()
 
     def set_law(self, name: str) -> None:
         """Switch law (a new one built from the current parameters); ParameterError to refuse."""
         self.law = make_law(name, self.mech, self.params)
         self.law_name = name
         self.params['control_law'] = name
+        self._choose_path()
+
+    def _choose_path(self) -> None:
+        # The one fast path: the built-in pd law towards fixed lengths is eq. (40)
+        # with (dL/dt)_0 = 0, which the compiled loops (``pd_gains``) and
+        # ``forces`` evaluate directly, without a reference sample per call.
+        fixed = self.reference.kind == 'lengths' and type(self.law) is PDLaw
+        self._fixed_pd = self.law if fixed else None
+
+    def pd_gains(self) -> PDGains | None:
+        """Eq. (40) towards fixed lengths, if that is what this controller computes.
+
+        Returns:
+            ``PDGains`` (setpoint, kp, kv, max_force) of the built-in ``pd`` law
+            holding a lengths reference (the compiled loops of ``simulate`` run
+            it themselves); None for any other law or reference.
+        """
+        law = self.law
+        if law is not self._fixed_pd:
+            return None
+        return PDGains(self.sample.array[R_LEN], law.kp, law.kv, self.max_force)
 
     def set_parameter(self, name: str, value: Any) -> None:
         """A gain of the active law (checked by it); other laws' gains are checked
@@ -427,13 +447,12 @@ class Controller:
         if self.start is None:
             self.start = t
         ref = self.sample
-        if self._fixed and type(self.law) is PDLaw:
-            # eq. (40) as compiled for the paper's scenario (the same numbers as _pd)
-            law = self.law
+        law = self.law
+        if law is self._fixed_pd:       # the fast path (``_choose_path``)
             return pd_law(lengths, rates, ref.array[R_LEN], law.kp, law.kv, self.max_force)
         self.reference.sample(t - self.start, ref.array)
         try:
-            f = self.law(t, lengths, rates, ref)
+            f = law(t, lengths, rates, ref)
             if type(f) is not np.ndarray or f.dtype != np.float64:
                 f = np.asarray(f, dtype=float)
         except Exception as exc:  # noqa: BLE001 - any failure of the law withholds the forces
@@ -444,7 +463,7 @@ class Controller:
         return f
 
     def __call__(self, lengths: np.ndarray, rates: np.ndarray, t: float = 0.0) -> np.ndarray:
-        """``forces(t, lengths, rates)``, in the argument order ``run_sampled`` uses."""
+        """``forces(t, lengths, rates)``, in the argument order of the sensors' reading."""
         return self.forces(t, lengths, rates)
 
     @property
@@ -463,3 +482,41 @@ class Controller:
     def reference_acceleration(self) -> np.ndarray:
         """The desired acceleration (3,) [m/s^2] of the last reference sample (a view)."""
         return self.sample.array[R_ACC]
+
+
+class PDController(Controller):
+    """The paper's controller: the built-in ``pd`` law holding fixed leg lengths,
+    eq. (40), with the mechanism's gains and saturation (``sim``'s default).
+
+    Args:
+        mech: the mechanism (``kp``, ``kv``, ``max_force``, ``setpoint_lengths``).
+        setpoint: (6,) lengths to hold [m] instead of ``mech.setpoint_lengths``.
+        params: the controller's parameters, over ``mech.to_params()``.
+
+    Raises:
+        ParameterError: a gain the law refuses.
+        ValueError: a setpoint that is not six finite lengths.
+    """
+
+    def __init__(self, mech: Mechanism, setpoint: ArrayLike | None = None,
+                 params: Mapping[str, Any] | None = None) -> None:
+        lengths = np.array(mech.setpoint_lengths if setpoint is None else setpoint, float)
+        if lengths.shape != (6,) or not np.all(np.isfinite(lengths)):
+            raise ValueError('setpoint must be six finite lengths')
+        super().__init__(mech, params, law='pd',
+                         reference=Reference.constant_lengths(mech, lengths))
+
+    @property
+    def setpoint(self) -> np.ndarray:
+        """The lengths held (6,) [m], (L_i)_0 of eq. (40) (a view)."""
+        return self.sample.array[R_LEN]
+
+    @property
+    def kp(self) -> np.ndarray:
+        """Kp (6,) [N/m] of the law."""
+        return self.law.kp
+
+    @property
+    def kv(self) -> np.ndarray:
+        """Kv (6,) [N s/m] of the law."""
+        return self.law.kv

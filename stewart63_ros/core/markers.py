@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 if TYPE_CHECKING:
-    from stewart63_ros.core.params import Mechanism
+    from stewart63_ros.core.mechanism import Mechanism
 
 #: Marker kinds (the visualization_msgs names): CYLINDER / SPHERE are one
 #: shape at ``position``/``orientation``; the LIST kinds take ``points``.

@@ -38,12 +38,10 @@ import numpy as np
 
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.core.faults import FaultError, parse_faults
-from stewart63_ros.paths import RIG_CLOCK_MODE  # noqa: F401 - the rig's, beside the default
+from stewart63_ros.core.node_names import NODES
 
-#: The nodes of the rig. 'sim' stands for the offline executables that read
-#: a node's keys (``sim``, ``analyze``, ``sweep``).
-NODES = ('plant', 'controller', 'fk')
-#: A key every node reads.
+#: A key every node reads (the rig's nodes, ``node_names.NODES``; 'sim'
+#: stands for the offline executables that read a node's keys).
 ALL = NODES
 
 

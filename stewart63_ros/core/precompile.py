@@ -65,9 +65,9 @@ def main() -> None:
     """
     start = time.perf_counter()
     clear_cache()
-    from stewart63_ros.core.control import PDController
     from stewart63_ros.core.dynamics import Dynamics
     from stewart63_ros.core.fk import FKTracker
+    from stewart63_ros.core.laws import PDController
     from stewart63_ros.core.params import load_mechanism
     from stewart63_ros.core.simulate import initial_state, run_continuous, run_sampled
     mech = load_mechanism()
@@ -75,10 +75,11 @@ def main() -> None:
     law = PDController(mech)
     y = initial_state(mech)
     dyn.derivative(y, np.zeros(6))
-    dyn.derivative_with(y, law)
+    dyn.derivative_with(y, law.pd_gains())
     dyn.step(y, np.zeros(6), 1e-3)
     lengths, rates = dyn.lengths_and_rates(y)
     law(lengths, rates)
+    law.forces(0.0, lengths, rates)
     tracker = FKTracker(mech)
     tracker.solve(lengths, rates)
     tracker.fk.all_modes(lengths)

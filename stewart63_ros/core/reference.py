@@ -33,10 +33,13 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from stewart63_ros.core._jit import njit
+from stewart63_ros.core.dynamics import POS, QUAT, lengths_rates
+from stewart63_ros.core.fk import ForwardKinematics
 from stewart63_ros.core.kinematics import leg_kernel
+from stewart63_ros.core.rotation import euler_from_matrix, rotation_angle_between
 
 if TYPE_CHECKING:
-    from stewart63_ros.core.params import Mechanism
+    from stewart63_ros.core.mechanism import Mechanism
 
 #: Layout of a reference sample: position t (3), rotation R row-major (9),
 #: velocity v (3), angular velocity omega (3), acceleration (3), angular
@@ -253,7 +256,6 @@ class Reference:
 
     def poses(self, times: ArrayLike) -> np.ndarray:
         """(N, 6) x, y, z, theta_x, theta_y, theta_z at the times (N,) [s] (the CSV layout)."""
-        from stewart63_ros.core.rotation import euler_from_matrix
         s = self.sample_many(times)
         return np.hstack([s[:, R_POS], euler_from_matrix(s[:, R_ROT].reshape(-1, 3, 3))])
 
@@ -262,7 +264,6 @@ class Reference:
     def constant_pose(cls, mech: Mechanism, position: ArrayLike,
                       rotation: ArrayLike) -> Reference:
         """Hold one pose: t (3,) [m], R (3, 3)."""
-        from stewart63_ros.core.rotation import euler_from_matrix
         theta = euler_from_matrix(np.asarray(rotation, float))
         pose = np.concatenate([np.asarray(position, float), theta])
         return cls(mech, [0.0, 1.0], pose[None, None, :], kind='pose')
@@ -282,7 +283,6 @@ class Reference:
         Returns:
             The reference (``kind`` ``'lengths'``).
         """
-        from stewart63_ros.core.fk import ForwardKinematics
         fk = ForwardKinematics(mech)
         lengths = np.array(lengths, dtype=float)
         try:
@@ -312,6 +312,8 @@ class Reference:
         Raises:
             ReferenceError: bad shapes, times or values.
         """
+        # Here, not at the top: scipy.interpolate costs every controller's start
+        # 0.16-0.3 s (measured after laws), and most runs follow no trajectory.
         from scipy.interpolate import BPoly, CubicSpline, PPoly
         times = np.asarray(times, dtype=float)
         poses = np.asarray(poses, dtype=float)
@@ -571,8 +573,6 @@ def tracking_errors(mech: Mechanism, reference: Reference, times: ArrayLike,
         ``position_rms_m``, ``orientation_max_rad``, ``orientation_rms_rad``;
         an empty dict when no sample is that late.
     """
-    from stewart63_ros.core.dynamics import POS, QUAT, lengths_rates
-    from stewart63_ros.core.rotation import rotation_angle_between
     times = np.asarray(times, float)
     keep = times >= after - 1e-12
     if not keep.any():

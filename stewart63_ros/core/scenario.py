@@ -650,8 +650,8 @@ def wrench_samples(wrench: Sequence[WrenchInterval], times: np.ndarray) -> np.nd
 
 class _Withholding:
     """A controller that, like the controller node, answers nothing when its
-    law raises: the previous forces hold, and the sample is marked."""
-    timed = True
+    law raises: the previous forces hold, and the sample is marked. It has
+    the ``laws.Controller`` interface ``simulate`` drives (no fast path)."""
 
     def __init__(self, controller: Any, rate: float) -> None:
         self.controller = controller
@@ -659,10 +659,15 @@ class _Withholding:
         self.held = np.zeros(6)
         self.withheld: list[int] = []
 
-    def __call__(self, lengths: np.ndarray, rates: np.ndarray, t: float = 0.0) -> np.ndarray:
+    def pd_gains(self) -> None:
+        """No compiled fast path: every sample goes through ``forces``."""
+        return None
+
+    def forces(self, t: float, lengths: np.ndarray, rates: np.ndarray) -> np.ndarray:
+        """The law's forces, or the previous ones when the law raises."""
         from stewart63_ros.core.laws import LawError
         try:
-            self.held = self.controller(lengths, rates, t)
+            self.held = self.controller.forces(t, lengths, rates)
         except LawError:
             self.withheld.append(int(round(t * self.rate)))
         return self.held
@@ -703,9 +708,8 @@ def run_sim(scenario: Scenario) -> Trace:
                             read_declared(mech.extra, 'sensor_seed'))
     dyn = Dynamics(mech)
     if reference is None and type(controller.law) is PDLaw and faults is None:
-        # eq. (40) towards the setpoint: the compiled loop (the same numbers)
-        from stewart63_ros.core.control import PDController
-        law: Any = PDController(build_controller_mechanism(scenario))
+        # eq. (40) towards the setpoint: the compiled loop (controller.pd_gains())
+        law: Any = controller
     else:
         law = _Withholding(controller, rate)
     result = run_sampled(mech, scenario.duration, rate, controller=law, dyn=dyn,

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -24,7 +24,7 @@ from scipy.integrate import solve_ivp
 
 from stewart63_ros.core import dopri
 from stewart63_ros.core._jit import njit
-from stewart63_ros.core.control import PDController, pd_law
+from stewart63_ros.core.control import PDGains, pd_law
 from stewart63_ros.core.dynamics import (
     NO_GAINS,
     NO_WRENCH,
@@ -38,6 +38,8 @@ from stewart63_ros.core.dynamics import (
     lengths_rates,
     rk4,
 )
+from stewart63_ros.core.faults import FaultModel, parse_faults
+from stewart63_ros.core.laws import Controller, PDController
 from stewart63_ros.core.rotation import (
     euler_from_quaternion,
     euler_rate_matrix,
@@ -46,13 +48,7 @@ from stewart63_ros.core.rotation import (
 from stewart63_ros.core.trajectory import COLUMNS
 
 if TYPE_CHECKING:
-    from stewart63_ros.core.faults import FaultModel
-    from stewart63_ros.core.params import Mechanism
-
-#: A controller for ``run_sampled`` / ``run_continuous``: ``PDController``,
-#: ``laws.Controller`` (``timed``: called with the time too) or any callable
-#: (lengths (6,), rates (6,)) -> forces (6,) [N].
-ControllerLike = Callable[..., np.ndarray]
+    from stewart63_ros.core.mechanism import Mechanism
 
 #: Longest RK4 step of the sampled/plant integrator [s]. 1 ms keeps the
 #: end-stop spring (about 700 rad/s) well inside RK4's stability region.
@@ -200,29 +196,35 @@ def _pd_samples(base, plat, states, setpoint, kp, kv, max_force, lmin, lmax):
     return forces, contact
 
 
-def _is_pd(controller) -> bool:
-    """A plain ``PDController`` (whose law the compiled loops evaluate themselves)."""
-    return type(controller) is PDController
+def _fixed_pd(mech: Mechanism, controller: Controller | None) -> PDGains | None:
+    """Eq. (40) towards fixed lengths, which the compiled loops evaluate themselves:
+    the mechanism's own (no controller), or the controller's ``pd_gains()``; None
+    for any other law (the loops call the controller per sample)."""
+    if controller is None:
+        return PDGains(mech.setpoint_lengths, mech.kp, mech.kv, float(mech.max_force))
+    return controller.pd_gains()
 
 
 def run_sampled(mech: Mechanism, duration: float, rate: float,
-                controller: ControllerLike | None = None, y0: ArrayLike | None = None,
+                controller: Controller | None = None, y0: ArrayLike | None = None,
                 dyn: Dynamics | None = None, loop: str = 'compiled',
                 faults: FaultModel | Iterable[str] | None = None,
                 wrench: ArrayLike | None = None) -> Result:
     """Eq. (40) sampled at ``rate`` Hz with zero-order hold; RK4 in between.
 
-    Sample k at t_k = k / rate: measure L, dL/dt; F_k = PD; hold F_k over
-    [t_k, t_k+1). This is the loop the plant and controller nodes close over DDS.
-    ``loop='compiled'`` runs it in one compiled call (the same kernels as
-    ``Dynamics.step``, hence the same numbers to the bit); ``'python'`` calls
-    ``Dynamics.step`` per sample, as the plant node does (also used for a
-    controller other than a plain ``PDController``).
+    Sample k at t_k = k / rate: measure L, dL/dt; F_k = the controller's
+    forces; hold F_k over [t_k, t_k+1). This is the loop the plant and
+    controller nodes close over DDS. ``loop='compiled'`` runs eq. (40)
+    towards fixed lengths (no controller, or one whose ``pd_gains()`` says
+    so) in one compiled call (the same kernels as ``Dynamics.step``, hence
+    the same numbers to the bit); otherwise, or with ``loop='python'``,
+    ``Dynamics.step`` runs per sample, as the plant node does, and the
+    controller's ``forces(t, lengths, rates)`` answers each sample.
 
     Args:
         mech: the mechanism.
         duration: simulated time [s]; rate: the control and sample rate [Hz].
-        controller: default ``PDController(mech)``; see ``ControllerLike``.
+        controller: a ``laws.Controller``; None: ``laws.PDController(mech)``.
         y0: the initial state (13,); default ``initial_state(mech)``.
         dyn: the model to use (default: a new ``Dynamics(mech)``).
         loop: ``'compiled'`` or ``'python'``.
@@ -239,11 +241,11 @@ def run_sampled(mech: Mechanism, duration: float, rate: float,
     Raises:
         ValueError: an unknown ``loop``, a ``wrench`` not (N, 6).
         FaultError: a bad fault string.
+        LawError: the controller's law failed.
     """
     if loop not in ('compiled', 'python'):
         raise ValueError("loop must be 'compiled' or 'python', not %r" % (loop,))
     dyn = dyn or Dynamics(mech)
-    controller = controller or PDController(mech)
     period = 1.0 / rate
     steps = substeps_for(period)
     n = int(round(duration * rate))
@@ -251,20 +253,20 @@ def run_sampled(mech: Mechanism, duration: float, rate: float,
     if faults is not None:
         return run_faulted(mech, duration, rate, faults, controller, y0, dyn, wrench)
     y = initial_state(mech) if y0 is None else np.array(y0, float)
-    if loop == 'compiled' and _is_pd(controller):
-        states, forces, contact = _sampled_pd_segments(mech, dyn, controller, y, wrenches,
+    pd = _fixed_pd(mech, controller)
+    if loop == 'compiled' and pd is not None:
+        states, forces, contact = _sampled_pd_segments(mech, dyn, pd, y, wrenches,
                                                        n, period / steps, steps)
         return Result(np.arange(n + 1) * period, states, forces, int(contact), 4 * steps * n)
+    controller = controller or PDController(mech)
     states = np.empty((n + 1, STATE_SIZE))
     forces = np.empty((n + 1, 6))
     contact = 0
-    timed = getattr(controller, 'timed', False)
     for k in range(n + 1):
         lengths, rates = sensor_reading(dyn, y)
         contact += _outside_stroke(mech, lengths)
         states[k] = y
-        forces[k] = (controller(lengths, rates, k * period) if timed
-                     else controller(lengths, rates))
+        forces[k] = controller.forces(k * period, lengths, rates)
         if k < n:
             y = dyn.step(y, forces[k], period, steps, _wrench_at(wrenches, k))
     return Result(np.arange(n + 1) * period, states, forces, contact, 4 * steps * n)
@@ -286,7 +288,7 @@ def _wrench_at(wrenches, k):
     return None if wrenches is None else (wrenches[k, :3], wrenches[k, 3:])
 
 
-def _sampled_pd_segments(mech, dyn, controller, y, wrenches, n, dt, steps):
+def _sampled_pd_segments(mech, dyn, pd, y, wrenches, n, dt, steps):
     """``_sampled_pd`` over the runs of samples with one wrench each, chained:
     a segment starts from the state the previous one ended at, so the result
     is the one call's with the wrench changing between samples."""
@@ -294,7 +296,7 @@ def _sampled_pd_segments(mech, dyn, controller, y, wrenches, n, dt, steps):
     if wrenches is not None:
         changes = np.flatnonzero(np.any(np.diff(wrenches[:n], axis=0) != 0.0, axis=1)) + 1
         bounds = [0, *changes.tolist(), n]
-    args = (controller.setpoint, controller.kp, controller.kv, float(controller.max_force),
+    args = (pd.setpoint, pd.kp, pd.kv, float(pd.max_force),
             float(mech.leg_length_min), float(mech.leg_length_max))
     states, forces, contact = [], [], 0
     for a, b in zip(bounds, bounds[1:]):
@@ -312,7 +314,7 @@ def _sampled_pd_segments(mech, dyn, controller, y, wrenches, n, dt, steps):
 
 def run_faulted(mech: Mechanism, duration: float, rate: float,
                 faults: FaultModel | Iterable[str] | None,
-                controller: ControllerLike | None = None, y0: ArrayLike | None = None,
+                controller: Controller | None = None, y0: ArrayLike | None = None,
                 dyn: Dynamics | None = None, wrench: ArrayLike | None = None) -> Result:
     """``run_sampled`` with sensor and actuator faults, as the lockstep plant runs it.
 
@@ -337,7 +339,6 @@ def run_faulted(mech: Mechanism, duration: float, rate: float,
         FaultError: a bad fault string.
         ValueError: a ``wrench`` not (N, 6).
     """
-    from stewart63_ros.core.faults import FaultModel, parse_faults
     if not isinstance(faults, FaultModel):
         faults = FaultModel(parse_faults(faults), rate)
     dyn = dyn or Dynamics(mech)
@@ -353,7 +354,6 @@ def run_faulted(mech: Mechanism, duration: float, rate: float,
     measured = np.empty((n + 1, 12))
     held = np.zeros(6)          # the plant holds zero until the first answer
     contact = 0
-    timed = getattr(controller, 'timed', False)
     for k in range(n + 1):
         faults.begin(k)
         lengths, rates = sensor_reading(dyn, y)
@@ -362,8 +362,7 @@ def run_faulted(mech: Mechanism, duration: float, rate: float,
         lengths, rates, complete = faults.sense(lengths, rates)
         measured[k, :6], measured[k, 6:] = lengths, rates
         if complete:
-            held = (controller(lengths, rates, k * period) if timed
-                    else controller(lengths, rates))
+            held = controller.forces(k * period, lengths, rates)
         forces[k] = held
         applied[k] = faults.actuate(held)
         if k < n:
@@ -373,7 +372,7 @@ def run_faulted(mech: Mechanism, duration: float, rate: float,
 
 
 def run_continuous(mech: Mechanism, duration: float, output_rate: float = 100.0,
-                   controller: ControllerLike | None = None, y0: ArrayLike | None = None,
+                   controller: Controller | None = None, y0: ArrayLike | None = None,
                    rtol: float = 1e-8, atol: float = 1e-10,
                    dyn: Dynamics | None = None, integrator: str = 'compiled',
                    max_steps: int = dopri.MAX_STEPS) -> Result:
@@ -382,13 +381,14 @@ def run_continuous(mech: Mechanism, duration: float, output_rate: float = 100.0,
     ``integrator='compiled'`` (default) runs scipy's RK45 compiled
     (``dopri.solve_pd``: same steps, same dense output, ~4x faster);
     ``'scipy'`` calls ``scipy.integrate.solve_ivp`` (the reference).
-    A controller other than a plain ``PDController`` runs inside scipy's
-    ``solve_ivp``.
+    A controller whose ``pd_gains()`` is None (any law but eq. (40) towards
+    fixed lengths) runs inside scipy's ``solve_ivp``.
 
     Args:
         mech: the mechanism.
         duration: simulated time [s]; output_rate: rows per second [Hz].
-        controller: default ``PDController(mech)``; see ``ControllerLike``.
+        controller: a ``laws.Controller``; None: eq. (40) with the mechanism's
+            setpoint, gains and saturation.
         y0: the initial state (13,); default ``initial_state(mech)``.
         rtol, atol: the integrator's tolerances.
         dyn: the model to use (default: a new ``Dynamics(mech)``).
@@ -405,14 +405,14 @@ def run_continuous(mech: Mechanism, duration: float, output_rate: float = 100.0,
     if integrator not in ('compiled', 'scipy'):
         raise ValueError("integrator must be 'compiled' or 'scipy', not %r" % (integrator,))
     dyn = dyn or Dynamics(mech)
-    controller = controller or PDController(mech)
-    if not _is_pd(controller):
+    pd = _fixed_pd(mech, controller)
+    if pd is None:
         return _continuous_law(mech, dyn, duration, output_rate, controller, y0, rtol, atol)
 
     # One compiled call per evaluation: dynamics and eq. (40) from the same L, dL/dt.
     args = dyn.kernel_args()
-    gains = np.vstack([controller.setpoint, controller.kp, controller.kv])
-    zero, max_force = np.zeros(6), float(controller.max_force)
+    gains = pd.rows()
+    zero, max_force = np.zeros(6), float(pd.max_force)
 
     y = initial_state(mech) if y0 is None else np.array(y0, float)
     n = int(round(duration * output_rate))
@@ -436,8 +436,8 @@ def run_continuous(mech: Mechanism, duration: float, output_rate: float = 100.0,
             raise RuntimeError('integration failed: %s' % sol.message)
         states, times, nfev = sol.y.T.copy(), sol.t, sol.nfev
     states[:, QUAT] /= np.linalg.norm(states[:, QUAT], axis=1)[:, None]
-    forces, contact = _pd_samples(dyn.base_points, dyn.leg_points, states, controller.setpoint,
-                                  controller.kp, controller.kv, max_force,
+    forces, contact = _pd_samples(dyn.base_points, dyn.leg_points, states, pd.setpoint,
+                                  pd.kp, pd.kv, max_force,
                                   float(mech.leg_length_min), float(mech.leg_length_max))
     return Result(times, states, forces, int(contact), int(nfev))
 
@@ -449,11 +449,10 @@ def _continuous_law(mech, dyn, duration, output_rate, controller, y0, rtol, atol
     reported at the output times are the law evaluated again there."""
     args = dyn.kernel_args()
     base, plat = dyn.base_points, dyn.leg_points
-    timed = getattr(controller, 'timed', False)
 
     def law(t, y):
         lengths, rates = lengths_rates(base, plat, y)
-        return controller(lengths, rates, t) if timed else controller(lengths, rates)
+        return controller.forces(t, lengths, rates)
 
     def rhs(t, y):
         return derivative_pd(*args, y, law(t, y), NO_WRENCH, True, NO_GAINS, 0.0)
@@ -472,5 +471,5 @@ def _continuous_law(mech, dyn, duration, output_rate, controller, y0, rtol, atol
     for k, yk in enumerate(states):
         lengths, rates = lengths_rates(base, plat, yk)
         contact += _outside_stroke(mech, lengths)
-        forces[k] = controller(lengths, rates, sol.t[k]) if timed else controller(lengths, rates)
+        forces[k] = controller.forces(sol.t[k], lengths, rates)
     return Result(sol.t, states, forces, int(contact), int(sol.nfev))

@@ -28,7 +28,7 @@ from stewart63_ros.core._jit import njit
 from stewart63_ros.core.dynamics import Dynamics, inverse_dynamics_forces
 from stewart63_ros.core.fk import condition_number
 from stewart63_ros.core.kinematics import leg_kernel
-from stewart63_ros.core.params import Mechanism
+from stewart63_ros.core.mechanism import Mechanism
 
 #: Reasons, in the order the limits are checked.
 REASONS = ('ok', 'stroke', 'singular', 'max_force')

@@ -11,6 +11,7 @@ import time
 import numpy as np
 
 from stewart63_ros.core.params import LEG_NAMES
+from stewart63_ros.core.stamps import stamp_ns
 
 
 class Rejected(ValueError):
@@ -19,10 +20,6 @@ class Rejected(ValueError):
     def __init__(self, reason: str, detail: str):
         super().__init__('%s: %s' % (reason, detail))
         self.reason = reason
-
-
-def stamp_ns(stamp) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def ros_time(seconds: float):

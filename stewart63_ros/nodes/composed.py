@@ -22,7 +22,7 @@ from __future__ import annotations
 import sys
 import time
 
-NODE_NAMES = ('plant', 'controller', 'fk')
+from stewart63_ros.core.node_names import NODES as NODE_NAMES
 
 
 class Peers:

@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import time
 
+from stewart63_ros.core.stamps import stamp_ns
+
 #: A peer's progress topic, private to the peer's node: ``/<ns>/<node>/lockstep_progress``.
 PROGRESS_TOPIC = 'lockstep_progress'
 
@@ -107,7 +109,7 @@ class PeerWindow:
         return [p for p in self.subs if p not in self.dropped]
 
     def _on_progress(self, peer: str, msg) -> None:
-        ns = int(msg.sec) * 1_000_000_000 + int(msg.nanosec)
+        ns = stamp_ns(msg)
         if ns != self.progress.get(peer):
             self.progress[peer] = ns
             self.last_advance[peer] = time.monotonic()

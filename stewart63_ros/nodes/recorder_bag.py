@@ -8,6 +8,7 @@ import struct
 from pathlib import Path
 
 from stewart63_ros.bagio import NAMESPACE_KEY, BagError
+from stewart63_ros.core.stamps import ns_of
 
 
 def qos_to_rosbags(profile):
@@ -132,7 +133,7 @@ def header_stamp_ns(data: bytes) -> int:
     if len(data) < 12 or data[1] != 1:
         return -1
     sec, nanosec = _STAMP.unpack_from(data, 4)
-    return sec * 1_000_000_000 + nanosec
+    return ns_of(sec, nanosec)
 
 
 _STAMP = struct.Struct('<iI')

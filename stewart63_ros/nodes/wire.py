@@ -26,6 +26,7 @@ import struct
 import numpy as np
 
 from stewart63_ros.core.params import LEG_NAMES
+from stewart63_ros.core.stamps import ns_of
 from stewart63_ros.nodes.checks import Rejected, leg_vector
 
 #: Plain CDR, little endian (the 4-byte encapsulation header).
@@ -351,7 +352,7 @@ def joint_state_sample(data: bytes, gate, want: tuple, optional: tuple = (), sou
     fast = read_joint_state(data, want, optional)
     if fast is not None:
         sec, nanosec, frame_id, values = fast
-        ns = gate.check_ns(sec * 1_000_000_000 + nanosec, source)
+        ns = gate.check_ns(ns_of(sec, nanosec), source)
         gate.check_source(source)
         return ns, sec, nanosec, frame_id, values
     from sensor_msgs.msg import JointState

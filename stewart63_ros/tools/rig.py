@@ -38,9 +38,9 @@ from pathlib import Path
 # handlers: a Ctrl-C while numpy and scipy load (a third of a second) could
 # otherwise be swallowed by a library's bare ``except`` and never stop the rig.
 from stewart63_ros.core.errors import ParameterError
+from stewart63_ros.core.node_names import NODES
 from stewart63_ros.paths import RIG_CLOCK_MODE, default_params_path
 
-NODES = ('plant', 'controller', 'fk')
 #: Bound on the nodes' start-up until the recorder has matched them [s]. It
 #: includes loading the numba kernels, which a fresh install (or a changed
 #: core) compiles first: more than a minute on a loaded two-core machine.

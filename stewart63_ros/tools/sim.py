@@ -24,8 +24,27 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart63_ros.core.params import ParameterError, default_params_path, load_mechanism
+from stewart63_ros.core.dynamics import Dynamics
+from stewart63_ros.core.faults import FaultError, FaultModel, parse_fault, parse_faults
+from stewart63_ros.core.laws import Controller, LawError
+from stewart63_ros.core.node_parameters import read as read_declared
+from stewart63_ros.core.params import (
+    ParameterError,
+    default_params_path,
+    load_mechanism,
+    read_parameter_file,
+)
+from stewart63_ros.core.reference import (
+    CSV_COLUMNS,
+    ReferenceError,
+    load_reference,
+    tracking_errors,
+    write_reference_csv,
+)
+from stewart63_ros.core.simulate import run_continuous, run_sampled
+from stewart63_ros.core.trajectory import COLUMNS, write_csv
 from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked
+from stewart63_ros.tools.plot import draw_figure
 
 
 def summarize(mech, dyn, result) -> dict:
@@ -56,10 +75,8 @@ def fault_list(params_path, extra=()) -> list:
     """The plant's ``faults`` of the parameter file, then ``extra`` (--fault),
     parsed (FaultError naming the first bad one). A blank ``--fault`` is
     refused: the file's ``['']`` stands for no faults, an option for one."""
-    from stewart63_ros.core.faults import FaultError, parse_fault, parse_faults
     for text in extra:
         parse_fault(text)
-    from stewart63_ros.core.params import read_parameter_file
     listed = read_parameter_file(params_path, 'plant').get('faults') or []
     if isinstance(listed, str):
         listed = [listed]
@@ -82,13 +99,10 @@ def format_fault(fault: dict) -> str:
 
 
 def make_controller(params_path, law=None, reference_csv=None):
-    """(controller, reference) for a run: None, None for plain eq. (40) towards the
-    setpoint (the compiled paths); else a ``Controller`` with the law (``law`` or
-    the controller's ``control_law`` in the file) and the reference CSV, if any.
-    Raises ParameterError or ReferenceError."""
-    from stewart63_ros.core.node_parameters import read as read_declared
-    from stewart63_ros.core.params import read_parameter_file
-    from stewart63_ros.core.reference import load_reference
+    """(controller, reference) for a run: a ``Controller`` with the law (``law`` or
+    the controller's ``control_law`` in the file) and the reference CSV (None:
+    hold the setpoint, eq. (40) towards fixed lengths runs compiled, as
+    ``Controller.pd_gains`` says). Raises ParameterError or ReferenceError."""
     params = read_parameter_file(params_path, 'controller')
     mech = load_mechanism(params_path, node_name='controller')
     law = law or read_declared(params, 'control_law')
@@ -97,9 +111,6 @@ def make_controller(params_path, law=None, reference_csv=None):
         reference = load_reference(mech, reference_csv,
                                    read_declared(params, 'max_leg_speed'),
                                    read_declared(params, 'max_leg_acceleration'))
-    if law == 'pd' and reference is None:
-        return None, None
-    from stewart63_ros.core.laws import Controller
     return Controller(mech, params, law=law, reference=reference), reference
 
 
@@ -133,8 +144,6 @@ def main(argv=None) -> int:
     if args.rate is not None and not (np.isfinite(args.rate) and args.rate > 0):
         parser.error('--rate must be a positive number of Hz')
 
-    from stewart63_ros.core.laws import LawError
-    from stewart63_ros.core.reference import ReferenceError
     params_path = args.params or default_params_path()
     mech = load_checked('sim', params_path, node_name='plant', strict=args.strict)
     if mech is None:
@@ -144,7 +153,6 @@ def main(argv=None) -> int:
     except (ParameterError, ReferenceError) as exc:
         print('sim: error: %s' % (exc,), file=sys.stderr)
         return 2
-    from stewart63_ros.core.faults import FaultError
     try:
         faults = fault_list(params_path, args.fault)
     except FaultError as exc:
@@ -159,19 +167,14 @@ def main(argv=None) -> int:
     args.control = args.control or 'continuous'
 
     announce_compile('sim')
-    from stewart63_ros.core.dynamics import Dynamics
-    from stewart63_ros.core.simulate import run_continuous, run_sampled
-    from stewart63_ros.core.trajectory import write_csv
 
     dyn = Dynamics(mech)
     start = time.perf_counter()
     try:
         if args.control == 'sampled':
-            from stewart63_ros.core.node_parameters import read as read_declared
             rate = args.rate or read_declared(mech.extra, 'sensor_rate')
             model = None
             if faults:
-                from stewart63_ros.core.faults import FaultModel
                 model = FaultModel(faults, rate, read_declared(mech.extra, 'sensor_seed'))
             result = run_sampled(mech, args.duration, rate, dyn=dyn, controller=controller,
                                  faults=model)
@@ -193,16 +196,13 @@ def main(argv=None) -> int:
     write_csv(out / 'trajectory.csv', table)
     ref_columns = None
     if reference is not None:
-        from stewart63_ros.core.reference import CSV_COLUMNS, write_reference_csv
         poses = reference.poses(result.times)
         write_reference_csv(out / 'reference.csv', result.times, poses)
         ref_columns = dict(zip(CSV_COLUMNS, np.column_stack([result.times, poses]).T))
-    law = controller.law_name if controller is not None else 'pd'
+    law = controller.law_name
     if result.faults is not None:
         (out / 'faults.json').write_text(json.dumps(result.faults, indent=1))
     if not args.no_figure:
-        from stewart63_ros.core.trajectory import COLUMNS
-        from stewart63_ros.tools.plot import draw_figure
         draw_figure({name: table[:, i] for i, name in enumerate(COLUMNS)}, out / 'figure.png',
                     title='sim %s: %s, %s control, %g Hz, %g s, %s' % (
                         out, law, args.control, rate, args.duration,
@@ -217,7 +217,6 @@ def main(argv=None) -> int:
     if result.faults is not None:
         summary['faults'] = str(out / 'faults.json')
     if reference is not None:
-        from stewart63_ros.core.reference import tracking_errors
         summary['tracking_error'] = {k: (round(v, 9) if isinstance(v, float) else v) for k, v in
                                      tracking_errors(mech, reference, result.times,
                                                      result.states).items()}
