@@ -21,7 +21,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from ros_harness import logs_of, rig_env, run_to_end
+from ros_harness import rig_env, run_to_end
 
 from stewart63_ros.core.faults import KINDS
 from stewart63_ros.tools.rig import Rig
