@@ -66,9 +66,10 @@ def test_no_fault_holds_or_drops_a_lockstep_peer(ros, monkeypatch, tmp_path, kin
     assert summary['samples'] == n and summary['force_timeouts'] == 0, summary
     peers = summary['lockstep_peers']
     assert peers['dropped'] == {}, (fault, peers)
-    # A stalled peer holds the plant its whole timeout; a lagging one (a busy
-    # machine) a few batches of 5 ms.
-    assert peers['held_s'] < PEER_TIMEOUT / 2, (fault, peers)
+    # A stalled peer holds the plant its whole timeout (then it is dropped); a
+    # peer that lags (a busy machine, or a plant that steps on without answers
+    # over a dropout) holds it for a few batches of 5 ms at a time.
+    assert peers['held_s'] < PEER_TIMEOUT, (fault, peers)
     assert '[ERROR]' not in logs, (fault, logs)
     controller, fk = rig.summary('controller'), rig.summary('fk')
     assert 'watchdog' not in controller['status'], controller
