@@ -340,9 +340,30 @@ def test_a_stalled_controller_reads_its_queue_before_its_watchdog_judges(ros):
     """A controller starved of CPU wakes to its due watchdog and a queued sample
     at once: the sample proves the sensor alive, so no ERROR (a loaded machine's
     stall is not a lost sensor). test/watchdog_probe.py stages it in one process."""
+    result = watchdog_probe(ros, 'stall')
+    assert result == {'first_handled': True, 'tripped': False, 'fault': '', 'received': 2,
+                      'rejected': {}}, result
+
+
+def watchdog_probe(ros, *args) -> dict:
+    """test/watchdog_probe.py's scenario ``args``, run in its own process: its result."""
     import json
-    proc = ros.python(str(REPO / 'test' / 'watchdog_probe.py'), name='watchdog_probe')
+    proc = ros.python(str(REPO / 'test' / 'watchdog_probe.py'), *args, name='watchdog_probe')
     assert proc.wait(60) == 0, proc.describe()
-    result = json.loads(proc.stdout().strip().splitlines()[-1])
-    assert result == {'first_handled': True, 'tripped': False, 'fault': '', 'received': 2}, \
-        result
+    return json.loads(proc.stdout().strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize('mode', ['lockstep', 'realtime'])
+def test_a_dropout_is_no_silence_for_the_lockstep_watchdog(ros, mode):
+    """A sensor dropout (a leg NaN) longer than the watchdog's timeout: the
+    controller refuses every such sample. In lockstep they are samples all
+    the same (the plant steps on without an answer), so the watchdog does
+    not report a lost sensor; in realtime it does (docs/faults.md)."""
+    result = watchdog_probe(ros, 'dropout', mode)
+    refused = result['received'] - 1
+    assert refused > 10 and result['rejected'] == {'leg_lengths/non_finite': refused}, result
+    if mode == 'lockstep':
+        assert not result['tripped'] and result['fault'] == '', result
+    else:
+        assert result['tripped'] and result['fault'].startswith('watchdog: no leg_lengths'), \
+            result

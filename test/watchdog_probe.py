@@ -1,5 +1,11 @@
-"""Run by test_control_dds: a controller whose process was stalled past its
-watchdog while a sample waited in its queue. Prints one JSON line."""
+"""Run by test_control_dds: a controller's watchdog in one staged scenario.
+Prints one JSON line.
+
+    watchdog_probe.py stall              a process stalled past its watchdog
+                                         while a sample waited in its queue
+    watchdog_probe.py dropout MODE       a sensor dropout (a leg NaN) that lasts
+                                         longer than the watchdog, clock_mode MODE
+"""
 from __future__ import annotations
 
 import json
@@ -16,9 +22,15 @@ from stewart63_ros.nodes.controller import ControllerNode
 from stewart63_ros.nodes.parameters import set_arguments
 from stewart63_ros.nodes.rclpy_internals import WaitAny
 
+#: s, the controller's watchdog_timeout here
+TIMEOUT = 0.5
 
-def main() -> int:
-    set_arguments([sys.argv[0], '--ros-args', '-p', 'watchdog_timeout:=0.5'])
+
+def main(argv) -> int:
+    scenario = argv[1]
+    mode = argv[2] if len(argv) > 2 else 'realtime'
+    set_arguments([argv[0], '--ros-args', '-p', 'watchdog_timeout:=%g' % TIMEOUT,
+                   '-p', 'clock_mode:=%s' % mode])
     rclpy.init()
     controller = ControllerNode(None)
     sensor = Node('probe_sensor')
@@ -29,9 +41,12 @@ def main() -> int:
     mech = load_mechanism()
     lengths = [float(x) for x in mech.setpoint_lengths]
 
-    def send(k: int) -> None:
-        msg = JointState(name=['leg_%d' % i for i in range(1, 7)], position=lengths,
-                         velocity=[0.0] * 6)
+    def send(k: int, dropped_leg: int | None = None) -> None:
+        position, velocity = list(lengths), [0.0] * 6
+        if dropped_leg is not None:
+            position[dropped_leg] = velocity[dropped_leg] = float('nan')
+        msg = JointState(name=['leg_%d' % i for i in range(1, 7)], position=position,
+                         velocity=velocity)
         msg.header.stamp.sec, msg.header.stamp.nanosec = 1, k * 1_000_000
         msg.header.frame_id = 'base'
         pub.publish(msg)
@@ -42,15 +57,29 @@ def main() -> int:
     waiting.wait(10.0)
     controller.read_queued()
     first = controller.last_sample_wall is not None
-    # The process "stalls": a second sample arrives and waits in the queue
-    # while the clock runs past the watchdog's timeout.
-    send(2)
-    waiting.wait(10.0)
-    controller.last_sample_wall = time.monotonic() - 1.0
-    controller.watchdog()
+    if scenario == 'stall':
+        # The process "stalls": a second sample arrives and waits in the queue
+        # while the clock runs past the watchdog's timeout.
+        send(2)
+        waiting.wait(10.0)
+        controller.last_sample_wall = time.monotonic() - 1.0
+        controller.watchdog()
+    else:
+        # Leg 5 drops out for twice the watchdog's timeout: a NaN sample every
+        # 10 ms, each handled, the watchdog judging after each.
+        k = 2
+        end = time.monotonic() + 2 * TIMEOUT
+        while time.monotonic() < end:
+            send(k, dropped_leg=4)
+            waiting.wait(1.0)
+            controller.read_queued()
+            controller.watchdog()
+            k += 1
+            time.sleep(0.01)
     print(json.dumps({'first_handled': first, 'tripped': controller.tripped,
                       'fault': controller.health.fault,
-                      'received': controller.health.received[topics.LEG_LENGTHS]}))
+                      'received': controller.health.received[topics.LEG_LENGTHS],
+                      'rejected': dict(controller.health.rejected)}))
     controller.destroy_node()
     sensor.destroy_node()
     rclpy.shutdown()
@@ -58,4 +87,4 @@ def main() -> int:
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    sys.exit(main(sys.argv))

@@ -324,8 +324,9 @@ DECLARED: tuple[Declared, ...] = (
              '--reference` sets it); plant: report the true tracking error in its summary',
              text, default_text='"" (none)'),
     Declared('watchdog_timeout', ('controller',), _watchdog_default, 's (wall clock)', '',
-             'no valid sample for this long after the first one: forces withheld, ERROR on '
-             '`/diagnostics`, until samples return; after the plant of its namespace said '
+             'no valid sample for this long after the first one (in lockstep, a sample '
+             'refused for a dropped-out leg counts: the plant goes on): forces withheld, '
+             'ERROR on `/diagnostics`, until samples return; after the plant of its namespace said '
              'its run ended (`run: ended` on `/diagnostics`), an INFO line instead', positive,
              default_text='0.1 (2 in lockstep)'),
     Declared('singularity_threshold', ('fk',), DEFAULT_COND_THRESHOLD, '', '', 'Jacobian '

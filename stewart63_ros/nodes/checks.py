@@ -15,11 +15,19 @@ from stewart63_ros.core.stamps import stamp_ns
 
 
 class Rejected(ValueError):
-    """An input message that must not reach the model; ``reason`` is a short key."""
+    """An input message that must not reach the model; ``reason`` is a short key.
+
+    ``stamp_ns``: the stamp [ns] of a sample refused for its content only (a
+    leg ``NaN`` from a sensor dropout) whose stamp was in order, else None.
+    Such a sample was received and handled, only not used: lockstep flow
+    control counts it as handled, the controller's lockstep watchdog as a
+    sample (not as silence).
+    """
 
     def __init__(self, reason: str, detail: str):
         super().__init__('%s: %s' % (reason, detail))
         self.reason = reason
+        self.stamp_ns = None
 
 
 def ros_time(seconds: float):

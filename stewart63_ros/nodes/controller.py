@@ -15,7 +15,8 @@ and the previous one goes on. Gains and law change at run time
 ERROR on /diagnostics, the node stays up.
 
 Watchdog: when no valid sample has arrived for ``watchdog_timeout`` seconds
-(wall clock; default 0.1 s, 2 s in lockstep) after the first one, the
+(wall clock; default 0.1 s, 2 s in lockstep, where a sample refused only for
+a dropped-out leg counts as one: docs/faults.md) after the first one, the
 controller stops publishing forces and reports ERROR on /diagnostics until
 samples return. It never invents a force without a measurement: on a hydraulic
 platform the actuator driver's own command timeout then closes the servo
@@ -158,6 +159,7 @@ class ControllerNode(RigNode):
             self.control.set_reference(reference, 0.0)
             self.reference_name = reference_file
         self.watchdog_timeout = self.param('watchdog_timeout')   # longer in lockstep
+        self.lockstep = self.param('clock_mode') == 'lockstep'
         self.sample_gate = StampGate(RESTART_PAUSE)
         self.setpoint_gate = StampGate()
         self.pose_gate = StampGate()
@@ -250,6 +252,11 @@ class ControllerNode(RigNode):
                 data, self.sample_gate, ('position', 'velocity'), source=source)
         except Rejected as exc:
             self.health.reject(topics.LEG_LENGTHS, exc)
+            if self.lockstep and exc.stamp_ns is not None:
+                # A dropout's NaN sample: refused (no force), but the sensor
+                # stream is alive and the plant steps on without an answer;
+                # in lockstep that is no silence for the watchdog.
+                self.last_sample_wall = time.monotonic()
             return
         self.accept_sample(self.sample_gate, ns, source, topics.LEG_LENGTHS)
         if self.sample_gate.new_run:

@@ -91,6 +91,10 @@ class FKNode(RigNode):
                 data, self.gate, ('position',), ('velocity',), source=source)
         except Rejected as exc:
             self.health.reject(topics.LEG_LENGTHS, exc)
+            if self.progress is not None and exc.stamp_ns is not None:
+                # A dropout's NaN sample is handled too (refused): the
+                # plant, which waits for fk's progress, must not wait for it.
+                self.progress.note(exc.stamp_ns)
             return
         if self.progress is not None:
             self.progress.note(ns)      # handled, whether a pose comes of it or not

@@ -12,7 +12,8 @@ The protocol (docs/interface.md, "Lockstep flow control"):
 
 - a peer publishes on ``~/lockstep_progress`` (``builtin_interfaces/Time``,
   reliable, depth 1) the stamp of the newest ``leg_lengths`` sample it has
-  handled (fk: posed and published; the recorder: written), at most once
+  handled (fk: posed and published, or refused, as a dropout's NaN sample
+  is; the recorder: written), at most once
   per batch of samples;
 - the plant's parameter ``lockstep_peers`` names the peers (``rig`` sets fk
   and its recorder); before its first sample the plant waits until each

@@ -114,6 +114,9 @@ class PlantNode(PlantControl, RigNode):
         self.watch_source(self.sub_forces, topics.LEG_FORCES, self.force_gate)
         self.plant_startup = PlantStartup(self)
         self.t0_wall = None
+        #: time.time() as the run began (t0_wall moves with a realtime pause):
+        #: what came before it was start-up (rig's summary says so)
+        self.run_began_unix = None
         self.t0_mono = None         # realtime: monotonic time of sample 0
         self.t_phys = 0.0           # realtime: simulated time the state is at
         self.forces_in = None       # DirectTake, made when the loop starts
@@ -215,7 +218,7 @@ class PlantNode(PlantControl, RigNode):
         self.wait_for_matches(self.plant_startup.missing)     # the start-up order: handshake.py
         self.forces_in = self.start_hot_loop(self.sub_forces)
         self.announce_run('running')
-        self.t0_wall = time.time()
+        self.t0_wall = self.run_began_unix = time.time()
         n_samples = int(round(self.duration * self.rate)) if self.duration > 0 else None
         self.get_logger().info('%s at %g Hz%s' % (
             self.mode, self.rate, ', %d samples' % n_samples if n_samples else ''))

@@ -67,6 +67,7 @@ def run_summary(plant, stopped: bool) -> dict:
         'force_timeouts': plant.timeouts, 'missed_cycles': plant.missed,
         'late_cycles': plant.late, 'endstop_samples': plant.endstop_samples,
         'wall_time_s': time.time() - plant.t0_wall,
+        'run_began_unix_s': plant.run_began_unix, 'run_ended_unix_s': time.time(),
         'skipped': dict(plant.health.skipped),
         'stopped_by_signal': stopped,
         'run_number': plant.run_number, 'resets': plant.resets,

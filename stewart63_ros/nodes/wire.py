@@ -348,7 +348,8 @@ def joint_state_sample(data: bytes, gate, want: tuple, optional: tuple = (), sou
     {field: array of 6}), or Rejected exactly as for a message object:
     the stamp against ``gate`` first (not accepted here; ``source``: the
     sending publisher, see StampGate), then the fields in
-    order with ``leg_vector``; an ``optional`` field may be empty (absent)."""
+    order with ``leg_vector``; an ``optional`` field may be empty (absent).
+    A sample refused for its content alone says its stamp (``Rejected.stamp_ns``)."""
     fast = read_joint_state(data, want, optional)
     if fast is not None:
         sec, nanosec, frame_id, values = fast
@@ -362,11 +363,16 @@ def joint_state_sample(data: bytes, gate, want: tuple, optional: tuple = (), sou
     stamp = msg.header.stamp
     ns = gate.check(stamp, source)
     values = {}
-    for field in want:
-        values[field] = leg_vector(msg.name, getattr(msg, field), field)
-    for field in optional:
-        if len(getattr(msg, field)):
+    try:
+        for field in want:
             values[field] = leg_vector(msg.name, getattr(msg, field), field)
+        for field in optional:
+            if len(getattr(msg, field)):
+                values[field] = leg_vector(msg.name, getattr(msg, field), field)
+    except Rejected as exc:
+        if not gate.second:
+            exc.stamp_ns = ns       # a sample of the run, in order: only its content refused
+        raise
     gate.check_source(source)
     return ns, stamp.sec, stamp.nanosec, msg.header.frame_id, values
 

@@ -45,3 +45,24 @@ def announce_compile(prog: str, who: str = '') -> None:
     from stewart63_ros.core.precompile import COMPILE_NOTICE, kernel_cache_cold
     if kernel_cache_cold():
         print('%s: %s%s' % (prog, who, COMPILE_NOTICE), file=sys.stderr, flush=True)
+
+
+def ros_namespace(text: str) -> str:
+    """A rig's namespace as typed (``--namespace``): absolute as ROS names it
+    (``rig2`` is ``/rig2``; ``''`` and ``/`` are the root namespace, returned
+    as ``''``).
+
+    Raises:
+        ValueError: a name ROS refuses, with rcl's reason in one line.
+    """
+    if text in ('', '/'):
+        return ''
+    name = text if text.startswith('/') else '/' + text
+    from rclpy.exceptions import InvalidNamespaceException
+    from rclpy.validate_namespace import validate_namespace
+    try:
+        validate_namespace(name)
+    except InvalidNamespaceException as exc:
+        reason = str(exc).splitlines()[0].partition(': ')[2].rstrip(':')
+        raise ValueError('%r is not a ROS namespace: %s' % (text, reason)) from None
+    return name

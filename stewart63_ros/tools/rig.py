@@ -72,7 +72,8 @@ class Rig:
         self.mode = mode
         self.duration = duration
         self.record = record
-        self.namespace = namespace or ''
+        from stewart63_ros.tools.cli import ros_namespace
+        self.namespace = ros_namespace(namespace or '')     # ValueError: not a ROS namespace
         self.log_dir = Path(log_dir or default_log_dir(record, namespace))
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.summary_file = self.log_dir / 'plant_summary.json'
@@ -334,7 +335,7 @@ def main(argv=None) -> int:
     # deadline: stopping the children (Rig.stop) may take longer.
     signals = StopSignals(deadline=False, interrupt=False).install()
     dump_stacks_on_sigusr1()
-    from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked
+    from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked, ros_namespace
     parser = argparse.ArgumentParser(prog='rig', description=__doc__.split('\n\n')[0],
                                      formatter_class=_DefaultsFormatter)
     parser.add_argument('--params', metavar='FILE',
@@ -346,7 +347,8 @@ def main(argv=None) -> int:
     parser.add_argument('--record', metavar='DIR',
                         help='record every topic into a new bag DIR (default: no recording)')
     parser.add_argument('--namespace', default='', metavar='NS',
-                        help='namespace of this rig, e.g. /rig2 (default: the root namespace)')
+                        help='namespace of this rig, e.g. /rig2 (rig2 is taken as /rig2; '
+                        'default: the root namespace)')
     parser.add_argument('--log-dir', metavar='DIR',
                         help="where the nodes' logs go (default: DIR.logs beside the bag "
                         'with --record DIR, else $ROS_HOME/stewart63/rig_logs/<namespace>, '
@@ -387,6 +389,11 @@ def main(argv=None) -> int:
     parser.add_argument('--view-port', type=int, default=8080, metavar='P',
                         help='port of --view (default 8080; 0: any free port)')
     args = parser.parse_args(argv)
+    try:     # as a user types it (rig2), absolute for the nodes' remap rule (/rig2)
+        args.namespace = ros_namespace(args.namespace)
+    except ValueError as exc:
+        print('rig: error: --namespace: %s' % exc, file=sys.stderr)
+        return 2
     params = args.params or str(default_params_path())
     if args.view:
         from stewart63_ros.tools.view import port_free
@@ -450,7 +457,7 @@ def main(argv=None) -> int:
               extra_params=extra)
     rig.plant_params = args.plant_params and str(Path(args.plant_params).resolve())
     ok = False
-    start = time.monotonic()
+    start, start_unix = time.monotonic(), time.time()
     try:
         signals.interrupt_from_now()    # raises at once for a signal during the options
         rig.start()
@@ -483,7 +490,7 @@ def main(argv=None) -> int:
               file=sys.stderr)
     if signals.requested:
         print('rig: stopped by %s after %.2f s wall' % (signals.received[0], wall))
-    print_summary(rig, wall)
+    print_summary(rig, wall, start_unix)
     if args.record:
         print('  bag: %s' % args.record)
     if signals.requested:
@@ -515,15 +522,36 @@ def nodes_arg(text: str) -> tuple:
     return tuple(n.strip() for n in text.split(',') if n.strip())
 
 
-def print_summary(rig, wall):
+def wall_parts(summary: dict, wall: float, started_unix: float | None) -> dict | None:
+    """The rig's ``wall`` seconds in parts [s]: ``start-up`` (processes,
+    kernels, discovery, up to the plant's first sample), ``run`` (first sample
+    to last, pauses included) and ``stop`` (the rest: the nodes' flush and
+    exit). None when the plant's summary does not say when its run began."""
+    began, ended = summary.get('run_began_unix_s'), summary.get('run_ended_unix_s')
+    if started_unix is None or began is None or ended is None:
+        return None
+    startup = max(0.0, began - started_unix)
+    run = max(0.0, min(ended - began, wall - startup))
+    return {'start-up': startup, 'run': run, 'stop': max(0.0, wall - startup - run)}
+
+
+def print_summary(rig, wall, started_unix=None):
     """The plant's summary (error, latency, missed cycles), then what the
-    other nodes of this rig saw: for a timed run and for a stopped one alike."""
+    other nodes of this rig saw: for a timed run and for a stopped one alike.
+    ``started_unix``: time.time() as the rig started (the wall time's parts)."""
     summary = rig.summary()
     if summary:
         lat = summary['loop_latency']
-        print('rig summary: %d samples in %.2f s wall (%s, %g Hz%s)' % (
-            summary['samples'], wall, summary['clock_mode'], summary['rate_hz'],
-            ', stopped early' if summary.get('stopped_by_signal') else ''))
+        parts = wall_parts(summary, wall, started_unix)
+        mode = '%s, %g Hz%s' % (summary['clock_mode'], summary['rate_hz'],
+                                ', stopped early' if summary.get('stopped_by_signal') else '')
+        if parts is None:
+            print('rig summary: %d samples; %.2f s wall in all (%s)'
+                  % (summary['samples'], wall, mode))
+        else:
+            print('rig summary: %d samples in %.2f s wall (%s); start-up %.2f s, stop %.2f s, '
+                  '%.2f s in all' % (summary['samples'], parts['run'], mode,
+                                     parts['start-up'], parts['stop'], wall))
         print('  final positioning error: %.4f %% (max over legs of |L - L0| / L0)'
               % summary['positioning_error_percent'])
         if lat.get('count'):
