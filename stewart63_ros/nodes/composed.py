@@ -22,6 +22,8 @@ from __future__ import annotations
 import sys
 import time
 
+from stewart63_ros.tools.cli import quiet_on_closed_pipe
+
 NODE_NAMES = ('plant', 'controller', 'fk')
 
 
@@ -252,6 +254,7 @@ def _options(parser):
                         help='also record every topic into a new bag DIR, in this process')
 
 
+@quiet_on_closed_pipe
 def main(argv=None):
     from stewart63_ros.nodes.launcher import run
     sys.exit(run('composed', __doc__.split('\n\n')[0], Composed, argv, extra_args=_options))

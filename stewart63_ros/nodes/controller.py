@@ -59,6 +59,7 @@ from stewart63_ros.nodes.checks import (
 from stewart63_ros.nodes.commands import CommandInput
 from stewart63_ros.nodes.launcher import run
 from stewart63_ros.nodes.rclpy_internals import raw_publisher, take, take_with_info
+from stewart63_ros.tools.cli import quiet_on_closed_pipe
 
 #: The one joint of a pose_trajectory.
 PLATFORM_JOINT = 'platform'
@@ -433,6 +434,7 @@ class ControllerNode(RigNode):
             self.health.report()
 
 
+@quiet_on_closed_pipe
 def main(argv=None):
     sys.exit(run('controller', __doc__.split('\n\n')[0], ControllerNode, argv))
 

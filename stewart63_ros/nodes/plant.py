@@ -47,6 +47,7 @@ from stewart63_ros.nodes.plant_control import PlantControl
 from stewart63_ros.nodes.plant_outputs import SampleOutputs
 from stewart63_ros.nodes.plant_summary import TRACKING_FROM, TrackingError, run_summary
 from stewart63_ros.nodes.startup import PlantStartup
+from stewart63_ros.tools.cli import quiet_on_closed_pipe
 
 
 class PlantNode(PlantControl, RigNode):
@@ -349,6 +350,7 @@ class PlantNode(PlantControl, RigNode):
             summary['samples'], summary['positioning_error_percent'], summary['loop_latency']))
 
 
+@quiet_on_closed_pipe
 def main(argv=None):
     sys.exit(run('plant', __doc__.split('\n\n')[0], PlantNode, argv))
 

@@ -24,7 +24,12 @@ from pathlib import Path
 import numpy as np
 
 from stewart63_ros.core.params import ParameterError, default_params_path
-from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked
+from stewart63_ros.tools.cli import (
+    STRICT_HELP,
+    announce_compile,
+    load_checked,
+    quiet_on_closed_pipe,
+)
 
 PROG = 'analyze'
 
@@ -385,6 +390,7 @@ def _run(args, mech, params_path) -> int:
     return 0
 
 
+@quiet_on_closed_pipe
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if args.max_condition is not None and not args.max_condition > 1:

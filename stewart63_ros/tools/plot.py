@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stewart63_ros.tools.cli import quiet_on_closed_pipe
+
 #: Line styles of the six legs: legs with equal lengths (1 and 2, 3 to 6 in
 #: the paper's scenario) stay told apart where their curves lie on each other.
 LEG_STYLES = ('-', (0, (6, 2)), '-.', (0, (1, 1.5)), (0, (8, 2, 1, 2, 1, 2)), (0, (3, 3)))
@@ -175,6 +177,7 @@ def run_title(source: Path, columns: dict) -> str:
     return '%s (%s, %.3g s, %d samples)' % (source, kind, span, len(t))
 
 
+@quiet_on_closed_pipe
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='plot', description=__doc__.split('\n\n')[0])
     parser.add_argument('source', help="trajectory CSV, rosbag2 directory, or sim's --out folder")

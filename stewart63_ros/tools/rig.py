@@ -35,6 +35,7 @@ from pathlib import Path
 # otherwise be swallowed by a library's bare ``except`` and never stop the rig.
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.paths import default_params_path
+from stewart63_ros.tools.cli import quiet_on_closed_pipe
 
 NODES = ('plant', 'controller', 'fk')
 #: Bound on the nodes' start-up until the recorder has matched them [s]. It
@@ -312,6 +313,7 @@ class _DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
+@quiet_on_closed_pipe
 def main(argv=None) -> int:
     from stewart63_ros.nodes.launcher import StopSignals, dump_stacks_on_sigusr1
     # The first SIGINT or SIGTERM stops the rig (KeyboardInterrupt wherever it

@@ -25,7 +25,12 @@ from pathlib import Path
 import numpy as np
 
 from stewart63_ros.core.params import ParameterError, default_params_path, load_mechanism
-from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked
+from stewart63_ros.tools.cli import (
+    STRICT_HELP,
+    announce_compile,
+    load_checked,
+    quiet_on_closed_pipe,
+)
 
 
 def summarize(mech, dyn, result) -> dict:
@@ -100,6 +105,7 @@ def make_controller(params_path, law=None, reference_csv=None):
     return Controller(mech, params, law=law, reference=reference), reference
 
 
+@quiet_on_closed_pipe
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='sim', description=__doc__.split('\n\n')[0])
     parser.add_argument('--params', default=None,

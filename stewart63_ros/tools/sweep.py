@@ -26,7 +26,12 @@ from pathlib import Path
 import numpy as np
 
 from stewart63_ros.core.params import ParameterError, default_params_path
-from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked
+from stewart63_ros.tools.cli import (
+    STRICT_HELP,
+    announce_compile,
+    load_checked,
+    quiet_on_closed_pipe,
+)
 
 PROG = 'sweep'
 
@@ -125,6 +130,7 @@ def draw_sweep(plan, rows, path: Path, title: str) -> Path:
     return path
 
 
+@quiet_on_closed_pipe
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from stewart63_ros.core import sweep

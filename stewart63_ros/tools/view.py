@@ -35,6 +35,7 @@ import numpy as np
 from stewart63_ros.core import markers as shapes_mod
 from stewart63_ros.core.params import LEG_NAMES
 from stewart63_ros.core.rotation import quaternion_from_rotation, rotation_from_quaternion
+from stewart63_ros.tools.cli import quiet_on_closed_pipe
 
 #: Browser update rate [Hz]: viser pushes every change over a websocket; at
 #: 1 kHz the page stops following, at 30 Hz it follows (measured).
@@ -595,6 +596,7 @@ def run_bag(server, mech, bag_run: BagRun, stop):
         stop.wait(max(0.0, period - (time.monotonic() - now)))
 
 
+@quiet_on_closed_pipe
 def main(argv=None) -> int:
     from stewart63_ros.nodes.launcher import StopSignals, dump_stacks_on_sigusr1
     dump_stacks_on_sigusr1()
