@@ -25,8 +25,8 @@ each against something that does not share its arithmetic.
 from __future__ import annotations
 
 import csv
-import re
 import json
+import re
 
 import numpy as np
 import pytest
