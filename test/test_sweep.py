@@ -303,3 +303,66 @@ def test_a_fault_sweep_row_is_a_sim_run_with_that_fault(tmp_path, default_params
     summary = json.loads((out / 'summary.json').read_text())
     assert summary['control'] == 'sampled' and summary['faults'] == [
         'actuator_dead:leg_{1..6}@U(0.5,1.5)']
+
+
+@pytest.mark.slow      # a Dask scheduler and two worker processes, one killed mid-sweep
+def test_a_dask_worker_killed_mid_sweep_is_reported_and_its_runs_done_again(tmp_path):
+    """The summary used to say `2 workers` after one of them was killed."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import threading
+    import time
+    distributed = pytest.importorskip('distributed')
+    dask_cli = os.path.join(os.path.dirname(sys.executable), 'dask')
+    argv = ['--runs', '24', '--fault', 'actuator_dead:leg_{1..6}@U(0.2,0.8)', '--duration',
+            '1.5', '--seed', '8', '--no-figure']
+    assert run_tool(argv + ['--workers', '1', '--out', str(tmp_path / 'local')])[0] == 0
+    with distributed.LocalCluster(n_workers=0, host='127.0.0.1', dashboard_address=None,
+                                  processes=True) as cluster, \
+            distributed.Client(cluster.scheduler_address) as watcher:
+        workers = [subprocess.Popen([dask_cli, 'worker', cluster.scheduler_address,
+                                     '--no-nanny', '--nthreads', '1', '--name', 'w%d' % k],
+                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                   for k in range(2)]
+        try:
+            watcher.wait_for_workers(2, timeout=120)
+            done = {}
+
+            def sweep_on_the_cluster():
+                status, text = run_tool(argv + ['--scheduler', cluster.scheduler_address,
+                                                '--out', str(tmp_path / 'dask')])
+                done.update(status=status, text=text)
+            sweep_thread = threading.Thread(target=sweep_on_the_cluster)
+            sweep_thread.start()
+            # both workers busy with the sweep's runs: kill one of them, hard
+            deadline = time.monotonic() + 240
+            while time.monotonic() < deadline and not done:
+                busy = [w for w, tasks in watcher.processing().items()
+                        if any(str(t).startswith('_run_chunk_on_worker') for t in tasks)]
+                if len(busy) == 2:
+                    break
+                time.sleep(0.05)
+            assert not done, 'the sweep ended before both workers were busy'
+            os.kill(workers[1].pid, signal.SIGKILL)
+            sweep_thread.join(timeout=300)
+            assert not sweep_thread.is_alive()
+        finally:
+            for proc in workers:
+                if proc.poll() is None:
+                    proc.terminate()
+                    try:
+                        proc.wait(timeout=20)
+                    except subprocess.TimeoutExpired:
+                        proc.kill()
+                        proc.wait()
+    assert done['status'] == 0
+    text = done['text']
+    assert '(dask tcp://127.0.0.1' in text
+    assert '1 worker; 1 of the 2 at the start lost mid-sweep' in text, text
+    summary = json.loads((tmp_path / 'dask' / 'summary.json').read_text())
+    assert (summary['workers'], summary['workers_at_start'], summary['workers_lost']) == (1, 2, 1)
+    # the killed worker's runs were done again: every row, bit for bit the local ones
+    assert (tmp_path / 'dask' / 'runs.csv').read_text() == \
+        (tmp_path / 'local' / 'runs.csv').read_text()

@@ -767,6 +767,12 @@ def check_scheduler_address(address: str) -> str:
     return address
 
 
+def _run_chunk_on_worker(plan: SweepPlan, chunk) -> tuple[str, list[dict[str, Any]]]:
+    """``run_chunk`` on a Dask worker, with the worker's address (who ran it)."""
+    from distributed import get_worker
+    return get_worker().address, run_chunk(plan, chunk)
+
+
 def run_dask(plan: SweepPlan, values: np.ndarray, scheduler: str | None = None,
              local_workers: int | None = None) -> tuple[list[dict[str, Any]], int, float]:
     """All runs on a Dask cluster: the scheduler at ``scheduler`` (``tcp://host:8786``),
@@ -782,8 +788,31 @@ def run_dask(plan: SweepPlan, values: np.ndarray, scheduler: str | None = None,
         local_workers: the local cluster's processes (default 1).
 
     Returns:
-        (``run_one`` rows with their 'run' index, in run order; workers used;
-        wall time of the runs [s]).
+        (``run_one`` rows with their 'run' index, in run order; the workers
+        that delivered runs; wall time of the runs [s]). ``run_dask_report``
+        also tells the workers lost meanwhile.
+
+    Raises:
+        ImportError: ``distributed`` is not installed.
+    """
+    report = run_dask_report(plan, values, scheduler, local_workers)
+    return report['rows'], report['workers'], report['wall_time_s']
+
+
+def run_dask_report(plan: SweepPlan, values: np.ndarray, scheduler: str | None = None,
+                    local_workers: int | None = None) -> dict[str, Any]:
+    """``run_dask``, with the workers as they were: those the sweep started
+    with, those that delivered runs, those lost on the way (a worker killed
+    mid-sweep: the scheduler gives its runs to the others, whose rows are
+    the same).
+
+    Args:
+        plan, values, scheduler, local_workers: as ``run_dask``.
+
+    Returns:
+        {'rows': in run order, 'wall_time_s': float [s], 'workers': int (that
+        delivered runs), 'workers_at_start': int, 'workers_lost': int (of
+        those at the start, gone at the end)}.
 
     Raises:
         ImportError: ``distributed`` is not installed.
@@ -797,19 +826,24 @@ def run_dask(plan: SweepPlan, values: np.ndarray, scheduler: str | None = None,
     else:
         client = Client(scheduler, timeout='10s')
     try:
-        workers = max(1, len(client.scheduler_info()['workers']))
-        chunks = chunks_of(values, workers * 8)
+        at_start = set(client.scheduler_info()['workers'])
+        chunks = chunks_of(values, max(1, len(at_start)) * 8)
         remote_plan = client.scatter(plan, broadcast=True)
         client.run(warm_up, plan, tuple(values[0]))
         start = time.perf_counter()
-        futures = client.map(run_chunk, [remote_plan] * len(chunks), chunks, pure=False)
-        rows = [row for part in client.gather(futures) for row in part]
+        futures = client.map(_run_chunk_on_worker, [remote_plan] * len(chunks), chunks,
+                             pure=False)
+        parts = client.gather(futures)
         wall = time.perf_counter() - start
+        at_end = set(client.scheduler_info()['workers'])
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
-    return sorted(rows, key=lambda r: r['run']), workers, wall
+    rows = [row for _, part in parts for row in part]
+    return {'rows': sorted(rows, key=lambda r: r['run']), 'wall_time_s': wall,
+            'workers': len({address for address, _ in parts}),
+            'workers_at_start': len(at_start), 'workers_lost': len(at_start - at_end)}
 
 
 def run_sweep(plan: SweepPlan, values: np.ndarray | Sequence[Sequence[float]],
@@ -828,20 +862,23 @@ def run_sweep(plan: SweepPlan, values: np.ndarray | Sequence[Sequence[float]],
             local Dask cluster instead (either one selects Dask).
 
     Returns:
-        {'rows': the rows in run order, each with its values under the
-        variations' keys, 'wall_time_s': float [s], 'workers': int, 'engine':
+        {'rows': the rows in run order, each with its values under their
+        columns (``axis_columns``), 'wall_time_s': float [s], 'workers': int
+        (that delivered runs), 'workers_at_start': int, 'workers_lost': int
+        (gone before the end: a Dask worker killed mid-sweep), 'engine':
         'processes' or 'dask ...'}.
     """
     values = np.asarray(values, dtype=float).reshape(len(values), len(plan.axes))
     if scheduler is None and dask_local is None:
         rows, used, wall = run_local(plan, values, workers)
-        engine = 'processes'
+        outcome = {'rows': rows, 'wall_time_s': wall, 'workers': used,
+                   'workers_at_start': used, 'workers_lost': 0, 'engine': 'processes'}
     else:
-        rows, used, wall = run_dask(plan, values, scheduler, dask_local)
-        engine = 'dask %s' % (scheduler or 'LocalCluster')
-    for row in rows:
+        outcome = run_dask_report(plan, values, scheduler, dask_local)
+        outcome['engine'] = 'dask %s' % (scheduler or 'LocalCluster')
+    for row in outcome['rows']:
         row.update(axis_columns(plan, values[row['run']]))
-    return {'rows': rows, 'wall_time_s': wall, 'workers': used, 'engine': engine}
+    return outcome
 
 
 def axis_columns(plan: SweepPlan, values: Sequence[float]) -> dict[str, Any]:

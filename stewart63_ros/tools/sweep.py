@@ -206,6 +206,8 @@ def main(argv=None) -> int:
            'varied': {v.column: [v.low, v.high] for v in plan.variations},
            'faults': [p.text for p in plan.faults],
            'engine': outcome['engine'], 'workers': outcome['workers'],
+           'workers_at_start': outcome['workers_at_start'],
+           'workers_lost': outcome['workers_lost'],
            'wall_time_s': round(wall, 4), 'columns': stats}
     (out / 'summary.json').write_text(json.dumps(doc, indent=1) + '\n')
     if not args.no_figure:
@@ -227,9 +229,12 @@ def main(argv=None) -> int:
         else:
             print('%-22s %10s %10s %10s %10s %10d' % (key, '-', '-', '-', '-', 0))
     print('diverged runs          %d' % stats['diverged']['count'])
-    print('%s: %d runs in %.2f s wall (%s, %d worker%s, %.0f runs/s); seed %s'
+    lost = outcome['workers_lost']
+    print('%s: %d runs in %.2f s wall (%s, %d worker%s%s, %.0f runs/s); seed %s'
           % (PROG, len(rows), wall, outcome['engine'], outcome['workers'],
              '' if outcome['workers'] == 1 else 's',
+             '; %d of the %d at the start lost mid-sweep, their runs done again'
+             % (lost, outcome['workers_at_start']) if lost else '',
              len(rows) / wall if wall > 0 else float('inf'),
              'none (grid)' if args.grid else seed))
     print('written: %s, %s%s' % (out / 'runs.csv', out / 'summary.json',
