@@ -46,6 +46,17 @@ def load_checked(prog: str, path=None, node_name=None, strict=False):
     return mech
 
 
+def add_control_options(parser) -> None:
+    """``--control continuous|sampled`` and ``--rate HZ``, as `sim` and `sweep` take them."""
+    parser.add_argument('--control', choices=('continuous', 'sampled'), default=None,
+                        help='PD inside the ODE (RK45, as the paper) or sampled and held, as '
+                        'the rig (default: continuous; sampled with faults)')
+    parser.add_argument('--rate', type=float, default=None,
+                        help="sample rate [Hz]: the control rate when sampled (default: the "
+                        "plant's sensor_rate), the output rate when continuous (default "
+                        "100, the paper's h)")
+
+
 def announce_compile(prog: str, who: str = '') -> None:
     """One line on stderr when the numba kernels are about to be compiled
     (a cold cache): otherwise a minute of silence."""

@@ -33,6 +33,7 @@ import numpy as np
 from stewart63_ros.core.params import ParameterError, default_params_path
 from stewart63_ros.tools.cli import (
     STRICT_HELP,
+    add_control_options,
     announce_compile,
     load_checked,
     quiet_on_closed_pipe,
@@ -56,13 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="a fault in every run, sim's KIND:LEG[:VALUE][@T0[-T1]] where "
                         'any number may be drawn per run: U(lo,hi), {a..b}, {a,b,c}; e.g. '
                         "'actuator_dead:leg_{1..6}@U(1,5)' (repeatable; sampled control)")
-    parser.add_argument('--control', choices=('continuous', 'sampled'), default=None,
-                        help='PD inside the ODE (as the paper) or sampled and held, as the '
-                        'rig (default: continuous; sampled with faults)')
-    parser.add_argument('--rate', type=float, default=None,
-                        help="sampled: the control rate [Hz] (default: the plant's "
-                        'sensor_rate, which can then be varied); continuous: the output '
-                        'rate (default 100)')
+    add_control_options(parser)
     parser.add_argument('--grid', action='store_true',
                         help='an even grid instead of uniform draws: every choice of a '
                         '{...} and round((N/choices)^(1/K)) values of each other range, '
