@@ -816,6 +816,8 @@ def run_dask_report(plan: SweepPlan, values: np.ndarray, scheduler: str | None =
 
     Raises:
         ImportError: ``distributed`` is not installed.
+        SweepError: the cluster lost runs it could not do again (every
+            worker gone, or a run's worker killed too often).
     """
     from distributed import Client, LocalCluster
     cluster = None
@@ -828,12 +830,17 @@ def run_dask_report(plan: SweepPlan, values: np.ndarray, scheduler: str | None =
     try:
         at_start = set(client.scheduler_info()['workers'])
         chunks = chunks_of(values, max(1, len(at_start)) * 8)
-        remote_plan = client.scatter(plan, broadcast=True)
         client.run(warm_up, plan, tuple(values[0]))
         start = time.perf_counter()
-        futures = client.map(_run_chunk_on_worker, [remote_plan] * len(chunks), chunks,
-                             pure=False)
-        parts = client.gather(futures)
+        # The plan goes with every task (a few kB), not scattered once: data
+        # scattered to a worker that dies cannot be made again, a task can.
+        futures = client.map(_run_chunk_on_worker, [plan] * len(chunks), chunks, pure=False)
+        try:
+            parts = client.gather(futures)
+        except Exception as exc:  # noqa: BLE001 - KilledWorker, CancelledError, ...
+            raise SweepError('the Dask cluster lost runs: %s: %s'
+                             % (type(exc).__name__, str(exc).splitlines()[0] if str(exc)
+                                else '')) from None
         wall = time.perf_counter() - start
         at_end = set(client.scheduler_info()['workers'])
     finally:

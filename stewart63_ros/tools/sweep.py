@@ -184,6 +184,9 @@ def main(argv=None) -> int:
         outcome = sweep.run_sweep(plan, values, args.workers, args.scheduler, args.dask_local)
     except OSError as exc:          # a scheduler that cannot be reached
         return _fail('Dask scheduler %s: %s' % (args.scheduler, exc))
+    except sweep.SweepError as exc:  # the cluster lost runs
+        print('%s: error: %s' % (PROG, exc), file=sys.stderr)
+        return 1
     rows = outcome['rows']
     wall = outcome['wall_time_s']
 
