@@ -5,8 +5,9 @@ Everything here works without rclpy: ``plot``, the tests and ``play`` use it.
 - :func:`read_messages` yields ``(topic, timestamp_ns, message)`` decoded with
   rosbags' Kilted type store (or the definitions stored in the bag).
 - :func:`read_raw` yields the CDR bytes unchanged, for replay.
+- :func:`bag_runs` finds the plant's runs in a recording that spans a reset;
 - :func:`trajectory_from_bag` builds the columns of the trajectory CSV
-  (docs/interface.md) from a recording.
+  (docs/interface.md) from a recording, one run at a time.
 - :func:`recover_bag` repairs a bag whose recorder was killed hard (no MCAP
   summary/footer, no ``metadata.yaml``).
 
@@ -16,6 +17,7 @@ message and a non-zero exit.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 import shutil
@@ -155,12 +157,13 @@ def read_raw(bag_dir, topics: Iterable[str] | None = None, start_ns: int | None 
         reader.close()
 
 
-def read_messages(bag_dir, topics: Iterable[str] | None = None
+def read_messages(bag_dir, topics: Iterable[str] | None = None, run: BagRun | None = None
                   ) -> Iterator[tuple[str, int, object]]:
     """Yield ``(topic, timestamp_ns, message)`` decoded, in timestamp order.
 
     ``topics`` are bag topic names (``/leg_lengths``) or relative names
-    (``leg_lengths``); ``None`` reads every topic. Messages are rosbags
+    (``leg_lengths``); ``None`` reads every topic. ``run``: only the messages
+    recorded during that run (:func:`bag_runs`). Messages are rosbags
     dataclasses (``msg.header.stamp.sec``, ``msg.position`` as a numpy array).
     """
     reader = open_reader(bag_dir)
@@ -169,8 +172,9 @@ def read_messages(bag_dir, topics: Iterable[str] | None = None
         conns = [c for c in reader.connections if c.topic in names]
         if not conns:
             return
+        window = {} if run is None else {'start': run.start_ns, 'stop': run.stop_ns}
         try:
-            for conn, stamp, data in reader.messages(connections=conns):
+            for conn, stamp, data in reader.messages(connections=conns, **window):
                 yield conn.topic, stamp, reader.deserialize(data, conn.msgtype)
         except Exception as exc:
             raise BagError(f'{bag_dir}: damaged bag: {_describe(exc)}') from exc
@@ -198,10 +202,158 @@ def header_stamp_ns(msg) -> int:
     return stamp_ns(msg.header.stamp)
 
 
-def trajectory_from_bag(bag_dir, *, relative_time: bool = True,
-                        hold_forces: bool = False) -> dict[str, np.ndarray]:
-    """The trajectory CSV's columns (:data:`COLUMNS`) from a recording.
+# --------------------------------------------------------------------------
+# Runs: a bag that spans a reset (or a restarted plant) holds several
 
+
+@dataclasses.dataclass(frozen=True)
+class BagRun:
+    """One run of the plant in a recording (docs/faults.md, "Reset").
+
+    Attributes:
+        index: 1, 2, ... in the order recorded.
+        count: how many runs the bag holds.
+        number: the plant's ``run_number`` (its /diagnostics status) during
+            the run, or None when the bag has no plant status.
+        start_ns, stop_ns: the recording times (bag timestamps) the run
+            covers: from its first sample to the next run's first sample
+            (None: to the end of the bag).
+        samples: its samples (``leg_lengths``, else poses).
+    """
+    index: int
+    count: int
+    number: int | None
+    start_ns: int
+    stop_ns: int | None
+    samples: int
+
+    @property
+    def name(self) -> str:
+        """How the tools name the run: ``run 2`` (the plant's number), else ``run 2 of 3``
+        of the bag's order."""
+        if self.number is not None:
+            return 'run %d' % self.number
+        return 'run %d of %d' % (self.index, self.count)
+
+    @property
+    def label(self) -> str:
+        """The run in a file name: ``run2`` (the plant's number, else the index)."""
+        return 'run%d' % (self.number if self.number is not None else self.index)
+
+
+def _plant_run_number(msg) -> int | None:
+    """The plant's ``run_number`` in a DiagnosticArray, or None."""
+    for status in msg.status:
+        if status.name.endswith('/plant'):
+            for kv in status.values:
+                if kv.key == 'run_number':
+                    try:
+                        return int(kv.value)
+                    except ValueError:
+                        return None
+    return None
+
+
+def bag_runs(bag_dir) -> list[BagRun]:
+    """The plant's runs a recording holds, in order.
+
+    A new run begins at the first sample after the plant's ``run_number``
+    changed on /diagnostics (a ``~/reset``: sent a quiet second before the new
+    run's first sample, in realtime and lockstep alike), or at a sample whose
+    stamp is before the previous sample's (a lockstep run's stamps start at 0
+    again: a reset, or a plant started again, also without /diagnostics in
+    the bag). The samples are ``leg_lengths`` (else ``ground_truth/pose``,
+    else ``platform_pose``). Messages of other topics belong to the run whose
+    window [start_ns, stop_ns) holds their recording time: a late answer to a
+    run's last sample stays with that run.
+
+    Args:
+        bag_dir: the bag directory.
+
+    Returns:
+        One ``BagRun`` per run (one for a bag of one run; none for a bag
+        without samples).
+
+    Raises:
+        BagError: not a readable bag.
+    """
+    reader = open_reader(bag_dir)
+    try:
+        def find(name):
+            try:
+                return resolve_bag_topics(reader, [name])[0]
+            except BagError:
+                return None
+        sample_topic = find('leg_lengths') or find('ground_truth/pose') or find('platform_pose')
+        if sample_topic is None:
+            return []
+        diagnostics = find('/diagnostics')
+        conns = [c for c in reader.connections if c.topic in (sample_topic, diagnostics)]
+        starts: list[list] = []         # [start_ns, plant number, samples]
+        announced = None                # the run_number last seen on /diagnostics
+        previous = None                 # the last sample's stamp
+        pending = False                 # a new run_number: the next sample starts a run
+        try:
+            for conn, when, raw in reader.messages(connections=conns):
+                msg = reader.deserialize(raw, conn.msgtype)
+                if conn.topic == diagnostics:
+                    number = _plant_run_number(msg)
+                    if number is not None:
+                        if starts and number != announced:
+                            pending = True
+                        if starts and starts[-1][1] is None:
+                            starts[-1][1] = number      # recorded from the middle of a run
+                        announced = number
+                    continue
+                stamp = header_stamp_ns(msg)
+                if not starts or pending or (previous is not None and stamp < previous):
+                    starts.append([when, announced, 0])
+                    pending = False
+                starts[-1][2] += 1
+                previous = stamp
+        except Exception as exc:
+            raise BagError(f'{bag_dir}: damaged bag: {_describe(exc)}') from exc
+    finally:
+        reader.close()
+    count = len(starts)
+    return [BagRun(k + 1, count, number, start,
+                   starts[k + 1][0] if k + 1 < count else None, samples)
+            for k, (start, number, samples) in enumerate(starts)]
+
+
+def select_run(runs: list[BagRun], number: int | None = None) -> BagRun:
+    """The run ``number`` (the plant's number, else the bag's index) of ``runs``,
+    or the last one.
+
+    Args:
+        runs: ``bag_runs``' list.
+        number: the run asked for (``--run``), or None for the last.
+
+    Returns:
+        The run.
+
+    Raises:
+        BagError: no such run (naming those there are), or no run at all.
+    """
+    if not runs:
+        raise BagError('the bag holds no samples')
+    if number is None:
+        return runs[-1]
+    for run in runs:
+        if (run.number if run.number is not None else run.index) == number:
+            return run
+    raise BagError('no run %d in the bag (it holds %s)'
+                   % (number, ', '.join(r.name for r in runs)))
+
+
+def trajectory_from_bag(bag_dir, *, relative_time: bool = True,
+                        hold_forces: bool = False,
+                        run: BagRun | None = None) -> dict[str, np.ndarray]:
+    """The trajectory CSV's columns (:data:`COLUMNS`) from a recording, of one run.
+
+    ``run``: the run (:func:`bag_runs`) to read; default the bag's last run
+    (a bag that spans a reset holds several, whose stamps may overlap: they
+    are never joined into one trajectory).
     One row per ``leg_lengths`` sample (per pose sample if the bag has no leg
     lengths). The pose and twist come from ``ground_truth/pose`` and
     ``ground_truth/twist`` when the bag has them, else from ``platform_pose``
@@ -216,6 +368,10 @@ def trajectory_from_bag(bag_dir, *, relative_time: bool = True,
     """
     from stewart63_ros.core.rotation import euler_from_quaternion
 
+    if run is None:
+        runs = bag_runs(bag_dir)
+        run = runs[-1] if runs else None
+    window = {} if run is None else {'start': run.start_ns, 'stop': run.stop_ns}
     reader = open_reader(bag_dir)
     try:
         available = {c.topic for c in reader.connections}
@@ -236,7 +392,7 @@ def trajectory_from_bag(bag_dir, *, relative_time: bool = True,
         conns = [c for c in reader.connections if c.topic in wanted]
         data = {t: {} for t in wanted}
         try:
-            for conn, _, raw in reader.messages(connections=conns):
+            for conn, _, raw in reader.messages(connections=conns, **window):
                 msg = reader.deserialize(raw, conn.msgtype)
                 topic = conn.topic
                 stamp = header_stamp_ns(msg)

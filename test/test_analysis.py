@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 
 import numpy as np
 import pytest
@@ -311,6 +312,50 @@ def test_analyze_workspace_writes_csv_and_figure(tmp_path, capsys):
     assert any(r['reachable'] == '1' and abs(float(r['z']) - 1.0737) < 1e-3 and
                abs(float(r['x'])) < 1e-6 for r in rows)
     assert (tmp_path / 'workspace.png').stat().st_size > 10000
+    # the size said first is the size written (within 10 %)
+    said = capsys.readouterr().out.splitlines()[0]
+    assert said.startswith('grid of %d points (step 0.2 m): workspace.csv about ' % len(rows))
+    estimate = len(rows) * analyze.CSV_BYTES_PER_ROW
+    assert abs((tmp_path / 'workspace.csv').stat().st_size - estimate) < 0.1 * estimate
+
+
+def test_a_workspace_grid_that_would_not_fit_is_refused_before_it_is_made(tmp_path, capsys):
+    """--step 0.001 used to die in numpy (Unable to allocate 222. GiB); --step
+    0.01 silently wrote a 1.6 GB CSV."""
+    assert analyze.main(['workspace', '--step', '0.001', '--out', str(tmp_path / 'a')]) == 2
+    err = capsys.readouterr().err.strip()
+    assert 'Traceback' not in err, err
+    err = [line for line in err.splitlines() if 'error' in line]
+    assert len(err) == 1, err
+    err = err[0]
+    count = int(re.search(r'a grid of (\d+) points needs about ([\d.]+ [kMGTP]?B) of memory',
+                          err).group(1))
+    assert count > 2.9e10                       # (0.05 / 0.001)^3 x the default 245134
+    assert analyze.main(['workspace', '--step', '0.01', '--out', str(tmp_path / 'b')]) == 2
+    err = capsys.readouterr().err
+    assert 'workspace.csv would have' in err and 'GB' in err and '--large-output' in err
+    assert not (tmp_path / 'a').exists() and not (tmp_path / 'b').exists()
+
+
+def test_the_memory_bound_of_a_workspace_grid_holds(default_mech):
+    """``BYTES_PER_POINT`` bounds what workspace_map takes (numpy's allocations,
+    traced), and ``check_grid_fits`` refuses what would not fit."""
+    import tracemalloc
+
+    from stewart63_ros.core import workspace
+    pos, rot = analysis.setpoint_pose(default_mech)
+    workspace_map(default_mech, rot, 0.3, through=pos)      # compiled outside the trace
+    tracemalloc.start()
+    try:
+        result = workspace_map(default_mech, rot, 0.1, through=pos)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak / len(result.points) < workspace.BYTES_PER_POINT
+    workspace.check_grid_fits(1000, available=10**9)
+    with pytest.raises(workspace.GridTooLarge, match='a grid of 3000000 points needs about '
+                       '720 MB of memory; 1.0 GB is available'):
+        workspace.check_grid_fits(3_000_000, available=10**9)
 
 
 @pytest.mark.parametrize('argv, words', [

@@ -24,7 +24,7 @@ from stewart63_ros.core import sweep
 from stewart63_ros.core.control import pd_law
 from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.params import load_mechanism
-from stewart63_ros.core.simulate import run_continuous
+from stewart63_ros.core.simulate import run_continuous, run_sampled
 from stewart63_ros.tools import sim
 from stewart63_ros.tools import sweep as sweep_tool
 
@@ -99,13 +99,13 @@ def test_rows_equal_single_sim_runs(tmp_path, default_params_file):
                              '--out', str(out)])
     assert status == 0 and '6 runs in' in text
     rows = read_rows(out / 'runs.csv')
-    assert list(rows[0]) == ['run', 'platform_mass', 'kv[1]', 'final_error_percent',
+    assert list(rows[0]) == ['run', 'param.platform_mass', 'param.kv[1]', 'final_error_percent',
                              'max_force', 'settling_time_s', 'endstop_samples', 'diverged',
                              'failure']
     assert [int(r['run']) for r in rows] == list(range(6))
     variations = [sweep.parse_vary('platform_mass=12:19'), sweep.parse_vary('kv[1]=200:400')]
     for row in rows[:3]:
-        values = [float(row['platform_mass']), float(row['kv[1]'])]
+        values = [float(row['param.platform_mass']), float(row['param.kv[1]'])]
         params = tmp_path / ('run%s.yaml' % row['run'])
         sweep.write_run_parameters(default_params_file, params, variations, values)
         # sim prints round(error, 4)
@@ -122,8 +122,8 @@ def test_rows_equal_single_sim_runs(tmp_path, default_params_file):
     errors = np.array([float(r['final_error_percent']) for r in rows])
     assert summary['columns']['final_error_percent']['p50'] == pytest.approx(
         np.percentile(errors, 50), rel=1e-12)
-    assert summary['columns']['platform_mass']['p100'] == pytest.approx(
-        max(float(r['platform_mass']) for r in rows))
+    assert summary['columns']['param.platform_mass']['p100'] == pytest.approx(
+        max(float(r['param.platform_mass']) for r in rows))
     assert summary['runs'] == 6 and summary['diverged_runs'] == 0
     assert (out / 'sweep.png').stat().st_size > 10000
 
@@ -173,7 +173,14 @@ def test_dask_local_cluster_gives_the_same_rows(tmp_path):
     (['--runs', '5', '--vary', 'kp=1:2'], 'vary one element'),
     (['--runs', '5', '--vary', 'kp[6]=1:2'], 'index 0 to 5'),
     (['--runs', '5', '--vary', 'kp[0]=5:1'], 'above HI'),
-    (['--runs', '5', '--vary', 'clock_mode=1:2'], 'not a number'),
+    (['--runs', '5', '--vary', 'clock_mode=1:2'], 'the runs do not read clock_mode'),
+    (['--runs', '5', '--scheduler', 'bogus'], '--scheduler bogus: not a scheduler address'),
+    (['--runs', '5', '--fault', 'actuator_dead:leg_{0..6}@1'], "unknown leg 'leg_0'"),
+    (['--runs', '5', '--fault', 'actuator_dead:leg_2@U(5,1)'], '5 is above 1'),
+    (['--runs', '5', '--fault', ''], '--fault: empty'),
+    (['--runs', '5', '--fault', 'sensor_bias:leg_2:{0.1,x}'], "'x' is not a number"),
+    (['--runs', '5', '--fault', 'actuator_dead:leg_2', '--control', 'continuous'],
+     'use --control sampled'),
     (['--runs', '5', '--control-law', 'nope'], 'unknown law'),
     (['--runs', '5', '--duration', '0'], '--duration'),
 ])
@@ -183,3 +190,179 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, words):
     lines = [line for line in err.splitlines() if 'error' in line]
     assert len(lines) == 1 and words in lines[0] and 'Traceback' not in err, err
     assert not (tmp_path / 'runs.csv').exists()
+
+
+def test_a_varied_key_never_shares_a_column_with_a_metric(tmp_path):
+    """`--vary max_force=...` used to overwrite the max_force metric's column."""
+    out = tmp_path / 'force'
+    status, text = run_tool(['--runs', '3', '--vary', 'max_force=100:300', '--seed', '2',
+                             '--duration', '1', '--workers', '1', '--no-figure',
+                             '--out', str(out)])
+    assert status == 0
+    header = (out / 'runs.csv').read_text().splitlines()[0].split(',')
+    assert header == ['run', 'param.max_force'] + list(sweep.METRICS) + ['failure']
+    summary = json.loads((out / 'summary.json').read_text())
+    assert {'param.max_force', 'max_force'} <= set(summary['columns'])
+    for row in read_rows(out / 'runs.csv'):
+        # the metric is the largest force of the run: at most the varied limit,
+        # and the limit itself where the law saturates
+        assert float(row['max_force']) <= float(row['param.max_force']) + 1e-9
+
+
+@pytest.mark.parametrize('key, words', [
+    ('sensor_rate=100:1000', 'sensor_rate is read only under --control sampled'),
+    ('step_count=1:5', 'the runs do not read step_count'),
+    ('use_sim_time=0:1', 'the runs do not read use_sim_time'),
+    ('faults=1:2', 'faults are swept with --fault'),
+    ('sensor_seed=1:5', 'seeds the noise of faults'),
+])
+def test_a_key_the_runs_do_not_read_is_refused(tmp_path, capsys, key, words):
+    assert sweep_tool.main(['--runs', '3', '--vary', key, '--out', str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and words in err, err
+    assert 'keys that can be varied: ' in err and 'platform_mass' in err
+    assert not (tmp_path / 'runs.csv').exists()
+
+
+def test_sensor_rate_takes_effect_under_sampled_control(tmp_path, default_mech):
+    out = tmp_path / 'rate'
+    status, _ = run_tool(['--runs', '2', '--control', 'sampled', '--vary',
+                          'sensor_rate=200:1000', '--duration', '1', '--seed', '5',
+                          '--workers', '1', '--no-figure', '--out', str(out)])
+    assert status == 0
+    rows = read_rows(out / 'runs.csv')
+    assert rows[0]['settling_time_s'] != rows[1]['settling_time_s']
+    dyn = Dynamics(default_mech)
+    for row in rows:
+        result = run_sampled(default_mech, 1.0, float(row['param.sensor_rate']), dyn=dyn)
+        assert float(row['final_error_percent']) == \
+            result.final_leg_error_percent(dyn, default_mech.setpoint_lengths).max()
+    # --rate fixes the control rate: then sensor_rate is not read, and refused
+    assert sweep_tool.main(['--runs', '2', '--control', 'sampled', '--rate', '500', '--vary',
+                            'sensor_rate=200:1000', '--out', str(tmp_path / 'no')]) == 2
+
+
+def test_a_zero_gain_is_refused_by_sweep_and_analyze_alike(tmp_path, capsys,
+                                                           default_params_file):
+    from stewart63_ros.tools import analyze
+    assert sweep_tool.main(['--runs', '3', '--vary', 'kp[0]=0:0.001',
+                            '--out', str(tmp_path)]) == 2
+    assert 'kp is zero on leg_1' in capsys.readouterr().err
+    zero = tmp_path / 'zero_kp.yaml'
+    sweep.write_run_parameters(default_params_file, zero,
+                               [sweep.parse_vary('kp[%d]=0:0' % i) for i in range(6)],
+                               [0.0] * 6)
+    assert sweep_tool.main(['--runs', '3', '--params', str(zero),
+                            '--out', str(tmp_path)]) == 2
+    swept = capsys.readouterr().err.strip()
+    assert analyze.main(['modes', '--params', str(zero)]) == 2
+    analyzed = capsys.readouterr().err.strip()
+    phrase = 'the pd law cannot hold the pose: kp is zero on leg_1'
+    assert phrase in swept and phrase in analyzed, (swept, analyzed)
+    assert not (tmp_path / 'runs.csv').exists()
+
+
+def test_fault_patterns_draw_legs_and_times():
+    pattern = sweep.parse_fault_pattern('actuator_dead:leg_{1..6}@U(1,5)', 1)
+    assert [a.column for a in pattern.axes] == ['fault1.leg', 'fault1.start_s']
+    assert pattern.resolve([4.0, 2.5]) == 'actuator_dead:leg_4@2.5'
+    values = sweep.draw_values(pattern.axes, 600, seed=7)
+    assert set(values[:, 0]) == {1.0, 2.0, 3.0, 4.0, 5.0, 6.0}
+    assert np.all((values[:, 1] >= 1) & (values[:, 1] <= 5))
+    # each leg about as likely (600 draws: 100 each, +- 4 standard deviations)
+    counts = np.bincount(values[:, 0].astype(int))[1:]
+    assert np.all(np.abs(counts - 100) < 4 * np.sqrt(100 * 5 / 6)), counts
+    grid = sweep.draw_values(pattern.axes, 18, grid=True)      # every leg x 3 times
+    assert grid.shape == (18, 2) and sorted(set(grid[:, 0])) == [1, 2, 3, 4, 5, 6]
+    bias = sweep.parse_fault_pattern('sensor_bias:leg_2:{-0.01,0.02}@1-U(2,3)', 2)
+    assert [a.column for a in bias.axes] == ['fault2.value', 'fault2.end_s']
+    assert bias.resolve([0.02, 2.25]) == 'sensor_bias:leg_2:0.02@1-2.25'
+
+
+@pytest.mark.slow      # 3 faulted runs and 3 sim runs
+def test_a_fault_sweep_row_is_a_sim_run_with_that_fault(tmp_path, default_params_file):
+    out = tmp_path / 'faults'
+    status, text = run_tool(['--runs', '3', '--fault', 'actuator_dead:leg_{1..6}@U(0.5,1.5)',
+                             '--duration', '2', '--seed', '4', '--workers', '1',
+                             '--no-figure', '--out', str(out)])
+    assert status == 0
+    rows = read_rows(out / 'runs.csv')
+    assert list(rows[0])[:4] == ['run', 'fault1.leg', 'fault1.start_s', 'fault1']
+    for row in rows:
+        leg, start = int(float(row['fault1.leg'])), float(row['fault1.start_s'])
+        assert row['fault1'] == 'actuator_dead:leg_%d@%r' % (leg, start)
+        assert row['diverged'] == '0'
+        printed = io.StringIO()
+        with contextlib.redirect_stdout(printed):
+            assert sim.main(['--params', str(default_params_file), '--duration', '2',
+                             '--fault', row['fault1'], '--out', str(tmp_path / 'sim'),
+                             '--no-figure']) == 0
+        line = next(s for s in printed.getvalue().splitlines()
+                    if s.startswith('positioning_error_percent'))
+        assert float(line.split()[-1]) == round(float(row['final_error_percent']), 4)
+    summary = json.loads((out / 'summary.json').read_text())
+    assert summary['control'] == 'sampled' and summary['faults'] == [
+        'actuator_dead:leg_{1..6}@U(0.5,1.5)']
+
+
+@pytest.mark.slow      # a Dask scheduler and two worker processes, one killed mid-sweep
+def test_a_dask_worker_killed_mid_sweep_is_reported_and_its_runs_done_again(tmp_path):
+    """The summary used to say `2 workers` after one of them was killed."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import threading
+    import time
+    distributed = pytest.importorskip('distributed')
+    dask_cli = os.path.join(os.path.dirname(sys.executable), 'dask')
+    argv = ['--runs', '24', '--fault', 'actuator_dead:leg_{1..6}@U(0.2,0.8)', '--duration',
+            '1.5', '--seed', '8', '--no-figure']
+    assert run_tool(argv + ['--workers', '1', '--out', str(tmp_path / 'local')])[0] == 0
+    with distributed.LocalCluster(n_workers=0, host='127.0.0.1', dashboard_address=None,
+                                  processes=True) as cluster, \
+            distributed.Client(cluster.scheduler_address) as watcher:
+        workers = [subprocess.Popen([dask_cli, 'worker', cluster.scheduler_address,
+                                     '--no-nanny', '--nthreads', '1', '--name', 'w%d' % k],
+                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                   for k in range(2)]
+        try:
+            watcher.wait_for_workers(2, timeout=120)
+            done = {}
+
+            def sweep_on_the_cluster():
+                status, text = run_tool(argv + ['--scheduler', cluster.scheduler_address,
+                                                '--out', str(tmp_path / 'dask')])
+                done.update(status=status, text=text)
+            sweep_thread = threading.Thread(target=sweep_on_the_cluster)
+            sweep_thread.start()
+            # both workers busy with the sweep's runs: kill one of them, hard
+            deadline = time.monotonic() + 240
+            while time.monotonic() < deadline and not done:
+                busy = [w for w, tasks in watcher.processing().items()
+                        if any(str(t).startswith('_run_chunk_on_worker') for t in tasks)]
+                if len(busy) == 2:
+                    break
+                time.sleep(0.05)
+            assert not done, 'the sweep ended before both workers were busy'
+            os.kill(workers[1].pid, signal.SIGKILL)
+            sweep_thread.join(timeout=300)
+            assert not sweep_thread.is_alive()
+        finally:
+            for proc in workers:
+                if proc.poll() is None:
+                    proc.terminate()
+                    try:
+                        proc.wait(timeout=20)
+                    except subprocess.TimeoutExpired:
+                        proc.kill()
+                        proc.wait()
+    assert done['status'] == 0
+    text = done['text']
+    assert '(dask tcp://127.0.0.1' in text
+    assert '1 worker; 1 of the 2 at the start lost mid-sweep' in text, text
+    summary = json.loads((tmp_path / 'dask' / 'summary.json').read_text())
+    assert (summary['workers'], summary['workers_at_start'], summary['workers_lost']) == (1, 2, 1)
+    # the killed worker's runs were done again: every row, bit for bit the local ones
+    assert (tmp_path / 'dask' / 'runs.csv').read_text() == \
+        (tmp_path / 'local' / 'runs.csv').read_text()

@@ -57,7 +57,13 @@ from stewart63_ros.core.dynamics import (
     lengths_rates,
 )
 from stewart63_ros.core.fk import ForwardKinematics
-from stewart63_ros.core.laws import Controller, LawError, make_law
+from stewart63_ros.core.laws import (
+    HOLDING_GAIN_LAWS,
+    Controller,
+    LawError,
+    holding_gain_problem,
+    make_law,
+)
 from stewart63_ros.core.legs import LEG_NAMES
 from stewart63_ros.core.mechanism import Mechanism
 from stewart63_ros.core.reference import Reference
@@ -525,8 +531,8 @@ def law_jacobians(dyn: Dynamics, eq: Equilibrium, law: str, references: ArrayLik
     return forces, K_x, K_r
 
 
-def _pd_gains(mech, params):
-    law = make_law('pd', mech, dict(params or {}))
+def _pd_gains(mech, params, law_name='pd'):
+    law = make_law(law_name, mech, dict(params or {}))
     return np.asarray(law.kp, float), np.asarray(law.kv, float)
 
 
@@ -607,11 +613,12 @@ def closed_loop(mech: Mechanism, eq: Equilibrium, law: str,
     plant = open_loop(mech, eq, dyn)
     ctrl_mech = controller_mech or mech
     params = dict(ctrl_mech.to_params(), **(params or {}))
+    if law in HOLDING_GAIN_LAWS:
+        problem = holding_gain_problem(law, _pd_gains(ctrl_mech, params, law)[0])
+        if problem:
+            raise AnalysisError(problem)
     if law == 'pd' and not numeric:
         kp, kv = _pd_gains(ctrl_mech, params)
-        if np.any(kp <= 0):
-            raise AnalysisError('the pd law cannot hold the pose: kp is zero on leg_%d'
-                                % (int(np.flatnonzero(kp <= 0)[0]) + 1))
         u0 = eq.lengths + eq.forces / kp
         jac = plant.C[:, 0:6]
         rate_rows = np.hstack([np.zeros((6, 6)), jac])      # dL/dt = J [v; omega] (eq. 13)

@@ -288,6 +288,30 @@ class ComputedTorqueLaw(_ModelLaw):
 LAWS = {'pd': PDLaw, 'pd_gravity': PDGravityLaw, 'computed_torque': ComputedTorqueLaw}
 #: Every parameter a built-in law reads (all tunable at run time).
 LAW_PARAMETERS = ('kp', 'kv', 'ct_kp', 'ct_kd')
+#: The laws whose only restoring force is Kp times a leg's length error (eq. 40).
+HOLDING_GAIN_LAWS = ('pd', 'pd_gravity')
+
+
+def holding_gain_problem(law: str, kp: ArrayLike) -> str | None:
+    """Why ``law`` with these gains cannot hold a pose, or None: the one rule of
+    ``analyze`` and ``sweep``. Under eq. (40) a leg whose Kp is zero feels no
+    force from its length error, so nothing brings it (or the platform) back.
+
+    Args:
+        law: the law's name; only ``HOLDING_GAIN_LAWS`` are checked.
+        kp: the six position gains Kp_i [N/m].
+
+    Returns:
+        ``'the pd law cannot hold the pose: kp is zero on leg_3'`` (the first
+        such leg), or None when every Kp_i > 0 or the law is another one.
+    """
+    if law not in HOLDING_GAIN_LAWS:
+        return None
+    gains = np.asarray(kp, dtype=float).ravel()
+    zero = np.flatnonzero(~(gains > 0))
+    if zero.size == 0:
+        return None
+    return 'the %s law cannot hold the pose: kp is zero on leg_%d' % (law, int(zero[0]) + 1)
 
 
 def law_class(name: str) -> type:

@@ -44,15 +44,17 @@ import numpy as np
 
 from stewart63_ros.core._jit import njit
 from stewart63_ros.core.dynamics import Dynamics, lengths_rates
-from stewart63_ros.core.laws import Controller, LawError
+from stewart63_ros.core.faults import FaultError, FaultModel, parse_faults
+from stewart63_ros.core.laws import Controller, LawError, holding_gain_problem, law_class
 from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.params import (
+    Mechanism,
     ParameterError,
     known_keys,
     mechanism_from_params,
     read_parameter_file,
 )
-from stewart63_ros.core.simulate import run_continuous
+from stewart63_ros.core.simulate import run_continuous, run_sampled
 
 METRICS = ('final_error_percent', 'max_force', 'settling_time_s', 'endstop_samples',
            'diverged')
@@ -65,6 +67,13 @@ UNSETTLED_TAIL = 0.1
 PERCENTILES = (0, 5, 25, 50, 75, 95, 100)
 
 _VARY = re.compile(r'^\s*([A-Za-z_][A-Za-z0-9_]*)(?:\[(\d+)\])?\s*=\s*([^:]+):([^:]+)$')
+#: The prefix of a varied key's column in runs.csv (``param.max_force``).
+PARAM_PREFIX = 'param.'
+#: A drawn part of a ``--fault``: U(lo,hi), {a..b} or {a,b,...}.
+_DRAWN = re.compile(r'U\(([^(),]*),([^(),]*)\)|\{(-?\d+)\.\.(-?\d+)\}|\{([^{}]*)\}')
+#: Keys a run reads only under sampled control / with faults (``readable_keys``).
+SAMPLED_KEYS = ('sensor_rate',)
+FAULT_KEYS = ('sensor_seed',)
 
 
 class SweepError(ValueError):
@@ -73,12 +82,72 @@ class SweepError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class Variation:
-    """One varied parameter: ``name`` or element ``index`` of it, over [low, high]."""
+    """One varied parameter: ``name`` or element ``index`` of it, over [low, high].
+    Its column in runs.csv is ``param.<key>`` (``column``): never a metric's name."""
     key: str
     name: str
     index: int | None
     low: float
     high: float
+
+    @property
+    def column(self) -> str:
+        """The run table's column: ``param.`` and the key (``param.kp[2]``)."""
+        return PARAM_PREFIX + self.key
+
+
+@dataclasses.dataclass(frozen=True)
+class FaultAxis:
+    """One drawn part of a ``--fault`` pattern: ``U(low,high)`` (uniform; ``choices``
+    empty) or ``{a..b}`` / ``{a,b,c}`` (one of ``choices``, each drawn as likely).
+
+    Attributes:
+        column: its column in runs.csv, ``fault<n>.<field>`` (field: kind, leg,
+            value, start_s or end_s: where it stands in KIND:LEG[:VALUE][@T0[-T1]]).
+        low, high: the range (of the choices' values for a choice).
+        choices: ((text, value), ...) for a choice; () for a uniform draw.
+    """
+    column: str
+    low: float
+    high: float
+    choices: tuple = ()
+
+    def text(self, value: float) -> str:
+        """How ``value`` is written into the fault string."""
+        for text, number in self.choices:
+            if number == value:
+                return text
+        return repr(float(value))
+
+
+@dataclasses.dataclass(frozen=True)
+class FaultPattern:
+    """A ``--fault`` as given: a fault string with drawn parts (docs/analysis.md).
+
+    Attributes:
+        text: as given, e.g. ``actuator_dead:leg_{1..6}@U(1,5)``.
+        column: ``fault<n>``: the run's fault, as ``sim --fault`` takes it.
+        pieces: the literal text between the drawn parts (one more than ``axes``).
+        axes: the drawn parts (``FaultAxis``), in order.
+    """
+    text: str
+    column: str
+    pieces: tuple
+    axes: tuple
+
+    def resolve(self, values: Sequence[float]) -> str:
+        """The fault string of one run: each drawn part replaced by its value.
+
+        Args:
+            values: one value per axis, in order.
+
+        Returns:
+            A fault string for ``faults.parse_fault``.
+        """
+        out = [self.pieces[0]]
+        for axis, value, piece in zip(self.axes, values, self.pieces[1:]):
+            out += [axis.text(value), piece]
+        return ''.join(out)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,7 +160,13 @@ class SweepPlan:
         law: the control law's name (``pd``: the compiled eq. (40)).
         duration: simulated time per run [s].
         variations: the varied parameters, in column order.
-        output_rate: output samples per second [Hz].
+        output_rate: output samples per second [Hz] (continuous control).
+        faults: the ``FaultPattern`` s of ``--fault`` (the plant's ``faults`` of
+            the file are in ``plant_params``; both act in every run).
+        control: ``continuous`` (eq. (40) inside the ODE, as the paper) or
+            ``sampled`` (sampled and held, as the rig; always with faults).
+        rate: the sampled control's rate [Hz]; None: the plant's
+            ``sensor_rate`` (as varied).
     """
     plant_params: dict
     controller_params: dict
@@ -99,6 +174,15 @@ class SweepPlan:
     duration: float
     variations: tuple
     output_rate: float = OUTPUT_RATE
+    faults: tuple = ()
+    control: str = 'continuous'
+    rate: float | None = None
+
+    @property
+    def axes(self) -> tuple:
+        """Everything drawn per run, in column order: the variations, then the
+        drawn parts of each fault pattern."""
+        return tuple(self.variations) + tuple(a for f in self.faults for a in f.axes)
 
 
 def parse_vary(text: str) -> Variation:
@@ -127,6 +211,128 @@ def parse_vary(text: str) -> Variation:
         raise SweepError('--vary %s: LO %g is above HI %g' % (text, low, high))
     key = name if index is None else '%s[%s]' % (name, int(index))
     return Variation(key, name, None if index is None else int(index), low, high)
+
+
+def _field_of(prefix: str) -> str:
+    """Which field of KIND:LEG[:VALUE][@T0[-T1]] a drawn part after ``prefix`` is."""
+    head, at, timing = _DRAWN.sub('X', prefix).partition('@')
+    if at:
+        return 'end_s' if '-' in timing else 'start_s'
+    return ('kind', 'leg', 'value')[min(head.count(':'), 2)]
+
+
+def _number_text(text: str, pattern: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise SweepError('--fault %s: %r is not a number' % (pattern, text.strip())) from None
+    if not math.isfinite(value):
+        raise SweepError('--fault %s: %r is not finite' % (pattern, text.strip()))
+    return value
+
+
+def parse_fault_pattern(text: str, number: int = 1) -> FaultPattern:
+    """A ``--fault`` option -> ``FaultPattern``.
+
+    The fault syntax of ``sim --fault`` (``KIND:LEG[:VALUE][@T_START[-T_END]]``,
+    docs/faults.md), where any number may be drawn per run: ``U(lo,hi)``
+    uniformly from [lo, hi], ``{a..b}`` one integer from a to b, ``{a,b,c}`` one
+    of the numbers listed, e.g. ``actuator_dead:leg_{1..6}@U(1,5)``: a random
+    leg dies at a random time from 1 to 5 s. Without drawn parts, the same
+    fault acts in every run.
+
+    Args:
+        text: the option's value.
+        number: n, its place among the ``--fault`` options (columns ``fault<n>...``).
+
+    Returns:
+        The pattern (``resolve`` gives one run's fault string).
+
+    Raises:
+        SweepError: empty, a malformed drawn part, lo above hi, two drawn parts
+            in one field.
+    """
+    text = str(text).strip()
+    if not text:
+        raise SweepError('--fault: empty (expected KIND:LEG[:VALUE][@T_START[-T_END]])')
+    column = 'fault%d' % number
+    pieces, axes, last = [], [], 0
+    for match in _DRAWN.finditer(text):
+        pieces.append(text[last:match.start()])
+        last = match.end()
+        name = '%s.%s' % (column, _field_of(text[:match.start()]))
+        if any(a.column == name for a in axes):
+            raise SweepError('--fault %s: two drawn parts in %s' % (text, name))
+        u_low, u_high, first, stop, listed = match.groups()
+        if u_low is not None:
+            low, high = _number_text(u_low, text), _number_text(u_high, text)
+            if low > high:
+                raise SweepError('--fault %s: U(%g,%g): %g is above %g' % (text, low, high,
+                                                                          low, high))
+            axes.append(FaultAxis(name, low, high))
+            continue
+        if first is not None:
+            if int(first) > int(stop):
+                raise SweepError('--fault %s: {%s..%s}: %s is above %s'
+                                 % (text, first, stop, first, stop))
+            choices = tuple((str(v), float(v)) for v in range(int(first), int(stop) + 1))
+        else:
+            items = [item.strip() for item in listed.split(',')]
+            if not all(items):
+                raise SweepError('--fault %s: {%s}: expected numbers a,b,...' % (text, listed))
+            choices = tuple((item, _number_text(item, text)) for item in items)
+        values = [v for _, v in choices]
+        axes.append(FaultAxis(name, min(values), max(values), choices))
+    pieces.append(text[last:])
+    return FaultPattern(text, column, tuple(pieces), tuple(axes))
+
+
+def _axis_ends(axis) -> list[float]:
+    """The values of an axis checked before a sweep: both ends, or every choice."""
+    choices = getattr(axis, 'choices', ())
+    return [v for _, v in choices] if choices else [axis.low, axis.high]
+
+
+def readable_keys(law: str, control: str = 'continuous', rate: float | None = None,
+                  faults: bool = False) -> set[str]:
+    """The keys a sweep's runs read: only these can be varied.
+
+    Args:
+        law: the control law (its ``parameters`` are read besides the model's keys).
+        control: ``continuous`` or ``sampled``.
+        rate: the sampled control's rate given (then ``sensor_rate`` is not read).
+        faults: whether the runs have faults (``sensor_seed``: their noise).
+
+    Returns:
+        The model's keys (``params.Mechanism``), the end stop's, the law's, and
+        ``sensor_rate`` / ``sensor_seed`` where they take effect.
+    """
+    keys = {f.name for f in dataclasses.fields(Mechanism)} - {'extra'}
+    keys |= {'endstop_stiffness', 'endstop_damping'}
+    if law != 'pd':
+        keys |= set(getattr(law_class(law), 'parameters', ()) or ())
+    if control == 'sampled' and rate is None:
+        keys |= set(SAMPLED_KEYS)
+    if faults:
+        keys |= set(FAULT_KEYS)
+    return keys
+
+
+def _check_readable(var: Variation, readable: set[str], control: str, rate) -> None:
+    if var.name in readable:
+        return
+    if var.name == 'faults':
+        why = 'faults are swept with --fault (e.g. actuator_dead:leg_{1..6}@U(1,5))'
+    elif var.name in SAMPLED_KEYS:
+        why = ('%s is read only under --control sampled without --rate (it is the '
+               'control rate there)' % var.name) if control == 'continuous' or rate is None \
+            else '--rate %g sets the control rate' % rate
+    elif var.name in FAULT_KEYS:
+        why = '%s seeds the noise of faults, and the runs have none' % var.name
+    else:
+        why = 'the runs do not read %s' % var.name
+    raise SweepError('--vary %s: %s; keys that can be varied: %s'
+                     % (var.key, why, ', '.join(sorted(readable))))
 
 
 def _is_number(value) -> bool:
@@ -183,50 +389,133 @@ def _check_key(var: Variation, plant: dict, controller: dict) -> None:
 
 
 def _build(plan: SweepPlan, values):
-    """(plant mechanism, controller or None) of one run; ParameterError if invalid."""
+    """(plant mechanism, controller or None) of one run; ParameterError if invalid
+    (a gain of zero under a law it leaves unable to hold the pose too)."""
     plant = apply_values(plan.plant_params, plan.variations, values)
     mech = mechanism_from_params(plant)
     if plan.law == 'pd':
+        problem = holding_gain_problem(plan.law, mech.kp)
+        if problem:
+            raise ParameterError('kp', problem)
         return mech, None
     ctrl_params = apply_values(plan.controller_params, plan.variations, values)
-    return mech, Controller(mechanism_from_params(ctrl_params), ctrl_params, law=plan.law)
+    ctrl_mech = mechanism_from_params(ctrl_params)
+    problem = holding_gain_problem(plan.law, ctrl_params.get('kp', ctrl_mech.kp))
+    if problem:
+        raise ParameterError('kp', problem)
+    return mech, Controller(ctrl_mech, ctrl_params, law=plan.law)
+
+
+def _file_faults(plant_params: Mapping[str, Any]) -> list[str]:
+    listed = plant_params.get('faults') or []
+    return [listed] if isinstance(listed, str) else list(listed)
+
+
+def run_faults(plan: SweepPlan, values: Sequence[float]) -> list[str]:
+    """The fault strings of one run: the plant's ``faults`` of the file, then
+    each ``--fault`` pattern resolved with the run's drawn values.
+
+    Args:
+        plan: the sweep.
+        values: the run's values, one per axis of ``plan.axes``.
+
+    Returns:
+        The faults, as ``sim --fault`` takes them.
+    """
+    drawn = list(values)[len(plan.variations):]
+    out = _file_faults(plan.plant_params)
+    for pattern in plan.faults:
+        count = len(pattern.axes)
+        out.append(pattern.resolve(drawn[:count]))
+        drawn = drawn[count:]
+    return out
 
 
 def make_plan(params_path: str | os.PathLike, variations: Iterable[Variation],
-              law: str | None = None, duration: float = 10.0) -> SweepPlan:
-    """Read the parameter file, check every variation at both ends of its range.
+              law: str | None = None, duration: float = 10.0,
+              faults: Iterable[FaultPattern] = (), control: str | None = None,
+              rate: float | None = None) -> SweepPlan:
+    """Read the parameter file, check every variation at both ends of its range
+    and every fault pattern at the ends of each drawn part.
 
     Args:
         params_path: the ROS 2 parameter file.
         variations: ``Variation`` s (``parse_vary``).
         law: the control law (default: the controller's ``control_law``, else pd).
         duration: simulated time per run [s].
+        faults: ``FaultPattern`` s (``parse_fault_pattern``).
+        control: ``continuous`` or ``sampled`` (default: sampled when the runs
+            have faults, from ``faults`` or the file's plant ``faults``, else
+            continuous; as ``sim``).
+        rate: sampled: the control rate [Hz] (default: the plant's
+            ``sensor_rate``); continuous: the output rate (default ``OUTPUT_RATE``).
 
     Returns:
-        The ``SweepPlan`` (output at ``OUTPUT_RATE``).
+        The ``SweepPlan``.
 
     Raises:
-        SweepError: a key varied twice, an unknown key, a list varied whole, an index out of range,
-            or a range end the parameter validation refuses (its message).
+        SweepError: a key varied twice, an unknown key, a key the runs do not
+            read, a list varied whole, an index out of range, a range end the
+            parameter validation refuses (its message; a gain of zero
+            included), a fault the fault syntax refuses, faults under
+            continuous control, a rate that is not a positive number.
         ParameterError: the file itself is invalid.
     """
     plant = read_parameter_file(params_path, 'plant')
     controller = read_parameter_file(params_path, 'controller')
     law = law or read_declared(controller, 'control_law')
-    plan = SweepPlan(plant, controller, law, float(duration), tuple(variations))
+    faults = tuple(faults)
+    try:
+        file_faults = parse_faults(_file_faults(plant))
+    except FaultError as exc:
+        raise ParameterError('faults', str(exc)) from None
+    faulted = bool(faults or file_faults)
+    if control not in (None, 'continuous', 'sampled'):
+        raise SweepError('--control must be continuous or sampled, got %r' % (control,))
+    if faulted and control == 'continuous':
+        raise SweepError('faults act on the sensor samples: use --control sampled (the '
+                         'default with faults)')
+    control = control or ('sampled' if faulted else 'continuous')
+    if rate is not None and not (math.isfinite(rate) and rate > 0):
+        raise SweepError('--rate must be a positive number of Hz, got %g' % rate)
+    plan = SweepPlan(plant, controller, law, float(duration), tuple(variations),
+                     output_rate=OUTPUT_RATE if control == 'sampled' or rate is None
+                     else float(rate),
+                     faults=faults, control=control,
+                     rate=float(rate) if control == 'sampled' and rate is not None else None)
+    readable = readable_keys(law, control, plan.rate, faulted)
     keys = [v.key for v in plan.variations]
     for var in plan.variations:
         if keys.count(var.key) > 1:
             raise SweepError('--vary %s: given twice' % var.key)
+        if var.name in known_keys(controller):      # a typo is named as unknown below
+            _check_readable(var, readable, control, plan.rate)
         _check_key(var, plant, controller)
+        _check_readable(var, readable, control, plan.rate)
     _build(dataclasses.replace(plan, variations=()), [])    # the file itself (ParameterError)
     for var in plan.variations:
         for end in (var.low, var.high):
             try:
                 _build(dataclasses.replace(plan, variations=(var,)), [end])
+                if var.name in SAMPLED_KEYS:
+                    read_declared(apply_values(plant, [var], [end]), var.name)
             except ParameterError as exc:
                 raise SweepError('--vary %s=%g:%g: %g is outside the valid range: %s'
                                  % (var.key, var.low, var.high, end, exc)) from None
+    for pattern in faults:
+        lows = [a.low if not a.choices else a.choices[0][1] for a in pattern.axes]
+        for k, axis in enumerate(pattern.axes):
+            for end in _axis_ends(axis):
+                text = pattern.resolve(lows[:k] + [end] + lows[k + 1:])
+                try:
+                    parse_faults([text])
+                except FaultError as exc:
+                    raise SweepError('--fault %s: %s' % (pattern.text, exc)) from None
+        if not pattern.axes:
+            try:
+                parse_faults([pattern.text])
+            except FaultError as exc:
+                raise SweepError('--fault %s' % exc) from None
     return plan
 
 
@@ -235,15 +524,17 @@ def draw_values(variations: Sequence[Variation], runs: int, seed: int | None = N
     """The parameter values of the runs, drawn from each variation's [low, high].
 
     Args:
-        variations: the K varied parameters.
+        variations: the K drawn axes (``SweepPlan.axes``: ``Variation`` s, and
+            ``FaultAxis`` es, whose choices are drawn each as likely).
         runs: N, how many runs (>= 1).
         seed: the seed of numpy's ``default_rng`` for the uniform draws.
-        grid: instead of draws, n = round(runs^(1/K)) evenly spaced values per
-            key, every combination (n^K rows, first key slowest).
+        grid: instead of draws, every choice of each choice axis and n evenly
+            spaced values of each other axis, n = round((runs / choices)^(1/K'))
+            (K' such axes), every combination (first axis slowest).
 
     Returns:
-        (N, K) values in the variations' units, one row per run ((runs, 0)
-        without variations).
+        (N, K) values in the axes' units, one row per run ((runs, 0) without
+        axes).
 
     Raises:
         SweepError: ``runs`` below 1.
@@ -255,12 +546,22 @@ def draw_values(variations: Sequence[Variation], runs: int, seed: int | None = N
         return np.zeros((runs, 0))
     low = np.array([v.low for v in variations])
     high = np.array([v.high for v in variations])
+    choices = [np.array([c for _, c in getattr(v, 'choices', ())]) for v in variations]
     if grid:
-        n = max(1, int(round(runs ** (1.0 / k))))
-        axes = [np.linspace(lo, hi, n) if n > 1 else np.array([lo]) for lo, hi in zip(low, high)]
+        fixed = int(np.prod([len(c) for c in choices if len(c)]))
+        ranged = sum(1 for c in choices if not len(c))
+        n = max(1, int(round((runs / fixed) ** (1.0 / ranged)))) if ranged else 1
+        axes = [c if len(c) else (np.linspace(lo, hi, n) if n > 1 else np.array([lo]))
+                for c, lo, hi in zip(choices, low, high)]
         return np.stack(np.meshgrid(*axes, indexing='ij'), axis=-1).reshape(-1, k)
     rng = np.random.default_rng(seed)
-    return low + (high - low) * rng.random((runs, k))
+    draws = rng.random((runs, k))
+    out = low + (high - low) * draws
+    for j, options in enumerate(choices):
+        if len(options):
+            out[:, j] = options[np.minimum((draws[:, j] * len(options)).astype(int),
+                                           len(options) - 1)]
+    return out
 
 
 @njit
@@ -310,11 +611,12 @@ def settling_time(times: np.ndarray, lengths: np.ndarray, band: float = SETTLING
 
 
 def run_one(plan: SweepPlan, values: Iterable[float]) -> dict[str, Any]:
-    """One run: the plant (and a law other than ``pd``) built with ``values``, simulated.
+    """One run: the plant (and a law other than ``pd``) built with ``values``, simulated
+    as ``sim`` does (continuous, or sampled with the run's faults).
 
     Args:
         plan: the sweep.
-        values: (K,) one value per variation of ``plan``.
+        values: (K,) one value per axis of ``plan.axes`` (the variations first).
 
     Returns:
         {metric: value for each of ``METRICS``, 'failure': str ('' when the
@@ -322,15 +624,29 @@ def run_one(plan: SweepPlan, values: Iterable[float]) -> dict[str, Any]:
     """
     row = {'final_error_percent': math.nan, 'max_force': math.nan,
            'settling_time_s': math.nan, 'endstop_samples': 0, 'diverged': 1, 'failure': ''}
+    values = [float(v) for v in values]
     try:
-        mech, controller = _build(plan, values)
+        mech, controller = _build(plan, values[:len(plan.variations)])
     except ParameterError as exc:
         row['failure'] = 'invalid parameters: %s' % exc
         return row
     dyn = Dynamics(mech)
     try:
-        result = run_continuous(mech, plan.duration, output_rate=plan.output_rate, dyn=dyn,
-                                controller=controller)
+        if plan.control == 'sampled':
+            plant = apply_values(plan.plant_params, plan.variations, values)
+            rate = plan.rate or read_declared(plant, 'sensor_rate')
+            texts = run_faults(plan, values)
+            try:
+                model = FaultModel(parse_faults(texts), rate,
+                                   read_declared(plant, 'sensor_seed')) if texts else None
+            except FaultError as exc:       # a draw the fault syntax refuses (T1 <= T0)
+                row['failure'] = 'invalid fault: %s' % exc
+                return row
+            result = run_sampled(mech, plan.duration, rate, dyn=dyn, controller=controller,
+                                 faults=model)
+        else:
+            result = run_continuous(mech, plan.duration, output_rate=plan.output_rate,
+                                    dyn=dyn, controller=controller)
     except LawError as exc:
         row['failure'] = 'the control law failed: %s' % exc
         return row
@@ -425,6 +741,38 @@ def run_local(plan: SweepPlan, values: np.ndarray,
     return sorted(rows, key=lambda r: r['run']), workers, time.perf_counter() - start
 
 
+def check_scheduler_address(address: str) -> str:
+    """A Dask scheduler's address as ``distributed`` parses it, checked before
+    anything starts (``tcp://host:8786``; ``host:8786`` means tcp).
+
+    Args:
+        address: as given to ``--scheduler``.
+
+    Returns:
+        The address.
+
+    Raises:
+        SweepError: not an address with a host and a port (the reason).
+        ImportError: ``distributed`` is not installed.
+    """
+    from distributed.comm import parse_address
+    from distributed.comm.addressing import parse_host_port
+    try:
+        scheme, location = parse_address(address)
+        if scheme in ('tcp', 'tls', 'ws', 'wss'):
+            parse_host_port(location)
+    except (ValueError, TypeError) as exc:
+        raise SweepError('--scheduler %s: not a scheduler address (expected tcp://HOST:PORT): '
+                         '%s' % (address, exc)) from None
+    return address
+
+
+def _run_chunk_on_worker(plan: SweepPlan, chunk) -> tuple[str, list[dict[str, Any]]]:
+    """``run_chunk`` on a Dask worker, with the worker's address (who ran it)."""
+    from distributed import get_worker
+    return get_worker().address, run_chunk(plan, chunk)
+
+
 def run_dask(plan: SweepPlan, values: np.ndarray, scheduler: str | None = None,
              local_workers: int | None = None) -> tuple[list[dict[str, Any]], int, float]:
     """All runs on a Dask cluster: the scheduler at ``scheduler`` (``tcp://host:8786``),
@@ -440,11 +788,36 @@ def run_dask(plan: SweepPlan, values: np.ndarray, scheduler: str | None = None,
         local_workers: the local cluster's processes (default 1).
 
     Returns:
-        (``run_one`` rows with their 'run' index, in run order; workers used;
-        wall time of the runs [s]).
+        (``run_one`` rows with their 'run' index, in run order; the workers
+        that delivered runs; wall time of the runs [s]). ``run_dask_report``
+        also tells the workers lost meanwhile.
 
     Raises:
         ImportError: ``distributed`` is not installed.
+    """
+    report = run_dask_report(plan, values, scheduler, local_workers)
+    return report['rows'], report['workers'], report['wall_time_s']
+
+
+def run_dask_report(plan: SweepPlan, values: np.ndarray, scheduler: str | None = None,
+                    local_workers: int | None = None) -> dict[str, Any]:
+    """``run_dask``, with the workers as they were: those the sweep started
+    with, those that delivered runs, those lost on the way (a worker killed
+    mid-sweep: the scheduler gives its runs to the others, whose rows are
+    the same).
+
+    Args:
+        plan, values, scheduler, local_workers: as ``run_dask``.
+
+    Returns:
+        {'rows': in run order, 'wall_time_s': float [s], 'workers': int (that
+        delivered runs), 'workers_at_start': int, 'workers_lost': int (of
+        those at the start, gone at the end)}.
+
+    Raises:
+        ImportError: ``distributed`` is not installed.
+        SweepError: the cluster lost runs it could not do again (every
+            worker gone, or a run's worker killed too often).
     """
     from distributed import Client, LocalCluster
     cluster = None
@@ -455,19 +828,29 @@ def run_dask(plan: SweepPlan, values: np.ndarray, scheduler: str | None = None,
     else:
         client = Client(scheduler, timeout='10s')
     try:
-        workers = max(1, len(client.scheduler_info()['workers']))
-        chunks = chunks_of(values, workers * 8)
-        remote_plan = client.scatter(plan, broadcast=True)
+        at_start = set(client.scheduler_info()['workers'])
+        chunks = chunks_of(values, max(1, len(at_start)) * 8)
         client.run(warm_up, plan, tuple(values[0]))
         start = time.perf_counter()
-        futures = client.map(run_chunk, [remote_plan] * len(chunks), chunks, pure=False)
-        rows = [row for part in client.gather(futures) for row in part]
+        # The plan goes with every task (a few kB), not scattered once: data
+        # scattered to a worker that dies cannot be made again, a task can.
+        futures = client.map(_run_chunk_on_worker, [plan] * len(chunks), chunks, pure=False)
+        try:
+            parts = client.gather(futures)
+        except Exception as exc:  # noqa: BLE001 - KilledWorker, CancelledError, ...
+            raise SweepError('the Dask cluster lost runs: %s: %s'
+                             % (type(exc).__name__, str(exc).splitlines()[0] if str(exc)
+                                else '')) from None
         wall = time.perf_counter() - start
+        at_end = set(client.scheduler_info()['workers'])
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
-    return sorted(rows, key=lambda r: r['run']), workers, wall
+    rows = [row for _, part in parts for row in part]
+    return {'rows': sorted(rows, key=lambda r: r['run']), 'wall_time_s': wall,
+            'workers': len({address for address, _ in parts}),
+            'workers_at_start': len(at_start), 'workers_lost': len(at_start - at_end)}
 
 
 def run_sweep(plan: SweepPlan, values: np.ndarray | Sequence[Sequence[float]],
@@ -486,25 +869,49 @@ def run_sweep(plan: SweepPlan, values: np.ndarray | Sequence[Sequence[float]],
             local Dask cluster instead (either one selects Dask).
 
     Returns:
-        {'rows': the rows in run order, each with its values under the
-        variations' keys, 'wall_time_s': float [s], 'workers': int, 'engine':
+        {'rows': the rows in run order, each with its values under their
+        columns (``axis_columns``), 'wall_time_s': float [s], 'workers': int
+        (that delivered runs), 'workers_at_start': int, 'workers_lost': int
+        (gone before the end: a Dask worker killed mid-sweep), 'engine':
         'processes' or 'dask ...'}.
     """
-    values = np.asarray(values, dtype=float).reshape(len(values), len(plan.variations))
+    values = np.asarray(values, dtype=float).reshape(len(values), len(plan.axes))
     if scheduler is None and dask_local is None:
         rows, used, wall = run_local(plan, values, workers)
-        engine = 'processes'
+        outcome = {'rows': rows, 'wall_time_s': wall, 'workers': used,
+                   'workers_at_start': used, 'workers_lost': 0, 'engine': 'processes'}
     else:
-        rows, used, wall = run_dask(plan, values, scheduler, dask_local)
-        engine = 'dask %s' % (scheduler or 'LocalCluster')
-    for row in rows:
-        row.update({var.key: float(values[row['run'], k])
-                    for k, var in enumerate(plan.variations)})
-    return {'rows': rows, 'wall_time_s': wall, 'workers': used, 'engine': engine}
+        outcome = run_dask_report(plan, values, scheduler, dask_local)
+        outcome['engine'] = 'dask %s' % (scheduler or 'LocalCluster')
+    for row in outcome['rows']:
+        row.update(axis_columns(plan, values[row['run']]))
+    return outcome
+
+
+def axis_columns(plan: SweepPlan, values: Sequence[float]) -> dict[str, Any]:
+    """A run's values under their columns: each axis's value, each ``--fault``'s
+    resolved fault string (``fault<n>``).
+
+    Args:
+        plan: the sweep.
+        values: the run's values, one per axis of ``plan.axes``.
+
+    Returns:
+        {column: value}.
+    """
+    out: dict[str, Any] = {axis.column: float(v) for axis, v in zip(plan.axes, values)}
+    drawn = [float(v) for v in values][len(plan.variations):]
+    for pattern in plan.faults:
+        count = len(pattern.axes)
+        out[pattern.column] = pattern.resolve(drawn[:count])
+        drawn = drawn[count:]
+    return out
 
 
 def columns(plan: SweepPlan) -> list[str]:
-    """Columns of runs.csv: run, each varied key, the metrics, failure.
+    """Columns of runs.csv: run, each varied key (``param.<key>``), each fault
+    pattern's drawn parts (``fault<n>.<field>``) and fault (``fault<n>``), the
+    metrics, failure. No two share a name.
 
     Args:
         plan: the sweep.
@@ -512,7 +919,11 @@ def columns(plan: SweepPlan) -> list[str]:
     Returns:
         The column names in order.
     """
-    return ['run'] + [v.key for v in plan.variations] + list(METRICS) + ['failure']
+    faults = []
+    for pattern in plan.faults:
+        faults += [a.column for a in pattern.axes] + [pattern.column]
+    return (['run'] + [v.column for v in plan.variations] + faults + list(METRICS)
+            + ['failure'])
 
 
 def summary(plan: SweepPlan,
@@ -525,13 +936,13 @@ def summary(plan: SweepPlan,
         rows: the runs' rows (``run_sweep``'s 'rows').
 
     Returns:
-        {varied key or metric: {'count': int (finite values), 'p0' ... 'p100',
+        {axis column or metric: {'count': int (finite values), 'p0' ... 'p100',
         'mean' (when count > 0)}, 'diverged': {'count': int}}, in the column's
         unit.
     """
     done = [r for r in rows if not r['diverged']]
     out: dict[str, dict[str, float]] = {}
-    for key in [v.key for v in plan.variations] + list(METRICS[:-1]):
+    for key in [a.column for a in plan.axes] + list(METRICS[:-1]):
         data = np.array([r[key] for r in done], dtype=float)
         data = data[np.isfinite(data)]
         stats: dict[str, float] = {'count': int(data.size)}
@@ -545,15 +956,19 @@ def summary(plan: SweepPlan,
 
 
 def write_run_parameters(params_path: str | os.PathLike, out_path: str | os.PathLike,
-                         variations: Iterable[Variation], values: Iterable[float]) -> None:
+                         variations: Iterable[Variation], values: Iterable[float],
+                         faults: Iterable[str] = ()) -> None:
     """Write the parameter file of one run: ``params_path`` with each varied key
     set in every section that has it (in the wildcard section ``/**`` when
-    none has it), so that ``sim --params out_path`` reproduces the run.
+    none has it), and the run's ``--fault`` s (its ``fault<n>`` columns) added
+    to the plant's ``faults``, so that ``sim --params out_path`` reproduces the
+    run (``--control sampled`` for a sampled sweep without faults).
 
     Args:
         params_path: the sweep's ROS 2 parameter file (read).
         out_path: the run's parameter file (written, YAML).
         variations: the varied parameters; values: (K,) the run's values.
+        faults: the run's resolved fault strings (``fault<n>`` of runs.csv).
     """
     from pathlib import Path
 
@@ -567,4 +982,9 @@ def write_run_parameters(params_path: str | os.PathLike, out_path: str | os.Path
         holders = [s for s in sections if var.name in s] or [wildcard]
         for section in holders:
             section.update(apply_values(section, [var], [value]))
+    faults = list(faults)
+    if faults:
+        plant = next((doc[k]['ros__parameters'] for k in doc if str(k).split('/')[-1] == 'plant'
+                      and isinstance(doc[k], dict)), wildcard)
+        plant['faults'] = _file_faults(plant) + faults
     Path(out_path).write_text(yaml.safe_dump(doc, sort_keys=False))

@@ -19,6 +19,7 @@ the lengths, the condition number and the holding forces of every point.
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Sequence
 
 import numpy as np
@@ -34,6 +35,51 @@ from stewart63_ros.core.mechanism import Mechanism
 REASONS = ('ok', 'stroke', 'singular', 'max_force')
 #: Default grid step [m].
 DEFAULT_STEP = 0.05
+#: Memory ``workspace_map`` takes per grid point at its peak [bytes]: 198
+#: measured (tracemalloc), with a margin (test_analysis checks the bound).
+BYTES_PER_POINT = 240
+#: The largest share of the available memory a grid may take.
+MEMORY_SHARE = 0.5
+
+
+class GridTooLarge(ValueError):
+    """A grid that would not fit in memory; the message says how large it is."""
+
+
+def available_memory() -> int:
+    """The memory this process can still take [bytes]: MemAvailable of
+    /proc/meminfo (Linux), else the free physical pages.
+
+    Returns:
+        Bytes (0 when it cannot be told).
+    """
+    try:
+        with open('/proc/meminfo') as fh:
+            for line in fh:
+                if line.startswith('MemAvailable:'):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf('SC_AVPHYS_PAGES')) * int(os.sysconf('SC_PAGE_SIZE'))
+    except (ValueError, OSError, AttributeError):
+        return 0
+
+
+def human_bytes(count: float) -> str:
+    """``count`` bytes as a person reads it (``1.6 GB``, ``13 MB``; powers of 1000).
+
+    Args:
+        count: bytes.
+
+    Returns:
+        The text.
+    """
+    for unit in ('B', 'kB', 'MB', 'GB', 'TB', 'PB'):
+        if count < 1000 or unit == 'PB':
+            return ('%.0f %s' if count >= 10 or unit == 'B' else '%.1f %s') % (count, unit)
+        count /= 1000.0
+    return '%.0f PB' % count
 
 
 @njit
@@ -123,6 +169,51 @@ def grid_axis(low: float, high: float, step: float, through: float) -> np.ndarra
     return first + step * np.arange(max(count, 0))
 
 
+def grid_axes(mech: Mechanism, step: float = DEFAULT_STEP,
+              bounds: Sequence[float] | None = None,
+              through: ArrayLike | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The x, y and z values of the grid ``workspace_map`` covers (cheap: no
+    point is made, so a grid's size is known before it is).
+
+    Args:
+        mech: the mechanism; step: grid spacing [m] (> 0).
+        bounds: (xmin, xmax, ymin, ymax, zmin, zmax) [m], default ``default_bounds``.
+        through: (3,) a point that lies on the grid (default the origin).
+
+    Returns:
+        (x, y, z) axis values [m]; the grid has their lengths' product of points.
+
+    Raises:
+        ValueError: ``step`` is not a positive finite length.
+    """
+    if not (np.isfinite(step) and step > 0):
+        raise ValueError('step must be a positive length, got %r' % (step,))
+    xmin, xmax, ymin, ymax, zmin, zmax = bounds if bounds is not None else default_bounds(mech)
+    through = np.zeros(3) if through is None else np.asarray(through, float)
+    return (grid_axis(xmin, xmax, step, through[0]), grid_axis(ymin, ymax, step, through[1]),
+            grid_axis(zmin, zmax, step, through[2]))
+
+
+def check_grid_fits(points: int, available: int | None = None) -> None:
+    """Refuse a grid whose map would take more than ``MEMORY_SHARE`` of the memory.
+
+    Args:
+        points: the grid's point count.
+        available: bytes available (default ``available_memory()``; 0: unknown,
+            nothing is refused).
+
+    Raises:
+        GridTooLarge: naming the point count, the memory it needs and what is
+            available.
+    """
+    available = available_memory() if available is None else available
+    need = float(points) * BYTES_PER_POINT
+    if available and need > MEMORY_SHARE * available:
+        raise GridTooLarge('a grid of %d points needs about %s of memory; %s is available '
+                           '(at most half of it is used): use a larger --step'
+                           % (points, human_bytes(need), human_bytes(available)))
+
+
 def workspace_map(mech: Mechanism, rotation: ArrayLike, step: float = DEFAULT_STEP,
                   max_condition: float = 100.0,
                   bounds: Sequence[float] | None = None,
@@ -142,13 +233,11 @@ def workspace_map(mech: Mechanism, rotation: ArrayLike, step: float = DEFAULT_ST
 
     Raises:
         ValueError: ``step`` is not a positive finite length.
+        GridTooLarge: the grid would not fit in memory (``check_grid_fits``),
+            refused before any of it is made.
     """
-    if not (np.isfinite(step) and step > 0):
-        raise ValueError('step must be a positive length, got %r' % (step,))
-    xmin, xmax, ymin, ymax, zmin, zmax = bounds if bounds is not None else default_bounds(mech)
-    through = np.zeros(3) if through is None else np.asarray(through, float)
-    axes = (grid_axis(xmin, xmax, step, through[0]), grid_axis(ymin, ymax, step, through[1]),
-            grid_axis(zmin, zmax, step, through[2]))
+    axes = grid_axes(mech, step, bounds, through)
+    check_grid_fits(int(np.prod([len(a) for a in axes], dtype=float)))
     grid = np.stack(np.meshgrid(*axes, indexing='ij'), axis=-1).reshape(-1, 3)
     points = np.ascontiguousarray(grid)
     rot = np.ascontiguousarray(rotation, dtype=float)

@@ -23,6 +23,7 @@ import sys
 import time
 
 from stewart63_ros.core.node_names import NODES as NODE_NAMES
+from stewart63_ros.exits import quiet_on_closed_pipe
 
 
 class Peers:
@@ -252,6 +253,7 @@ def _options(parser):
                         help='also record every topic into a new bag DIR, in this process')
 
 
+@quiet_on_closed_pipe
 def main(argv=None):
     from stewart63_ros.nodes.launcher import run
     sys.exit(run('composed', __doc__.split('\n\n')[0], Composed, argv, extra_args=_options))

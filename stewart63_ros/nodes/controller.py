@@ -46,6 +46,7 @@ from stewart63_ros.core.reference import (
     tracking_summary,
 )
 from stewart63_ros.core.rotation import euler_rate_matrix
+from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
 from stewart63_ros.nodes.checks import (
@@ -442,6 +443,7 @@ class ControllerNode(RigNode):
             self.health.report()
 
 
+@quiet_on_closed_pipe
 def main(argv=None):
     sys.exit(run('controller', __doc__.split('\n\n')[0], ControllerNode, argv))
 

@@ -31,6 +31,7 @@ from stewart63_ros import topics
 from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.sensor import SensorModel, TrackerModel
 from stewart63_ros.core.simulate import initial_state, substeps_for
+from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
 from stewart63_ros.nodes.checks import (
@@ -354,6 +355,7 @@ class PlantNode(PlantControl, RigNode):
             summary['samples'], summary['positioning_error_percent'], summary['loop_latency']))
 
 
+@quiet_on_closed_pipe
 def main(argv=None):
     sys.exit(run('plant', __doc__.split('\n\n')[0], PlantNode, argv))
 

@@ -24,7 +24,12 @@ from pathlib import Path
 import numpy as np
 
 from stewart63_ros.core.params import ParameterError, default_params_path
-from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked
+from stewart63_ros.tools.cli import (
+    STRICT_HELP,
+    announce_compile,
+    load_checked,
+    quiet_on_closed_pipe,
+)
 
 PROG = 'analyze'
 
@@ -77,6 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="platform orientation [rad] (default: the setpoint pose's)")
     ws.add_argument('--step', type=float, default=None,
                     help='grid step [m] (0.05)')
+    ws.add_argument('--large-output', action='store_true',
+                    help='write a workspace.csv larger than 100 MB (refused without it)')
     ws.add_argument('--out', required=True, help='output directory (workspace.csv, '
                     'workspace.png)')
     return parser
@@ -217,6 +224,12 @@ REASON_COLORS = {'ok': '#3a9a4a', 'stroke': '#e6e6e6', 'singular': '#c0392b',
                  'max_force': '#f39c12'}
 
 
+#: Bytes per row of workspace.csv (53.7 measured on the default grid).
+CSV_BYTES_PER_ROW = 54
+#: A larger workspace.csv needs --large-output [bytes].
+CSV_LIMIT = 100e6
+
+
 def write_workspace(result, out: Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     path = out / 'workspace.csv'
@@ -313,7 +326,14 @@ def _run(args, mech, params_path) -> int:
     out = Path(args.out) if getattr(args, 'out', None) else None
     if args.command == 'workspace':
         from stewart63_ros.core.rotation import rotation_from_euler
-        from stewart63_ros.core.workspace import DEFAULT_STEP, workspace_map
+        from stewart63_ros.core.workspace import (
+            DEFAULT_STEP,
+            GridTooLarge,
+            check_grid_fits,
+            grid_axes,
+            human_bytes,
+            workspace_map,
+        )
         step = DEFAULT_STEP if args.step is None else args.step
         if not (np.isfinite(step) and step > 0):
             return _fail('--step must be a positive length [m], got %g' % step)
@@ -323,6 +343,20 @@ def _run(args, mech, params_path) -> int:
                 return _fail('--orientation must be three finite angles [rad]')
             rotation = rotation_from_euler(args.orientation)
         limit = args.max_condition or analysis.DEFAULT_MAX_CONDITION
+        # Sizes first, before anything is made: memory, then the CSV.
+        points = int(np.prod([len(a) for a in grid_axes(mech, step, through=position)],
+                             dtype=float))
+        try:
+            check_grid_fits(points)
+        except GridTooLarge as exc:
+            return _fail('--step %g: %s' % (step, exc))
+        csv_size = points * CSV_BYTES_PER_ROW
+        if csv_size > CSV_LIMIT and not args.large_output:
+            return _fail('--step %g: workspace.csv would have %d rows, about %s; pass '
+                         '--large-output to write it, or use a larger --step'
+                         % (step, points, human_bytes(csv_size)))
+        print('grid of %d points (step %g m): workspace.csv about %s' % (
+            points, step, human_bytes(csv_size)), flush=True)
         result = workspace_map(mech, rotation, step, limit, through=position)
         csv_path = write_workspace(result, out)
         from stewart63_ros.core.rotation import euler_from_matrix
@@ -335,9 +369,8 @@ def _run(args, mech, params_path) -> int:
         counts = {r: int(np.sum(result.reason == r)) for r in ('ok', 'stroke', 'singular',
                                                                'max_force')}
         reach = result.points[result.reachable]
-        print('grid of %d points (step %g m): reachable %d, outside the stroke %d, near a '
-              'singularity %d, beyond max_force %d'
-              % (len(result.points), step, counts['ok'], counts['stroke'],
+        print('reachable %d, outside the stroke %d, near a singularity %d, beyond '
+              'max_force %d' % (counts['ok'], counts['stroke'],
                  counts['singular'], counts['max_force']))
         if len(reach):
             print('reachable: x %.3f..%.3f m, y %.3f..%.3f m, z %.3f..%.3f m; condition '
@@ -385,6 +418,7 @@ def _run(args, mech, params_path) -> int:
     return 0
 
 
+@quiet_on_closed_pipe
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if args.max_condition is not None and not args.max_condition > 1:

@@ -39,8 +39,10 @@ class Animator:
         self.t, pose = self.t[ok], pose[ok]
         self.position = pose[:, :3]
         self.rot = [rotation_from_euler(th) for th in pose[:, 3:]]
+        # A sensor dropout leaves NaN lengths: drawn as gaps in the panel, and
+        # the leg at its pose's length in 3D (never a whole panel lost).
         lengths = np.column_stack([columns['L%d' % i] for i in range(1, 7)])[ok]
-        self.lengths = lengths if np.all(np.isfinite(lengths)) else None
+        self.lengths = lengths if np.isfinite(lengths).any() else None
         forces = np.column_stack([columns['F%d' % i] for i in range(1, 7)])[ok]
         self.forces = forces
         self.title = title
@@ -74,8 +76,11 @@ class Animator:
         if self.lengths is not None:
             for i in range(6):
                 axL.plot(self.t, self.lengths[:, i], label='$L_%d$' % (i + 1))
-        axL.axhline(mech.leg_length_min, color='0.6', ls=':', lw=0.8)
+        axL.axhline(mech.leg_length_min, color='0.6', ls=':', lw=0.8,
+                    label='stroke' if self.lengths is None else None)
         axL.axhline(mech.leg_length_max, color='0.6', ls=':', lw=0.8)
+        if self.t[-1] > self.t[0]:
+            axL.set_xlim(self.t[0], self.t[-1])
         axL.set_xlabel('time [s]')
         axL.set_ylabel('leg length [m]')
         axL.grid(True, alpha=0.3)
@@ -91,6 +96,10 @@ class Animator:
         """Move every artist to time ``t``; returns them."""
         k = self.index(t)
         lengths = None if self.lengths is None else self.lengths[k]
+        if lengths is not None and not np.all(np.isfinite(lengths)):
+            base, _, tip = self.scene.legs(self.position[k], self.rot[k])
+            lengths = np.where(np.isfinite(lengths), lengths,
+                               np.linalg.norm(tip - base, axis=1))     # the pose's own
         forces = self.forces[k] if np.all(np.isfinite(self.forces[k])) else None
         shapes = {(s.ns, s.id): s for s in self.scene.shapes(
             self.position[k], self.rot[k], lengths, forces)}

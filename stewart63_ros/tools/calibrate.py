@@ -36,6 +36,7 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 import numpy as np  # noqa: E402
 
 from stewart63_ros.core.params import ParameterError, default_params_path  # noqa: E402
+from stewart63_ros.tools.cli import quiet_on_closed_pipe  # noqa: E402
 
 PROG = 'calibrate'
 MEASUREMENT_COLUMNS = ('x', 'y', 'z', 'qx', 'qy', 'qz', 'qw', 'L1', 'L2', 'L3', 'L4', 'L5', 'L6')
@@ -412,6 +413,7 @@ def option_problem(args) -> str:
     return ''
 
 
+@quiet_on_closed_pipe
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     problem = option_problem(args)

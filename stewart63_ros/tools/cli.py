@@ -1,15 +1,13 @@
-"""What the command lines share: loading a parameter file, naming its unknown keys."""
+"""What the command lines share: loading a parameter file, naming its unknown keys,
+ending quietly when the reader of the output goes away."""
 from __future__ import annotations
 
 import sys
 
-from stewart63_ros.core.params import (
-    ParameterError,
-    default_params_path,
-    file_parameters,
-    load_mechanism,
-    unknown_keys,
-)
+from stewart63_ros.exits import CLOSED_PIPE_STATUS, quiet_on_closed_pipe  # noqa: F401 - for the tools
+
+# Nothing heavy at import: every executable, the nodes and `record` (whose stop
+# handlers come before rclpy loads) import this module first.
 
 STRICT_HELP = ('refuse (exit 2) a parameter file with a key no executable reads, instead '
                'of a warning')
@@ -19,6 +17,13 @@ def load_checked(prog: str, path=None, node_name=None, strict=False):
     """The validated mechanism of ``path`` (default: the packaged file), or
     None after a one-line error on stderr (the caller exits 2). Every key no
     executable reads is named first: a warning, an error with ``strict``."""
+    from stewart63_ros.core.params import (
+        ParameterError,
+        default_params_path,
+        file_parameters,
+        load_mechanism,
+        unknown_keys,
+    )
     path = str(path or default_params_path())
     try:
         problems = unknown_keys(file_parameters(path))
@@ -37,6 +42,17 @@ def load_checked(prog: str, path=None, node_name=None, strict=False):
               file=sys.stderr)
         return None
     return mech
+
+
+def add_control_options(parser) -> None:
+    """``--control continuous|sampled`` and ``--rate HZ``, as `sim` and `sweep` take them."""
+    parser.add_argument('--control', choices=('continuous', 'sampled'), default=None,
+                        help='PD inside the ODE (RK45, as the paper) or sampled and held, as '
+                        'the rig (default: continuous; sampled with faults)')
+    parser.add_argument('--rate', type=float, default=None,
+                        help="sample rate [Hz]: the control rate when sampled (default: the "
+                        "plant's sensor_rate), the output rate when continuous (default "
+                        "100, the paper's h)")
 
 
 def announce_compile(prog: str, who: str = '') -> None:

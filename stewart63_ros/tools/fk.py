@@ -10,7 +10,10 @@ from __future__ import annotations
 
 import sys
 
+from stewart63_ros.tools.cli import quiet_on_closed_pipe
 
+
+@quiet_on_closed_pipe
 def main(argv=None):
     """Run the solver when ``--solve`` is among the arguments, else the node.
 

@@ -30,6 +30,7 @@ from stewart63_ros.bagio import (
 )
 from stewart63_ros.nodes.launcher import StopSignals
 from stewart63_ros.nodes.ros_args import rclpy_args, split_ros_args
+from stewart63_ros.tools.cli import quiet_on_closed_pipe
 
 
 def _rebase(topic: str, rec_ns: str, namespace: str | None) -> str:
@@ -300,6 +301,7 @@ def _parser():
     return p
 
 
+@quiet_on_closed_pipe
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     argv, ros = split_ros_args(argv)

@@ -1,7 +1,7 @@
 """`plot`: the paper's Fig. 4 (leg lengths, position, orientation against time).
 
-    plot SOURCE [--out FILE.png] [--reference CSV] [--params FILE] [--title TEXT]
-    plot --animate SOURCE [--out FILE.gif|FILE.mp4] [--fps N] [--params FILE]
+    plot SOURCE [--out FILE.png] [--reference CSV] [--params FILE] [--title TEXT] [--run N]
+    plot --animate SOURCE [--out FILE.gif|FILE.mp4] [--fps N] [--params FILE] [--run N]
 
 SOURCE is a trajectory CSV, a folder holding one (``sim --out DIR``), or a
 rosbag2 directory recorded from the rig (docs/interface.md: "Trajectory CSV",
@@ -13,7 +13,10 @@ dashed against the actual motion and a fourth panel shows the error.
 ``--animate`` writes an animation of the run instead: the platform in 3D
 beside the leg lengths (tools/animate.py). Faulted intervals are shaded: from
 ``faults.json`` beside a trajectory (``sim --fault``) or from the plant's
-statuses on a bag's /diagnostics (docs/faults.md).
+statuses on a bag's /diagnostics (docs/faults.md). A bag that spans a reset
+holds several runs (``bagio.bag_runs``): each is drawn on its own, the last
+to --out (figure.png), each earlier run N beside it (figure_runN.png);
+``--run N`` draws only run N.
 """
 from __future__ import annotations
 
@@ -22,6 +25,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
+from stewart63_ros.tools.cli import quiet_on_closed_pipe
 
 #: Line styles of the six legs: legs with equal lengths (1 and 2, 3 to 6 in
 #: the paper's scenario) stay told apart where their curves lie on each other.
@@ -115,28 +120,37 @@ def _shade_faults(axes, faults, t) -> None:
                        label='fault %s' % fault['fault'] if i == 0 else None)
 
 
-def load_faults(source) -> list | None:
+def is_bag(source) -> bool:
+    """A rosbag2 directory (not ``sim``'s output folder)."""
+    source = Path(source)
+    return source.is_dir() and (source / 'metadata.yaml').exists()
+
+
+def load_faults(source, run=None) -> list | None:
     """The faults of a run: ``faults.json`` beside a trajectory (``sim``), or
     the last state of each ``fault: <fault>`` value of the plant's statuses in
-    a bag's /diagnostics (of its last run). None when the source has none."""
+    a bag's /diagnostics during ``run`` (a ``bagio.BagRun``; default the bag's
+    last run). None when the source has none."""
     import json
     source = Path(source)
-    is_bag = source.is_dir() and (source / 'metadata.yaml').exists()
-    if not is_bag:
+    if not is_bag(source):
         path = (source if source.is_dir() else source.parent) / 'faults.json'
         return json.loads(path.read_text()) if path.is_file() else None
     from stewart63_ros import bagio
     from stewart63_ros.core.faults import interval_from_status
+    if run is None:
+        runs = bagio.bag_runs(source)
+        run = runs[-1] if runs else None
     found: dict = {}
-    run = None
+    number = None if run is None or run.number is None else str(run.number)
     try:
-        for _, _, msg in bagio.read_messages(source, ['/diagnostics']):
+        for _, _, msg in bagio.read_messages(source, ['/diagnostics'], run=run):
             for status in msg.status:
                 if not status.name.endswith('/plant'):
                     continue
                 values = {kv.key: kv.value for kv in status.values}
-                if values.get('run_number') != run:      # a reset: the last run's faults
-                    run, found = values.get('run_number'), {}
+                if number is not None and values.get('run_number') != number:
+                    continue        # the next run announced, a quiet second before it
                 for key, text in values.items():
                     if key.startswith('fault: '):
                         found[key[len('fault: '):]] = text
@@ -151,30 +165,60 @@ def load_faults(source) -> list | None:
     return faults or None
 
 
-def load_columns(source) -> dict:
-    """Trajectory columns from a CSV file, a bag directory, or a folder that
-    holds a ``trajectory.csv`` (what ``sim --out DIR`` writes)."""
+def load_columns(source, run=None) -> dict:
+    """Trajectory columns from a CSV file, a bag directory (of ``run``, a
+    ``bagio.BagRun``; default its last run), or a folder that holds a
+    ``trajectory.csv`` (what ``sim --out DIR`` writes)."""
     source = Path(source)
     if source.is_dir():
         if (source / 'trajectory.csv').is_file() and not (source / 'metadata.yaml').exists():
             source = source / 'trajectory.csv'
         else:
             from stewart63_ros.bagio import trajectory_from_bag
-            return trajectory_from_bag(source)
+            return trajectory_from_bag(source, run=run)
     from stewart63_ros.core.trajectory import read_csv
     return read_csv(source)
 
 
-def run_title(source: Path, columns: dict) -> str:
-    """What the figure shows: the run's folder (or file) and its length."""
+def source_runs(source, number=None) -> list:
+    """The runs to draw of a source: [None] for a trajectory; for a bag, each
+    run it holds (``bagio.bag_runs``: a reset starts a new one), or only run
+    ``number`` (``--run``). Raises BagError for a run the bag does not hold."""
+    if not is_bag(source):
+        if number is not None:
+            from stewart63_ros.bagio import BagError
+            raise BagError('--run is for a bag; %s is a trajectory of one run' % source)
+        return [None]
+    from stewart63_ros import bagio
+    runs = bagio.bag_runs(source)
+    if number is not None or not runs:
+        return [bagio.select_run(runs, number)]
+    return runs
+
+
+def run_output(out: Path, run, runs: list) -> Path:
+    """Where a run's figure goes: ``out`` for the last run drawn (the run the
+    plant's summary reports), ``<stem>_<run label><suffix>`` beside it for each
+    earlier run of a bag that spans a reset."""
+    if run is None or run is runs[-1]:
+        return out
+    return out.with_name('%s_%s%s' % (out.stem, run.label, out.suffix))
+
+
+def run_title(source: Path, columns: dict, run=None) -> str:
+    """What the figure shows: the run's folder (or file), which run of a bag
+    that holds several, and its length."""
     t = columns['t']
     finite = t[np.isfinite(t)]
     span = float(finite[-1] - finite[0]) if finite.size else 0.0
     source = Path(source)
     kind = 'bag' if source.is_dir() and not (source / 'trajectory.csv').is_file() else 'trajectory'
+    if run is not None and run.count > 1:
+        kind += ', %s, %d of %d in the bag' % (run.name, run.index, run.count)
     return '%s (%s, %.3g s, %d samples)' % (source, kind, span, len(t))
 
 
+@quiet_on_closed_pipe
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='plot', description=__doc__.split('\n\n')[0])
     parser.add_argument('source', help="trajectory CSV, rosbag2 directory, or sim's --out folder")
@@ -192,6 +236,10 @@ def main(argv=None) -> int:
     parser.add_argument('--fps', type=float, default=15.0,
                         help='--animate: frames per second (default 15; a run longer than '
                         '300 frames plays faster)')
+    parser.add_argument('--run', type=int, default=None, metavar='N',
+                        help='a bag that spans a reset: draw only its run N (default: every '
+                        'run, the last to --out, each earlier one beside it as '
+                        '<name>_runN.png)')
     args = parser.parse_args(argv)
     source = Path(args.source)
     if not source.exists():
@@ -205,8 +253,8 @@ def main(argv=None) -> int:
     ref_path = Path(args.reference) if args.reference else (
         source / 'reference.csv' if source.is_dir() else source.with_name('reference.csv'))
     try:
-        columns = load_columns(source)
-        faults = load_faults(source)
+        runs = source_runs(source, args.run)
+        drawn = [(run, load_columns(source, run), load_faults(source, run)) for run in runs]
         if args.reference or ref_path.is_file():
             from stewart63_ros.core.reference import CSV_COLUMNS, read_reference_csv
             times, poses = read_reference_csv(ref_path)
@@ -214,8 +262,9 @@ def main(argv=None) -> int:
     except (ValueError, OSError, BagError) as exc:  # TrajectoryError, BagError, ReferenceError
         text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         parser.exit(2, 'plot: error: %s\n' % text)
-    if len(columns['t']) == 0 or not np.all(np.isfinite(columns['t'])):
-        parser.exit(2, 'plot: error: %s holds no samples\n' % source)
+    for _, columns, _ in drawn:
+        if len(columns['t']) == 0 or not np.all(np.isfinite(columns['t'])):
+            parser.exit(2, 'plot: error: %s holds no samples\n' % source)
     from stewart63_ros.tools.cli import load_checked
     mech = load_checked('plot', args.params, node_name='controller')
     if mech is None:
@@ -223,12 +272,17 @@ def main(argv=None) -> int:
     setpoint = mech.setpoint_lengths
     out = Path(args.out) if args.out else (
         source / 'figure.png' if source.is_dir() else source.with_name('figure.png'))
-    if reference is not None and len(columns['t']):
-        # a bag's times are stamps: the reference's time 0 is the first sample
-        reference = dict(reference, t=reference['t'] + columns['t'][0])
-    draw_figure(columns, out, title=args.title or run_title(source, columns),
-                reference=reference, setpoint=setpoint, faults=faults)
-    print(out)
+    for run, columns, faults in drawn:
+        # a bag's times are stamps: the reference's time 0 is the run's first sample
+        # (the controller starts it again on a reset)
+        moved = None if reference is None else dict(reference,
+                                                     t=reference['t'] + columns['t'][0])
+        path = run_output(out, run, runs)
+        title = run_title(source, columns, run)
+        draw_figure(columns, path, title=title if not args.title else
+                    args.title + ('' if len(drawn) == 1 else ' (%s)' % run.name),
+                    reference=moved, setpoint=setpoint, faults=faults)
+        print(path if len(drawn) == 1 else '%s (%s)' % (path, title))
     return 0
 
 
@@ -246,14 +300,20 @@ def animate_main(parser, args, source) -> int:
     if mech is None:
         return 2
     try:
-        columns = load_columns(source)
-        if len(columns['t']) == 0:
-            raise ValueError('%s holds no samples' % source)
-        path, frames, speed = Animator(columns, mech, title=source.name).save(out, args.fps)
+        runs = source_runs(source, args.run)
+        for run in runs:
+            columns = load_columns(source, run)
+            if len(columns['t']) == 0:
+                raise ValueError('%s holds no samples' % source)
+            title = source.name if run is None or run.count == 1 else '%s, %s (%d of %d)' % (
+                source.name, run.name, run.index, run.count)
+            path, frames, speed = Animator(columns, mech, title=title).save(
+                run_output(out, run, runs), args.fps)
+            print('%s (%d frames at %g fps%s%s)' % (
+                path, frames, args.fps, ', %.1fx real time' % speed if speed > 1 else '',
+                '' if run is None or run.count == 1 else ', %s of the bag' % run.name))
     except (ValueError, OSError, BagError) as exc:  # TrajectoryError, no poses, no ffmpeg
         parser.exit(2, 'plot: error: %s\n' % exc)
-    print('%s (%d frames at %g fps%s)' % (path, frames, args.fps,
-                                          ', %.1fx real time' % speed if speed > 1 else ''))
     return 0
 
 

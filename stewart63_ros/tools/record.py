@@ -26,6 +26,7 @@ from stewart63_ros.nodes.launcher import (
     ignore_stop_signals,
 )
 from stewart63_ros.nodes.ros_args import rclpy_args, split_ros_args
+from stewart63_ros.tools.cli import quiet_on_closed_pipe
 
 
 # ---------------------------------------------------------------- command line
@@ -79,6 +80,7 @@ def _write_ready_file(path, text):
     os.replace(tmp, path)
 
 
+@quiet_on_closed_pipe
 def main(argv=None) -> int:
     made = []                   # the Recorder, once made
     stop = threading.Event()

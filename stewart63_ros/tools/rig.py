@@ -40,6 +40,7 @@ from pathlib import Path
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.core.node_names import NODES
 from stewart63_ros.paths import RIG_CLOCK_MODE, default_params_path
+from stewart63_ros.tools.cli import quiet_on_closed_pipe
 
 #: Bound on the nodes' start-up until the recorder has matched them [s]. It
 #: includes loading the numba kernels, which a fresh install (or a changed
@@ -322,6 +323,7 @@ class _DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
+@quiet_on_closed_pipe
 def main(argv=None) -> int:
     from stewart63_ros.nodes.launcher import StopSignals, dump_stacks_on_sigusr1
     # The first SIGINT or SIGTERM stops the rig (KeyboardInterrupt wherever it

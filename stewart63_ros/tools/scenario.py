@@ -37,6 +37,8 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+from stewart63_ros.tools.cli import quiet_on_closed_pipe
+
 PROG = 'scenario'
 #: Bound on a rig's start-up (loading or compiling the kernels, discovery) [s].
 RIG_START_BOUND = 240.0
@@ -481,6 +483,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@quiet_on_closed_pipe
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from stewart63_ros.core.scenario import ScenarioError

@@ -43,7 +43,13 @@ from stewart63_ros.core.reference import (
 )
 from stewart63_ros.core.simulate import run_continuous, run_sampled
 from stewart63_ros.core.trajectory import COLUMNS, write_csv
-from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked
+from stewart63_ros.tools.cli import (
+    STRICT_HELP,
+    add_control_options,
+    announce_compile,
+    load_checked,
+    quiet_on_closed_pipe,
+)
 from stewart63_ros.tools.plot import draw_figure
 
 
@@ -114,19 +120,14 @@ def make_controller(params_path, law=None, reference_csv=None):
     return Controller(mech, params, law=law, reference=reference), reference
 
 
+@quiet_on_closed_pipe
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='sim', description=__doc__.split('\n\n')[0])
     parser.add_argument('--params', default=None,
                         help='ROS 2 parameter file (default: the packaged config/stewart63.yaml)')
     parser.add_argument('--duration', type=float, default=10.0, help='simulated time [s] (10)')
     parser.add_argument('--out', required=True, help='output directory')
-    parser.add_argument('--control', choices=('continuous', 'sampled'), default=None,
-                        help='PD inside the ODE (RK45, as the paper) or sampled and held '
-                        '(default: continuous; sampled with faults)')
-    parser.add_argument('--rate', type=float, default=None,
-                        help='sample rate [Hz]: control rate for sampled (default: the '
-                        "plant's sensor_rate), CSV rate for continuous (default 100, "
-                        "the paper's h)")
+    add_control_options(parser)
     parser.add_argument('--control-law', default=None, metavar='NAME',
                         help='pd (eq. 40), pd_gravity, computed_torque or package.module:Class '
                         "(default: the controller's control_law in the parameter file, else pd)")

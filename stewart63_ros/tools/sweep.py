@@ -1,18 +1,23 @@
 """`sweep`: N runs of the `sim` scenario with parameters drawn from ranges, in parallel.
 
-    sweep --runs N [--vary KEY=LO:HI]... [--grid] [--seed S] [--control-law NAME]
+    sweep --runs N [--vary KEY=LO:HI]... [--fault PATTERN]... [--grid] [--seed S]
+          [--control continuous|sampled] [--rate HZ] [--control-law NAME]
           [--duration T] [--params F] [--out DIR] [--workers W]
           [--scheduler ADDRESS | --dask-local W]
 
-Each run is `sim`'s continuous-control run of the parameter file with the
-varied keys set (a scalar ``KEY`` or one list element ``KEY[i]`` as written
-in the file), drawn uniformly from [LO, HI] (``--seed``) or, with ``--grid``,
-on an evenly spaced grid. Writes DIR/runs.csv (one row per run),
-DIR/summary.json (percentiles per column) and DIR/sweep.png; prints the
-percentiles and the wall time of the runs. Local processes by default, or a
-Dask cluster (docs/analysis.md). Bad input (an unknown key, a range a
-parameter's validation refuses, --runs 0): one line on stderr, exit status 2.
-A run that diverges or whose law raises is marked in ``diverged``, not fatal.
+Each run is `sim`'s run of the parameter file with the varied keys set (a
+scalar ``KEY`` or one list element ``KEY[i]`` as written in the file, of the
+keys the runs read), drawn uniformly from [LO, HI] (``--seed``) or, with
+``--grid``, on an evenly spaced grid; and with the faults of ``--fault``
+(sim's fault syntax, any number drawn per run: ``U(lo,hi)``, ``{a..b}``,
+``{a,b,c}``; e.g. ``actuator_dead:leg_{1..6}@U(1,5)``), under sampled control
+as `sim` runs faults. Writes DIR/runs.csv (one row per run; varied keys as
+``param.KEY``), DIR/summary.json (percentiles per column) and DIR/sweep.png;
+prints the percentiles and the wall time of the runs. Local processes by
+default, or a Dask cluster (docs/analysis.md). Bad input (an unknown key, a
+key the runs do not read, a range a parameter's validation refuses, --runs
+0): one line on stderr, exit status 2. A run that diverges or whose law
+raises is marked in ``diverged``, not fatal.
 """
 from __future__ import annotations
 
@@ -26,7 +31,13 @@ from pathlib import Path
 import numpy as np
 
 from stewart63_ros.core.params import ParameterError, default_params_path
-from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked
+from stewart63_ros.tools.cli import (
+    STRICT_HELP,
+    add_control_options,
+    announce_compile,
+    load_checked,
+    quiet_on_closed_pipe,
+)
 
 PROG = 'sweep'
 
@@ -42,9 +53,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--vary', action='append', default=[], metavar='KEY=LO:HI',
                         help='a parameter to vary over [LO, HI]: a scalar key or one list '
                         'element KEY[i] (repeatable)')
+    parser.add_argument('--fault', action='append', default=[], metavar='PATTERN',
+                        help="a fault in every run, sim's KIND:LEG[:VALUE][@T0[-T1]] where "
+                        'any number may be drawn per run: U(lo,hi), {a..b}, {a,b,c}; e.g. '
+                        "'actuator_dead:leg_{1..6}@U(1,5)' (repeatable; sampled control)")
+    add_control_options(parser)
     parser.add_argument('--grid', action='store_true',
-                        help='an even grid instead of uniform draws: round(N^(1/K)) values '
-                        'per key, every combination')
+                        help='an even grid instead of uniform draws: every choice of a '
+                        '{...} and round((N/choices)^(1/K)) values of each other range, '
+                        'every combination')
     parser.add_argument('--seed', type=int, default=None,
                         help='seed of the uniform draws (default: fresh entropy; printed)')
     parser.add_argument('--control-law', default=None, metavar='NAME',
@@ -92,7 +109,7 @@ def draw_sweep(plan, rows, path: Path, title: str) -> Path:
     failed = [r for r in rows if r['diverged']]
     metrics = (('final_error_percent', 'final leg error [%]'), ('max_force', 'largest |F| [N]'),
                ('settling_time_s', '2 % settling time [s]'))
-    keys = [v.key for v in plan.variations]
+    keys = [a.column for a in plan.axes]
     cols = 3
     nrows = 1 + math.ceil(len(keys) / cols)
     fig, axes = plt.subplots(nrows, cols, figsize=(13, 3.6 * nrows), squeeze=False)
@@ -125,6 +142,7 @@ def draw_sweep(plan, rows, path: Path, title: str) -> Path:
     return path
 
 
+@quiet_on_closed_pipe
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from stewart63_ros.core import sweep
@@ -136,31 +154,39 @@ def main(argv=None) -> int:
         return _fail('--workers must be at least 1, got %d' % args.workers)
     if args.dask_local is not None and args.dask_local < 1:
         return _fail('--dask-local must be at least 1 worker, got %d' % args.dask_local)
-    params_path = args.params or default_params_path()
-    if load_checked(PROG, params_path, node_name='plant', strict=args.strict) is None:
-        return 2
-    try:
-        variations = [sweep.parse_vary(text) for text in args.vary]
-        plan = sweep.make_plan(params_path, variations, args.control_law, args.duration)
-    except (sweep.SweepError, ParameterError) as exc:
-        return _fail(exc)
-    seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % 2**32)
-    values = sweep.draw_values(plan.variations, args.runs, seed, args.grid)
-    if args.grid and len(values) != args.runs:
-        print('%s: note: a grid of %d values per key gives %d runs' % (
-            PROG, round(len(values) ** (1 / max(1, len(variations)))), len(values)),
-            file=sys.stderr)
-
-    announce_compile(PROG)
     if args.scheduler or args.dask_local:
         try:
             import distributed  # noqa: F401
         except ImportError:
             return _fail('--scheduler and --dask-local need Dask: pip install dask distributed')
+    params_path = args.params or default_params_path()
+    if load_checked(PROG, params_path, node_name='plant', strict=args.strict) is None:
+        return 2
+    try:
+        if args.scheduler:
+            sweep.check_scheduler_address(args.scheduler)
+        variations = [sweep.parse_vary(text) for text in args.vary]
+        patterns = [sweep.parse_fault_pattern(text, n + 1) for n, text in enumerate(args.fault)]
+        plan = sweep.make_plan(params_path, variations, args.control_law, args.duration,
+                               patterns, args.control, args.rate)
+    except (sweep.SweepError, ParameterError) as exc:
+        return _fail(exc)
+    seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % 2**32)
+    values = sweep.draw_values(plan.axes, args.runs, seed, args.grid)
+    if args.grid and len(values) != args.runs:
+        print('%s: note: the grid gives %d runs (%s values per axis)' % (
+            PROG, len(values), ' x '.join(str(len(np.unique(values[:, j])))
+                                          for j in range(values.shape[1])) or 'no'),
+            file=sys.stderr)
+
+    announce_compile(PROG)
     try:
         outcome = sweep.run_sweep(plan, values, args.workers, args.scheduler, args.dask_local)
     except OSError as exc:          # a scheduler that cannot be reached
         return _fail('Dask scheduler %s: %s' % (args.scheduler, exc))
+    except sweep.SweepError as exc:  # the cluster lost runs
+        print('%s: error: %s' % (PROG, exc), file=sys.stderr)
+        return 1
     rows = outcome['rows']
     wall = outcome['wall_time_s']
 
@@ -170,19 +196,25 @@ def main(argv=None) -> int:
     write_runs(out / 'runs.csv', names, rows)
     stats = sweep.summary(plan, rows)
     doc = {'runs': len(rows), 'diverged_runs': stats['diverged']['count'],
-           'control_law': plan.law, 'duration_s': plan.duration,
-           'output_rate_hz': plan.output_rate, 'seed': None if args.grid else seed,
+           'control_law': plan.law, 'duration_s': plan.duration, 'control': plan.control,
+           'output_rate_hz': plan.output_rate if plan.control == 'continuous' else None,
+           'control_rate_hz': plan.rate if plan.control == 'sampled' else None,
+           'seed': None if args.grid else seed,
            'grid': bool(args.grid), 'params': str(params_path),
-           'varied': {v.key: [v.low, v.high] for v in plan.variations},
+           'varied': {v.column: [v.low, v.high] for v in plan.variations},
+           'faults': [p.text for p in plan.faults],
            'engine': outcome['engine'], 'workers': outcome['workers'],
+           'workers_at_start': outcome['workers_at_start'],
+           'workers_lost': outcome['workers_lost'],
            'wall_time_s': round(wall, 4), 'columns': stats}
     (out / 'summary.json').write_text(json.dumps(doc, indent=1) + '\n')
     if not args.no_figure:
         draw_sweep(plan, rows, out / 'sweep.png',
-                   'sweep: %d runs of %g s, %s law, %s' % (
-                       len(rows), plan.duration, plan.law,
-                       ', '.join('%s in [%g, %g]' % (v.key, v.low, v.high)
-                                 for v in plan.variations) or 'nothing varied'))
+                   'sweep: %d runs of %g s, %s law, %s control, %s' % (
+                       len(rows), plan.duration, plan.law, plan.control,
+                       ', '.join(['%s in [%g, %g]' % (v.key, v.low, v.high)
+                                  for v in plan.variations]
+                                 + [p.text for p in plan.faults]) or 'nothing varied'))
 
     print('%-22s %10s %10s %10s %10s %10s' % ('column', 'p5', 'p50', 'p95', 'max', 'count'))
     for key, st in stats.items():
@@ -195,9 +227,12 @@ def main(argv=None) -> int:
         else:
             print('%-22s %10s %10s %10s %10s %10d' % (key, '-', '-', '-', '-', 0))
     print('diverged runs          %d' % stats['diverged']['count'])
-    print('%s: %d runs in %.2f s wall (%s, %d worker%s, %.0f runs/s); seed %s'
+    lost = outcome['workers_lost']
+    print('%s: %d runs in %.2f s wall (%s, %d worker%s%s, %.0f runs/s); seed %s'
           % (PROG, len(rows), wall, outcome['engine'], outcome['workers'],
              '' if outcome['workers'] == 1 else 's',
+             '; %d of the %d at the start lost mid-sweep, their runs done again'
+             % (lost, outcome['workers_at_start']) if lost else '',
              len(rows) / wall if wall > 0 else float('inf'),
              'none (grid)' if args.grid else seed))
     print('written: %s, %s%s' % (out / 'runs.csv', out / 'summary.json',

@@ -1,6 +1,6 @@
 """view: the platform in 3D in a web browser, live from a rig or from a bag.
 
-    view [--port P] [--host H] [--namespace NS] [--params FILE] [BAG]
+    view [--port P] [--host H] [--namespace NS] [--params FILE] [BAG [--run N]]
 
 Serves ``http://localhost:P/`` (default port 8080) with viser: a page the
 package serves itself, no network needed. The scene is the one of the
@@ -19,7 +19,8 @@ and keeps waiting.
 
 With BAG: the recorded run, with play/pause and a time slider (poses from
 ``ground_truth/pose`` or else ``platform_pose``; the ghost from the bag's
-``markers`` or setpoints).
+``markers`` or setpoints). A bag that spans a reset holds several runs: the
+last is replayed, ``--run N`` replays run N; the page names the others.
 """
 from __future__ import annotations
 
@@ -35,6 +36,7 @@ import numpy as np
 from stewart63_ros.core import markers as shapes_mod
 from stewart63_ros.core.params import LEG_NAMES
 from stewart63_ros.core.rotation import quaternion_from_rotation, rotation_from_quaternion
+from stewart63_ros.tools.cli import quiet_on_closed_pipe
 
 #: Browser update rate [Hz]: viser pushes every change over a websocket; at
 #: 1 kHz the page stops following, at 30 Hz it follows (measured).
@@ -351,12 +353,17 @@ def run_lines(values: dict) -> list:
 
 # ------------------------------------------------------------------ bag
 class BagRun:
-    """A recorded run: poses, lengths, forces and the ghost against time."""
+    """A recorded run: poses, lengths, forces and the ghost against time. A bag
+    that spans a reset holds several runs (``bagio.bag_runs``): one of them,
+    ``number`` (``--run``; default the last), never several joined."""
 
-    def __init__(self, bag, mech):
+    def __init__(self, bag, mech, number=None):
         from stewart63_ros import bagio
         from stewart63_ros.core.rotation import rotation_from_euler
-        cols = bagio.trajectory_from_bag(bag, hold_forces=True)
+        runs = bagio.bag_runs(bag)
+        self.run = bagio.select_run(runs, number) if runs else None
+        self.others = [r for r in runs if r is not self.run]
+        cols = bagio.trajectory_from_bag(bag, hold_forces=True, run=self.run)
         t = cols['t']
         have = np.all(np.isfinite(np.column_stack([cols[c] for c in (
             'x', 'y', 'z', 'theta_x', 'theta_y', 'theta_z')])), axis=1) if len(t) else \
@@ -388,7 +395,7 @@ class BagRun:
         t0 = None
         times, poses = [], []
         try:
-            for _, _, msg in bagio.read_messages(bag, ['markers']):
+            for _, _, msg in bagio.read_messages(bag, ['markers'], run=self.run):
                 for m in msg.markers:
                     if m.ns == 'ghost' and m.color.a > 0 and len(m.points) >= 3:
                         verts = np.array([[p.x, p.y, p.z] for p in m.points[:3]])
@@ -399,7 +406,7 @@ class BagRun:
             pass
         if times:
             # same clock as the samples: the trajectory's t is stamp - first stamp
-            first = self._first_stamp(bag)
+            first = self._first_stamp(bag, self.run)
             t0 = first if first is not None else times[0]
             return np.array(times) - t0, poses
         fk = ForwardKinematics(mech)
@@ -410,11 +417,11 @@ class BagRun:
             return np.array([0.0]), [None]
 
     @staticmethod
-    def _first_stamp(bag):
+    def _first_stamp(bag, run=None):
         from stewart63_ros import bagio
         for topic in ('leg_lengths', 'ground_truth/pose', 'platform_pose'):
             try:
-                for _, _, msg in bagio.read_messages(bag, [topic]):
+                for _, _, msg in bagio.read_messages(bag, [topic], run=run):
                     return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
             except bagio.BagError:
                 continue
@@ -422,6 +429,15 @@ class BagRun:
 
     def index(self, t: float) -> int:
         return int(np.clip(np.searchsorted(self.t, t, side='right') - 1, 0, len(self.t) - 1))
+
+    def describe(self) -> str:
+        """Which run of the bag this is, and how to see the others ('' for a bag of one)."""
+        if self.run is None or not self.others:
+            return ''
+        return '%s of the bag (%d of %d; the others: %s)' % (
+            self.run.name, self.run.index, self.run.count,
+            ', '.join('--run %d' % (r.number if r.number is not None else r.index)
+                      for r in self.others))
 
     def ghost_at(self, t: float):
         k = int(np.searchsorted(self.ghost_t, t, side='right') - 1)
@@ -588,13 +604,15 @@ def run_bag(server, mech, bag_run: BagRun, stop):
                         bag_run.forces[k])
             view.set_ghost(bag_run.ghost_at(bag_run.t[k]))
             f = bag_run.forces[k]
-            info.content = ('t = %.3f s of %.3f s\n\nplatform z %.4f m\n\nforces [N]: %s'
-                            % (bag_run.t[k], end, bag_run.position[k][2],
+            info.content = ('%st = %.3f s of %.3f s\n\nplatform z %.4f m\n\nforces [N]: %s'
+                            % ('%s\n\n' % bag_run.describe() if bag_run.describe() else '',
+                               bag_run.t[k], end, bag_run.position[k][2],
                                ', '.join('%.0f' % v for v in f) if np.all(np.isfinite(f))
                                else 'not recorded'))
         stop.wait(max(0.0, period - (time.monotonic() - now)))
 
 
+@quiet_on_closed_pipe
 def main(argv=None) -> int:
     from stewart63_ros.nodes.launcher import StopSignals, dump_stacks_on_sigusr1
     dump_stacks_on_sigusr1()
@@ -612,12 +630,17 @@ def main(argv=None) -> int:
     parser.add_argument('--namespace', default='', help='namespace of the rig, e.g. /rig2')
     parser.add_argument('--params', help='parameter file of the mechanism (default: the '
                         'packaged one)')
+    parser.add_argument('--run', type=int, default=None, metavar='N',
+                        help='a bag that spans a reset: replay its run N (default: the last)')
     args = parser.parse_args(argv)
     if not 0 <= args.port <= 65535:
         print('view: error: --port must be from 0 to 65535', file=sys.stderr)
         return 2
     if args.bag and args.namespace:
         print('view: error: --namespace is for a live rig, not with a BAG', file=sys.stderr)
+        return 2
+    if args.run is not None and not args.bag:
+        print('view: error: --run goes with a BAG', file=sys.stderr)
         return 2
     from stewart63_ros.tools.cli import load_checked
     mech = load_checked('view', args.params)
@@ -627,7 +650,7 @@ def main(argv=None) -> int:
     if args.bag:
         from stewart63_ros.bagio import BagError
         try:
-            bag_run = BagRun(args.bag, mech)
+            bag_run = BagRun(args.bag, mech, args.run)
         except BagError as exc:
             print('view: error: %s' % exc, file=sys.stderr)
             return 2
@@ -642,7 +665,8 @@ def main(argv=None) -> int:
         return 2
     print('view: %s (%s); Ctrl-C stops' % (
         url_of(args.host, server.get_port()),
-        'bag %s' % args.bag if args.bag else 'live, namespace %s' % (args.namespace or '/')),
+        ('bag %s' % args.bag + (', %s' % bag_run.describe() if bag_run.describe() else ''))
+        if args.bag else 'live, namespace %s' % (args.namespace or '/')),
         flush=True)
     stop = threading.Event()
     StopSignals(stop.set, deadline=False, interrupt=False).install()
