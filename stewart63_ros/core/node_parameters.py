@@ -35,7 +35,7 @@ from stewart63_ros.core.faults import FaultError, parse_faults
 
 #: The nodes of the rig. 'sim' stands for the offline executables that read
 #: a node's keys (``sim``, ``analyze``, ``sweep``).
-NODES = ('plant', 'controller', 'fk')
+NODES = ('plant', 'controller', 'fk', 'supervisor')
 #: A key every node reads.
 ALL = NODES
 
@@ -162,6 +162,36 @@ def gain_vector(name: str, value: Any) -> np.ndarray:
     return arr
 
 
+def six_lengths(name: str, value: Any) -> np.ndarray:
+    """Six finite lengths [m] (offsets: any sign).
+
+    Args:
+        name: the parameter's name, for the error.
+        value: the value as given.
+
+    Returns:
+        (6,) float array.
+    """
+    try:
+        arr = np.array(value, dtype=float).ravel()
+    except (TypeError, ValueError):
+        raise ParameterError(name, 'expected 6 numbers, got %r' % (value,)) from None
+    if arr.size != 6 or not np.all(np.isfinite(arr)):
+        raise ParameterError(name, 'expected 6 finite numbers [m], got %r' % (value,))
+    return arr
+
+
+def pose_box(name: str, value: Any) -> np.ndarray | None:
+    """[] (no box) or six finite numbers: x, y, z minimum, then maximum [m]."""
+    if value is None or (isinstance(value, (list, tuple)) and len(value) == 0):
+        return None
+    arr = six_lengths(name, value)
+    if not np.all(arr[:3] < arr[3:]):
+        raise ParameterError(name, 'each minimum (x, y, z) must be below its maximum, got %s'
+                             % arr.tolist())
+    return arr
+
+
 def faults(name: str, value: Any) -> list:
     """A list of fault strings (core/faults.py), parsed."""
     try:
@@ -229,8 +259,8 @@ _NAMES_RANGE = 'list of names, relative to the plant\'s namespace unless they st
 DECLARED: tuple[Declared, ...] = (
     Declared('sensor_rate', ('plant', 'sim'), 1000.0, 'Hz', '', 'sample rate of '
              '`leg_lengths`, and the physics step (also `sim --control sampled`)', positive),
-    Declared('clock_mode', ('plant', 'controller', 'fk'), 'realtime', '', '', 'see [Clock '
-             'modes](#clock-modes-plant-parameter-clock_mode); the controller takes its '
+    Declared('clock_mode', ('plant', 'controller', 'fk', 'supervisor'), 'realtime', '', '',
+             'see [Clock modes](#clock-modes-plant-parameter-clock_mode); the controller takes its '
              'watchdog default from it, fk its lockstep progress', one_of('realtime', 'lockstep')),
     Declared('duration', ('plant',), 0.0, 's (simulated)', '', 'end the run after this '
              'long; 0: run until stopped', nonnegative),
@@ -294,7 +324,7 @@ DECLARED: tuple[Declared, ...] = (
              'motion that moves a leg faster (naming time and leg); 0: off', nonnegative),
     Declared('max_leg_acceleration', ('controller', 'sim'), 0.0, 'm/s²', '', 'refuse a '
              'reference motion that accelerates a leg more; 0: off', nonnegative),
-    Declared('reference_file', ('controller', 'plant'), '', 'path', 'a [Reference '
+    Declared('reference_file', ('controller', 'plant', 'supervisor'), '', 'path', 'a [Reference '
              'CSV](#reference-csv)', 'controller: follow it from the first sample (`rig '
              '--reference` sets it); plant: report the true tracking error in its summary',
              text, default_text='"" (none)'),
@@ -327,6 +357,53 @@ DECLARED: tuple[Declared, ...] = (
              'and normal scheduling)', integer(0, 99, '(0: normal scheduling)')),
     Declared('use_sim_time', ALL, False, '', '', 'rclpy\'s own: the node\'s clock follows '
              '`/clock` (the plant publishes it in lockstep)', boolean),
+    # -- the supervisor (core/supervisor.py, docs/supervisor.md) --
+    Declared('stroke_margin', ('supervisor',), 0.05, 'm', '≥ 0, < half the stroke', 'the '
+             'soft stroke: this far inside `leg_length_min` and `leg_length_max`; a leg '
+             'reading outside it trips (descent)', nonnegative, runtime=True),
+    Declared('trip_leg_speed', ('supervisor',), 0.5, 'm/s', '≥ 0, > `descent_speed`', 'a '
+             'leg rate reading faster trips (descent); 0: off', nonnegative, runtime=True),
+    Declared('trip_force', ('supervisor',), 0.0, 'N', '', 'a requested force above this '
+             'trips (hold); 0: the model\'s `max_force`', nonnegative, runtime=True),
+    Declared('trip_force_rate', ('supervisor',), 1.0e7, 'N/s', '', 'a requested force '
+             'changing faster from one sample to the next trips (hold); 0: off', nonnegative,
+             runtime=True),
+    Declared('trip_tracking_error', ('supervisor',), 0.05, 'm', '', 'a leg farther than this '
+             'from its reference (`reference_file`, else `setpoint_lengths`) for '
+             '`trip_tracking_time` trips (descent); 0: off', nonnegative, runtime=True),
+    Declared('trip_tracking_time', ('supervisor',), 1.0, 's (samples)', '', 'how long the '
+             'tracking error must stay over `trip_tracking_error`', nonnegative, runtime=True),
+    Declared('pose_box', ('supervisor',), [-0.3, -0.3, 0.8, 0.3, 0.3, 1.6], 'm', '[] or 6 '
+             'numbers, min < max', 'x, y, z minimum then maximum of the platform\'s position '
+             '(its forward kinematics from the readings); outside trips (descent); []: off',
+             pose_box, runtime=True),
+    Declared('trip_tilt', ('supervisor',), 0.35, 'rad', '', 'the platform\'s z axis tilted '
+             'more than this from the base\'s trips (descent); 0: off', nonnegative,
+             runtime=True),
+    Declared('stale_lengths_ms', ('supervisor',), 20.0, 'ms (samples)', '> 0', 'no valid '
+             '`leg_lengths` reading (NaN or missing) for longer trips (zero force)', positive,
+             runtime=True),
+    Declared('stale_forces_ms', ('supervisor',), 50.0, 'ms (samples)', '> 0', 'no request '
+             'from the controller for longer trips (hold)', positive, runtime=True),
+    Declared('request_timeout', ('supervisor',), 0.25, 's (wall clock)', '> 0, below the '
+             'plant\'s `force_timeout`', 'lockstep: the longest the supervisor waits for the '
+             'controller\'s request answering a sample before it answers without one',
+             positive),
+    Declared('descent_speed', ('supervisor',), 0.05, 'm/s', '> 0, < `trip_leg_speed`', 'peak '
+             'leg speed of the descent to the rest pose', positive, runtime=True),
+    Declared('rest_clearance', ('supervisor',), 0.05, 'm', '≥ 0', 'the rest pose (level, '
+             'over the initial x, y) has its shortest leg this far above the soft lower '
+             'limit', nonnegative, runtime=True),
+    Declared('trip_on_diagnostics', ('supervisor',), True, '', '', 'an ERROR on '
+             '`/diagnostics` from a node of the rig\'s namespace trips (descent)', boolean,
+             runtime=True),
+    Declared('force_stale_ms', ('plant',), 0.0, 'ms (samples)', '≥ 0', 'fail safe: a held '
+             'force older than this (in sample time: the stamp it answers) is not applied, '
+             'zero instead; 0: held for ever (`rig --supervisor` sets the supervisor\'s '
+             '`stale_forces_ms`)', nonnegative),
+    Declared('answer_every_sample', ('plant',), False, '', '', 'lockstep: wait for the answer '
+             'to a sample with a missing reading too (the supervisor answers every sample; '
+             '`rig --supervisor` sets it)', boolean),
 )
 
 BY_NAME: dict[str, Declared] = {d.name: d for d in DECLARED}
