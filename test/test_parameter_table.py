@@ -45,7 +45,8 @@ def test_the_interface_page_shows_the_declared_table():
 def test_every_declared_key_is_known_and_its_default_passes_its_check():
     for d in declared.DECLARED:
         assert d.name in known_keys()
-        assert d.nodes and set(d.nodes) <= {'plant', 'controller', 'fk', 'supervisor', 'sim'}, d.name
+        assert d.nodes and set(d.nodes) <= {'plant', 'controller', 'fk', 'supervisor',
+                                            'sim'}, d.name
         assert d.doc and d.check, d.name
         declared.read({}, d.name)                   # raises if the default is refused
     assert len(declared.BY_NAME) == len(declared.DECLARED), 'a key declared twice'
@@ -78,6 +79,7 @@ def _tunable_keys() -> set[str]:
     """The keys the nodes let change at run time: ``self.tunable('x', ...)``
     calls, and the controller's ``for name in LAW_PARAMETERS`` loop."""
     from stewart63_ros.core.laws import LAW_PARAMETERS
+    from stewart63_ros.core.supervisor import LIMIT_KEYS
     keys = set()
     for path in (REPO / 'stewart63_ros' / 'nodes').glob('*.py'):
         for node in ast.walk(ast.parse(path.read_text())):
@@ -88,6 +90,8 @@ def _tunable_keys() -> set[str]:
                     keys.add(arg.value)
                 elif isinstance(arg, ast.Name) and arg.id == 'name':
                     keys |= set(LAW_PARAMETERS)
+                elif isinstance(arg, ast.Name) and arg.id == 'limit_key':
+                    keys |= set(LIMIT_KEYS)
     return keys
 
 

@@ -257,7 +257,7 @@ DEFAULT_ENDSTOP_DAMPING = 5.0e3
 _NAMES_RANGE = 'list of names, relative to the plant\'s namespace unless they start with `/`'
 
 DECLARED: tuple[Declared, ...] = (
-    Declared('sensor_rate', ('plant', 'sim'), 1000.0, 'Hz', '', 'sample rate of '
+    Declared('sensor_rate', ('plant', 'supervisor', 'sim'), 1000.0, 'Hz', '', 'sample rate of '
              '`leg_lengths`, and the physics step (also `sim --control sampled`)', positive),
     Declared('clock_mode', ('plant', 'controller', 'fk', 'supervisor'), 'realtime', '', '',
              'see [Clock modes](#clock-modes-plant-parameter-clock_mode); the controller takes its '

@@ -256,6 +256,7 @@ class Supervisor:
         self.last_good_ns: int | None = None
         self.last_request_ns: int | None = None
         self.last_forwarded = np.zeros(6)
+        self.last_request = self.previous_request = None
         self.start_ns: int | None = None             # the reference's time 0
         self.tracking_since: int | None = None       # first sample of the current excess
         self.descent: Descent | None = None
@@ -300,17 +301,9 @@ class Supervisor:
             return 'missing', ''
         if (ns - self.last_request_ns) * 1e-9 > lim.stale_forces - 1e-12 and self.trip is None:
             return 'forces_stale', 'no request for %.1f ms' % ((ns - self.last_request_ns) * 1e-6)
-        low, high = lengths < lim.soft_min, lengths > lim.soft_max
-        if low.any() or high.any():
-            i = int(np.flatnonzero(low | high)[0])
-            return 'stroke', 'leg_%d at %.4f m, soft stroke [%.4f, %.4f] m' % (
-                i + 1, lengths[i], lim.soft_min, lim.soft_max)
-        if lim.leg_speed:
-            fast = np.abs(rates) > lim.leg_speed
-            if fast.any():
-                i = int(np.flatnonzero(fast)[0])
-                return 'leg_speed', 'leg_%d at %.3f m/s, limit %g m/s' % (
-                    i + 1, rates[i], lim.leg_speed)
+        cause = self._stroke_cause(lengths) or self._speed_cause(rates)
+        if cause is not None:
+            return cause
         if self.reference is not None and lim.tracking_error:
             ref = self._ref = self.reference.sample((ns - self.start_ns) * 1e-9, self._ref)
             from stewart63_ros.core.reference import R_LEN
@@ -329,6 +322,25 @@ class Supervisor:
             cause = self._pose_cause(lengths)
             if cause is not None:
                 return cause
+        return None
+
+    def _stroke_cause(self, lengths):
+        lim = self.limits
+        low, high = lengths < lim.soft_min, lengths > lim.soft_max
+        if low.any() or high.any():
+            i = int(np.flatnonzero(low | high)[0])
+            return 'stroke', 'leg_%d at %.4f m, soft stroke [%.4f, %.4f] m' % (
+                i + 1, lengths[i], lim.soft_min, lim.soft_max)
+        return None
+
+    def _speed_cause(self, rates):
+        lim = self.limits
+        if lim.leg_speed:
+            fast = np.abs(rates) > lim.leg_speed
+            if fast.any():
+                i = int(np.flatnonzero(fast)[0])
+                return 'leg_speed', 'leg_%d at %.3f m/s, limit %g m/s' % (
+                    i + 1, rates[i], lim.leg_speed)
         return None
 
     def _pose_cause(self, lengths):
@@ -361,6 +373,7 @@ class Supervisor:
             (6,) forces [N] to send, stamped ``ns``.
         """
         self.last_request_ns = max(ns, self.last_request_ns or ns)
+        self.previous_request, self.last_request = self.last_request, forces
         if self.trip is None:
             cause = self._request_cause(forces)
             if cause is not None:
@@ -426,8 +439,8 @@ class Supervisor:
         if trip.action == HOLD:
             setpoint, setpoint_rate = self.last_good, np.zeros(6)
         else:
-            if self.descent is None:
-                self.descent = Descent(self.last_good, self.rest, self.limits.descent_speed)
+            if self.descent is None:        # from where the legs are
+                self.descent = Descent(lengths, self.rest, self.limits.descent_speed)
                 self.descent_start_ns = ns
             setpoint, setpoint_rate = self.descent.at((ns - self.descent_start_ns) * 1e-9)
         return self._pd_gravity(lengths, rates, setpoint, setpoint_rate)
@@ -453,27 +466,37 @@ class Supervisor:
             self.sample_ns - self.descent_start_ns) * 1e-9 >= self.descent.duration
 
     def cause_holds(self) -> str:
-        """Why a reset would be refused now ('' : it would not)."""
+        """Why a reset would be refused now ('' : it would not): the trip's own
+        cause, judged on the latest sample and request, and a reading to
+        resume on. Causes that are events (``estop``, ``user_request``) and
+        ``tracking_error`` (the safe action itself moves the platform off its
+        reference; the check starts over from the reset) do not persist;
+        ``diagnostics_error`` is judged by the node (the rig's statuses)."""
         trip = self.trip
         if trip is None:
             return ''
-        ns = self.sample_ns
-        lengths, rates = self.lengths, self.rates
+        ns, lengths, rates, lim = self.sample_ns, self.lengths, self.rates, self.limits
         if not (np.all(np.isfinite(lengths)) and np.all(np.isfinite(rates))):
             return 'the leg readings are missing (NaN) on the latest sample'
-        if trip.cause == 'forces_stale' and (ns - self.last_request_ns) * 1e-9 \
-                > self.limits.stale_forces:
+        cause = trip.cause
+        if cause == 'forces_stale' and (ns - self.last_request_ns) * 1e-9 > lim.stale_forces:
             return 'no request from the controller for %.1f ms' % (
                 (ns - self.last_request_ns) * 1e-6)
-        if trip.cause in ('bad_command', 'force', 'force_rate') \
-                and self.last_request_ns < ns - int(round(self.period * 1e9)):
-            return 'the controller sends no request to check'
-        saved = (self.tracking_since, self._ref)
-        cause = self._sample_cause(ns, lengths, rates)
-        self.tracking_since, self._ref = saved
-        if cause is not None and cause[0] not in ('tracking_error', 'forces_stale'):
-            return '%s: %s' % cause
-        return ''
+        if cause in ('bad_command', 'force', 'force_rate') and self.last_request is not None:
+            saved = self.last_forwarded
+            previous = self.previous_request
+            if previous is not None and np.shape(previous) == (6,) \
+                    and np.all(np.isfinite(previous)):
+                self.last_forwarded = previous
+            found = self._request_cause(self.last_request)
+            self.last_forwarded = saved
+            if found is not None and found[0] == cause:
+                return 'the latest request: %s' % found[1]
+        checks = {'stroke': lambda: self._stroke_cause(lengths),
+                  'leg_speed': lambda: self._speed_cause(rates),
+                  'pose_box': lambda: self._pose_cause(lengths) if self.pose else None}
+        found = checks.get(cause, lambda: None)()
+        return found[1] if found else ''
 
     def reset(self) -> tuple[bool, str]:
         """``~/reset``: clear the trip unless its cause persists.
