@@ -39,33 +39,48 @@ def level_of(status) -> int:
     return level[0] if isinstance(level, (bytes, bytearray)) else int(level)
 
 
-def core_run(faults, duration):
+def core_run(faults, duration, law=None):
+    from stewart63_ros.core.laws import Controller
     mech = load_mechanism(PARAMS)
     sup = supervisor_from_params(mech, dict(mech.to_params()), RATE)
-    return sup, run_supervised(mech, sup, duration, RATE, faults)
+    return sup, run_supervised(mech, sup, duration, RATE, faults,
+                               controller=Controller(mech, {}, law=law))
 
 
-@pytest.mark.parametrize('fault, cause', [
-    ('sensor_stuck:all@0', 'tracking_error'),
-    ('sensor_dropout:leg_2@0.5', 'lengths_stale'),
+CHECKED_PD = 'stewart63_ros.examples.fault_detector:CheckedPD'
+
+
+@pytest.mark.parametrize('fault, cause, law', [
+    ('sensor_stuck:all@0', 'tracking_error', None),
+    ('sensor_dropout:leg_2@0.5', 'lengths_stale', None),
+    # the example law's fault detector raises: the controller's ERROR trips
+    ('sensor_stuck:leg_2@0.1', 'diagnostics_error', CHECKED_PD),
 ])
 def test_the_rig_trips_where_the_core_does_and_records_it(ros, monkeypatch, tmp_path, fault,
-                                                          cause):
+                                                          cause, law):
     duration = 1.1
     rig_env(ros, monkeypatch)
     bag = tmp_path / 'bag'
+    extra = {'plant': {'faults': [fault]}}
+    if law:
+        extra['controller'] = {'control_law': law}
     rig = Rig(PARAMS, mode='lockstep', duration=duration, record=bag, nodes=NODES,
-              log_dir=tmp_path / 'rig', supervisor=True,
-              extra_params={'plant': {'faults': [fault]}})
+              log_dir=tmp_path / 'rig', supervisor=True, extra_params=extra)
     ok, codes, logs = run_to_end(rig, START_TIMEOUT)
     assert ok and set(codes.values()) == {0}, logs
-    core, expected = core_run([fault], duration)
+    core, expected = core_run([fault], duration, law)
     summary = json.loads((tmp_path / 'rig' / 'supervisor_summary.json').read_text())
     trip = core.trip
     assert trip.cause == cause
-    assert summary['trips'] == [{'cause': cause, 'detail': trip.detail, 'action': trip.action,
-                                 'sample': trip.sample_ns // 1_000_000,
-                                 'latency_samples': 0}], summary
+    assert len(summary['trips']) == 1, summary
+    got = summary['trips'][0]
+    assert (got['cause'], got['action'], got['sample'], got['latency_samples']) == (
+        cause, trip.action, trip.sample_ns // 1_000_000, 0), summary
+    if law:     # the node names the controller and its message
+        assert got['detail'].startswith('/controller: control law failed') \
+            and 'SensorFault: sensor fault on leg_2' in got['detail'], got
+    else:
+        assert got['detail'] == trip.detail
     assert 'request_timeouts' not in summary['values'], summary
     # Every force the plant was sent is the core's, sample for sample.
     sent = {}

@@ -535,7 +535,9 @@ def run_supervised(mech: Mechanism, supervisor: Supervisor, duration: float, rat
     supervisor checks the sample; tripped, it answers with its safe action;
     else the controller's request (none for a sample with a missing reading)
     is checked and forwarded; the pistons apply the answer (actuator faults)
-    over the period (the plant's RK4, ``Dynamics.step``).
+    over the period (the plant's RK4, ``Dynamics.step``). A law that raises
+    (``LawError``) trips it on that sample (``diagnostics_error``), as the
+    controller's ERROR does on the rig.
 
     Args:
         mech: the mechanism.
@@ -552,7 +554,7 @@ def run_supervised(mech: Mechanism, supervisor: Supervisor, duration: float, rat
     """
     from stewart63_ros.core.dynamics import Dynamics
     from stewart63_ros.core.faults import FaultModel, parse_faults
-    from stewart63_ros.core.laws import Controller
+    from stewart63_ros.core.laws import Controller, LawError
     from stewart63_ros.core.simulate import initial_state, sensor_reading, substeps_for
     if not isinstance(faults, FaultModel):
         faults = FaultModel(parse_faults(faults or []), rate)
@@ -575,9 +577,16 @@ def run_supervised(mech: Mechanism, supervisor: Supervisor, duration: float, rat
         if supervisor.trip is not None:
             forces = supervisor.safe_forces(ns)
         elif complete:
-            request = controller.forces(k * period, lengths, rates)
-            out['requests'][k] = request
-            forces = supervisor.on_request(ns, request)
+            try:
+                request = controller.forces(k * period, lengths, rates)
+            except LawError as exc:
+                # the controller withholds the forces and reports ERROR:
+                # the supervisor trips on that sample (a law asks by raising)
+                supervisor.trip_now('diagnostics_error', 'controller: %s' % exc)
+                forces = supervisor.safe_forces(ns)
+            else:
+                out['requests'][k] = request
+                forces = supervisor.on_request(ns, request)
         else:
             forces = supervisor.no_request(ns)
         out['forces'][k] = forces
