@@ -139,8 +139,8 @@ def node_names(name: str, value: Any) -> list[str]:
     return list(value)
 
 
-def gain_vector(name: str, value: Any) -> np.ndarray:
-    """Six finite non-negative gains, or ParameterError with the reason.
+def six_numbers(name: str, value: Any) -> np.ndarray:
+    """Six finite numbers, or ParameterError with the reason.
 
     Args:
         name: the parameter's name, for the error.
@@ -157,27 +157,22 @@ def gain_vector(name: str, value: Any) -> np.ndarray:
         raise ParameterError(name, 'expected 6 numbers, got %d' % arr.size)
     if not np.all(np.isfinite(arr)):
         raise ParameterError(name, 'NaN or Inf in %s' % arr.tolist())
-    if np.any(arr < 0):
-        raise ParameterError(name, 'gains must be >= 0, got %s' % arr.tolist())
     return arr
 
 
-def six_lengths(name: str, value: Any) -> np.ndarray:
-    """Six finite lengths [m] (offsets: any sign).
+def gain_vector(name: str, value: Any) -> np.ndarray:
+    """Six finite non-negative gains, or ParameterError with the reason.
 
     Args:
         name: the parameter's name, for the error.
-        value: the value as given.
+        value: the value as given (a sequence of six numbers).
 
     Returns:
         (6,) float array.
     """
-    try:
-        arr = np.array(value, dtype=float).ravel()
-    except (TypeError, ValueError):
-        raise ParameterError(name, 'expected 6 numbers, got %r' % (value,)) from None
-    if arr.size != 6 or not np.all(np.isfinite(arr)):
-        raise ParameterError(name, 'expected 6 finite numbers [m], got %r' % (value,))
+    arr = six_numbers(name, value)
+    if np.any(arr < 0):
+        raise ParameterError(name, 'gains must be >= 0, got %s' % arr.tolist())
     return arr
 
 
@@ -185,7 +180,7 @@ def pose_box(name: str, value: Any) -> np.ndarray | None:
     """[] (no box) or six finite numbers: x, y, z minimum, then maximum [m]."""
     if value is None or (isinstance(value, (list, tuple)) and len(value) == 0):
         return None
-    arr = six_lengths(name, value)
+    arr = six_numbers(name, value)
     if not np.all(arr[:3] < arr[3:]):
         raise ParameterError(name, 'each minimum (x, y, z) must be below its maximum, got %s'
                              % arr.tolist())

@@ -231,10 +231,14 @@ class SupervisorNode(RigNode):
         if trip is not None and self.health.values.get('tripped') == 'false':
             self.announce(trip)
 
+    def sample_index(self, ns: int) -> int:
+        """The index of the sample stamped ``ns`` in this run (from its first
+        sample: realtime stamps are wall-clock times)."""
+        return int(round((ns - (self.core.start_ns or 0)) * self.rate * 1e-9))
+
     def announce(self, trip) -> None:
-        period_ns = 1e9 / self.rate
-        latency = int(round((trip.safe_ns - trip.sample_ns) / period_ns))
-        sample = int(round(trip.sample_ns / period_ns))
+        latency = self.sample_index(trip.safe_ns) - self.sample_index(trip.sample_ns)
+        sample = self.sample_index(trip.sample_ns)
         self.health.fault = 'tripped: %s at sample %d (%s); safe action: %s' % (
             trip.cause, sample, trip.detail, trip.action)
         self.health.values.update({
@@ -287,9 +291,9 @@ class SupervisorNode(RigNode):
     def summary(self) -> dict:
         out = super().summary()
         out['trips'] = [{'cause': t.cause, 'detail': t.detail, 'action': t.action,
-                         'sample': int(round(t.sample_ns * self.rate * 1e-9)),
-                         'latency_samples': None if t.safe_ns is None else int(round(
-                             (t.safe_ns - t.sample_ns) * self.rate * 1e-9))}
+                         'sample': self.sample_index(t.sample_ns),
+                         'latency_samples': None if t.safe_ns is None else
+                         self.sample_index(t.safe_ns) - self.sample_index(t.sample_ns)}
                         for t in self.core.trips]
         return out
 

@@ -3,6 +3,7 @@
     rig [--params FILE] [--mode realtime|lockstep] [--duration S] [--record DIR]
         [--namespace NS] [--nodes plant,controller,fk] [--realtime-priority P]
         [--compose] [--control-law NAME] [--reference CSV] [--fault FAULT]...
+        [--supervisor]
 
 One parameter file and one namespace for all. Every node waits until its
 peers are matched before the first sample, so a short run loses nothing at
@@ -17,7 +18,8 @@ controller's ``control_law``; --reference hands a reference CSV to the
 controller (``reference_file``, time 0 = the first sample) and to the plant,
 which reports the true tracking error in its summary. --fault (repeatable)
 adds a fault to the plant's ``faults`` (docs/faults.md); the summary names
-each fault and when it acted.
+each fault and when it acted. --supervisor puts the supervisor between the
+controller and the plant (docs/supervisor.md); the summary lists its trips.
 """
 from __future__ import annotations
 
