@@ -175,6 +175,18 @@ def test_estop_faults_errors_requests_reset_and_a_killed_supervisor(ros, monkeyp
             assert service.wait_for_service(timeout_sec=START_TIMEOUT), logs_of(rig.log_dir)
         assert ros.spin_until(lambda: len(client.forces) >= 10, START_TIMEOUT), \
             logs_of(rig.log_dir)
+        # a run-time limit goes through the start-up's checks
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter
+        limits = client.node.create_client(SetParameters, '/supervisor/set_parameters')
+        assert limits.wait_for_service(timeout_sec=30)
+        for value, ok, why in ((0.7, False, 'stroke_margin: 0.7 m on each end leaves no soft'),
+                               (0.04, True, '')):
+            future = limits.call_async(SetParameters.Request(parameters=[
+                Parameter('stroke_margin', value=value).to_parameter_msg()]))
+            assert ros.spin_until(future.done, 30)
+            result = future.result().results[0]
+            assert result.successful == ok and why in result.reason, result
         # ~/estop trips at once; a second one, during the descent, is answered
         answer = client.call(client.estop)
         assert answer.success and 'tripped' in answer.message
@@ -199,8 +211,6 @@ def test_estop_faults_errors_requests_reset_and_a_killed_supervisor(ros, monkeyp
         client.wait_trip('user_request')
         client.reset_until_accepted(rig)
         # a dropped-out reading: stale, zero force; no reset while it lasts
-        from rcl_interfaces.srv import SetParameters
-        from rclpy.parameter import Parameter
         params = client.node.create_client(SetParameters, '/plant/set_parameters')
         assert params.wait_for_service(timeout_sec=30)
 
