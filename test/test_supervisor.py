@@ -180,3 +180,35 @@ def test_contradictory_limits_are_refused_naming_the_key(mech, params, overrides
     with pytest.raises(ParameterError) as exc:
         supervisor_from_params(mech, dict(params, **overrides), RATE)
     assert exc.value.key == key
+
+
+def test_homing_recovers_the_hidden_offsets_within_the_sensor_resolution(mech, params):
+    """Incremental sensors with unknown zeros (the plant's homing_offset),
+    quantised at 0.1 mm: the homing drives every leg to its upper end stop
+    (the plant's dynamics, its end-stop spring), finds each offset, sets it,
+    brings the legs back; only then do the controller's forces go through."""
+    from stewart63_ros.core.sensor import SensorModel
+    resolution = 1e-4
+    hidden = np.array([3.0, -2.0, 5.0, 0.0, -4.0, 1.2]) * 1e-3
+    sup = supervisor_from_params(mech, dict(params, homing=True, homing_speed=0.2), RATE)
+    out = run_supervised(mech, sup, 12.0, RATE, homing_offset=hidden,
+                         sensor=SensorModel({'sensor_resolution': resolution}))
+    assert sup.homed and sup.trips == []
+    assert np.all(np.abs(sup.offsets - hidden) <= resolution), (sup.offsets - hidden)
+    # every leg reached its stop; none of the controller's forces went through before
+    assert np.all(out['lengths'].max(axis=0) > mech.leg_length_max)
+    first = int(np.argmax(np.isfinite(out['requests'][:, 0])))
+    assert first > 0 and np.all(np.isnan(out['requests'][:first]))
+    np.testing.assert_array_equal(out['forces'][first:], out['requests'][first:])
+    # once homed the readings are true (to the resolution, and the offset found)
+    np.testing.assert_allclose(out['measured'][first:], out['lengths'][first:],
+                               atol=1.5 * resolution)     # quantum + what homing left
+
+
+def test_homing_to_stops_no_pose_reaches_is_refused(mech, params):
+    # the default 6-3 machine: legs 1 and 2 share a vertex over base points
+    # 2.95 m apart, so they cannot both be at 1.2 m
+    with pytest.raises(ParameterError) as exc:
+        supervisor_from_params(mech, dict(params, homing=True, homing_direction='retract'),
+                               RATE)
+    assert exc.value.key == 'homing_direction' and 'legs 1 and 2' in str(exc.value)

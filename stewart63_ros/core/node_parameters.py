@@ -295,8 +295,8 @@ DECLARED: tuple[Declared, ...] = (
              'sensor', integer(0)),
     Declared('sensor_seed', ('plant', 'sim'), 0, '', '', 'seed of the noise generator (and '
              'of the faults\' noise)', integer()),
-    Declared('endstop_stiffness', ('plant', 'sim'), DEFAULT_ENDSTOP_STIFFNESS, 'N/m', '≥ 0 '
-             '(inf: rigid)', 'end-stop spring past `leg_length_min` / `leg_length_max` '
+    Declared('endstop_stiffness', ('plant', 'supervisor', 'sim'), DEFAULT_ENDSTOP_STIFFNESS,
+             'N/m', '≥ 0 (inf: rigid)', 'end-stop spring past `leg_length_min` / `leg_length_max` '
              '([conventions](#frames-and-conventions))', nonnegative_or_infinite),
     Declared('endstop_damping', ('plant', 'sim'), DEFAULT_ENDSTOP_DAMPING, 'N s/m', '≥ 0',
              'end-stop damper', nonnegative_or_infinite),
@@ -399,6 +399,23 @@ DECLARED: tuple[Declared, ...] = (
     Declared('answer_every_sample', ('plant',), False, '', '', 'lockstep: wait for the answer '
              'to a sample with a missing reading too (the supervisor answers every sample; '
              '`rig --supervisor` sets it)', boolean),
+    Declared('homing', ('supervisor',), False, '', '', 'home the legs\' incremental sensors '
+             'against their end stops before the controller\'s forces go through '
+             '([supervisor.md](supervisor.md#homing))', boolean),
+    Declared('homing_direction', ('supervisor',), 'extend', '', '', 'the end stops homing '
+             'drives the legs to: `extend` (upper) or `retract` (lower); refused at start-up '
+             'when no pose has every leg at those stops', one_of('extend', 'retract')),
+    Declared('homing_speed', ('supervisor',), 0.05, 'm/s', '> 0, < `trip_leg_speed`', 'leg '
+             'speed of the homing, towards the stops and back', positive),
+    Declared('homing_force', ('supervisor',), 200.0, 'N', '> 0', 'a leg that stalls while '
+             'pushing this much more than its share of the load is at its stop', positive),
+    Declared('homing_offset', ('plant',), [0.0] * 6, 'm', '6 numbers', 'the hidden zero of '
+             'each leg\'s incremental sensor: added to its reading until a homing sets '
+             '`homed_offset` (the simulated encoder has no absolute zero)', six_numbers,
+             default_text='0 ×6'),
+    Declared('homed_offset', ('plant',), [0.0] * 6, 'm', '6 numbers', 'the zero a homing '
+             'found and set on the drives: subtracted from each reading (the supervisor '
+             'sets it)', six_numbers, runtime=True, default_text='0 ×6'),
 )
 
 BY_NAME: dict[str, Declared] = {d.name: d for d in DECLARED}

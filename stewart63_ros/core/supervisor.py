@@ -208,6 +208,96 @@ class Descent:
                 span * 0.5 * w * math.sin(w * t))
 
 
+class Homing:
+    """Homing of incremental leg sensors against the end stops (docs/supervisor.md).
+
+    Every leg's setpoint moves from its reading at the start towards its end
+    stop (``extend``: ``leg_length_max``; ``retract``: ``leg_length_min``) at
+    ``speed``, tracked by PD with the gravity load held. A leg that stalls
+    (its rate below a quarter of ``speed``) while pushing more than ``force``
+    beyond its load is at its stop: its offset is its reading there minus the
+    stop's length (the stop's spring compressed by that push, ``endstop
+    stiffness``), and it keeps that force until every leg is found. Then the
+    offsets are to be set on the drives (``zero_to_set``; the readings are
+    true from the next sample), and every leg returns to its starting length
+    on the cosine profile at ``speed``; then the homing is done.
+
+    Args:
+        mech: the mechanism (stroke, ``kp``, ``kv``, ``max_force``).
+        direction: ``extend`` or ``retract``.
+        speed: [m/s]; force: [N]; stiffness: the end stops' [N/m].
+    """
+
+    def __init__(self, mech: Mechanism, direction: str, speed: float, force: float,
+                 stiffness: float) -> None:
+        self.sign = 1.0 if direction == 'extend' else -1.0
+        self.stop = mech.leg_length_max if direction == 'extend' else mech.leg_length_min
+        self.speed, self.force, self.stiffness = speed, force, stiffness
+        self.kp, self.kv = np.array(mech.kp, float), np.array(mech.kv, float)
+        self.max_force = float(mech.max_force)
+        self.start: np.ndarray | None = None
+        self.start_ns = 0
+        self.at_stop = np.zeros(6, bool)
+        self.held = np.zeros(6)
+        self.offsets = np.full(6, np.nan)
+        self.found_ns = np.zeros(6, dtype=np.int64)
+        self.back: Descent | None = None
+        self.back_ns = 0
+        self.zero_to_set: np.ndarray | None = None
+        self.done = False
+
+    def forces(self, ns: int, lengths: np.ndarray, rates: np.ndarray,
+               holding: np.ndarray) -> np.ndarray:
+        """The forces (6,) [N] for sample ``ns`` with these readings; ``holding``:
+        the forces that hold the mechanism against gravity there."""
+        if self.start is None:
+            self.start, self.start_ns = lengths.copy(), ns
+        if self.back is not None:           # the readings are true now
+            setpoint, rate = self.back.at((ns - self.back_ns) * 1e-9)
+            self.done = ns - self.back_ns >= (self.back.duration + 0.5) * 1e9
+            force = holding + self.kp * (setpoint - lengths) + self.kv * (rate - rates)
+            return np.clip(force, -self.max_force, self.max_force)
+        velocity = self.sign * self.speed
+        target = self.start + velocity * (ns - self.start_ns) * 1e-9
+        force = holding + self.kp * (target - lengths) + self.kv * (velocity - rates)
+        force = np.clip(force, -self.max_force, self.max_force)
+        force[self.at_stop] = self.held[self.at_stop]
+        push = self.sign * (force - holding)
+        found = ~self.at_stop & (np.abs(rates) < 0.25 * self.speed) & (push > self.force)
+        for i in np.flatnonzero(found):
+            self.at_stop[i] = True
+            self.held[i] = force[i]
+            squeeze = push[i] / self.stiffness if math.isfinite(self.stiffness) else 0.0
+            self.offsets[i] = lengths[i] - (self.stop + self.sign * squeeze)
+            self.found_ns[i] = ns
+        if self.at_stop.all():
+            self.zero_to_set = self.offsets.copy()
+            self.back = Descent(lengths - self.offsets, self.start - self.offsets, self.speed)
+            self.back_ns = ns
+        return force
+
+
+def check_homing(mech: Mechanism, direction: str) -> None:
+    """Raise ParameterError (``homing_direction``) if no pose has every leg at
+    the end stops of ``direction``: the legs could not all reach them.
+
+    Args:
+        mech: the mechanism.
+        direction: ``extend`` or ``retract``.
+
+    Raises:
+        ParameterError: with the forward kinematics' reason.
+    """
+    from stewart63_ros.core.fk import ForwardKinematics, NoAssemblyError
+    stop = mech.leg_length_max if direction == 'extend' else mech.leg_length_min
+    try:
+        ForwardKinematics(mech).all_modes(np.full(6, stop))
+    except NoAssemblyError as exc:
+        raise ParameterError('homing_direction', '%s: the legs cannot all be at their %s '
+                             'end stops (%g m): %s' % (direction, 'upper' if direction ==
+                                                      'extend' else 'lower', stop, exc)) from None
+
+
 @dataclasses.dataclass
 class Trip:
     """A latched trip: its cause, its words, the samples (stamps [ns])."""
@@ -237,8 +327,8 @@ class Supervisor:
 
     def __init__(self, mech: Mechanism, limits: Limits, rate: float,
                  reference: Reference | None = None,
-                 pose: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
-                 ) -> None:
+                 pose: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
+                 homing: Homing | None = None) -> None:
         self.mech = mech
         self.period = 1.0 / rate
         self.reference = reference
@@ -263,6 +353,10 @@ class Supervisor:
         self._ref = None
         self._gravity = None
         self.checked = 0
+        #: the homing under way (None: done, or none asked for)
+        self.homing = homing
+        self.homed = homing is None
+        self.offsets = np.zeros(6)          # what the homing found [m]
 
     def set_limits(self, limits: Limits) -> None:
         """New limits (checked by ``limits_from_params``); the rest pose follows."""
@@ -296,6 +390,8 @@ class Supervisor:
                 return 'lengths_stale', 'no valid reading for %.1f ms (legs %s NaN)' % (
                     (ns - since) * 1e-6, _legs(~np.isfinite(lengths) | ~np.isfinite(rates)))
             return 'missing', ''
+        if self.homing is not None:       # homing: the other limits do not apply yet
+            return None
         if (ns - self.last_request_ns) * 1e-9 > lim.stale_forces - 1e-12 and self.trip is None:
             return 'forces_stale', 'no request for %.1f ms' % ((ns - self.last_request_ns) * 1e-6)
         cause = self._stroke_cause(lengths) or self._speed_cause(rates)
@@ -442,17 +538,49 @@ class Supervisor:
             setpoint, setpoint_rate = self.descent.at((ns - self.descent_start_ns) * 1e-9)
         return self._pd_gravity(lengths, rates, setpoint, setpoint_rate)
 
+    def homing_forces(self, ns: int) -> np.ndarray:
+        """The homing's forces for sample ``ns`` (see ``Homing``); when it is
+        done, the supervisor forwards the controller from the next sample on,
+        its checks starting over there."""
+        homing = self.homing
+        lengths, rates = self.lengths, self.rates
+        if not (np.all(np.isfinite(lengths)) and np.all(np.isfinite(rates))):
+            return np.zeros(6)
+        force = homing.forces(ns, lengths, rates, self._holding(lengths, rates))
+        if homing.done:
+            self.homing, self.homed, self.offsets = None, True, homing.offsets
+            self.start_ns = self.last_request_ns = ns
+            self.tracking_since = None
+            self.last_forwarded = np.zeros(6)
+        return force
+
+    def take_zero_to_set(self) -> np.ndarray | None:
+        """The offsets the homing found, once, on the sample it found the last
+        one: to be set on the drives (subtracted from the readings from the
+        next sample on); else None."""
+        homing = self.homing
+        if homing is None or homing.zero_to_set is None:
+            return None
+        zero, homing.zero_to_set = homing.zero_to_set, None
+        self.offsets = zero
+        return zero
+
+    def _holding(self, lengths, rates):
+        """The forces that hold the mechanism against gravity at the pose the
+        readings give (``PDGravityLaw.holding_forces``)."""
+        if self._gravity is None:
+            from stewart63_ros.core.laws import PDGravityLaw
+            self._gravity = PDGravityLaw(self.mech, {})
+        position, rotation, _ = self._gravity.estimator(lengths, rates)
+        return self._gravity.holding_forces(position, rotation)
+
     def _pd_gravity(self, lengths, rates, setpoint, setpoint_rate):
         """Eq. (40) towards ``setpoint`` (its rate as feed-forward) plus the
         forces that hold the mechanism against gravity at the pose the
         readings give (``PDGravityLaw.holding_forces``): without them the
         platform would sag below the rest pose by load / kp (6 cm on the
         default machine's legs 3-6)."""
-        if self._gravity is None:
-            from stewart63_ros.core.laws import PDGravityLaw
-            self._gravity = PDGravityLaw(self.mech, {})
-        position, rotation, _ = self._gravity.estimator(lengths, rates)
-        holding = self._gravity.holding_forces(position, rotation)
+        holding = self._holding(lengths, rates)
         force = self.kp * (setpoint - lengths) + self.kv * (setpoint_rate - rates) + holding
         return np.clip(force, -self.max_force, self.max_force)
 
@@ -524,7 +652,8 @@ def _legs(mask) -> str:
 
 def run_supervised(mech: Mechanism, supervisor: Supervisor, duration: float, rate: float,
                    faults: Any = None, controller: Any = None,
-                   y0: ArrayLike | None = None) -> dict[str, np.ndarray]:
+                   y0: ArrayLike | None = None, sensor: Any = None,
+                   homing_offset: ArrayLike | None = None) -> dict[str, np.ndarray]:
     """The closed loop with the supervisor between controller and plant, as a
     lockstep rig with ``rig --supervisor`` runs it, sample for sample.
 
@@ -543,6 +672,11 @@ def run_supervised(mech: Mechanism, supervisor: Supervisor, duration: float, rat
         faults: a ``FaultModel`` or fault strings (core/faults.py), or None.
         controller: a ``laws.Controller`` (default: eq. (40) to the setpoint).
         y0: the initial state (default: the parameters').
+        sensor: a ``SensorModel`` (core/sensor.py) the readings go through, as
+            the plant's do, or None (ideal sensors).
+        homing_offset: (6,) the sensors' hidden zero [m] (the plant's key of
+            that name), added to the readings until the supervisor's homing
+            sets its offsets (from the sample after it found them).
 
     Returns:
         {'states' (N, 13), 'lengths' (N, 6) the true lengths [m], 'measured'
@@ -563,16 +697,25 @@ def run_supervised(mech: Mechanism, supervisor: Supervisor, duration: float, rat
     y = initial_state(mech) if y0 is None else np.array(y0, float)
     out = {key: np.full((n + 1, size), np.nan) for key, size in (
         ('states', 13), ('lengths', 6), ('measured', 6), ('forces', 6), ('requests', 6))}
+    shift = np.zeros(6) if homing_offset is None else np.array(homing_offset, float)
     for k in range(n + 1):
         ns = int(round(k * period * 1e9))
         faults.begin(k)
         true_lengths, rates = sensor_reading(dyn, y)
         out['states'][k], out['lengths'][k] = y, true_lengths
-        lengths, rates, complete = faults.sense(true_lengths, rates)
+        lengths = true_lengths + shift if shift.any() else true_lengths
+        if sensor is not None:
+            lengths, rates = sensor.measure(lengths, rates)
+        lengths, rates, complete = faults.sense(lengths, rates)
         out['measured'][k] = lengths
         supervisor.on_sample(ns, lengths, rates)
         if supervisor.trip is not None:
             forces = supervisor.safe_forces(ns)
+        elif supervisor.homing is not None:
+            forces = supervisor.homing_forces(ns)
+            zero = supervisor.take_zero_to_set()
+            if zero is not None:            # the plant's homed_offset, set before k + 1
+                shift = np.array(homing_offset, float) - zero
         elif complete:
             try:
                 request = controller.forces(k * period, lengths, rates)
@@ -627,4 +770,14 @@ def supervisor_from_params(mech: Mechanism, params: Mapping[str, Any],
         result = tracker.solve(lengths)
         return result.position, result.rotation
 
-    return Supervisor(mech, limits, rate, reference, pose)
+    homing = None
+    if read_declared(params, 'homing'):
+        direction = read_declared(params, 'homing_direction')
+        check_homing(mech, direction)
+        speed = read_declared(params, 'homing_speed')
+        if limits.leg_speed and speed >= limits.leg_speed:
+            raise ParameterError('homing_speed', '%g m/s is not below trip_leg_speed (%g m/s)'
+                                 % (speed, limits.leg_speed))
+        homing = Homing(mech, direction, speed, read_declared(params, 'homing_force'),
+                        read_declared(params, 'endstop_stiffness'))
+    return Supervisor(mech, limits, rate, reference, pose, homing)
