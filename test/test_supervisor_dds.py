@@ -163,18 +163,42 @@ def test_estop_faults_errors_requests_reset_and_a_killed_supervisor(ros, monkeyp
                                                                      tmp_path):
     rig_env(ros, monkeypatch)
     client = Client(ros)
+    # The platform starts 0.45 m higher, nearer the upper end stops the
+    # homing drives the legs to, and the controller holds it there.
+    from stewart63_ros.core.kinematics import leg_lengths
+    mech = load_mechanism(PARAMS)
+    start = {'initial_position': [0.01, 0.01, 1.45], 'initial_velocity': [0.0, 0.0, 0.0]}
+    start['setpoint_lengths'] = leg_lengths(mech, start['initial_position'],
+                                            np.eye(3)).round(4).tolist()
+    hidden = [0.003, -0.002, 0.005, 0.0, -0.004, 0.0012]
+
+    def copy(values):       # (lists shared between sections: YAML aliases rcl refuses)
+        return json.loads(json.dumps(values))
+    resolution = 1e-4
     # Short waits: the supervisor is killed at the end, and each sample then
-    # waits force_timeout for an answer that does not come.
+    # waits force_timeout for an answer that does not come; setting the
+    # offsets on the plant (a parameter service) is given a second.
     rig = Rig(PARAMS, mode='lockstep', duration=None, nodes=NODES, log_dir=tmp_path / 'rig',
               supervisor=True,
-              extra_params={'plant': {'force_timeout': 0.05},
-                            'supervisor': {'request_timeout': 0.02}})
+              extra_params={'plant': dict(copy(start), force_timeout=1.0,
+                                          homing_offset=hidden, sensor_resolution=resolution),
+                            'controller': copy(start),
+                            'supervisor': dict(copy(start), request_timeout=0.02, homing=True,
+                                               homing_speed=0.2)})
     try:
         rig.start()
         for service in (client.estop, client.reset):
             assert service.wait_for_service(timeout_sec=START_TIMEOUT), logs_of(rig.log_dir)
-        assert ros.spin_until(lambda: len(client.forces) >= 10, START_TIMEOUT), \
+        # homing first: the offsets found within the sensor's resolution
+        assert ros.spin_until(lambda: any(v.get('homed') == 'true' for _, _, v in
+                                          client.supervisor), START_TIMEOUT), \
             logs_of(rig.log_dir)
+        values = [v for _, _, v in client.supervisor if v.get('homed') == 'true'][0]
+        found = np.array(json.loads(values['homing/offsets']))
+        assert np.all(np.abs(found - hidden) <= resolution), (found, hidden)
+        assert values['tripped'] == 'false', values
+        assert ros.spin_until(lambda: any('homed_offset' in v and json.loads(
+            v['homed_offset']) == found.tolist() for v in client.plant), 30)
         # a run-time limit goes through the start-up's checks
         from rcl_interfaces.srv import SetParameters
         from rclpy.parameter import Parameter
@@ -228,6 +252,7 @@ def test_estop_faults_errors_requests_reset_and_a_killed_supervisor(ros, monkeyp
         answer = client.reset_until_accepted(rig)
         assert 'lengths_stale trip' in answer.message
         # killed: the plant applies zero force stale_forces_ms after its last answer
+        rig.procs['plant'].send_signal(0)       # (still running)
         os.kill(rig.procs['supervisor'].pid, signal.SIGKILL)
         rig.procs['supervisor'].wait(10)
         assert ros.spin_until(lambda: any('stale_force_from_sample' in v for v in client.plant),

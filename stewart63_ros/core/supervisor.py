@@ -63,6 +63,7 @@ CAUSES: dict[str, tuple[str, str]] = {
     'diagnostics_error': (DESCEND, 'an ERROR on /diagnostics from a node of the rig'),
     'user_request': (DESCEND, 'a trip asked for on the supervisor\'s trip_request topic'),
     'estop': (DESCEND, '~/estop'),
+    'homing': (ZERO, 'the offsets the homing found could not be set on the drives'),
 }
 
 #: The supervisor's keys of core/node_parameters.py that ``Limits`` reads.

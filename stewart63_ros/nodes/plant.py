@@ -180,6 +180,8 @@ class PlantNode(PlantControl, RigNode):
             self.endstop_samples += 1
             self.health.warning = ('a leg is at an end stop (%d samples so far)'
                                    % self.endstop_samples)
+        if self.encoder_shift is not None:     # incremental sensors not homed
+            lengths = lengths + self.encoder_shift
         lengths, rates = self.sensor.measure(lengths, rates)
         lengths, rates, self.sample_complete = self.fault_model.sense(lengths, rates)
         out.send(ns, sec, nanosec, lengths, rates, self.y)

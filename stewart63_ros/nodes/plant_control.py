@@ -51,6 +51,10 @@ class PlantControl:
         self.force_stale_ns = int(round(self.param('force_stale_ms') * 1e6))
         self.stale_force_from = None    # (sample, stamp of the force gone stale)
         self.answer_every_sample = self.param('answer_every_sample')
+        # The sensors' hidden zero and the one a homing set (supervisor).
+        self.homing_offset = self.param('homing_offset')
+        self.set_homed_offset(self.param('homed_offset'))
+        self.tunable('homed_offset', self.set_homed_offset)
         self.sample_complete = True     # the last sample carried all six readings
         self.step_count = self.param('step_count')
         self.tunable('faults', self.set_faults)
@@ -84,6 +88,13 @@ class PlantControl:
             self.get_logger().warning(event)
         if self.started:
             self.report()
+
+    def set_homed_offset(self, value) -> None:
+        """``homed_offset`` (a homing's result): the readings from the next sample
+        on are true + ``homing_offset`` - this."""
+        shift = self.homing_offset - value
+        self.encoder_shift = shift if shift.any() else None
+        self.health.values['homed_offset'] = np.round(value, 6).tolist()
 
     def set_step_count(self, value) -> None:
         self.step_count = value

@@ -86,6 +86,11 @@ class SupervisorNode(RigNode):
         # The statuses of the nodes of this rig: 'stewart63/<ns>/<node>'.
         own = topics.node_full_name(self.get_namespace(), 'x')
         self.rig_prefix = topics.status_name(own[:-1])
+        if self.core.homing is not None:
+            from rcl_interfaces.srv import SetParameters
+            self.plant_parameters = self.create_client(SetParameters, '%s/set_parameters' % (
+                topics.node_full_name(self.get_namespace(), 'plant')))
+            self.health.values['homed'] = 'false'
         self.health.values.update({'tripped': 'false', 'trips': 0,
                                    'rest_lengths': np.round(self.core.rest, 4).tolist()})
 
@@ -104,6 +109,12 @@ class SupervisorNode(RigNode):
         """A leg_lengths sample: checked; answered at once when tripped or when
         no request will come (a missing reading), else when its request does."""
         self.health.received[topics.LEG_LENGTHS] += 1
+        if self.pending is not None:
+            # (realtime, while the homing sets the plant's offsets: this
+            # sample goes unanswered, the plant holds the force it has)
+            self.health.values['samples_unanswered'] = \
+                self.health.values.get('samples_unanswered', 0) + 1
+            return
         try:
             ns, sec, nanosec, frame_id, values = wire.joint_state_sample(
                 data, self.sample_gate, ('position', 'velocity'), source=source_of(info))
@@ -129,6 +140,8 @@ class SupervisorNode(RigNode):
         self.pending = (ns, sec, nanosec, frame_id)
         if core.trip is not None:
             self.answer(core.safe_forces(ns))
+        elif core.homing is not None:
+            self.answer(self.home(ns))
         elif not complete:
             self.answer(core.no_request(ns))
         else:
@@ -148,6 +161,8 @@ class SupervisorNode(RigNode):
             return
         ns = stamp_ns(msg.header.stamp)
         forces = np.array(msg.effort, float)
+        if self.core.homing is not None:
+            return                  # withheld until every leg is homed
         if self.pending is not None and ns == self.pending[0]:
             self.latch_async(ns)
             self.answer(self.core.on_request(ns, forces))
@@ -207,6 +222,41 @@ class SupervisorNode(RigNode):
             self.report()
         self.get_logger().info('~/reset: %s' % response.message)
         return response
+
+    # -- homing ------------------------------------------------------------------------
+    def home(self, ns: int):
+        """The homing's forces for sample ``ns``; once every leg is found, the
+        offsets are set on the plant (its ``homed_offset``) before this sample
+        is answered, so its next sample reads true."""
+        forces = self.core.homing_forces(ns)
+        zero = self.core.take_zero_to_set()
+        if zero is not None:
+            self.health.values['homing/offsets'] = np.round(zero, 6).tolist()
+            why = self.set_plant_zero(zero)
+            if why:
+                self.core.trip_now('homing', why, ns)
+                return self.core.safe_forces(ns)
+            self.get_logger().info('homed: offsets %s m set on the plant'
+                                   % np.round(zero, 6).tolist())
+        if self.core.homed:
+            self.health.values['homed'] = 'true'
+            self.report()
+        return forces
+
+    def set_plant_zero(self, zero) -> str:
+        """``homed_offset`` of the plant of this namespace; '' or why it failed."""
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter
+        client = self.plant_parameters
+        if not client.wait_for_service(timeout_sec=5.0):
+            return '%s: no such service' % client.srv_name
+        future = client.call_async(SetParameters.Request(parameters=[Parameter(
+            'homed_offset', value=[float(v) for v in zero]).to_parameter_msg()]))
+        self.executor_.spin_until_future_complete(future, timeout_sec=10.0)
+        if not future.done():
+            return '%s: no answer within 10 s' % client.srv_name
+        result = future.result().results[0]
+        return '' if result.successful else 'the plant refused: %s' % result.reason
 
     # -- trips and answers -------------------------------------------------------------
     def request_trip(self, cause: str, detail: str) -> None:
