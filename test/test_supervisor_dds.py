@@ -39,14 +39,41 @@ def level_of(status) -> int:
     return level[0] if isinstance(level, (bytes, bytearray)) else int(level)
 
 
-def core_run(faults, duration, law=None):
+def core_run(faults, duration, law=None, homing=False):
     from stewart63_ros.core.laws import Controller
-    mech = load_mechanism(PARAMS)
-    sup = supervisor_from_params(mech, dict(mech.to_params()), RATE)
+    from stewart63_ros.core.params import mechanism_from_params
+    from stewart63_ros.core.sensor import SensorModel
+    params = dict(load_mechanism(PARAMS).to_params())
+    sensor = offset = None
+    if homing:
+        params.update(HOMING['supervisor'])
+        sensor, offset = SensorModel(HOMING['plant']), HOMING['plant']['homing_offset']
+    mech = mechanism_from_params(params)
+    sup = supervisor_from_params(mech, params, RATE)
     return sup, run_supervised(mech, sup, duration, RATE, faults,
-                               controller=Controller(mech, {}, law=law))
+                               controller=Controller(mech, params, law=law), sensor=sensor,
+                               homing_offset=offset)
 
 
+def homing_params() -> dict:
+    """Node sections for a homing run: the platform 0.45 m higher than the
+    file's start (nearer the upper end stops), held there by the controller;
+    hidden sensor offsets; readings quantised at 0.1 mm."""
+    from stewart63_ros.core.kinematics import leg_lengths
+    mech = load_mechanism(PARAMS)
+    position = [0.01, 0.01, 1.45]
+    setpoint = leg_lengths(mech, np.array(position), np.eye(3)).round(4).tolist()
+
+    def start():    # (one list per section: rcl refuses YAML aliases)
+        return {'initial_position': list(position), 'initial_velocity': [0.0, 0.0, 0.0],
+                'setpoint_lengths': list(setpoint)}
+    return {'plant': dict(start(), homing_offset=[0.003, -0.002, 0.005, 0.0, -0.004, 0.0012],
+                          sensor_resolution=1e-4),
+            'controller': start(),
+            'supervisor': dict(start(), homing=True, homing_speed=0.2)}
+
+
+HOMING = homing_params()
 CHECKED_PD = 'stewart63_ros.examples.fault_detector:CheckedPD'
 
 
@@ -55,21 +82,36 @@ CHECKED_PD = 'stewart63_ros.examples.fault_detector:CheckedPD'
     ('sensor_dropout:leg_2@0.5', 'lengths_stale', None),
     # the example law's fault detector raises: the controller's ERROR trips
     ('sensor_stuck:leg_2@0.1', 'diagnostics_error', CHECKED_PD),
+    # no trip: homing, then the controller's forces
+    (None, None, 'homing'),
 ])
 def test_the_rig_trips_where_the_core_does_and_records_it(ros, monkeypatch, tmp_path, fault,
                                                           cause, law):
-    duration = 1.1
+    homing = law == 'homing'
+    law = None if homing else law
+    duration = 6.5 if homing else 1.1
+    faults = [fault] if fault else []
     rig_env(ros, monkeypatch)
     bag = tmp_path / 'bag'
-    extra = {'plant': {'faults': [fault]}}
+    extra = json.loads(json.dumps(HOMING)) if homing else {}
+    extra.setdefault('plant', {})['faults'] = faults
     if law:
         extra['controller'] = {'control_law': law}
     rig = Rig(PARAMS, mode='lockstep', duration=duration, record=bag, nodes=NODES,
               log_dir=tmp_path / 'rig', supervisor=True, extra_params=extra)
     ok, codes, logs = run_to_end(rig, START_TIMEOUT)
     assert ok and set(codes.values()) == {0}, logs
-    core, expected = core_run([fault], duration, law)
+    core, expected = core_run(faults, duration, law, homing)
     summary = json.loads((tmp_path / 'rig' / 'supervisor_summary.json').read_text())
+    if homing:
+        assert core.homed and summary['trips'] == [] and core.trips == [], summary
+        hidden = np.array(HOMING['plant']['homing_offset'])
+        found = np.array(summary['values']['homing/offsets'])
+        assert np.all(np.abs(found - hidden) <= 1e-4), (found, hidden)     # the resolution
+        np.testing.assert_array_equal(found, np.round(core.offsets, 6))
+        assert summary['values']['homed'] == 'true'
+        assert_sent_as_core(bag, duration, expected)
+        return
     trip = core.trip
     assert trip.cause == cause
     assert len(summary['trips']) == 1, summary
@@ -82,7 +124,16 @@ def test_the_rig_trips_where_the_core_does_and_records_it(ros, monkeypatch, tmp_
     else:
         assert got['detail'] == trip.detail
     assert 'request_timeouts' not in summary['values'], summary
-    # Every force the plant was sent is the core's, sample for sample.
+    trip_statuses = assert_sent_as_core(bag, duration, expected)
+    # The bag holds the trip: its cause, sample and latency on /diagnostics.
+    assert trip_statuses and trip_statuses[0]['trip/cause'] == cause
+    assert trip_statuses[0]['trip/sample'] == str(trip.sample_ns // 1_000_000)
+    assert trip_statuses[0]['trip/latency_samples'] == '0'
+
+
+def assert_sent_as_core(bag, duration, expected) -> list:
+    """Every force the plant was sent is the core's, sample for sample;
+    returns the supervisor's ERROR statuses in the bag (their values)."""
     sent = {}
     trip_statuses = []
     for topic, _, msg in bagio.read_messages(bag, ['/leg_forces', '/diagnostics']):
@@ -97,10 +148,7 @@ def test_the_rig_trips_where_the_core_does_and_records_it(ros, monkeypatch, tmp_
     assert sorted(sent) == [int(round(k * 1e6)) for k in range(n)]
     np.testing.assert_array_equal(np.array([sent[k] for k in sorted(sent)]),
                                   expected['forces'])
-    # The bag holds the trip: its cause, sample and latency on /diagnostics.
-    assert trip_statuses and trip_statuses[0]['trip/cause'] == cause
-    assert trip_statuses[0]['trip/sample'] == str(trip.sample_ns // 1_000_000)
-    assert trip_statuses[0]['trip/latency_samples'] == '0'
+    return trip_statuses
 
 
 class Client:
@@ -163,42 +211,18 @@ def test_estop_faults_errors_requests_reset_and_a_killed_supervisor(ros, monkeyp
                                                                      tmp_path):
     rig_env(ros, monkeypatch)
     client = Client(ros)
-    # The platform starts 0.45 m higher, nearer the upper end stops the
-    # homing drives the legs to, and the controller holds it there.
-    from stewart63_ros.core.kinematics import leg_lengths
-    mech = load_mechanism(PARAMS)
-    start = {'initial_position': [0.01, 0.01, 1.45], 'initial_velocity': [0.0, 0.0, 0.0]}
-    start['setpoint_lengths'] = leg_lengths(mech, start['initial_position'],
-                                            np.eye(3)).round(4).tolist()
-    hidden = [0.003, -0.002, 0.005, 0.0, -0.004, 0.0012]
-
-    def copy(values):       # (lists shared between sections: YAML aliases rcl refuses)
-        return json.loads(json.dumps(values))
-    resolution = 1e-4
     # Short waits: the supervisor is killed at the end, and each sample then
-    # waits force_timeout for an answer that does not come; setting the
-    # offsets on the plant (a parameter service) is given a second.
+    # waits force_timeout for an answer that does not come.
     rig = Rig(PARAMS, mode='lockstep', duration=None, nodes=NODES, log_dir=tmp_path / 'rig',
               supervisor=True,
-              extra_params={'plant': dict(copy(start), force_timeout=1.0,
-                                          homing_offset=hidden, sensor_resolution=resolution),
-                            'controller': copy(start),
-                            'supervisor': dict(copy(start), request_timeout=0.02, homing=True,
-                                               homing_speed=0.2)})
+              extra_params={'plant': {'force_timeout': 0.05},
+                            'supervisor': {'request_timeout': 0.02}})
     try:
         rig.start()
         for service in (client.estop, client.reset):
             assert service.wait_for_service(timeout_sec=START_TIMEOUT), logs_of(rig.log_dir)
-        # homing first: the offsets found within the sensor's resolution
-        assert ros.spin_until(lambda: any(v.get('homed') == 'true' for _, _, v in
-                                          client.supervisor), START_TIMEOUT), \
+        assert ros.spin_until(lambda: len(client.forces) >= 10, START_TIMEOUT), \
             logs_of(rig.log_dir)
-        values = [v for _, _, v in client.supervisor if v.get('homed') == 'true'][0]
-        found = np.array(json.loads(values['homing/offsets']))
-        assert np.all(np.abs(found - hidden) <= resolution), (found, hidden)
-        assert values['tripped'] == 'false', values
-        assert ros.spin_until(lambda: any('homed_offset' in v and json.loads(
-            v['homed_offset']) == found.tolist() for v in client.plant), 30)
         # a run-time limit goes through the start-up's checks
         from rcl_interfaces.srv import SetParameters
         from rclpy.parameter import Parameter
@@ -252,7 +276,6 @@ def test_estop_faults_errors_requests_reset_and_a_killed_supervisor(ros, monkeyp
         answer = client.reset_until_accepted(rig)
         assert 'lengths_stale trip' in answer.message
         # killed: the plant applies zero force stale_forces_ms after its last answer
-        rig.procs['plant'].send_signal(0)       # (still running)
         os.kill(rig.procs['supervisor'].pid, signal.SIGKILL)
         rig.procs['supervisor'].wait(10)
         assert ros.spin_until(lambda: any('stale_force_from_sample' in v for v in client.plant),
