@@ -94,7 +94,8 @@ class PlantControl:
         on are true + ``homing_offset`` - this."""
         shift = self.homing_offset - value
         self.encoder_shift = shift if shift.any() else None
-        self.health.values['homed_offset'] = np.round(value, 6).tolist()
+        if value.any() or self.homing_offset.any():     # (a machine with homing)
+            self.health.values['homed_offset'] = np.round(value, 6).tolist()
 
     def set_step_count(self, value) -> None:
         self.step_count = value
