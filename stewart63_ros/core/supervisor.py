@@ -364,6 +364,12 @@ class Supervisor:
         self.rest = rest_lengths(self.mech, limits)
         self.limits = limits
 
+    def new_run(self) -> None:
+        """The samples' source started a new run (stamps from 0 again): the
+        clocks of the checks start over; a latched trip stays."""
+        self.start_ns = self.last_request_ns = self.last_good_ns = None
+        self.tracking_since = None
+
     # -- the checks -------------------------------------------------------------------
     def on_sample(self, ns: int, lengths: np.ndarray, rates: np.ndarray) -> None:
         """Sample ``ns`` [ns] came with these readings (NaN: a leg's reading is

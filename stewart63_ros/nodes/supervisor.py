@@ -30,7 +30,14 @@ from stewart63_ros import topics
 from stewart63_ros.core.supervisor import LIMIT_KEYS, limits_from_params, supervisor_from_params
 from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
-from stewart63_ros.nodes.checks import Rejected, StampGate, ros_time, source_of, stamp_ns
+from stewart63_ros.nodes.checks import (
+    RESTART_PAUSE,
+    Rejected,
+    StampGate,
+    ros_time,
+    source_of,
+    stamp_ns,
+)
 from stewart63_ros.nodes.launcher import STOP, run
 from stewart63_ros.nodes.rclpy_internals import WaitAny, raw_publisher, take_with_info
 
@@ -57,7 +64,7 @@ class SupervisorNode(RigNode):
         for limit_key in LIMIT_KEYS:
             self.tunable(limit_key, self._limit_setter(limit_key))
         self.tunable('trip_on_diagnostics', self._set_trip_on_diagnostics)
-        self.sample_gate = StampGate()
+        self.sample_gate = StampGate(RESTART_PAUSE)
         self.pending = None         # (ns, sec, nanosec, frame_id) of the sample to answer
         self.answered_ns = -1
         self.early = {}             # requests that came before their sample: ns -> forces
@@ -122,7 +129,7 @@ class SupervisorNode(RigNode):
         except Rejected as exc:
             # A reading with NaN (a sensor dropout) is a missing reading, not
             # a bad message: it counts towards stale_lengths_ms.
-            msg = wire.deserialize(data, JointState)
+            msg = wire.deserialize(data, JointState) if exc.reason == 'non_finite' else None
             if msg is None or len(msg.position) != 6:
                 self.health.reject(topics.LEG_LENGTHS, exc)
                 return
@@ -133,7 +140,9 @@ class SupervisorNode(RigNode):
             rates = np.array(msg.velocity, float) if len(msg.velocity) == 6 else \
                 np.full(6, np.nan)
             complete = False
-        self.sample_gate.last_ns = ns
+        if self.sample_gate.new_run:        # a plant's ~/reset: its stamps start again
+            self.core.new_run()
+        self.sample_gate.accept(ns, source_of(info))
         self.latch_async(ns)
         core = self.core
         core.on_sample(ns, lengths, rates)
