@@ -41,6 +41,10 @@ setup(
             'analyze = stewart63_ros.tools.analyze:main',
             'sweep = stewart63_ros.tools.sweep:main',
             'supervisor = stewart63_ros.nodes.supervisor:main',
+            'calibrate = stewart63_ros.tools.calibrate:main',
+            'scenario = stewart63_ros.tools.scenario:main',
         ],
+        # a lab's tests get the run_scenarios fixture (docs/scenarios.md)
+        'pytest11': ['stewart63_scenarios = stewart63_ros.pytest_plugin'],
     },
 )

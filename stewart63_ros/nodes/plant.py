@@ -29,7 +29,7 @@ from sensor_msgs.msg import JointState
 
 from stewart63_ros import topics
 from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.sensor import SensorModel
+from stewart63_ros.core.sensor import SensorModel, TrackerModel
 from stewart63_ros.core.simulate import initial_state, substeps_for
 from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
@@ -104,7 +104,8 @@ class PlantNode(PlantControl, RigNode):
         self.late = 0
         self.endstop_samples = 0
 
-        self.outputs = SampleOutputs(self, lockstep=self.mode == 'lockstep')
+        self.outputs = SampleOutputs(self, lockstep=self.mode == 'lockstep',
+                                     tracker=TrackerModel(self.params))
         # The same dict as the outputs': on_forces pops the answered samples.
         self.sent_wall = self.outputs.sent_wall
         self.sub_forces = self.create_subscription(JointState, topics.LEG_FORCES,
@@ -185,6 +186,7 @@ class PlantNode(PlantControl, RigNode):
         lengths, rates = self.sensor.measure(lengths, rates)
         lengths, rates, self.sample_complete = self.fault_model.sense(lengths, rates)
         out.send(ns, sec, nanosec, lengths, rates, self.y)
+        out.send_tracked(self.k, sec, nanosec, self.y)
         return ns
 
     def step(self):

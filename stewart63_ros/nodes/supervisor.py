@@ -65,6 +65,8 @@ class SupervisorNode(RigNode):
             self.tunable(limit_key, self._limit_setter(limit_key))
         self.tunable('trip_on_diagnostics', self._set_trip_on_diagnostics)
         self.sample_gate = StampGate(RESTART_PAUSE)
+        # The sensors read the true length plus leg_length_offset (the file's).
+        self.length_offset = self.param('leg_length_offset')
         self.pending = None         # (ns, sec, nanosec, frame_id) of the sample to answer
         self.answered_ns = -1
         self.early = {}             # requests that came before their sample: ns -> forces
@@ -140,6 +142,7 @@ class SupervisorNode(RigNode):
             rates = np.array(msg.velocity, float) if len(msg.velocity) == 6 else \
                 np.full(6, np.nan)
             complete = False
+        lengths = lengths - self.length_offset
         if self.sample_gate.new_run:        # a plant's ~/reset: its stamps start again
             self.core.new_run()
         self.sample_gate.accept(ns, source_of(info))
