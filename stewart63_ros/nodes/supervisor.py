@@ -327,7 +327,11 @@ class SupervisorNode(RigNode):
                 if self.async_trip is not None:
                     self.latch_async(self.pending[0])
                     self.answer(self.core.safe_forces(self.pending[0]))
-                elif self.lockstep and now - waiting_since > self.request_timeout:
+                elif self.lockstep and now - waiting_since > (
+                        self.request_timeout if self.health.received[REQUEST_TOPIC]
+                        else max(self.request_timeout, self.discovery_timeout)):
+                    # (the first request races discovery, as the plant's first
+                    # answer does: a reliable repair can take a heartbeat, ~1 s)
                     self.timeouts += 1
                     self.health.values['request_timeouts'] = self.timeouts
                     self.health.warning = ('no request for the sample stamped %d ns within '
