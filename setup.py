@@ -40,6 +40,7 @@ setup(
             'view = stewart63_ros.tools.view:main',
             'analyze = stewart63_ros.tools.analyze:main',
             'sweep = stewart63_ros.tools.sweep:main',
+            'supervisor = stewart63_ros.nodes.supervisor:main',
             'calibrate = stewart63_ros.tools.calibrate:main',
             'scenario = stewart63_ros.tools.scenario:main',
         ],

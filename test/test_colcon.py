@@ -26,7 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow      # a colcon build in processes
 PACKAGE = 'stewart63_ros'
 EXECUTABLES = ('plant', 'controller', 'fk', 'record', 'play', 'rig', 'sim', 'plot', 'analyze',
-               'sweep')
+               'sweep', 'supervisor')
 PACKAGE_FILES = ('package.xml', 'setup.py', 'setup.cfg', 'README.md')
 PACKAGE_DIRS = ('resource', 'stewart63_ros', 'config', 'launch')
 PY = 'python%d.%d' % sys.version_info[:2]

@@ -211,4 +211,4 @@ def test_one_list_of_the_rigs_nodes():
     from stewart63_ros.nodes import composed
     from stewart63_ros.tools import rig
     assert rig.NODES is composed.NODE_NAMES is node_names.NODES
-    assert tuple(node_parameters.NODES) == node_names.NODES
+    assert tuple(node_parameters.NODES) == node_names.ALL_NODES

@@ -109,9 +109,10 @@ def test_each_declaration_gives_what_ros2_param_describe_shows():
 
 
 def test_every_declared_key_is_known_and_its_default_passes_its_check():
+    from stewart63_ros.core.node_names import ALL_NODES
     for d in declared.DECLARED:
         assert d.name in known_keys()
-        assert d.nodes and set(d.nodes) <= {'plant', 'controller', 'fk', 'sim'}, d.name
+        assert d.nodes and set(d.nodes) <= {*ALL_NODES, 'sim'}, d.name
         assert d.doc and d.check, d.name
         declared.read({}, d.name)                   # raises if the default is refused
     assert len(declared.BY_NAME) == len(declared.DECLARED), 'a key declared twice'
@@ -144,6 +145,7 @@ def _tunable_keys() -> set[str]:
     """The keys the nodes let change at run time: ``self.tunable('x', ...)``
     calls, and the controller's ``for name in LAW_PARAMETERS`` loop."""
     from stewart63_ros.core.laws import LAW_PARAMETERS
+    from stewart63_ros.core.supervisor import LIMIT_KEYS
     keys = set()
     for path in (REPO / 'stewart63_ros' / 'nodes').glob('*.py'):
         for node in ast.walk(ast.parse(path.read_text())):
@@ -154,6 +156,8 @@ def _tunable_keys() -> set[str]:
                     keys.add(arg.value)
                 elif isinstance(arg, ast.Name) and arg.id == 'name':
                     keys |= set(LAW_PARAMETERS)
+                elif isinstance(arg, ast.Name) and arg.id == 'limit_key':
+                    keys |= set(LIMIT_KEYS)
     return keys
 
 

@@ -55,6 +55,7 @@ def test_a_namespace_ros_refuses_is_refused_before_anything_starts(ros, tmp_path
 class _Ended:
     """A rig whose plant wrote ``summary``; no controller, no fk."""
     nodes = ('plant',)
+    supervisor = False
 
     def __init__(self, summary):
         self._summary = summary

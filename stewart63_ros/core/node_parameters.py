@@ -38,10 +38,13 @@ import numpy as np
 
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.core.faults import FaultError, parse_faults
-from stewart63_ros.core.node_names import NODES
+from stewart63_ros.core.node_names import ALL_NODES
 
-#: A key every node reads (the rig's nodes, ``node_names.NODES``; 'sim'
-#: stands for the offline executables that read a node's keys).
+#: The nodes that read the file's keys (``node_names.ALL_NODES``); 'sim'
+#: stands for the offline executables that read a node's keys (``sim``,
+#: ``analyze``, ``sweep``).
+NODES = ALL_NODES
+#: A key every node reads.
 ALL = NODES
 
 
@@ -173,6 +176,17 @@ def gain_vector(name: str, value: Any) -> np.ndarray:
     return arr
 
 
+def pose_box(name: str, value: Any) -> np.ndarray | None:
+    """[] (no box) or six finite numbers: x, y, z minimum, then maximum [m]."""
+    if value is None or (isinstance(value, (list, tuple)) and len(value) == 0):
+        return None
+    arr = six_lengths(name, value)
+    if not np.all(arr[:3] < arr[3:]):
+        raise ParameterError(name, 'each minimum (x, y, z) must be below its maximum, got %s'
+                             % arr.tolist())
+    return arr
+
+
 def faults(name: str, value: Any) -> list:
     """A list of fault strings (core/faults.py), parsed."""
     try:
@@ -252,10 +266,10 @@ DEFAULT_ENDSTOP_DAMPING = 5.0e3
 _NAMES_RANGE = 'list of names, relative to the plant\'s namespace unless they start with `/`'
 
 DECLARED: tuple[Declared, ...] = (
-    Declared('sensor_rate', ('plant', 'sim'), 1000.0, 'Hz', '', 'sample rate of '
+    Declared('sensor_rate', ('plant', 'supervisor', 'sim'), 1000.0, 'Hz', '', 'sample rate of '
              '`leg_lengths`, and the physics step (also `sim --control sampled`)', positive),
-    Declared('clock_mode', ('plant', 'controller', 'fk'), 'realtime', '', '', 'see [Clock '
-             'modes](#clock-modes-plant-parameter-clock_mode); the controller takes its '
+    Declared('clock_mode', ('plant', 'controller', 'fk', 'supervisor'), 'realtime', '', '',
+             'see [Clock modes](#clock-modes-plant-parameter-clock_mode); the controller takes its '
              'watchdog default from it, fk its lockstep progress', one_of('realtime', 'lockstep')),
     Declared('duration', ('plant',), 0.0, 's (simulated)', '', 'end the run after this '
              'long; 0: run until stopped', nonnegative),
@@ -295,8 +309,8 @@ DECLARED: tuple[Declared, ...] = (
              'sensor', integer(0)),
     Declared('sensor_seed', ('plant', 'sim'), 0, '', '', 'seed of the noise generator (and '
              'of the faults\' noise)', integer()),
-    Declared('endstop_stiffness', ('plant', 'sim'), DEFAULT_ENDSTOP_STIFFNESS, 'N/m', '≥ 0 '
-             '(inf: rigid)', 'end-stop spring past `leg_length_min` / `leg_length_max` '
+    Declared('endstop_stiffness', ('plant', 'supervisor', 'sim'), DEFAULT_ENDSTOP_STIFFNESS,
+             'N/m', '≥ 0 (inf: rigid)', 'end-stop spring past `leg_length_min` / `leg_length_max` '
              '([conventions](#frames-and-conventions))', nonnegative_or_infinite),
     Declared('endstop_damping', ('plant', 'sim'), DEFAULT_ENDSTOP_DAMPING, 'N s/m', '≥ 0',
              'end-stop damper', nonnegative_or_infinite),
@@ -319,7 +333,7 @@ DECLARED: tuple[Declared, ...] = (
              'motion that moves a leg faster (naming time and leg); 0: off', nonnegative),
     Declared('max_leg_acceleration', ('controller', 'sim'), 0.0, 'm/s²', '', 'refuse a '
              'reference motion that accelerates a leg more; 0: off', nonnegative),
-    Declared('reference_file', ('controller', 'plant'), '', 'path', 'a [Reference '
+    Declared('reference_file', ('controller', 'plant', 'supervisor'), '', 'path', 'a [Reference '
              'CSV](#reference-csv)', 'controller: follow it from the first sample (`rig '
              '--reference` sets it); plant: report the true tracking error in its summary',
              text, default_text='"" (none)'),
@@ -354,10 +368,10 @@ DECLARED: tuple[Declared, ...] = (
     Declared('use_sim_time', ALL, False, '', '', 'rclpy\'s own: the node\'s clock follows '
              '`/clock` (the plant publishes it in lockstep)', boolean),
     # Calibration (docs/calibration.md).
-    Declared('leg_length_offset', ('plant', 'controller', 'fk'), [0.0] * 6, 'm',
+    Declared('leg_length_offset', ('plant', 'controller', 'fk', 'supervisor'), [0.0] * 6, 'm',
              '6 numbers', 'each length sensor\'s zero offset: reading = true length + '
-             'offset. The plant adds it to the lengths it publishes; controller and fk '
-             'subtract it from every reading; `calibrate fit` identifies it '
+             'offset. The plant adds it to the lengths it publishes; controller, fk and '
+             'supervisor subtract it from every reading; `calibrate fit` identifies it '
              '([calibration.md](calibration.md))', six_lengths, default_text='0 ×6'),
     Declared('tracker_rate', ('plant',), 0.0, 'Hz', '0 or a divisor of `sensor_rate`',
              'a simulated tracker: publish the true pose with noise on `tracker/pose` at '
@@ -367,6 +381,70 @@ DECLARED: tuple[Declared, ...] = (
     Declared('tracker_orientation_noise', ('plant',), 1.0e-4, 'rad', '', 'the simulated '
              'tracker\'s Gaussian angle noise per axis (a rotation vector, base frame)',
              nonnegative),
+    # -- the supervisor (core/supervisor.py, docs/supervisor.md) --
+    Declared('stroke_margin', ('supervisor',), 0.05, 'm', '≥ 0, < half the stroke', 'the '
+             'soft stroke: this far inside `leg_length_min` and `leg_length_max`; a leg '
+             'reading outside it trips (descent)', nonnegative, runtime=True),
+    Declared('trip_leg_speed', ('supervisor',), 0.5, 'm/s', '≥ 0, > `descent_speed`', 'a '
+             'leg rate reading faster trips (descent); 0: off', nonnegative, runtime=True),
+    Declared('trip_force', ('supervisor',), 0.0, 'N', '', 'a requested force above this '
+             'trips (hold); 0: the model\'s `max_force`', nonnegative, runtime=True),
+    Declared('trip_force_rate', ('supervisor',), 1.0e7, 'N/s', '', 'a requested force '
+             'changing faster from one sample to the next trips (hold); 0: off', nonnegative,
+             runtime=True),
+    Declared('trip_tracking_error', ('supervisor',), 0.05, 'm', '', 'a leg farther than this '
+             'from its reference (`reference_file`, else `setpoint_lengths`) for '
+             '`trip_tracking_time` trips (descent); 0: off', nonnegative, runtime=True),
+    Declared('trip_tracking_time', ('supervisor',), 1.0, 's (samples)', '', 'how long the '
+             'tracking error must stay over `trip_tracking_error`', nonnegative, runtime=True),
+    Declared('pose_box', ('supervisor',), [-0.3, -0.3, 0.8, 0.3, 0.3, 1.6], 'm', '[] or 6 '
+             'numbers, min < max', 'x, y, z minimum then maximum of the platform\'s position '
+             '(its forward kinematics from the readings); outside trips (descent); []: off',
+             pose_box, runtime=True),
+    Declared('trip_tilt', ('supervisor',), 0.35, 'rad', '', 'the platform\'s z axis tilted '
+             'more than this from the base\'s trips (descent); 0: off', nonnegative,
+             runtime=True),
+    Declared('stale_lengths_ms', ('supervisor',), 20.0, 'ms (samples)', '> 0', 'no valid '
+             '`leg_lengths` reading (NaN or missing) for longer trips (zero force)', positive,
+             runtime=True),
+    Declared('stale_forces_ms', ('supervisor',), 50.0, 'ms (samples)', '> 0', 'no request '
+             'from the controller for longer trips (hold)', positive, runtime=True),
+    Declared('request_timeout', ('supervisor',), 0.25, 's (wall clock)', '> 0, below the '
+             'plant\'s `force_timeout`', 'lockstep: the longest the supervisor waits for the '
+             'controller\'s request answering a sample before it answers without one',
+             positive),
+    Declared('descent_speed', ('supervisor',), 0.05, 'm/s', '> 0, < `trip_leg_speed`', 'peak '
+             'leg speed of the descent to the rest pose', positive, runtime=True),
+    Declared('rest_clearance', ('supervisor',), 0.05, 'm', '≥ 0', 'the rest pose (level, '
+             'over the initial x, y) has its shortest leg this far above the soft lower '
+             'limit', nonnegative, runtime=True),
+    Declared('trip_on_diagnostics', ('supervisor',), True, '', '', 'an ERROR on '
+             '`/diagnostics` from a node of the rig\'s namespace trips (descent)', boolean,
+             runtime=True),
+    Declared('force_stale_ms', ('plant',), 0.0, 'ms (samples)', '≥ 0', 'fail safe: a held '
+             'force older than this (in sample time: the stamp it answers) is not applied, '
+             'zero instead; 0: held for ever (`rig --supervisor` sets the supervisor\'s '
+             '`stale_forces_ms`)', nonnegative),
+    Declared('answer_every_sample', ('plant',), False, '', '', 'lockstep: wait for the answer '
+             'to a sample with a missing reading too (the supervisor answers every sample; '
+             '`rig --supervisor` sets it)', boolean),
+    Declared('homing', ('supervisor',), False, '', '', 'home the legs\' incremental sensors '
+             'against their end stops before the controller\'s forces go through '
+             '([supervisor.md](supervisor.md#homing))', boolean),
+    Declared('homing_direction', ('supervisor',), 'extend', '', '', 'the end stops homing '
+             'drives the legs to: `extend` (upper) or `retract` (lower); refused at start-up '
+             'when no pose has every leg at those stops', one_of('extend', 'retract')),
+    Declared('homing_speed', ('supervisor',), 0.05, 'm/s', '> 0, < `trip_leg_speed`', 'leg '
+             'speed of the homing, towards the stops and back', positive),
+    Declared('homing_force', ('supervisor',), 200.0, 'N', '> 0', 'a leg that stalls while '
+             'pushing this much more than its share of the load is at its stop', positive),
+    Declared('homing_offset', ('plant',), [0.0] * 6, 'm', '6 numbers', 'the hidden zero of '
+             'each leg\'s incremental sensor: added to its reading until a homing sets '
+             '`homed_offset` (the simulated encoder has no absolute zero)', six_lengths,
+             default_text='0 ×6'),
+    Declared('homed_offset', ('plant',), [0.0] * 6, 'm', '6 numbers', 'the zero a homing '
+             'found and set on the drives: subtracted from each reading (the supervisor '
+             'sets it)', six_lengths, runtime=True, default_text='0 ×6'),
 )
 
 BY_NAME: dict[str, Declared] = {d.name: d for d in DECLARED}

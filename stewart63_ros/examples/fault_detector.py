@@ -16,6 +16,12 @@ mismatch; the controller then withholds its forces and reports ERROR on
 trip latches: every later sample raises again, until the law is built anew
 (``ros2 param set /controller control_law ...`` or a restart).
 
+With the supervisor in the rig (``rig --supervisor``) that ERROR is the
+law's request to trip: the supervisor, waiting for the forces of the very
+sample the law refused, trips on it (cause ``diagnostics_error``, naming the
+controller and this message) and brings the platform down
+(docs/supervisor.md, "How a user's law asks for a trip").
+
 A gap in the samples (a withheld or refused sample, a pause, a new run whose
 time starts again) restarts the window instead of integrating across it.
 

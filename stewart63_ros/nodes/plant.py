@@ -185,6 +185,8 @@ class PlantNode(PlantControl, RigNode):
             self.endstop_samples += 1
             self.health.warning = ('a leg is at an end stop (%d samples so far)'
                                    % self.endstop_samples)
+        if self.encoder_shift is not None:     # incremental sensors not homed
+            lengths = lengths + self.encoder_shift
         lengths, rates = self.sensor.measure(lengths, rates)
         lengths, rates, self.sample_complete = self.fault_model.sense(lengths, rates)
         out.send(ns, sec, nanosec, lengths, rates, self.y)
@@ -289,8 +291,10 @@ class PlantNode(PlantControl, RigNode):
             timeout = self.force_timeout if self.k else max(self.force_timeout,
                                                               self.discovery_timeout)
             # A sample with a dropped-out leg (NaN) gets no answer: the
-            # controller refuses it, the held force goes on (as in sim).
-            if self.sample_complete and not self.wait_for_answer(ns, timeout):
+            # controller refuses it, the held force goes on (as in sim). A
+            # supervisor answers every sample (answer_every_sample).
+            if (self.sample_complete or self.answer_every_sample) \
+                    and not self.wait_for_answer(ns, timeout):
                 if STOP.requested:
                     return
                 self.timeouts += 1

@@ -39,6 +39,7 @@ from stewart63_ros.nodes.launcher import STOP
 RESET_QUIET = 2.0 * RESTART_PAUSE
 #: s: the longest a paused loop sleeps between two looks at its flags.
 HOLD_POLL = 0.1
+_NO_FORCE = np.zeros(6)
 
 
 class PlantControl:
@@ -48,6 +49,13 @@ class PlantControl:
         """Called by the plant's constructor once its model and loop state exist."""
         from std_srvs.srv import SetBool, Trigger
         self.fault_model = FaultModel(self.param('faults'), self.rate, self.param('sensor_seed'))
+        self.force_stale_ns = int(round(self.param('force_stale_ms') * 1e6))
+        self.stale_force_from = None    # (sample, stamp of the force gone stale)
+        self.answer_every_sample = self.param('answer_every_sample')
+        # The sensors' hidden zero and the one a homing set (supervisor).
+        self.homing_offset = self.param('homing_offset')
+        self.set_homed_offset(self.param('homed_offset'))
+        self.tunable('homed_offset', self.set_homed_offset)
         self.sample_complete = True     # the last sample carried all six readings
         self.step_count = self.param('step_count')
         self.tunable('faults', self.set_faults)
@@ -81,6 +89,14 @@ class PlantControl:
         if self.started:
             self.report()
 
+    def set_homed_offset(self, value) -> None:
+        """``homed_offset`` (a homing's result): the readings from the next sample
+        on are true + ``homing_offset`` - this."""
+        shift = self.homing_offset - value
+        self.encoder_shift = shift if shift.any() else None
+        if value.any() or self.homing_offset.any():     # (a machine with homing)
+            self.health.values['homed_offset'] = np.round(value, 6).tolist()
+
     def set_step_count(self, value) -> None:
         self.step_count = value
 
@@ -94,8 +110,28 @@ class PlantControl:
             self.report()
 
     def applied_force(self) -> np.ndarray:
-        """The held force as the pistons apply it (actuator faults)."""
+        """The held force as the pistons apply it (actuator faults); zero once
+        it answers a sample more than ``force_stale_ms`` before this one (fail
+        safe: a supervisor or controller that died leaves no force acting)."""
+        if self.force_stale_ns and self.force_is_stale():
+            return self.fault_model.actuate(_NO_FORCE)
         return self.fault_model.actuate(self.force)
+
+    def force_is_stale(self) -> bool:
+        """The held force answers a sample older than ``force_stale_ms``
+        (none held yet: not stale, it is zero anyway); counted, the first such
+        sample on /diagnostics (``stale_force_from_sample``)."""
+        if self.force_ns is None:
+            return False
+        now = int(round(self.sample_time(self.k) * 1e9))
+        if now - self.force_ns <= self.force_stale_ns:
+            return False
+        if self.stale_force_from is None or self.stale_force_from[1] != self.force_ns:
+            self.stale_force_from = (self.k, self.force_ns)
+            self.health.values['stale_force_from_sample'] = self.k
+            self.get_logger().error('no force newer than %.1f ms: zero force from sample %d '
+                                    '(force_stale_ms)' % (self.force_stale_ns * 1e-6, self.k))
+        return True
 
     def report_faults(self) -> None:
         """The faults into the next status: ``fault: <fault>`` values, and the

@@ -3,7 +3,7 @@
     rig [--params FILE] [--mode realtime|lockstep] [--duration S] [--record DIR]
         [--namespace NS] [--nodes plant,controller,fk] [--realtime-priority P]
         [--compose] [--control-law NAME] [--reference CSV] [--fault FAULT]...
-        [--plant-params FILE]
+        [--supervisor] [--plant-params FILE]
 
 One parameter file and one namespace for all. Every node waits until its
 peers are matched before the first sample, so a short run loses nothing at
@@ -18,7 +18,9 @@ controller's ``control_law``; --reference hands a reference CSV to the
 controller (``reference_file``, time 0 = the first sample) and to the plant,
 which reports the true tracking error in its summary. --fault (repeatable)
 adds a fault to the plant's ``faults`` (docs/faults.md); the summary names
-each fault and when it acted. --plant-params gives the plant a file of its
+each fault and when it acted. --supervisor puts the supervisor between the
+controller and the plant (docs/supervisor.md); the summary lists its trips.
+--plant-params gives the plant a file of its
 own, read after --params (its keys win, for the plant only): the plant then
 plays a machine built off the drawing that controller and fk run on
 (docs/calibration.md).
@@ -48,7 +50,8 @@ from stewart63_ros.tools.cli import quiet_on_closed_pipe
 START_TIMEOUT = 180.0
 MODULES = {'plant': 'stewart63_ros.nodes.plant', 'controller': 'stewart63_ros.nodes.controller',
            'fk': 'stewart63_ros.nodes.fk_node', 'record': 'stewart63_ros.tools.record',
-           'composed': 'stewart63_ros.nodes.composed', 'view': 'stewart63_ros.tools.view'}
+           'composed': 'stewart63_ros.nodes.composed', 'view': 'stewart63_ros.tools.view',
+           'supervisor': 'stewart63_ros.nodes.supervisor'}
 
 
 def default_log_dir(record=None, namespace='') -> Path:
@@ -68,8 +71,10 @@ class Rig:
 
     def __init__(self, params, mode=RIG_CLOCK_MODE, duration=None, record=None, namespace='',
                  log_dir=None, extra_params=None, nodes=NODES, realtime_priority=0,
-                 compose=False):
+                 compose=False, supervisor=False):
         self.params = str(params)
+        #: ``rig --supervisor``: the supervisor between controller and plant
+        self.supervisor = bool(supervisor)
         self.mode = mode
         self.duration = duration
         self.record = record
@@ -116,6 +121,8 @@ class Rig:
                 section = doc.setdefault('/**/%s' % node, {'ros__parameters': dict(shared)})
                 section['ros__parameters']['summary_file'] = str(
                     self.log_dir / ('%s_summary.json' % node))
+        if self.supervisor:
+            supervised(doc, plant, shared, self.log_dir)
         for node, values in self.extra_params.items():
             section = doc.setdefault('/**/%s' % node, {'ros__parameters': dict(shared)})
             section['ros__parameters'].update(values)
@@ -129,6 +136,9 @@ class Rig:
             name == 'plant' and self.plant_params) else []
         args = ['--ros-args', '--params-file', self.params] + own + [
             '--params-file', str(self.overlay())]
+        if self.supervisor and name == 'controller':
+            from stewart63_ros.nodes.supervisor import REQUEST_TOPIC
+            args += ['-r', '%s:=%s' % ('leg_forces', REQUEST_TOPIC)]
         if self.namespace:
             args += ['-r', '__ns:=%s' % self.namespace]
         return args
@@ -167,6 +177,8 @@ class Rig:
                 argv += ['--namespace', self.namespace]
             self.spawn('record', argv)
             self.wait_for_line('record', READY_LINE, 30)
+        if self.supervisor:         # first: the controller's barrier then sees it
+            self.spawn('supervisor', self.ros_args('supervisor'))
         for name in downstream:
             self.spawn(name, self.ros_args(name))
         if self.record and wanted:
@@ -251,7 +263,7 @@ class Rig:
         stopped as asked: 0.
         """
         interrupted = set()
-        order = [n for n in ('composed', 'plant', 'controller', 'fk', 'view')
+        order = [n for n in ('composed', 'plant', 'controller', 'supervisor', 'fk', 'view')
                  if n in self.procs] + (
             ['record'] if 'record' in self.procs else [])
         # The nodes together, then the recorder; each group on one deadline,
@@ -297,6 +309,21 @@ def _wait_all(procs, timeout):
             proc.wait(None if deadline is None else max(0.0, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
             pass
+
+
+def supervised(doc: dict, plant: dict, shared: dict, log_dir: Path) -> None:
+    """``rig --supervisor``'s part of the overlay (docs/supervisor.md): the
+    plant waits for the supervisor as for the controller, waits for its answer
+    to every sample (a sample with a missing reading too), and applies zero
+    force once its newest answers a sample older than ``stale_forces_ms``
+    (the supervisor's default: the plant fails safe when the supervisor dies)."""
+    from stewart63_ros.core.node_parameters import default
+    plant['lengths_subscribers'] += 1
+    plant['lengths_peers'] = plant['lengths_peers'] + ['supervisor']
+    plant['answer_every_sample'] = True
+    plant.setdefault('force_stale_ms', default('stale_forces_ms'))
+    doc['/**/supervisor'] = {'ros__parameters': dict(
+        shared, summary_file=str(log_dir / 'supervisor_summary.json'))}
 
 
 def control_params(control_law=None, reference=None) -> dict:
@@ -380,6 +407,10 @@ def main(argv=None) -> int:
                         help='inject a fault KIND:LEG[:VALUE][@T_START[-T_END]] into the plant, '
                         'e.g. actuator_dead:leg_4@2.0 (repeatable; added to the plant\'s '
                         'faults of the parameter file; docs/faults.md)')
+    parser.add_argument('--supervisor', action='store_true',
+                        help='put the supervisor between the controller and the plant: it '
+                        'trips on its limits, latches, brings the platform down '
+                        '(docs/supervisor.md); off by default, see there why')
     parser.add_argument('--plant-params', metavar='FILE',
                         help='a parameter file for the plant only, read after --params: the '
                         'machine as built (geometry, leg_length_offset, a simulated tracker) '
@@ -454,9 +485,14 @@ def main(argv=None) -> int:
                      'other nodes run until Ctrl-C or SIGTERM)')
     if not 0 <= args.realtime_priority <= 99:
         parser.error('--realtime-priority must be from 0 to 99')
+    if args.supervisor and (args.compose or 'controller' not in nodes or 'plant' not in nodes):
+        parser.error('--supervisor runs between the controller and the plant as its own '
+                     'process: it needs both in --nodes, and no --compose')
+    if args.supervisor and reference_file_extra(extra):
+        extra.setdefault('supervisor', {})['reference_file'] = reference_file_extra(extra)
     rig = Rig(params, args.mode, args.duration, args.record, args.namespace, args.log_dir,
               nodes=nodes, realtime_priority=args.realtime_priority, compose=args.compose,
-              extra_params=extra)
+              extra_params=extra, supervisor=args.supervisor)
     rig.plant_params = args.plant_params and str(Path(args.plant_params).resolve())
     ok = False
     start, start_unix = time.monotonic(), time.time()
@@ -577,6 +613,8 @@ def print_summary(rig, wall, started_unix=None):
         from stewart63_ros.tools.sim import format_fault
         for fault in summary.get('faults', ()):
             print('  ' + format_fault(fault))
+    if rig.supervisor:
+        print_trips(rig.summary('supervisor'))
     for node in ('controller', 'fk'):
         if node not in rig.nodes:
             continue
@@ -594,6 +632,25 @@ def print_summary(rig, wall, started_unix=None):
         print('  %s: received %s, published %s, rejected %d%s' % (
             node, _counts(s['received']), _counts(s['published']), s['rejected_total'],
             extra))
+
+
+def reference_file_extra(extra: dict) -> str:
+    """The reference CSV handed to the controller (``--reference``), or ''."""
+    return extra.get('controller', {}).get('reference_file', '')
+
+
+def print_trips(summary) -> None:
+    """The supervisor's trips, one line each, in the rig's summary."""
+    if not summary:
+        print('  supervisor: no summary')
+        return
+    trips = summary.get('trips', [])
+    print('  supervisor: %s' % ('%d trip%s' % (len(trips), 's' * (len(trips) != 1))
+                                if trips else 'no trip'))
+    for trip in trips:
+        print('    TRIP %s at sample %d (%s): %s, latency %s samples' % (
+            trip['cause'], trip['sample'], trip['detail'], trip['action'],
+            trip['latency_samples']))
 
 
 def _counts(counter):

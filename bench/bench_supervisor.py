@@ -1,0 +1,108 @@
+"""The supervisor's cost: prints figures, asserts nothing.
+
+- per sample, in-process (core/supervisor.py): ``on_sample`` + ``on_request``
+  of an untripped supervisor on a moving platform (forward kinematics for
+  the pose box, the tracking check), and the safe action's forces once
+  tripped (the descent: forward kinematics and the gravity model);
+- the lockstep rig's throughput with the supervisor out and in
+  (``rig --supervisor``), plant + controller, alternating runs in one sitting.
+
+    bench_supervisor.py [--duration S] [--repeat N] [--json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+
+import numpy as np
+
+from stewart63_ros.core.params import default_params_path, load_mechanism
+from stewart63_ros.core.supervisor import run_supervised, supervisor_from_params
+
+
+def per_sample_us(samples: int = 5000) -> dict:
+    """Microseconds per sample of the core's checks and of the descent."""
+    mech = load_mechanism(default_params_path())
+    params = dict(mech.to_params())
+    sup = supervisor_from_params(mech, params, 1000.0)
+    out = run_supervised(mech, sup, samples / 1000.0, 1000.0)     # a real trajectory
+    lengths, forces = out['measured'], out['requests']
+    rates = np.gradient(lengths, 1e-3, axis=0)
+    timings = {}
+    for name in ('checks', 'descent'):
+        sup = supervisor_from_params(mech, params, 1000.0)
+        sup.limits = sup.limits.__class__(**dict(sup.limits.__dict__, tracking_time=1e9,
+                                                  leg_speed=0.0))
+        if name == 'descent':
+            sup.on_sample(0, lengths[0], rates[0])
+            sup.trip_now('estop', 'bench')
+        start = time.perf_counter()
+        for k in range(1, len(lengths)):
+            ns = k * 1_000_000
+            sup.on_sample(ns, lengths[k], rates[k])
+            if name == 'checks':
+                sup.on_request(ns, forces[k])
+            else:
+                sup.safe_forces(ns)
+        timings[name + '_us'] = (time.perf_counter() - start) / (len(lengths) - 1) * 1e6
+    return timings
+
+
+def rig_throughput(duration: float, repeat: int) -> dict:
+    """Lockstep samples per second, plant + controller, supervisor out and in."""
+    from bench_loop import PAIR, private_domain
+    results = {'out': [], 'in': []}
+    with private_domain():
+        for _ in range(repeat):
+            for key in ('out', 'in'):
+                summary = run_rig(duration, PAIR, key == 'in')
+                if summary:
+                    results[key].append(summary['samples'] / summary['wall_time_s'])
+    return {key: statistics.median(v) if v else None for key, v in results.items()} | {
+        'runs': {key: [round(x) for x in v] for key, v in results.items()}}
+
+
+def run_rig(duration, nodes, supervisor):
+    import tempfile
+
+    from stewart63_ros.tools.rig import Rig
+    log_dir = tempfile.mkdtemp(prefix='bench_supervisor_')
+    rig = Rig(default_params_path(), 'lockstep', duration, nodes=nodes, log_dir=log_dir,
+              supervisor=supervisor)
+    try:
+        rig.start()
+        ok = rig.wait(timeout=60 + 50 * duration)
+    except RuntimeError as exc:
+        print('run failed: %s; logs in %s' % (exc, log_dir))
+        ok = False
+    finally:
+        rig.stop()
+    summary = rig.summary()
+    return summary if ok else None
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--duration', type=float, default=5.0)
+    parser.add_argument('--repeat', type=int, default=3)
+    parser.add_argument('--json', action='store_true')
+    args = parser.parse_args(argv)
+    figures = per_sample_us()
+    print('supervisor core per sample: checks %.1f us, descent %.1f us'
+          % (figures['checks_us'], figures['descent_us']), flush=True)
+    figures.update(rig_throughput(args.duration, args.repeat))
+    print('lockstep plant+controller: %s samples/s without the supervisor, %s with it '
+          '(runs: %s)' % (_round(figures['out']), _round(figures['in']), figures['runs']))
+    if args.json:
+        print(json.dumps(figures))
+    return 0
+
+
+def _round(value):
+    return 'failed' if value is None else '%.0f' % value
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,292 @@
+"""The supervisor node in a lockstep rig (``rig --supervisor``), over DDS.
+
+Two rigs: one recorded run whose trip (and every force sent) must be the
+core's closed loop's, sample for sample (core/supervisor.py
+``run_supervised``: the same every run); one interactive run that trips
+on ~/estop, a fault, an ERROR of a node of the rig and a user's request,
+refuses a reset while the cause holds, and ends with the supervisor killed:
+the plant then applies zero force from exactly ``stale_forces_ms`` after
+the last answer. Every wait is bounded; every process is stopped by its pid.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ros_harness import logs_of, rig_env, run_to_end
+
+from stewart63_ros import bagio
+from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.supervisor import run_supervised, supervisor_from_params
+from stewart63_ros.tools.rig import Rig
+
+REPO = Path(__file__).resolve().parents[1]
+PARAMS = REPO / 'config' / 'stewart63.yaml'
+RATE = 1000.0
+START_TIMEOUT = 150.0
+ERROR = 2
+SUPERVISOR = 'stewart63/supervisor'
+NODES = ('plant', 'controller')     # fk is not in the control loop
+
+
+def level_of(status) -> int:
+    """A status's level: bytes from rclpy, an int from a bag."""
+    level = status.level
+    return level[0] if isinstance(level, (bytes, bytearray)) else int(level)
+
+
+def core_run(faults, duration, law=None, homing=False):
+    from stewart63_ros.core.laws import Controller
+    from stewart63_ros.core.params import mechanism_from_params
+    from stewart63_ros.core.sensor import SensorModel
+    params = dict(load_mechanism(PARAMS).to_params())
+    sensor = offset = None
+    if homing:
+        params.update(HOMING['supervisor'])
+        sensor, offset = SensorModel(HOMING['plant']), HOMING['plant']['homing_offset']
+    mech = mechanism_from_params(params)
+    sup = supervisor_from_params(mech, params, RATE)
+    return sup, run_supervised(mech, sup, duration, RATE, faults,
+                               controller=Controller(mech, params, law=law), sensor=sensor,
+                               homing_offset=offset)
+
+
+def homing_params() -> dict:
+    """Node sections for a homing run: the platform 0.45 m higher than the
+    file's start (nearer the upper end stops), held there by the controller;
+    hidden sensor offsets; readings quantised at 0.1 mm."""
+    from stewart63_ros.core.kinematics import leg_lengths
+    mech = load_mechanism(PARAMS)
+    position = [0.01, 0.01, 1.45]
+    setpoint = leg_lengths(mech, np.array(position), np.eye(3)).round(4).tolist()
+
+    def start():    # (one list per section: rcl refuses YAML aliases)
+        return {'initial_position': list(position), 'initial_velocity': [0.0, 0.0, 0.0],
+                'setpoint_lengths': list(setpoint)}
+    return {'plant': dict(start(), homing_offset=[0.003, -0.002, 0.005, 0.0, -0.004, 0.0012],
+                          sensor_resolution=1e-4),
+            'controller': start(),
+            'supervisor': dict(start(), homing=True, homing_speed=0.2)}
+
+
+HOMING = homing_params()
+CHECKED_PD = 'stewart63_ros.examples.fault_detector:CheckedPD'
+
+
+@pytest.mark.parametrize('fault, cause, law', [
+    ('sensor_stuck:all@0', 'tracking_error', None),
+    ('sensor_dropout:leg_2@0.5', 'lengths_stale', None),
+    # the example law's fault detector raises: the controller's ERROR trips
+    ('sensor_stuck:leg_2@0.1', 'diagnostics_error', CHECKED_PD),
+    # no trip: homing, then the controller's forces
+    (None, None, 'homing'),
+])
+def test_the_rig_trips_where_the_core_does_and_records_it(ros, monkeypatch, tmp_path, fault,
+                                                          cause, law):
+    homing = law == 'homing'
+    law = None if homing else law
+    duration = 6.5 if homing else 1.1
+    faults = [fault] if fault else []
+    rig_env(ros, monkeypatch)
+    bag = tmp_path / 'bag'
+    extra = json.loads(json.dumps(HOMING)) if homing else {}
+    extra.setdefault('plant', {})['faults'] = faults
+    if law:
+        extra['controller'] = {'control_law': law}
+    rig = Rig(PARAMS, mode='lockstep', duration=duration, record=bag, nodes=NODES,
+              log_dir=tmp_path / 'rig', supervisor=True, extra_params=extra)
+    ok, codes, logs = run_to_end(rig, START_TIMEOUT)
+    assert ok and set(codes.values()) == {0}, logs
+    core, expected = core_run(faults, duration, law, homing)
+    summary = json.loads((tmp_path / 'rig' / 'supervisor_summary.json').read_text())
+    if homing:
+        assert core.homed and summary['trips'] == [] and core.trips == [], summary
+        hidden = np.array(HOMING['plant']['homing_offset'])
+        found = np.array(summary['values']['homing/offsets'])
+        assert np.all(np.abs(found - hidden) <= 1e-4), (found, hidden)     # the resolution
+        np.testing.assert_array_equal(found, np.round(core.offsets, 6))
+        assert summary['values']['homed'] == 'true'
+        assert_sent_as_core(bag, duration, expected)
+        return
+    trip = core.trip
+    assert trip.cause == cause
+    assert len(summary['trips']) == 1, summary
+    got = summary['trips'][0]
+    assert (got['cause'], got['action'], got['sample'], got['latency_samples']) == (
+        cause, trip.action, trip.sample_ns // 1_000_000, 0), summary
+    if law:     # the node names the controller and its message
+        assert got['detail'].startswith('/controller: control law failed') \
+            and 'SensorFault: sensor fault on leg_2' in got['detail'], got
+    else:
+        assert got['detail'] == trip.detail
+    assert 'request_timeouts' not in summary['values'], summary
+    trip_statuses = assert_sent_as_core(bag, duration, expected)
+    # The bag holds the trip: its cause, sample and latency on /diagnostics.
+    assert trip_statuses and trip_statuses[0]['trip/cause'] == cause
+    assert trip_statuses[0]['trip/sample'] == str(trip.sample_ns // 1_000_000)
+    assert trip_statuses[0]['trip/latency_samples'] == '0'
+
+
+def assert_sent_as_core(bag, duration, expected) -> list:
+    """Every force the plant was sent is the core's, sample for sample;
+    returns the supervisor's ERROR statuses in the bag (their values)."""
+    sent = {}
+    trip_statuses = []
+    for topic, _, msg in bagio.read_messages(bag, ['/leg_forces', '/diagnostics']):
+        if topic == '/leg_forces':
+            sent[bagio.header_stamp_ns(msg)] = np.array(msg.effort)
+        else:
+            for status in msg.status:
+                values = {kv.key: kv.value for kv in status.values}
+                if status.name == SUPERVISOR and level_of(status) == ERROR:
+                    trip_statuses.append(values)
+    n = int(round(duration * RATE)) + 1
+    assert sorted(sent) == [int(round(k * 1e6)) for k in range(n)]
+    np.testing.assert_array_equal(np.array([sent[k] for k in sorted(sent)]),
+                                  expected['forces'])
+    return trip_statuses
+
+
+class Client:
+    """The test's side: the supervisor's services, its and the plant's statuses."""
+
+    def __init__(self, ros):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import String
+        from std_srvs.srv import Trigger
+
+        from stewart63_ros import topics as T
+        self.ros = ros
+        self.node = node = ros.node('client')
+        self.forces = []
+        self.supervisor, self.plant = [], []
+        node.create_subscription(JointState, '/leg_forces', lambda m: self.forces.append(
+            bagio.header_stamp_ns(m)), T.RECORD_SUB)
+        node.create_subscription(DiagnosticArray, '/diagnostics', self.on_diag,
+                                 T.DIAGNOSTICS_QOS)
+        self.estop = node.create_client(Trigger, '/supervisor/estop')
+        self.reset = node.create_client(Trigger, '/supervisor/reset')
+        self.diag_pub = node.create_publisher(DiagnosticArray, '/diagnostics',
+                                              T.DIAGNOSTICS_QOS)
+        self.trip_pub = node.create_publisher(String, '/trip_request',
+                                              T.COMMAND_VOLATILE_QOS)
+        self.Trigger, self.String, self.DiagnosticArray = Trigger, String, DiagnosticArray
+
+    def on_diag(self, msg):
+        for status in msg.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if status.name == SUPERVISOR:
+                self.supervisor.append((level_of(status), status.message, values))
+            elif status.name == 'stewart63/plant':
+                self.plant.append(values)
+
+    def call(self, client):
+        future = client.call_async(self.Trigger.Request())
+        assert self.ros.spin_until(future.done, 30), 'no answer from %s' % client.srv_name
+        return future.result()
+
+    def wait_trip(self, cause):
+        start = len(self.supervisor)
+
+        def seen():
+            return any(level == ERROR and values.get('trip/cause') == cause
+                       for level, _, values in self.supervisor[start - 1 if start else 0:])
+        assert self.ros.spin_until(seen, 30), self.supervisor[-2:]
+
+    def reset_until_accepted(self, rig):
+        for _ in range(50):
+            answer = self.call(self.reset)
+            if answer.success:
+                return answer
+            self.ros.spin_until(lambda: False, 0.1)
+        raise AssertionError('reset refused: %s\n%s' % (answer.message, logs_of(rig.log_dir)))
+
+
+def test_estop_faults_errors_requests_reset_and_a_killed_supervisor(ros, monkeypatch,
+                                                                     tmp_path):
+    rig_env(ros, monkeypatch)
+    client = Client(ros)
+    # Short waits: the supervisor is killed at the end, and each sample then
+    # waits force_timeout for an answer that does not come.
+    rig = Rig(PARAMS, mode='lockstep', duration=None, nodes=NODES, log_dir=tmp_path / 'rig',
+              supervisor=True,
+              extra_params={'plant': {'force_timeout': 0.05},
+                            'supervisor': {'request_timeout': 0.02}})
+    try:
+        rig.start()
+        for service in (client.estop, client.reset):
+            assert service.wait_for_service(timeout_sec=START_TIMEOUT), logs_of(rig.log_dir)
+        assert ros.spin_until(lambda: len(client.forces) >= 10, START_TIMEOUT), \
+            logs_of(rig.log_dir)
+        # a run-time limit goes through the start-up's checks
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter
+        limits = client.node.create_client(SetParameters, '/supervisor/set_parameters')
+        assert limits.wait_for_service(timeout_sec=30)
+        for value, ok, why in ((0.7, False, 'stroke_margin: 0.7 m on each end leaves no soft'),
+                               (0.04, True, '')):
+            future = limits.call_async(SetParameters.Request(parameters=[
+                Parameter('stroke_margin', value=value).to_parameter_msg()]))
+            assert ros.spin_until(future.done, 30)
+            result = future.result().results[0]
+            assert result.successful == ok and why in result.reason, result
+        # ~/estop trips at once; a second one, during the descent, is answered
+        answer = client.call(client.estop)
+        assert answer.success and 'tripped' in answer.message
+        client.wait_trip('estop')
+        answer = client.call(client.estop)
+        assert answer.success and 'already tripped (estop' in answer.message
+        client.reset_until_accepted(rig)
+        # an ERROR from a node of the rig (a bus bridge reporting a collision)
+        from diagnostic_msgs.msg import DiagnosticStatus
+        client.diag_pub.publish(client.DiagnosticArray(status=[DiagnosticStatus(
+            level=DiagnosticStatus.ERROR, name='stewart63/bus_bridge',
+            message='collision: two sources on leg_forces')]))
+        client.wait_trip('diagnostics_error')
+        assert 'collision' in client.supervisor[-1][2]['trip/detail']
+        answer = client.call(client.reset)
+        assert not answer.success and 'bus_bridge in ERROR' in answer.message, answer.message
+        client.diag_pub.publish(client.DiagnosticArray(status=[DiagnosticStatus(
+            level=DiagnosticStatus.OK, name='stewart63/bus_bridge', message='ok')]))
+        client.reset_until_accepted(rig)
+        # a user's request
+        client.trip_pub.publish(client.String(data='fault detector: leg_2'))
+        client.wait_trip('user_request')
+        client.reset_until_accepted(rig)
+        # a dropped-out reading: stale, zero force; no reset while it lasts
+        params = client.node.create_client(SetParameters, '/plant/set_parameters')
+        assert params.wait_for_service(timeout_sec=30)
+
+        def set_faults(faults):
+            future = params.call_async(SetParameters.Request(parameters=[
+                Parameter('faults', value=faults).to_parameter_msg()]))
+            assert ros.spin_until(future.done, 30)
+            assert future.result().results[0].successful
+        set_faults(['sensor_dropout:leg_3'])
+        client.wait_trip('lengths_stale')
+        answer = client.call(client.reset)
+        assert not answer.success and 'persists' in answer.message \
+            and 'NaN' in answer.message, answer.message
+        set_faults([''])
+        answer = client.reset_until_accepted(rig)
+        assert 'lengths_stale trip' in answer.message
+        # killed: the plant applies zero force stale_forces_ms after its last answer
+        os.kill(rig.procs['supervisor'].pid, signal.SIGKILL)
+        rig.procs['supervisor'].wait(10)
+        assert ros.spin_until(lambda: any('stale_force_from_sample' in v for v in client.plant),
+                              60), logs_of(rig.log_dir)
+        stale_from = int([v for v in client.plant if 'stale_force_from_sample' in v][-1][
+            'stale_force_from_sample'])
+        last_answer = max(client.forces) // 1_000_000
+        assert stale_from == last_answer + 51, (stale_from, last_answer)
+    finally:
+        codes = rig.stop()
+    summary = json.loads((tmp_path / 'rig' / 'controller_summary.json').read_text())
+    assert summary['received']['leg_lengths'] > 0
+    assert codes['supervisor'] == -signal.SIGKILL and codes['plant'] == 0 \
+        and codes['controller'] == 0, (codes, logs_of(rig.log_dir))
