@@ -13,11 +13,11 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml']),
         ('share/' + PACKAGE + '/config', glob('config/*.yaml') + glob('config/*.rviz')
-         + glob('config/*.xml')),
+         + glob('config/*.xml') + glob('config/*.eds')),
         ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'numba', 'matplotlib', 'pyyaml', 'rosbags',
-                      'mcap', 'viser'],
+                      'mcap', 'viser', 'python-can', 'canopen'],
     # MuJoCo only for `make bench` and its agreement tests, never at run time;
     # Dask only for `sweep --scheduler` / `--dask-local`.
     extras_require={'bench': ['mujoco>=3.1'], 'cluster': ['dask', 'distributed']},
@@ -40,6 +40,10 @@ setup(
             'view = stewart63_ros.tools.view:main',
             'analyze = stewart63_ros.tools.analyze:main',
             'sweep = stewart63_ros.tools.sweep:main',
+            'canopen_bridge = stewart63_ros.nodes.canopen_bridge:main',
         ],
+        # python-can finds the rig's lossless local bus under this name
+        # (can.Bus(interface='s63hub', channel=...)): stewart63_ros/canbus/hub.py.
+        'can.interface': ['s63hub = stewart63_ros.canbus.hub:HubBus'],
     },
 )
