@@ -33,6 +33,7 @@ from stewart63_ros.core.bus import (
     LegDrive,
     check_load,
     drive_state,
+    frame_bits,
     next_controlword,
 )
 from stewart63_ros.canbus.devices import PDO_CODES, open_bus
@@ -112,11 +113,14 @@ class Master:
         self.rate = float(rate)
         self.log = log
         self.cycle = -1
+        #: bits seen on each bus (sent and received, worst-case stuffing): the measured load
+        self.bits = {bus.name: 0 for bus in config.buses}
         self.networks = {}
         self.links: list[Link] = []
         self._arrived = threading.Condition()
         self._expected = 0
         self._got = 0
+        self._first = None
         ods = {}
         for leg in config.legs:
             od = ods.get(leg.eds) or canopen.import_od(leg.eds)
@@ -158,6 +162,7 @@ class Master:
         def on(cob_id, data, timestamp):
             if len(data) < link.tpdo_struct.size:
                 return
+            self.bits[link.leg.bus] += frame_bits(len(data))
             with self._arrived:
                 if link.tpdo_cycle != self.cycle:
                     link.tpdo = unpack(data)
@@ -168,12 +173,14 @@ class Master:
 
     def _on_tpdo2(self, link: Link):
         def on(cob_id, data, timestamp):
+            self.bits[link.leg.bus] += frame_bits(len(data))
             if len(data) >= link.status_struct.size:
                 link.statusword = link.status_struct.unpack_from(data)[0]
         return on
 
     def _on_emcy(self, link: Link):
         def on(cob_id, data, timestamp):
+            self.bits[link.leg.bus] += frame_bits(min(len(data), 8))
             if len(data) >= 2:
                 link.emcy_code = struct.unpack_from('<H', data)[0]
                 link.emcys += 1
@@ -183,6 +190,7 @@ class Master:
         def on(cob_id, data, timestamp):
             if not data:
                 return
+            self.bits[link.leg.bus] += frame_bits(1)
             if data[0] == 0:            # boot-up: configured from scratch again
                 link.booted = True
                 link.up = False
@@ -264,26 +272,34 @@ class Master:
         with self._arrived:
             self.cycle = cycle
             self._got = 0
+            self._first = None
             self._expected = sum(link.up for link in self.links)
-        for network in self.networks.values():
+        for name, network in self.networks.items():
             network.send_message(0x80, b'')
+            self.bits[name] += frame_bits(0)
 
-    def collect(self, timeout: float, burst: float) -> list[Link]:
+    def collect(self, timeout: float, burst: float) -> bool:
         """Wait for this cycle's TPDO1s: until every drive that is up has
-        answered, ``timeout`` s if none has, or ``burst`` s after the first
-        (the drives of a bus answer a SYNC together). Returns the drives
-        that are up and did not answer (their TPDO is missing)."""
+        answered, or ``burst`` s after the first (the drives of a bus answer
+        a SYNC together). Returns False if none came within ``timeout`` s
+        (call again to wait on), True when the cycle is complete or its
+        burst is over (then ``missing``)."""
         start = time.monotonic()
-        first = None
         with self._arrived:
             while self._got < self._expected:
                 now = time.monotonic()
-                if self._got and first is None:
-                    first = now
-                deadline = start + timeout if first is None else first + burst
+                if self._got and self._first is None:
+                    self._first = now
+                if self._first is None and now >= start + timeout:
+                    return False
+                deadline = start + timeout if self._first is None else self._first + burst
                 if now >= deadline:
                     break
                 self._arrived.wait(deadline - now)
+        return True
+
+    def missing(self) -> list[Link]:
+        """The cycle is over: the drives that are up and did not answer (counted)."""
         missing = [link for link in self.links if link.up and link.tpdo_cycle != self.cycle]
         for link in missing:
             link.missed_tpdo += 1
@@ -330,5 +346,6 @@ class Master:
             torque = 0
             if not withhold and forces is not None:
                 torque = link.leg.permille(float(forces[link.leg.leg]))
-            link.network.send_message(0x200 + link.leg.node_id,
-                                      link.rpdo_struct.pack(cw, torque))
+            data = link.rpdo_struct.pack(cw, torque)
+            link.network.send_message(0x200 + link.leg.node_id, data)
+            self.bits[link.leg.bus] += frame_bits(len(data))

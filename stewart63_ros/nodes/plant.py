@@ -16,6 +16,11 @@ cycle, counted and reported.
 
 Faults (parameter ``faults``) and the simulation control services
 ``~/pause``, ``~/reset`` and ``~/step``: nodes/plant_control.py, docs/faults.md.
+
+io ``canopen``: the plant stands on the field bus as the legs' CiA 402 drives
+instead of publishing ``leg_lengths`` and taking ``leg_forces`` (each SYNC
+advances it one period; ``canopen_bridge`` links the bus to the topics):
+nodes/plant_bus.py, docs/bus.md.
 """
 from __future__ import annotations
 
@@ -43,13 +48,14 @@ from stewart63_ros.nodes.checks import (
 )
 from stewart63_ros.nodes.commands import CommandInput
 from stewart63_ros.nodes.launcher import STOP, run
+from stewart63_ros.nodes.plant_bus import PlantBus
 from stewart63_ros.nodes.plant_control import PlantControl
 from stewart63_ros.nodes.plant_outputs import SampleOutputs
 from stewart63_ros.nodes.plant_summary import TRACKING_FROM, TrackingError, run_summary
 from stewart63_ros.nodes.startup import PlantStartup
 
 
-class PlantNode(PlantControl, RigNode):
+class PlantNode(PlantBus, PlantControl, RigNode):
     """The plant node (see the module's doc). Its parts: the samples out
     (plant_outputs.SampleOutputs), what it waits for before the first one
     (startup.PlantStartup), faults and simulation control (a PlantControl),
@@ -59,6 +65,7 @@ class PlantNode(PlantControl, RigNode):
         super().__init__('plant')
         self.rate = self.param('sensor_rate')
         self.mode = self.param('clock_mode')
+        self.on_bus = self.param('io') == 'canopen'     # the drives on the bus: plant_bus.py
         self.duration = self.param('duration')      # simulated seconds; 0 = forever
         self.force_timeout = self.param('force_timeout')
         # Matched leg_lengths subscriptions, and the nodes whose subscription
@@ -104,19 +111,24 @@ class PlantNode(PlantControl, RigNode):
         self.late = 0
         self.endstop_samples = 0
 
-        self.outputs = SampleOutputs(self, lockstep=self.mode == 'lockstep')
+        self.outputs = SampleOutputs(self, lockstep=self.mode == 'lockstep',
+                                     lengths=not self.on_bus)
         # The same dict as the outputs': on_forces pops the answered samples.
         self.sent_wall = self.outputs.sent_wall
-        self.sub_forces = self.create_subscription(JointState, topics.LEG_FORCES,
-                                                   self.on_forces, topics.LATEST_SUB, raw=True)
+        self.sub_forces = None      # on the bus the forces come from the drives
+        if not self.on_bus:
+            self.sub_forces = self.create_subscription(
+                JointState, topics.LEG_FORCES, self.on_forces, topics.LATEST_SUB, raw=True)
         self.wrench_in = CommandInput(self, WrenchStamped, topics.EXTERNAL_WRENCH, self.on_wrench)
-        self.watch_source(self.sub_forces, topics.LEG_FORCES, self.force_gate)
+        if not self.on_bus:
+            self.watch_source(self.sub_forces, topics.LEG_FORCES, self.force_gate)
         self.plant_startup = PlantStartup(self)
         self.t0_wall = None
         self.t0_mono = None         # realtime: monotonic time of sample 0
         self.t_phys = 0.0           # realtime: simulated time the state is at
         self.forces_in = None       # DirectTake, made when the loop starts
         self.init_control()         # faults, ~/pause, ~/reset, ~/step (plant_control.py)
+        self.devices = self.init_bus() if self.on_bus else None    # plant_bus.py
 
     # -- inputs ---------------------------------------------------------------
     def on_forces(self, data: bytes, info):
@@ -182,6 +194,8 @@ class PlantNode(PlantControl, RigNode):
                                    % self.endstop_samples)
         lengths, rates = self.sensor.measure(lengths, rates)
         lengths, rates, self.sample_complete = self.fault_model.sense(lengths, rates)
+        if self.devices is not None:
+            self.bus_sample(lengths, rates)
         out.send(ns, sec, nanosec, lengths, rates, self.y)
         return ns
 
@@ -200,6 +214,8 @@ class PlantNode(PlantControl, RigNode):
                          'missed_cycles': self.missed, 'late_cycles': self.late,
                          'endstop_samples': self.endstop_samples})
         self.report_faults()
+        if self.devices is not None:
+            self.report_bus()
         if not self.started:
             return
         if self.mode == 'lockstep':
@@ -211,13 +227,16 @@ class PlantNode(PlantControl, RigNode):
     # -- main loops -----------------------------------------------------------
     def run(self):
         self.wait_for_matches(self.plant_startup.missing)     # the start-up order: handshake.py
-        self.forces_in = self.start_hot_loop(self.sub_forces)
+        self.forces_in = self.start_hot_loop(self.sub_forces if self.sub_forces is not None
+                                             else self.wrench_in.subscriptions[0])
         self.announce_run('running')
         self.t0_wall = time.time()
         n_samples = int(round(self.duration * self.rate)) if self.duration > 0 else None
         self.get_logger().info('%s at %g Hz%s' % (
             self.mode, self.rate, ', %d samples' % n_samples if n_samples else ''))
-        if self.mode == 'lockstep':
+        if self.devices is not None:
+            self.run_bus(n_samples)
+        elif self.mode == 'lockstep':
             self.run_lockstep(n_samples)
         else:
             self.run_realtime(n_samples)
@@ -242,6 +261,7 @@ class PlantNode(PlantControl, RigNode):
             self.write_summary(stopped=True)
         self.summary_written = True     # stopped before its first sample: no summary
         super().close()
+        self.close_bus()
 
     def wait_for_answer(self, ns, timeout, until=None, housekeeping=True) -> bool:
         """Take leg_forces until the answer to sample ``ns`` is in, or time is up.

@@ -26,7 +26,8 @@ import time
 
 import numpy as np
 
-from stewart63_ros.core.faults import FaultModel
+from stewart63_ros.core.errors import ParameterError
+from stewart63_ros.core.faults import FaultError, FaultModel
 from stewart63_ros.core.sensor import SensorModel
 from stewart63_ros.core.simulate import initial_state
 from stewart63_ros.nodes.checks import RESTART_PAUSE
@@ -46,7 +47,11 @@ class PlantControl:
     def init_control(self) -> None:
         """Called by the plant's constructor once its model and loop state exist."""
         from std_srvs.srv import SetBool, Trigger
-        self.fault_model = FaultModel(self.param('faults'), self.rate, self.param('sensor_seed'))
+        try:
+            self.fault_model = FaultModel(self.param('faults'), self.rate,
+                                          self.param('sensor_seed'), bus=self.on_bus)
+        except FaultError as exc:       # a bus fault without the bus
+            raise ParameterError('faults', str(exc)) from None
         self.sample_complete = True     # the last sample carried all six readings
         self.step_count = self.param('step_count')
         self.tunable('faults', self.set_faults)
@@ -76,7 +81,11 @@ class PlantControl:
     # -- faults ---------------------------------------------------------------------
     def set_faults(self, value) -> None:
         """Run-time ``faults`` (parsed by their declaration): in force together."""
-        for event in self.fault_model.set_faults(value):
+        try:
+            events = self.fault_model.set_faults(value)
+        except FaultError as exc:       # a bus fault without the bus: refused
+            raise ParameterError('faults', str(exc)) from None
+        for event in events:
             self.get_logger().warning(event)
         if self.started:
             self.report()
@@ -262,5 +271,7 @@ class PlantControl:
             self.tracking.reset()
         # The new run's answers carry stamps from 0 again (lockstep): not from the past.
         self.force_gate.last_ns = None
+        if self.devices is not None:
+            self.restart_on_bus()       # plant_bus.py
         self.get_logger().warning('reset: run %d starts from the initial state'
                                   % self.run_number)
