@@ -20,7 +20,9 @@ per frame (its cost per sample: bench/bench_bus.py, docs/performance.md).
 Bus faults (core/faults.py, ``bus_*``) act here, on the device's side:
 ``bus_no_boot`` (the device is off: no boot-up, hears nothing; boots when the
 fault ends), ``bus_heartbeat_lost`` (a pulled cable: the device neither
-sends nor hears; it carries on where it was when the fault ends),
+sends nor hears; having lost its master it disables its power stage, as a
+drive's abort connection option 0x6007 does, and the master enables it again
+when the cable is back),
 ``bus_emcy`` (an EMCY with the fault's error code at its start, the error
 reset EMCY 0x0000 at its end), ``bus_drive_fault`` (the drive falls into
 FAULT, with EMCY 0x5000; a fault reset is refused until the fault ends),
@@ -219,7 +221,10 @@ class Drive:
         """A value written by SDO or RPDO, with its effect on the drive."""
         self.values[(index, sub)] = value
         if index == 0x6040:
+            was = self.drive.state
             self.drive.command(value)
+            if was == FAULT and self.drive.state != FAULT:
+                self.emcy(0x0000, 0x00)         # fault reset: the error reset EMCY
             self._sync_state()
         elif index == 0x6060:
             self.drive.mode = value
@@ -402,6 +407,9 @@ class DeviceSet:
             silent = 'bus_heartbeat_lost' in kinds
             if silent != drive.silent:
                 drive.silent = silent
+                if silent:      # its master lost: abort connection (0x6007), no torque
+                    drive.drive.command(0x00)
+                    drive.values[(0x6041, 0)] = drive.drive.statusword
                 events.append('%s: cable %s (bus_heartbeat_lost)'
                               % (name, 'pulled' if silent else 'back'))
             drive.tpdo_missing = 'bus_tpdo_missing' in kinds

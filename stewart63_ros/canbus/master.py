@@ -81,6 +81,7 @@ class Link:
         self.tpdo = None            # (position counts, velocity counts) of this cycle
         self.tpdo_cycle = -1
         self.missed_tpdo = 0
+        self.silent_since = None    # the first cycle of a run of missing TPDOs
         self.last_cw = 0
         od = node.object_dictionary
         self.rpdo_struct = pdo_struct(od, RPDO1)
@@ -319,10 +320,17 @@ class Master:
         out = []
         for link in self.links:
             if not link.up:
-                out.append(link.boot_error or '%s: not booted (no boot-up message)' % link.name)
+                out.append('%s: booted, being brought up' % link.name if link.booted
+                           else link.boot_error or '%s: not booted (no boot-up message)'
+                           % link.name)
                 continue
             if link.tpdo_cycle != self.cycle:
-                out.append('%s: TPDO missing at SYNC %d' % (link.name, self.cycle))
+                if link.silent_since is None:
+                    link.silent_since = self.cycle
+                out.append('%s: TPDO missing since SYNC %d (silent: cable, power?)'
+                           % (link.name, link.silent_since))
+            else:
+                link.silent_since = None
             if link.heartbeat_cycle is not None and \
                     self.cycle - link.heartbeat_cycle > self.heartbeat_cycles:
                 out.append('%s: heartbeat lost (none for %d cycles)'

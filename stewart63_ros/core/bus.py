@@ -503,3 +503,31 @@ def load_bus_config(path: str | os.PathLike | None = None,
             raise BusConfigError('%s: node ids repeat on bus %s: %s' % (path, bus, ids))
     legs.sort(key=lambda leg: leg.leg)
     return BusConfig(str(path), tuple(buses), heartbeat, tuple(legs))
+
+
+class OverTheBus:
+    """A controller as it acts through the bus: it reads the lengths and
+    rates the drives' counts give (``LegDrive.counts`` then ``metres``), and
+    its forces act as the drives apply them (``permille`` then ``force``).
+    The same arithmetic as the bridge and the plant's drives, in one
+    process: ``simulate.run_sampled(..., controller=OverTheBus(law, legs))``
+    predicts a lockstep run over the bus, quantisation and all.
+
+    Args:
+        controller: a ``simulate.ControllerLike`` (a ``timed`` one gets t).
+        legs: the six legs' drives (``BusConfig.legs``), in leg order.
+    """
+
+    def __init__(self, controller, legs) -> None:
+        self.controller = controller
+        self.legs = tuple(legs)
+        self.timed = getattr(controller, 'timed', False)
+
+    def __call__(self, lengths, rates, t: float = 0.0):
+        import numpy as np
+        read_l = [leg.metres(leg.counts(v)) for leg, v in zip(self.legs, lengths)]
+        read_r = [leg.metres_per_second(leg.counts_s(v)) for leg, v in zip(self.legs, rates)]
+        read_l, read_r = np.array(read_l), np.array(read_r)
+        forces = (self.controller(read_l, read_r, t) if self.timed
+                  else self.controller(read_l, read_r))
+        return np.array([leg.force(leg.permille(f)) for leg, f in zip(self.legs, forces)])
