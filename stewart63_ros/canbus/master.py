@@ -40,6 +40,11 @@ from stewart63_ros.canbus.devices import PDO_CODES, open_bus
 
 #: EMCY error code of an error reset (no error)
 EMCY_NO_ERROR = 0x0000
+#: s: an SDO answer's bound during bring-up (the library's 0.3 s is short for
+#: a device process that is itself still starting on a loaded machine)
+SDO_TIMEOUT = 1.0
+#: bring-ups of one drive that fail in a row before the master stops resetting it
+BRING_UP_TRIES = 3
 
 
 def check_eds(leg: LegDrive, od) -> None:
@@ -83,6 +88,8 @@ class Link:
         self.missed_tpdo = 0
         self.silent_since = None    # the first cycle of a run of missing TPDOs
         self.last_cw = 0
+        self.failed_bring_ups = 0   # in a row
+        node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT
         od = node.object_dictionary
         self.rpdo_struct = pdo_struct(od, RPDO1)
         self.tpdo_struct = pdo_struct(od, TPDO1)
@@ -253,11 +260,17 @@ class Master:
             node.nmt.send_command(0x01)         # NMT start: PDOs from now on
         except (canopen.SdoCommunicationError, canopen.SdoAbortedError, BusConfigError,
                 OSError) as exc:
+            link.failed_bring_ups += 1
             link.boot_error = '%s: bring-up failed: %s' % (link.name, exc)
+            if link.failed_bring_ups < BRING_UP_TRIES:     # once more, from its boot-up
+                node.nmt.send_command(0x81)
+                link.boot_error += ' (reset, try %d of %d)' % (link.failed_bring_ups + 1,
+                                                              BRING_UP_TRIES)
             self.log(link.boot_error)
             return False
         link.up = True
         link.boot_error = ''
+        link.failed_bring_ups = 0
         link.heartbeat_cycle = max(self.cycle, 0)
         link.tpdo_cycle = -1
         self.log('%s: up (PDOs mapped, mode 10, OPERATION ENABLED, NMT started)' % link.name)

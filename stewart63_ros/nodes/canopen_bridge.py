@@ -338,6 +338,11 @@ class BridgeNode(RigNode):
 
     def run_realtime(self, n_samples):
         master = self.master
+        # SYNC 0 waits for the drives' first answer (the plant may still be
+        # starting); the wall-clock schedule starts from it.
+        master.sync(0)
+        if not self.wait_for_tpdos(first=True):
+            return
         t0 = time.monotonic()
         t0_wall = time.time()
         k = 0
@@ -352,7 +357,8 @@ class BridgeNode(RigNode):
             for name in master.bring_up_rebooted():
                 self.get_logger().info('%s: back on the bus' % name)
             self.k = k
-            master.sync(k)
+            if k:
+                master.sync(k)
             master.collect(0.5 * self.period, min(BURST, 0.5 * self.period))
             master.missing()
             self.judge()

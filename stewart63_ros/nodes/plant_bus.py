@@ -12,8 +12,8 @@ torques their RPDOs carried, if enabled), then each drive answers with its
 TPDO: the sample's position and velocity in encoder counts. The bridge
 sends the SYNCs: in lockstep once the controller has answered (so the run
 is deterministic), in realtime on the wall clock (the bus's own timing; a
-realtime plant that falls behind answers the newest SYNC and counts the
-ones it skipped as late).
+realtime plant that falls behind lets the time of every SYNC that came pass,
+with the force held, answers the newest, and counts the others as late).
 
 Before its loop the plant serves the bus from a timer (the bridge brings the
 drives up by SDO while the plant waits for its subscribers); while paused
@@ -102,17 +102,22 @@ class PlantBus:
                 return
             if self.hold_due:
                 continue
+            periods = 1
             if self.mode == 'realtime':
-                skipped = min(devices.syncs.values()) - 1
-                if skipped > 0:             # behind the bus: answer the newest SYNC
-                    self.syncs_skipped += skipped
-                    self.late += skipped
-                    for name in devices.syncs:
-                        devices.syncs[name] -= skipped
+                # Behind the bus: the time of every SYNC that came passes (with
+                # the force held), and the newest one is answered.
+                periods = min(devices.syncs.values())
+                if n_samples is not None:
+                    periods = max(1, min(periods, n_samples - self.k))
+                self.syncs_skipped += periods - 1
+                self.late += periods - 1
+                for name in devices.syncs:
+                    devices.syncs[name] -= periods - 1
             devices.take_sync()
             if not self.bus_first:
                 self.force = self.bus_forces()
-                self.step()
+                for _ in range(periods):
+                    self.step()
             self.bus_first = False
             self.publish_sample()
             if n_samples is not None and self.k >= n_samples:
