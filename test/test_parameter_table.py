@@ -45,7 +45,7 @@ def test_the_interface_page_shows_the_declared_table():
 def test_every_declared_key_is_known_and_its_default_passes_its_check():
     for d in declared.DECLARED:
         assert d.name in known_keys()
-        assert d.nodes and set(d.nodes) <= {'plant', 'controller', 'fk', 'sim'}, d.name
+        assert d.nodes and set(d.nodes) <= {*declared.NODES, 'sim'}, d.name
         assert d.doc and d.check, d.name
         declared.read({}, d.name)                   # raises if the default is refused
     assert len(declared.BY_NAME) == len(declared.DECLARED), 'a key declared twice'

@@ -21,6 +21,7 @@ import struct
 import threading
 import time
 
+from stewart63_ros.canbus.devices import PDO_CODES, open_bus
 from stewart63_ros.core.bus import (
     MODE_CST,
     OPERATION_ENABLED,
@@ -36,7 +37,6 @@ from stewart63_ros.core.bus import (
     frame_bits,
     next_controlword,
 )
-from stewart63_ros.canbus.devices import PDO_CODES, open_bus
 
 #: EMCY error code of an error reset (no error)
 EMCY_NO_ERROR = 0x0000

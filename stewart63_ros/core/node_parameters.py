@@ -38,6 +38,9 @@ from stewart63_ros.core.faults import FaultError, parse_faults
 NODES = ('plant', 'controller', 'fk', 'canopen_bridge')
 #: A key every node reads.
 ALL = NODES
+#: The nodes that sample the plant for the rig: the plant, or the bridge to
+#: the field bus when the plant stands on it as the legs' drives (docs/bus.md).
+SAMPLERS = ('plant', 'canopen_bridge')
 
 
 # -- checks: each takes (name, value as given) and returns the value used ----
@@ -235,37 +238,37 @@ DEFAULT_ENDSTOP_DAMPING = 5.0e3
 _NAMES_RANGE = 'list of names, relative to the plant\'s namespace unless they start with `/`'
 
 DECLARED: tuple[Declared, ...] = (
-    Declared('sensor_rate', ('plant', 'sim', 'canopen_bridge'), 1000.0, 'Hz', '', 'sample rate of '
+    Declared('sensor_rate', (*SAMPLERS, 'sim'), 1000.0, 'Hz', '', 'sample rate of '
              '`leg_lengths`, and the physics step (also `sim --control sampled`)', positive),
-    Declared('clock_mode', ('plant', 'controller', 'fk', 'canopen_bridge'), 'realtime', '', '', 'see [Clock '
-             'modes](#clock-modes-plant-parameter-clock_mode); the controller takes its '
+    Declared('clock_mode', (*SAMPLERS, 'controller', 'fk'), 'realtime', '', '',
+             'see [Clock modes](#clock-modes-plant-parameter-clock_mode); the controller takes its '
              'watchdog default from it, fk its lockstep progress', one_of('realtime', 'lockstep')),
-    Declared('duration', ('plant', 'canopen_bridge'), 0.0, 's (simulated)', '', 'end the run after this '
+    Declared('duration', SAMPLERS, 0.0, 's (simulated)', '', 'end the run after this '
              'long; 0: run until stopped', nonnegative),
-    Declared('force_timeout', ('plant', 'canopen_bridge'), 1.0, 's', '', 'lockstep: how long to wait for the '
+    Declared('force_timeout', SAMPLERS, 1.0, 's', '', 'lockstep: how long to wait for the '
              'force answering a sample before stepping on with the held one', positive),
     Declared('summary_file', ALL, '', 'path', '', 'write a JSON summary at the end of the '
              'run: the plant\'s ([Plant summary file](#plant-summary-file)), the '
              'controller\'s and fk\'s (below that table); `rig` sets it for each node in its '
              'log directory', text, default_text='"" (none)'),
-    Declared('lengths_subscribers', ('plant', 'canopen_bridge'), 0, 'count', '', 'matched `leg_lengths` '
+    Declared('lengths_subscribers', SAMPLERS, 0, 'count', '', 'matched `leg_lengths` '
              'subscriptions to wait for before the first sample (`rig` sets controller + fk '
              '+ recorder)', integer(0)),
-    Declared('lengths_peers', ('plant', 'canopen_bridge'), [], 'node names', _NAMES_RANGE, 'nodes whose '
+    Declared('lengths_peers', SAMPLERS, [], 'node names', _NAMES_RANGE, 'nodes whose '
              '`leg_lengths` subscription the ROS graph must show (and the plant have '
              'matched) before the first sample; `rig` sets its controller and fk. A count '
              'alone would be filled by a recorder started first while fk is still loading',
              node_names, default_text='[] (none)'),
-    Declared('lockstep_peers', ('plant', 'canopen_bridge'), [], 'node names', _NAMES_RANGE, 'lockstep: the '
+    Declared('lockstep_peers', SAMPLERS, [], 'node names', _NAMES_RANGE, 'lockstep: the '
              'readers of `leg_lengths` the plant never runs more than `lockstep_window` '
              'samples ahead of ([flow control](#lockstep-flow-control-and-what-is-counted-'
              'as-lost)); `rig` sets its fk and its recorder', node_names,
              default_text='[] (none)'),
-    Declared('lockstep_window', ('plant', 'canopen_bridge'), 200, 'samples', '', 'how far the plant may run '
+    Declared('lockstep_window', SAMPLERS, 200, 'samples', '', 'how far the plant may run '
              'ahead of its slowest lockstep peer (below the publishers\' 1000-sample '
              'history, so a sample a peer missed can still be re-sent)',
              integer(1, 900, 'number of samples')),
-    Declared('lockstep_peer_timeout', ('plant', 'canopen_bridge'), 10.0, 's (wall clock)', '', 'a lockstep '
+    Declared('lockstep_peer_timeout', SAMPLERS, 10.0, 's (wall clock)', '', 'a lockstep '
              'peer that has not advanced for this long while the plant waits for it is '
              'dropped (ERROR on `/diagnostics`)', positive),
     Declared('sensor_noise', ('plant',), 0.0, 'm', '', 'Gaussian standard deviation '
@@ -340,13 +343,13 @@ DECLARED: tuple[Declared, ...] = (
              'takes `leg_forces` itself; `canopen`: it stands on the field bus as the six '
              'legs\' CiA 402 drives instead, and `canopen_bridge` links the bus to the topics '
              '([bus.md](bus.md))', one_of('dds', 'canopen')),
-    Declared('bus_config', ('plant', 'canopen_bridge'), '', 'path', 'a [device config]'
+    Declared('bus_config', SAMPLERS, '', 'path', 'a [device config]'
              '(bus.md#the-device-config)', 'the legs\' drives on the bus: buses, node ids, EDS, '
              'scaling, actuator', text, default_text='"" (the packaged config/canopen.yaml)'),
-    Declared('bus_interface', ('plant', 'canopen_bridge'), '', '', 'a python-can interface '
+    Declared('bus_interface', SAMPLERS, '', '', 'a python-can interface '
              '(`s63hub`, `socketcan`, ...)', 'the interface of every bus, instead of the '
              'config file\'s', text, default_text='"" (the config file\'s)'),
-    Declared('bus_channels', ('plant', 'canopen_bridge'), [], 'channel names', 'one per bus '
+    Declared('bus_channels', SAMPLERS, [], 'channel names', 'one per bus '
              'of the config', 'the channel of each bus, instead of the config file\'s (`rig '
              '--bus canopen` gives its own, so two rigs on one machine never meet)', text_list,
              default_text='[] (the config file\'s)'),
