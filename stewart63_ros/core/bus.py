@@ -89,6 +89,7 @@ class BusLoad:
 
     @property
     def bits_per_second(self) -> float:
+        """Bits a second on the bus: the cycles' and the background's."""
         return self.bits * self.rate + self.background_bits_s
 
     @property
@@ -108,6 +109,7 @@ class BusLoad:
         return None
 
     def text(self) -> str:
+        """One line: frames, bits, rate, kbit/s and per cent of the bitrate."""
         return ('bus %s: %d frames a cycle, %d bits (worst-case stuffing) at %g Hz = '
                 '%.0f kbit/s, %.1f %% of %g kbit/s' % (
                     self.bus, self.frames, self.bits, self.rate, self.bits_per_second / 1e3,
@@ -184,6 +186,7 @@ class LegDrive:
 
     @property
     def name(self) -> str:
+        """The leg's name (leg_1 ... leg_6)."""
         return LEG_NAMES[self.leg]
 
     def metres(self, counts: int) -> float:
@@ -305,10 +308,12 @@ class Cia402Drive:
 
     @property
     def statusword(self) -> int:
+        """The statusword 0x6041 of the drive's state."""
         return STATUSWORDS[self.state]
 
     @property
     def torque_enabled(self) -> bool:
+        """Whether the drive applies its target torque (enabled, mode 10)."""
         return self.state == OPERATION_ENABLED and self.mode == MODE_CST
 
     def fail(self) -> None:
@@ -370,6 +375,7 @@ class BusConfig:
     legs: tuple[LegDrive, ...]
 
     def legs_on(self, bus: str) -> list[LegDrive]:
+        """The legs whose drives are on bus ``bus``."""
         return [leg for leg in self.legs if leg.bus == bus]
 
     def loads(self, rate: float) -> list[BusLoad]:
@@ -518,12 +524,14 @@ class OverTheBus:
         legs: the six legs' drives (``BusConfig.legs``), in leg order.
     """
 
-    def __init__(self, controller, legs) -> None:
+    def __init__(self, controller: Any, legs: Any) -> None:
         self.controller = controller
         self.legs = tuple(legs)
         self.timed = getattr(controller, 'timed', False)
 
-    def __call__(self, lengths, rates, t: float = 0.0):
+    def __call__(self, lengths: Any, rates: Any, t: float = 0.0) -> Any:
+        """The forces [N] the drives apply for readings ``lengths`` [m],
+        ``rates`` [m/s] at time ``t`` [s] (t for a ``timed`` controller)."""
         import numpy as np
         read_l = [leg.metres(leg.counts(v)) for leg, v in zip(self.legs, lengths)]
         read_r = [leg.metres_per_second(leg.counts_s(v)) for leg, v in zip(self.legs, rates)]

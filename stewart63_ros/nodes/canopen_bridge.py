@@ -38,10 +38,8 @@ from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
 from stewart63_ros.nodes.checks import (
     RESTART_PAUSE,
-    Rejected,
     StampGate,
     ros_time,
-    source_of,
 )
 from stewart63_ros.nodes.launcher import STOP, run
 from stewart63_ros.nodes.rclpy_internals import raw_publisher
@@ -129,18 +127,11 @@ class BridgeNode(RigNode):
     # -- inputs -----------------------------------------------------------------------------
     def on_forces(self, data: bytes, info):
         received = time.perf_counter()
-        self.health.received[topics.LEG_FORCES] += 1
-        source = source_of(info)
-        self.count_skips(topics.LEG_FORCES, source, info)
-        try:
-            ns, _, _, _, values = wire.joint_state_sample(data, self.force_gate, ('effort',),
-                                                          source=source)
-        except Rejected as exc:
-            self.health.reject(topics.LEG_FORCES, exc)
+        taken = self.take_forces(data, info, self.force_gate)
+        if taken is None:
             return
-        self.accept_sample(self.force_gate, ns, source, topics.LEG_FORCES)
-        self.force, self.force_ns = values['effort'], ns
-        sent = self.sent_wall.pop(ns, None)
+        self.force_ns, self.force = taken
+        sent = self.sent_wall.pop(self.force_ns, None)
         if sent is not None:
             self.health.latency.add(received - sent)
         if self.mode == 'realtime':         # on the bus at once; applied at the next SYNC

@@ -36,7 +36,6 @@ from stewart63_ros import topics
 from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.sensor import SensorModel
 from stewart63_ros.core.simulate import initial_state, substeps_for
-from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
 from stewart63_ros.nodes.checks import (
     RESTART_PAUSE,
@@ -44,7 +43,6 @@ from stewart63_ros.nodes.checks import (
     StampGate,
     finite_vector,
     ros_time,
-    source_of,
 )
 from stewart63_ros.nodes.commands import CommandInput
 from stewart63_ros.nodes.launcher import STOP, run
@@ -134,17 +132,10 @@ class PlantNode(PlantBus, PlantControl, RigNode):
     def on_forces(self, data: bytes, info):
         """A serialized leg_forces message: the newest force, from now on."""
         received = time.perf_counter()      # the loop latency ends here, at the take
-        self.health.received[topics.LEG_FORCES] += 1
-        source = source_of(info)
-        self.count_skips(topics.LEG_FORCES, source, info)
-        try:
-            ns, _, _, _, values = wire.joint_state_sample(data, self.force_gate, ('effort',),
-                                                          source=source)
-        except Rejected as exc:
-            self.health.reject(topics.LEG_FORCES, exc)
+        taken = self.take_forces(data, info, self.force_gate)
+        if taken is None:
             return
-        force = values['effort']
-        self.accept_sample(self.force_gate, ns, source, topics.LEG_FORCES)
+        ns, force = taken
         if self.t0_mono is not None:
             # Realtime: the old force acted until now; the new one from now on.
             self.advance_to(min(time.monotonic() - self.t0_mono, (self.k + 1) * self.period))

@@ -61,6 +61,7 @@ class PlantBus:
             for leg in config.legs))
         self.bus_timer = self.create_timer(IDLE_SERVICE_PERIOD, lambda: devices.poll(0.0))
         self.syncs_skipped = 0
+        self.bus_first = True
         return devices
 
     def bus_sample(self, lengths, rates) -> None:
@@ -133,9 +134,26 @@ class PlantBus:
             self.devices.syncs[name] = 0
         self.bus_first = True
 
+    def serve_while_holding(self, until: float) -> None:
+        """Held (paused, reset): the node's waits, and the bus's NMT and SDO
+        (the SYNCs that come are counted, answered once the run goes on)."""
+        super().serve_while_holding(min(until, time.monotonic() + 0.01)
+                                    if getattr(self, 'devices', None) is not None else until)
+        if getattr(self, 'devices', None) is not None:
+            self.devices.poll(0.0)
+
+    def next_sample(self) -> int:
+        """The sample the loop publishes next: on the bus the physics steps at
+        the SYNC, so a plant held between two samples has not stepped yet."""
+        if getattr(self, 'devices', None) is None:
+            return super().next_sample()
+        return self.k if self.bus_first or self.forces_in is None else self.k + 1
+
     def report_bus(self) -> None:
         devices = self.devices
         values = self.health.values
+        if self.holding:
+            values['sample'] = self.next_sample()
         values['bus_frames_in'] = devices.frames_in
         values['bus_frames_out'] = devices.frames_out
         values['bus_syncs_skipped'] = self.syncs_skipped
