@@ -76,14 +76,15 @@ class PlantBus:
             if math.isfinite(lengths[i]) and math.isfinite(rates[i]):
                 drive.answer_sync(float(lengths[i]), float(rates[i]))
 
-    def wait_for_sync(self) -> bool:
+    def wait_for_sync(self, interruptible: bool = True) -> bool:
         """Serve the bus (and the node's housekeeping) until a SYNC is on
-        every bus. False if a stop was requested meanwhile."""
+        every bus, or (``interruptible``) a pause, step or reset is asked
+        for. False if a stop was requested meanwhile."""
         devices = self.devices
         while not devices.poll(0.0):
             if STOP.requested:
                 return False
-            if self.hold_due:
+            if self.hold_due and interruptible:
                 return True
             now = time.monotonic()
             wake = self.housekeeping(now)
@@ -97,11 +98,14 @@ class PlantBus:
         devices = self.devices
         self.bus_first = True
         while True:
-            if self.hold_due and not self.sample_boundary():     # pause, step, reset
-                return
-            if not self.wait_for_sync():
-                return
+            stepping = False
             if self.hold_due:
+                if not self.sample_boundary():          # pause, step, reset
+                    return
+                stepping = self.hold_due                # ~/step let this sample through
+            if not self.wait_for_sync(interruptible=not stepping):
+                return
+            if self.hold_due and not stepping:
                 continue
             periods = 1
             if self.mode == 'realtime':
