@@ -39,10 +39,13 @@ def mech():
     return load_mechanism(PARAMS)
 
 
-def run_bus_rig(ros, monkeypatch, tmp_path, mode, duration, faults=(), rate=None):
+def run_bus_rig(ros, monkeypatch, tmp_path, mode, duration, faults=(), rate=None,
+                bus_timeout=None):
     rig_env(ros, monkeypatch)
     bag = tmp_path / 'bag'
     extra = {'plant': {'faults': list(faults)}} if faults else {}
+    if bus_timeout:     # a silent drive costs this much wall time a sample
+        extra['canopen_bridge'] = {'bus_timeout': bus_timeout}
     if rate:
         for node in ('plant', 'canopen_bridge'):
             extra.setdefault(node, {})['sensor_rate'] = rate
@@ -117,7 +120,7 @@ FAULTS = [('bus_drive_fault:leg_2@0.05-0.06', 0.05, 'leg_2 (node 2, bus a): EMCY
 def test_every_bus_fault_is_named_within_three_periods_and_the_drives_come_back(
         ros, monkeypatch, tmp_path):
     bag, summary, bridge, logs = run_bus_rig(ros, monkeypatch, tmp_path, 'lockstep', 0.35,
-                                             [f for f, _, _ in FAULTS])
+                                             [f for f, _, _ in FAULTS], bus_timeout=0.1)
     statuses = []           # (stamp s, level, message) of the bridge
     for _, _, msg in bagio.read_messages(bag, ['/diagnostics']):
         for status in msg.status:

@@ -129,6 +129,7 @@ class Master:
         self._expected = 0
         self._got = 0
         self._first = None
+        self._closed = False        # the cycle is judged: a TPDO now is too late for it
         ods = {}
         for leg in config.legs:
             od = ods.get(leg.eds) or canopen.import_od(leg.eds)
@@ -172,7 +173,7 @@ class Master:
                 return
             self.bits[link.leg.bus] += frame_bits(len(data))
             with self._arrived:
-                if link.tpdo_cycle != self.cycle:
+                if link.tpdo_cycle != self.cycle and not self._closed:
                     link.tpdo = unpack(data)
                     link.tpdo_cycle = self.cycle
                     self._got += 1
@@ -287,6 +288,7 @@ class Master:
             self.cycle = cycle
             self._got = 0
             self._first = None
+            self._closed = False
             self._expected = sum(link.up for link in self.links)
         for name, network in self.networks.items():
             network.send_message(0x80, b'')
@@ -313,7 +315,10 @@ class Master:
         return True
 
     def missing(self) -> list[Link]:
-        """The cycle is over: the drives that are up and did not answer (counted)."""
+        """The cycle is over: the drives that are up and did not answer
+        (counted). A TPDO that comes after this is not this cycle's."""
+        with self._arrived:
+            self._closed = True
         missing = [link for link in self.links if link.up and link.tpdo_cycle != self.cycle]
         for link in missing:
             link.missed_tpdo += 1

@@ -358,8 +358,8 @@ DECLARED: tuple[Declared, ...] = (
              integer(0, 10**7, 'a bitrate in bit/s (0: the config file\'s)'),
              default_text='0 (the config file\'s)'),
     Declared('bus_timeout', ('canopen_bridge',), 1.0, 's (wall clock)', '', 'lockstep: after '
-             'a SYNC, how long to wait for the drives\' TPDOs when none has come (a TPDO '
-             'missing after the others came is named 50 ms after them)', positive),
+             'a SYNC, how long to wait for a drive\'s TPDO before naming it missing (a '
+             'silent drive costs this much wall time a sample)', positive),
     Declared('boot_timeout', ('canopen_bridge',), 30.0, 's', '', 'at start-up, how long to '
              'wait for every drive\'s boot-up; one still missing is named on '
              '`/diagnostics` and brought up when it boots', positive),

@@ -45,7 +45,8 @@ from stewart63_ros.nodes.launcher import STOP, run
 from stewart63_ros.nodes.rclpy_internals import raw_publisher
 from stewart63_ros.nodes.startup import PlantStartup
 
-#: s: after a drive's TPDO has come, the others of the cycle must follow within this
+#: s: realtime: after a drive's TPDO has come, the others of the cycle must follow
+#: within this (lockstep waits ``bus_timeout``: a load spike must not decide a run)
 BURST = 0.05
 #: s: the slice of a wait between two turns of housekeeping
 SLICE = 0.02
@@ -253,7 +254,7 @@ class BridgeNode(RigNode):
         master = self.master
         timeout = max(self.bus_timeout, self.boot_timeout) if first else self.bus_timeout
         waited = 0.0
-        while not master.collect(SLICE, BURST):
+        while not master.collect(SLICE, self.bus_timeout):
             if STOP.requested or self.new_run:
                 return False
             self.serve(0.0)
