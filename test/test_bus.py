@@ -394,3 +394,14 @@ def test_odrive_protocol_against_a_fake_odrive_on_the_local_bus():
     finally:
         host_bus.shutdown()
         drive_bus.shutdown()
+
+
+def test_bus_faults_without_the_bus_are_refused_by_sim_and_rig(tmp_path):
+    for argv in (['-m', 'stewart63_ros.tools.sim', '--duration', '0.01', '--out',
+                  str(tmp_path / 'sim')],
+                 ['-m', 'stewart63_ros.tools.rig', '--duration', '0.01']):
+        done = subprocess.run([sys.executable, *argv, '--fault', 'bus_emcy:leg_2:0x2310'],
+                              capture_output=True, text=True, timeout=120)
+        assert done.returncode == 2, done
+        assert "'bus_emcy:leg_2:0x2310' acts on the field bus" in done.stderr, done.stderr
+        assert 'Traceback' not in done.stderr

@@ -149,3 +149,23 @@ def test_realtime_over_the_bus_counts_missed_cycles(ros, monkeypatch, tmp_path):
     assert n == 201
     print('\nrealtime over the bus, 200 Hz: %d missed cycles of %d, plant late %d'
           % (bridge['missed_cycles'], bridge['cycles'], summary['late_cycles']))
+
+
+# One node-level case (each costs a node start); the others' messages are
+# checked where they are made (test_bus.py: the interface, the config, the EDS).
+@pytest.mark.parametrize('param, why', [
+    ('bus_bitrate:=500000', 'bus_bitrate: bus a: 7 frames a cycle, 745 bits'),
+])
+def test_bridge_refuses_bad_bus_input_with_one_line(ros, param, why):
+    import subprocess
+
+    from ros_harness import PYTHON, child_env
+    done = subprocess.run([PYTHON, '-m', 'stewart63_ros.nodes.canopen_bridge', '--ros-args',
+                           '-p', param], env=child_env(ros.domain_id), capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 2, done
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('canopen_bridge: parameter error: ' + why), \
+        done.stderr
+    if 'bitrate' in param:
+        assert 'at most 668 Hz' in lines[0] and 'needs 800 kbit/s' in lines[0]

@@ -431,7 +431,7 @@ def main(argv=None) -> int:
         if args.fault:
             fault_extra['faults'] = [f.text for f in faults]
         if any(f.bus for f in faults) and not args.bus:
-            print('rig: error: %s acts on the field bus: add --bus canopen'
+            print('rig: error: fault %r acts on the field bus: add --bus canopen'
                   % next(f.text for f in faults if f.bus), file=sys.stderr)
             return 2
     announce_compile('rig', 'the nodes start by ')
