@@ -139,16 +139,14 @@ class BridgeNode(RigNode):
             self.master.command(self.force, withhold=bool(self.errors))
 
     def on_diagnostics(self, msg):
-        for status in msg.status:
-            if status.name != self.plant_status:
-                continue
-            for kv in status.values:
-                if kv.key == 'run':
-                    self.plant_run = kv.value
-                elif kv.key == 'run_number':
-                    if self.plant_run_number is not None and kv.value != self.plant_run_number:
-                        self.new_run = True
-                    self.plant_run_number = kv.value
+        from stewart63_ros.nodes.handshake import plant_run
+        said = plant_run(msg, self.plant_status)
+        self.plant_run = said.get('run', self.plant_run)
+        number = said.get('run_number')
+        if number is not None:
+            if self.plant_run_number is not None and number != self.plant_run_number:
+                self.new_run = True
+            self.plant_run_number = number
 
     # -- the bus ----------------------------------------------------------------------------
     def bring_up(self) -> None:
