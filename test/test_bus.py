@@ -405,3 +405,34 @@ def test_bus_faults_without_the_bus_are_refused_by_sim_and_rig(tmp_path):
         assert done.returncode == 2, done
         assert "'bus_emcy:leg_2:0x2310' acts on the field bus" in done.stderr, done.stderr
         assert 'Traceback' not in done.stderr
+
+
+def test_heartbeats_follow_the_run_time_and_start_again_with_a_new_run():
+    import can
+
+    from stewart63_ros.canbus.devices import DeviceSet
+    config = load_bus_config(CONFIG, channels=channels())
+    listener = can.Bus(interface='s63hub', channel=config.buses[0].channel)
+    devices = DeviceSet(config)
+    try:
+        for drive in devices.drives:
+            drive.write(0x1017, 0, 100)             # as the master's SDO does
+
+        def beats(t):
+            devices.heartbeats(t)
+            got = []
+            while True:
+                msg = listener.recv(0.5)
+                if msg is None:
+                    return got
+                if 0x700 < msg.arbitration_id < 0x780 and msg.data[0]:
+                    got.append(msg.arbitration_id - 0x700)
+        while listener.recv(0.2) is not None:       # the boot-ups
+            pass
+        assert beats(0.0) == [1, 2, 3]              # bus a's drives
+        assert beats(0.05) == []
+        assert beats(0.1) == [1, 2, 3]
+        assert beats(0.0) == [1, 2, 3]              # reset: run time from 0 again
+    finally:
+        devices.close()
+        listener.shutdown()

@@ -304,6 +304,7 @@ class DeviceSet:
         self.frames_in = 0
         self.frames_out = 0
         self._next_heartbeat = 0.0
+        self._last_t = 0.0
         for i in booted:
             self.drives[i].boot()
 
@@ -376,6 +377,9 @@ class DeviceSet:
 
     def heartbeats(self, t: float) -> None:
         """Heartbeats due at run time ``t`` [s] (each drive's 0x1017 period)."""
+        if t < self._last_t:        # a new run (the plant's reset): its time from 0
+            self._next_heartbeat = t
+        self._last_t = t
         if t + 1e-9 < self._next_heartbeat:
             return
         periods = [d.heartbeat_ms for d in self.drives if d.heartbeat_ms]

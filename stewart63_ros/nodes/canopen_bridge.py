@@ -312,6 +312,9 @@ class BridgeNode(RigNode):
         self.force = None
         self.force_ns = None
         self.force_gate.last_ns = None
+        for link in self.master.links:      # the new run's cycles count from 0 again
+            link.heartbeat_cycle = 0 if link.heartbeat_cycle is not None else None
+            link.silent_since = None
         return True
 
     def wait_for_answer(self, ns, timeout) -> bool:
