@@ -314,46 +314,45 @@ def test_eds_without_mapped_objects_is_refused(tmp_path):
         Master(config, 1000.0)
 
 
-@pytest.mark.parametrize('fault, named', [
-    ({1: {'bus_drive_fault': None}}, 'leg_2 (node 2, bus a): EMCY 0x5000'),
-    ({2: {'bus_emcy': 0x2310}}, 'leg_3 (node 3, bus a): EMCY 0x2310'),
-    ({3: {'bus_tpdo_missing': None}}, 'leg_4 (node 4, bus b): TPDO missing'),
-    ({4: {'bus_heartbeat_lost': None}}, 'leg_5 (node 5, bus b): TPDO missing'),
-    ({5: {'bus_no_boot': None}}, 'leg_6 (node 6, bus b): TPDO missing'),
-])
-def test_each_bus_fault_is_named_within_three_cycles_torque_withheld_then_recovered(
-        bench, fault, named):
+BUS_FAULTS = [({1: {'bus_drive_fault': None}}, 'leg_2 (node 2, bus a): EMCY 0x5000'),
+              ({2: {'bus_emcy': 0x2310}}, 'leg_3 (node 3, bus a): EMCY 0x2310'),
+              ({3: {'bus_tpdo_missing': None}}, 'leg_4 (node 4, bus b): TPDO missing'),
+              ({4: {'bus_heartbeat_lost': None}}, 'leg_5 (node 5, bus b): TPDO missing'),
+              ({5: {'bus_no_boot': None}}, 'leg_6 (node 6, bus b): TPDO missing')]
+
+
+def test_each_bus_fault_is_named_within_three_cycles_torque_withheld_then_recovered(bench):
+    import itertools
     b = bench(heartbeat_ms=5)       # heartbeat lost after 15 cycles
     b.master.reset_all()
     assert b.master.wait_for_boot(5.0) == []
     assert all(b.master.bring_up(link) for link in b.master.links)
-    k = 0
-    for k in range(3):
-        assert b.cycle(k) == []
-    with b._lock:
-        b.faults = fault
-    seen = []
-    for k in range(3, 6):
-        seen.append(b.cycle(k))
-        if any(named in e for e in seen[-1]):
-            break
-    assert any(named in e for e in seen[-1]), seen
-    for j in range(k + 1, k + 20):              # the fault goes on: torque stays withheld
-        errors = b.cycle(j)
-    k = j
-    assert errors and b.devices.forces() == [0.0] * 6
-    if 'bus_heartbeat_lost' in next(iter(fault.values())):
-        assert any('heartbeat lost' in e for e in errors), errors
-    with b._lock:
-        b.faults = {}
-    for j in range(k + 1, k + 20):
-        errors = b.cycle(j)
-        if not errors:
-            break
-    k = j
-    assert errors == [], errors
-    b.cycle(k + 1)
-    assert np.allclose(b.devices.forces(), 100.0, atol=1.0)     # torque again
+    cycles = itertools.count()
+    for _ in range(3):
+        assert b.cycle(next(cycles)) == []
+    for fault, named in BUS_FAULTS:         # one after the other, on one bus
+        with b._lock:
+            b.faults = fault
+        seen = []
+        for _ in range(3):
+            seen.append(b.cycle(next(cycles)))
+            if any(named in e for e in seen[-1]):
+                break
+        assert any(named in e for e in seen[-1]), (fault, seen)
+        for _ in range(20):                 # the fault goes on: torque stays withheld
+            errors = b.cycle(next(cycles))
+        assert errors and b.devices.forces() == [0.0] * 6, (fault, errors)
+        if 'bus_heartbeat_lost' in next(iter(fault.values())):
+            assert any('heartbeat lost' in e for e in errors), errors
+        with b._lock:
+            b.faults = {}
+        for _ in range(20):                 # back: the drive is brought back
+            errors = b.cycle(next(cycles))
+            if not errors:
+                break
+        assert errors == [], (fault, errors)
+        b.cycle(next(cycles))
+        assert np.allclose(b.devices.forces(), 100.0, atol=1.0), fault     # torque again
 
 
 def test_odrive_protocol_against_a_fake_odrive_on_the_local_bus():
