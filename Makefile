@@ -16,7 +16,8 @@ ROS_WHEELS := ros-rclpy ros-rmw-fastrtps-cpp ros-std-msgs ros-geometry-msgs \
               ros-trajectory-msgs ros-visualization-msgs ros-std-srvs
 PY_DEPS    := numpy scipy numba matplotlib pyyaml rosbags mcap mcap-ros2-support viser \
               dask distributed python-can canopen
-TEST_DEPS  := pytest pytest-xdist ruff colcon-core colcon-ros colcon-package-information playwright
+TEST_DEPS  := pytest pytest-xdist ruff colcon-core colcon-ros colcon-package-information playwright \
+              xmlschema junitparser
 
 DEMO_OUT ?= out/demo
 

@@ -40,8 +40,12 @@ setup(
             'view = stewart63_ros.tools.view:main',
             'analyze = stewart63_ros.tools.analyze:main',
             'sweep = stewart63_ros.tools.sweep:main',
+            'calibrate = stewart63_ros.tools.calibrate:main',
+            'scenario = stewart63_ros.tools.scenario:main',
             'canopen_bridge = stewart63_ros.nodes.canopen_bridge:main',
         ],
+        # a lab's tests get the run_scenarios fixture (docs/scenarios.md)
+        'pytest11': ['stewart63_scenarios = stewart63_ros.pytest_plugin'],
         # python-can finds the rig's lossless local bus under this name
         # (can.Bus(interface='s63hub', channel=...)): stewart63_ros/canbus/hub.py.
         'can.interface': ['s63hub = stewart63_ros.canbus.hub:HubBus'],

@@ -17,37 +17,28 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import fcntl
 import json
 import os
 import statistics
 import tempfile
 import time
-from pathlib import Path
 
 from stewart63_ros.core.params import default_params_path
+from stewart63_ros.paths import try_lock_domain
 from stewart63_ros.tools.rig import Rig
 
 FULL = ('plant', 'controller', 'fk')
 PAIR = ('plant', 'controller')
-#: The lock files test/ros_harness.py leases domain ids with: a bench and a
-#: test running at the same time never share a domain.
-_LOCK_DIR = Path(tempfile.gettempdir()) / 'stewart63_ros_domains'
 
 
 def lease_domain() -> tuple[int, int]:
     """(domain id, lock fd): a domain no other live holder of the lock uses."""
-    _LOCK_DIR.mkdir(parents=True, exist_ok=True)
     start = os.getpid() % 100
     for k in range(100):
         domain = 1 + (start + k) % 100
-        fd = os.open(_LOCK_DIR / ('%d.lock' % domain), os.O_CREAT | os.O_RDWR, 0o666)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            continue
-        return domain, fd
+        fd = try_lock_domain(domain)
+        if fd is not None:
+            return domain, fd
     raise RuntimeError('no free ROS domain id on this machine')
 
 

@@ -55,10 +55,11 @@ def generate_launch_description():
     from launch.actions import DeclareLaunchArgument, OpaqueFunction
 
     from launch import LaunchDescription
+    from stewart63_ros.paths import RIG_CLOCK_MODE
 
     return LaunchDescription([
         DeclareLaunchArgument('params_file', default_value=default_params()),
         DeclareLaunchArgument('namespace', default_value=''),
-        DeclareLaunchArgument('clock_mode', default_value='lockstep'),
+        DeclareLaunchArgument('clock_mode', default_value=RIG_CLOCK_MODE),
         DeclareLaunchArgument('record', default_value=''),
         OpaqueFunction(function=_composed)])

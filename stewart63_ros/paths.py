@@ -1,8 +1,17 @@
-"""Where the package's files are. Standard library only: the launch files
-import it in a Python that may have ``launch`` but not numpy or scipy."""
+"""Where the package's files are, and the clock mode a rig runs in. Standard
+library only: the launch files import it in a Python that may have ``launch``
+but not numpy or scipy (and ``rig`` before its stop handlers are in place)."""
 from __future__ import annotations
 
 from pathlib import Path
+
+#: The clock mode a rig runs in unless told otherwise (``rig --mode``, ``demo
+#: --mode``, the launch files' ``clock_mode:=``), written once. The packaged
+#: file sets the same for every node (its ``/**`` section), so that a plant,
+#: controller and fk each started by hand with it agree. A node given no
+#: ``clock_mode`` runs in the declared default (core/node_parameters.py),
+#: ``realtime``: alone, it runs; in lockstep it would wait for a controller.
+RIG_CLOCK_MODE = 'lockstep'
 
 
 def default_params_path() -> Path:
@@ -20,3 +29,26 @@ def default_params_path() -> Path:
         if (folder / 'stewart63.yaml').is_file():
             return folder / 'stewart63.yaml'
     raise FileNotFoundError('config/stewart63.yaml not found in %s' % [str(c) for c in candidates])
+
+
+def domain_lock_dir() -> Path:
+    """The lock files by which processes on this machine lease ROS domain ids
+    (test/ros_harness.py, the benchmarks, ``scenario``)."""
+    import tempfile
+    return Path(tempfile.gettempdir()) / 'stewart63_ros_domains'
+
+
+def try_lock_domain(domain: int) -> int | None:
+    """The open, exclusively locked lock file of ``domain`` (close it to
+    release the id), or None when another process holds it."""
+    import fcntl
+    import os
+    folder = domain_lock_dir()
+    folder.mkdir(parents=True, exist_ok=True)
+    fd = os.open(folder / ('%d.lock' % domain), os.O_CREAT | os.O_RDWR, 0o666)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return None
+    return fd

@@ -38,6 +38,8 @@ POSE_TRAJECTORY = 'pose_trajectory'
 CLOCK = '/clock'
 DIAGNOSTICS = '/diagnostics'
 MARKERS = 'markers'
+#: A pose tracker's measurements (the plant's simulated tracker, or a real one).
+TRACKER_POSE = 'tracker/pose'
 
 #: Publisher history: 1 s of samples at 1 kHz, so a reliable recorder that
 #: falls briefly behind is re-sent what it missed instead of losing it.
@@ -98,6 +100,7 @@ TOPIC_TYPES = {
     CLOCK: 'rosgraph_msgs/msg/Clock',
     DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray',
     MARKERS: 'visualization_msgs/msg/MarkerArray',
+    TRACKER_POSE: 'geometry_msgs/msg/PoseStamped',
 }
 
 #: Topics whose publishers are latched (TRANSIENT_LOCAL): a recorder asks for

@@ -34,6 +34,7 @@ from stewart63_ros.core.params import unknown_keys
 from stewart63_ros.core.simulate import run_sampled
 
 REPO = Path(__file__).resolve().parents[1]
+PARAMS = REPO / 'config' / 'stewart63.yaml'
 RATE = 1000.0
 DURATION = 2.0
 START = 1.0                  # s: most faults start here, when the platform has settled
@@ -127,6 +128,56 @@ def test_a_list_of_faults():
         parse_faults(['actuator_dead:leg_1', 'x'])      # the whole list is refused
     with pytest.raises(FaultError, match='expected a string'):
         parse_faults([3])
+
+
+@pytest.mark.parametrize('texts, why', [
+    (['actuator_dead:leg_1', 'actuator_dead:leg_1@0'],
+     "fault 'actuator_dead:leg_1@0' is given twice (as 'actuator_dead:leg_1')"),
+    (['sensor_bias:leg_2:0.01@1', 'sensor_bias:leg_2:1e-2@1.0'], 'is given twice'),
+    (['actuator_dead:leg_1', ''], "bad fault '': a blank fault"),
+    (['', ''], "bad fault '': a blank fault"),
+])
+def test_the_same_fault_written_twice_or_a_blank_one_beside_others_is_refused(texts, why):
+    with pytest.raises(FaultError) as info:
+        parse_faults(texts)
+    assert why in str(info.value) and '\n' not in str(info.value), str(info.value)
+
+
+def test_a_fault_whose_times_are_past_is_refused_at_run_time():
+    model = FaultModel(parse_faults(['sensor_bias:all:0.1']), rate=1000.0)
+    for k in range(50):
+        model.begin(k)
+    with pytest.raises(FaultError) as info:
+        model.set_faults(parse_faults(['sensor_bias:all:0.1', 'actuator_dead:leg_1@0.01-0.05']))
+    assert str(info.value) == (
+        "fault 'actuator_dead:leg_1@0.01-0.05' ends at 0.05 s, before the next sample of "
+        "this run (t = 0.05 s): it would never act (its times are the run's, from its first "
+        "sample)")
+    assert [f.text for f in model.faults] == ['sensor_bias:all:0.1']     # nothing changed
+    # one that still has a sample to act on is taken; one already there is kept
+    model.set_faults(parse_faults(['sensor_bias:all:0.1', 'actuator_dead:leg_1@0.01-0.051']))
+    assert model.begin(50) == ['fault actuator_dead:leg_1@0.01-0.051 started at 0.050000 s']
+    # a plant that begins samples only while it has faults says where its run is
+    bare = FaultModel([], rate=1000.0)
+    with pytest.raises(FaultError, match='ends at 60 s'):
+        bare.set_faults(parse_faults(['actuator_dead:leg_1@40-60']), next_sample=70000)
+    # after a reset the times count from the new run's 0 again
+    model.reset()
+    model.set_faults(parse_faults(['actuator_dead:leg_1@0.01-0.05']))
+
+
+def test_sims_fault_options(tmp_path):
+    from stewart63_ros.tools.sim import fault_list
+    params = tmp_path / 'p.yaml'
+    params.write_text(PARAMS.read_text() + "\n/**/plant:\n  ros__parameters:\n"
+                      "    faults: ['']\n")
+    assert fault_list(params) == []                 # the file's [''] stands for none
+    assert [f.text for f in fault_list(params, ['actuator_dead:leg_1'])] == [
+        'actuator_dead:leg_1']
+    with pytest.raises(FaultError, match="bad fault '': expected KIND:LEG"):
+        fault_list(params, [''])                    # --fault "" is no fault at all
+    with pytest.raises(FaultError, match='given twice'):
+        fault_list(params, ['actuator_dead:leg_1', 'actuator_dead:leg_1@0.0'])
 
 
 def test_faults_and_step_count_are_known_plant_keys():
@@ -267,8 +318,10 @@ def test_run_time_changes_and_reset():
     assert interval_from_status(status['fault: sensor_bias:all:0.1']) == (0.0, None)
     model.reset()
     assert model.run == 2 and not model.active
-    assert [s['state'] for s in model.summary()] == ['ended', 'active', 'active', 'scheduled',
-                                                     'scheduled']
+    # the faults active to the end of run 1 ended with it, after its last sample (4)
+    assert [(s['state'], s['active_until_s']) for s in model.summary()] == [
+        ('ended', 0.003), ('ended', 0.005), ('ended', 0.005), ('scheduled', None),
+        ('scheduled', None)]
 
 
 # -- command lines -----------------------------------------------------------------------

@@ -319,16 +319,17 @@ def test_lockstep_plant_alone_says_what_it_waits_for(ros, tmp_path):
 
 # -- 2. -p wins over the file; the files given are the whole model -----------------
 def test_p_override_wins_over_the_files_node_section(ros, tmp_path):
-    """The shipped file says clock_mode: lockstep under /**/plant; -p says
-    realtime: the plant runs realtime (alone: a lockstep plant would wait for
-    a controller)."""
+    """The shipped file says sensor_rate: 1000 under /**/plant (and
+    clock_mode: lockstep under /**); -p says 500 and realtime: the plant runs
+    realtime at 500 Hz (alone: a lockstep plant would wait for a controller)."""
     summary_file = tmp_path / 's.json'
     plant = ros.spawn([exe('plant'), '--ros-args', '--params-file', str(PARAMS),
                        '-p', 'clock_mode:=realtime', '-p', 'duration:=0.2',
+                       '-p', 'sensor_rate:=500.0',
                        '-p', 'summary_file:=%s' % summary_file], name='plant')
     assert plant.wait(60) == 0, plant.describe()
     summary = json.loads(summary_file.read_text())
-    assert summary['clock_mode'] == 'realtime' and summary['rate_hz'] == 1000.0, summary
+    assert summary['clock_mode'] == 'realtime' and summary['rate_hz'] == 500.0, summary
 
 
 def test_parameter_loading_order(tmp_path):

@@ -21,17 +21,29 @@ from stewart63_ros.core.params import default_params_path, file_parameters, know
 REPO = Path(__file__).resolve().parents[1]
 DOC = REPO / 'docs' / 'interface.md'
 BEGIN = '<!-- generated from core/node_parameters.py'
+MODEL_BEGIN = '<!-- generated from core/node_parameters.py MODEL'
 END = '<!-- end of the generated table -->'
 
 
-def page_table(text: str) -> tuple[int, int]:
-    """Where the generated table sits in the page: (start, end) offsets."""
-    start = text.index('\n', text.index(BEGIN)) + 1
+def page_table(text: str, begin: str = BEGIN) -> tuple[int, int]:
+    """Where a generated table sits in the page: (start, end) offsets (the
+    node-specific keys' table is the last one)."""
+    at = text.index(begin) if begin == MODEL_BEGIN else text.rindex(begin)
+    start = text.index('\n', at) + 1
     return start, text.index(END, start)
 
 
 def expected_table() -> str:
     return declared.markdown_table(file_parameters(default_params_path()))
+
+
+def rewrite(text: str) -> str:
+    """The page with both generated tables as the declarations give them."""
+    for begin, table in ((MODEL_BEGIN, declared.model_markdown_table()),
+                         (BEGIN, expected_table())):
+        start, end = page_table(text, begin)
+        text = text[:start] + table + text[end:]
+    return text
 
 
 def test_the_interface_page_shows_the_declared_table():
@@ -40,6 +52,60 @@ def test_the_interface_page_shows_the_declared_table():
     assert text[start:end] == expected_table(), (
         'docs/interface.md differs from core/node_parameters.py: run '
         'python test/test_parameter_table.py --write')
+
+
+def test_the_interface_pages_model_table_is_the_declared_one():
+    text = DOC.read_text()
+    start, end = page_table(text, MODEL_BEGIN)
+    assert text[start:end] == declared.model_markdown_table(), (
+        'docs/interface.md differs from core/node_parameters.py: run '
+        'python test/test_parameter_table.py --write')
+
+
+def test_the_model_declarations_are_the_mechanisms_fields():
+    import dataclasses
+
+    from stewart63_ros.core.params import Mechanism
+    assert [m.name for m in declared.MODEL] == [
+        f.name for f in dataclasses.fields(Mechanism) if f.name != 'extra']
+    params = dict(file_parameters(default_params_path()))
+    for m in declared.MODEL:        # the size declared is the one the packaged file has
+        value = params[m.name]
+        assert (len(value) if isinstance(value, list) else 1) == m.size, m.name
+
+
+def test_each_declaration_gives_what_ros2_param_describe_shows():
+    """Every key of every node: a unit in the description where it has one,
+    a range only on a number (rcl checks none on a list), read-only unless
+    the node lets it change at run time, and a value of the declared ROS type."""
+    for node in declared.NODES:
+        for name in declared.node_keys(node):
+            if name == 'use_sim_time':
+                continue
+            d = declared.describe(name, node)
+            unit = (declared.MODEL_BY_NAME[name].unit if name in declared.MODEL_BY_NAME
+                    else declared.BY_NAME[name].unit)
+            assert not unit or d.description.endswith('[%s]' % unit), (node, name)
+            assert '`' not in d.description + d.constraints and '](' not in d.description
+            assert d.range is None or d.type in ('double', 'integer'), (node, name)
+            assert d.range is None or d.range[0] <= d.range[1]
+            runtime = (node in declared.MODEL_BY_NAME[name].runtime
+                       if name in declared.MODEL_BY_NAME else declared.BY_NAME[name].runtime)
+            assert d.read_only is not runtime, (node, name)
+            if name in declared.BY_NAME:
+                value = declared.ros_value(name, declared.default(name), node)
+                check = declared.BY_NAME[name].check
+                # the default passes the declared range as it passes the check
+                check(name, value)
+                if d.range is not None:
+                    assert d.range[0] <= value <= d.range[1], (node, name, value)
+    assert declared.describe('kp', 'plant').read_only
+    assert not declared.describe('kp', 'controller').read_only
+    assert declared.describe('sensor_rate', 'plant').range == (math.ulp(0.0), math.inf)
+    assert declared.describe('lockstep_window', 'plant').range == (1, 900)
+    assert declared.ros_value('sensor_rate', 1000, 'plant') == 1000.0
+    assert declared.ros_value('faults', 'actuator_dead:leg_1', 'plant') == ['actuator_dead:leg_1']
+    assert declared.ros_value('kp', [1, 2, 3, 4, 5, 6], 'fk') == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
 
 
 def test_every_declared_key_is_known_and_its_default_passes_its_check():
@@ -113,10 +179,32 @@ def test_the_model_table_lists_exactly_the_mechanisms_keys():
     assert len(rows) == len(set(rows))
 
 
+def test_the_rigs_clock_mode_is_written_once_and_the_packaged_file_sets_it_for_every_node():
+    """``rig``, ``demo`` and the launch files default to paths.RIG_CLOCK_MODE;
+    the packaged file sets that mode in its ``/**`` section (every node reads
+    it) and in no node's section; a node given none runs in the declared
+    default."""
+    import inspect
+
+    import yaml
+
+    from stewart63_ros.paths import RIG_CLOCK_MODE
+    from stewart63_ros.tools.rig import Rig
+    doc = yaml.safe_load(default_params_path().read_text())
+    assert doc['/**']['ros__parameters']['clock_mode'] == RIG_CLOCK_MODE
+    assert [k for k, v in doc.items() if k != '/**' and 'clock_mode' in v['ros__parameters']] \
+        == []
+    assert inspect.signature(Rig).parameters['mode'].default == RIG_CLOCK_MODE
+    written = [path.name for path in [*(REPO / 'stewart63_ros').rglob('*.py'),
+                                      *(REPO / 'launch').glob('*.py')]
+               if "default='lockstep'" in path.read_text()
+               or "default_value='lockstep'" in path.read_text()]
+    assert written == []
+    assert declared.default('clock_mode') == 'realtime'
+
+
 if __name__ == '__main__':
     if sys.argv[1:] != ['--write']:
         sys.exit('usage: python test/test_parameter_table.py --write')
-    text = DOC.read_text()
-    start, end = page_table(text)
-    DOC.write_text(text[:start] + expected_table() + text[end:])
-    print('docs/interface.md: the table of node-specific keys rewritten')
+    DOC.write_text(rewrite(DOC.read_text()))
+    print('docs/interface.md: the tables of the model\'s and the node-specific keys rewritten')

@@ -186,9 +186,10 @@ class Client:
         result = self.call(self.params, request).results[0]
         return result.successful, result.reason
 
-    def wait_status(self, predicate, timeout=30.0):
-        """The first plant status from now on that satisfies ``predicate``."""
-        start = len(self.statuses)
+    def wait_status(self, predicate, timeout=30.0, since=None):
+        """The first plant status from now on (or from index ``since``) that
+        satisfies ``predicate``."""
+        start = len(self.statuses) if since is None else since
         found = []
 
         def seen():
@@ -210,9 +211,13 @@ def start_rig(ros, monkeypatch, tmp_path, mode, compose=False, extra=None):
     rig = Rig(PARAMS, mode=mode, duration=None, log_dir=tmp_path / 'rig',
               compose=compose is True, extra_params=extra, bus=bus)
     rig.start()
-    client.wait_ready(rig)
-    assert ros.spin_until(lambda: len(client.samples) >= 10, START_TIMEOUT), logs_of(
-        tmp_path / 'rig')
+    try:
+        client.wait_ready(rig)
+        assert ros.spin_until(lambda: len(client.samples) >= 10, START_TIMEOUT), logs_of(
+            tmp_path / 'rig')
+    except BaseException:
+        rig.stop()          # a rig that did not come up: no node left running
+        raise
     return rig, client
 
 
@@ -269,6 +274,10 @@ def test_pause_step_faults_and_reset_of_a_lockstep_rig(ros, monkeypatch, tmp_pat
         assert not ok and "bad fault 'sensor_stuck:leg_8': unknown leg 'leg_8'" in reason
         status = client.wait_paused(k + 5)
         assert not [key for key in status[2] if key.startswith('fault: ')]
+        # a fault whose times are already past would never act: refused with the reason
+        ok, reason = client.set_param('faults', ['actuator_dead:leg_3@0-0.001'])
+        assert not ok and "'actuator_dead:leg_3@0-0.001' ends at 0.001 s" in reason, reason
+        assert 'would never act' in reason, reason
         ok, reason = client.set_param('faults', ['sensor_bias:leg_1:0.01',
                                                  'actuator_dead:leg_2@0.001'])
         assert ok, reason
@@ -279,12 +288,26 @@ def test_pause_step_faults_and_reset_of_a_lockstep_rig(ros, monkeypatch, tmp_pat
         assert status[0] == WARN and status[1].startswith('faults active: ')
 
         # ~/reset while paused: a new run at sample 0, still paused
+        since = len(client.statuses)
         answer = client.trigger(client.reset)
         assert answer.success, answer.message
-        client.wait_status(lambda s: s[2].get('run') == 'reset')
+        assert answer.message.startswith('resetting after sample %d: run 2 ' % (k + 9))
+        # A second reset while the first is pending (its 1 s quiet, which
+        # began as the first was answered) is refused.
+        again = client.trigger(client.reset)
+        assert not again.success and again.message == (
+            'a reset is already pending (run 2 starts after the quiet)'), again
+        client.wait_status(lambda s: s[2].get('run') == 'reset', since=since)
         status = client.wait_paused(0)
         assert status[2]['run_number'] == '2' and status[2]['resets'] == '1'
         assert status[2]['fault: sensor_bias:leg_1:0.01'] == 'scheduled from 0 s'
+        # a reset before the new run's first sample says so (not "after sample -1")
+        answer = client.trigger(client.reset)
+        assert answer.success and answer.message.startswith(
+            'resetting before the first sample of run 2: run 3 starts'), answer.message
+        status = client.wait_status(lambda s: s[2].get('run') == 'paused'
+                                    and s[2].get('run_number') == '3')
+        assert status[2]['sample'] == '0' and status[2]['resets'] == '2'
         poses = len(client.poses)
         assert client.set_pause(False).success
         # The new run: stamps from 0 again, answered by the controller, posed by fk.
@@ -301,10 +324,14 @@ def test_pause_step_faults_and_reset_of_a_lockstep_rig(ros, monkeypatch, tmp_pat
         assert not ok and 'Wrong parameter type' in reason, reason     # rclpy's own check
     finally:
         summary = stop_rig(rig, client)
-    assert summary['resets'] == 1 and summary['run_number'] == 2, summary
+    assert summary['resets'] == 2 and summary['run_number'] == 3, summary
     runs = [(f['fault'], f['run']) for f in summary['faults']]
+    # (run 2 published no sample: its faults never acted)
     assert runs == [('sensor_bias:leg_1:0.01', 1), ('actuator_dead:leg_2@0.001', 1),
-                    ('sensor_bias:leg_1:0.01', 2), ('actuator_dead:leg_2@0.001', 2)], runs
+                    ('sensor_bias:leg_1:0.01', 3), ('actuator_dead:leg_2@0.001', 3)], runs
+    # run 1's faults ended with it, after its last sample (k + 9): not "to the end"
+    assert [(f['state'], f['active_from_s'], f['active_until_s'])
+            for f in summary['faults'][:2]] == [('ended', (k + 5) / RATE, (k + 10) / RATE)] * 2
 
 
 def test_pause_and_reset_of_a_realtime_rig(ros, monkeypatch, tmp_path):

@@ -202,29 +202,39 @@ def parse_faults(texts: Iterable[str] | str | None) -> list[Fault]:
 
     Args:
         texts: an iterable of strings; None or an empty list: no faults; one
-            string: one fault. A blank string stands for no fault, so that
-            ``ros2 param set /plant faults "['']"`` (a string list) clears them.
+            string: one fault. A list of one blank string stands for no
+            faults, so that ``ros2 param set /plant faults "['']"`` (a string
+            list) clears them; a blank string beside faults is refused.
 
     Returns:
         The Faults in order.
 
     Raises:
-        FaultError: not an iterable, the first bad fault, or a repeated one.
+        FaultError: not an iterable, the first bad fault (a blank one among
+            others too), or one given twice (the same fault however written:
+            ``x@1`` and ``x@1.0``).
     """
     if texts is None:
         return []
     if isinstance(texts, str):
         texts = [texts]
     try:
-        items = [t for t in texts if not (isinstance(t, str) and not t.strip())]
+        items = list(texts)
     except TypeError:
         raise FaultError('faults must be a list of strings, got %r' % (texts,)) from None
-    faults, seen = [], set()
+    if len(items) == 1 and isinstance(items[0], str) and not items[0].strip():
+        return []                       # [''] : no faults
+    faults, seen = [], {}
     for item in items:
+        if isinstance(item, str) and not item.strip():
+            raise FaultError("bad fault %r: a blank fault (only [''] alone stands for no "
+                             'faults)' % item)
         fault = parse_fault(item)
-        if fault.text in seen:
-            raise FaultError('fault %r is given twice' % fault.text)
-        seen.add(fault.text)
+        same = (fault.kind, fault.legs, fault.value, fault.start, fault.end)
+        if same in seen:
+            raise FaultError('fault %r is given twice%s' % (fault.text, '' if seen[same] ==
+                             fault.text else ' (as %r)' % seen[same]))
+        seen[same] = fault.text
         faults.append(fault)
     return faults
 
@@ -340,6 +350,7 @@ class FaultModel:
         self._sensor: list[FaultState] = []     # active now, in application order
         self._actuator: list[FaultState] = []
         self.t = 0.0
+        self.next_t = 0.0                       # run time of the next sample to begin
 
     # -- configuration ------------------------------------------------------------------
     @property
@@ -347,28 +358,42 @@ class FaultModel:
         """The faults of this run (removed ones not), in order."""
         return [s.fault for s in self.states]
 
-    def set_faults(self, faults: Iterable[Fault]) -> list[str]:
+    def set_faults(self, faults: Iterable[Fault], next_sample: int | None = None) -> list[str]:
         """Replace the list of faults (at run time: between two samples).
 
         A fault already there (the same text) keeps its state; a new one
         acts from the next sample its times include; a removed one that had
-        acted is kept, ended now, for the record.
+        acted is kept, ended now, for the record. A new fault whose times
+        include no sample from the next one on would never act in this run:
+        the whole list is refused.
 
         Args:
             faults: the new list (``parse_faults``).
+            next_sample: the index of the run's next sample, when the caller
+                knows it (a plant that calls ``begin`` only while it has
+                faults); None: the one after the last ``begin``.
 
         Returns:
             What changed, one line each, for the log.
 
         Raises:
-            FaultError: a bus fault on a model without a bus (nothing changes).
+            FaultError: a new fault ends before the run's next sample, or a bus
+                fault on a model without a bus (nothing changed).
         """
         faults = list(faults)
         for fault in faults:
             if fault.bus and not self.bus:
                 raise FaultError('fault %r acts on the field bus: it needs the plant on the '
                                  'bus (io: canopen, docs/bus.md)' % fault.text)
+        if next_sample is not None:
+            self.next_t = next_sample / self.rate
         old = {s.fault.text: s for s in self.states}
+        for fault in faults:
+            if fault.text not in old and fault.end - EPS <= self.next_t:
+                raise FaultError(
+                    'fault %r ends at %g s, before the next sample of this run (t = %s s): '
+                    'it would never act (its times are the run\'s, from its first sample)'
+                    % (fault.text, fault.end, ('%.6f' % self.next_t).rstrip('0').rstrip('.')))
         new_texts = {f.text for f in faults}
         events = []
         for state in self.states:
@@ -397,7 +422,11 @@ class FaultModel:
     def reset(self) -> None:
         """A new run from its first sample: every fault starts over (its
         schedule counts from the new run's t = 0); the old states are kept
-        in ``past`` for the record."""
+        in ``past`` for the record; a fault active to the end of the old run
+        ends there (at the time its next sample would have had)."""
+        for state in self.states:
+            if state.active:
+                state.active, state.ended = False, self.next_t
         self.past.extend(s for s in self.states if s.started is not None)
         self.run += 1
         faults = self.faults
@@ -424,6 +453,7 @@ class FaultModel:
             on most samples).
         """
         t = self.t = k / self.rate      # k / rate: 0.7 where k * period gives 0.70...01
+        self.next_t = (k + 1) / self.rate
         events = []
         for state in self.states:
             on = state.fault.scheduled(t)

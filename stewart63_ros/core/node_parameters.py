@@ -13,10 +13,15 @@ declarations, and nowhere else, come:
   defaulted and checked;
 - the table "Node-specific keys" of docs/interface.md: ``markdown_table()``
   (test/test_parameter_table.py keeps the page equal to it;
-  ``python test/test_parameter_table.py --write`` rewrites it).
+  ``python test/test_parameter_table.py --write`` rewrites it);
+- what ``ros2 param describe`` shows of each key on each node
+  (``describe``: description with unit, range, read-only; nodes/parameters.py
+  makes the ParameterDescriptor of it) and the value's ROS type (``ros_value``).
 
 The model's keys (geometry, masses, gains, initial state) are the fields of
-``params.Mechanism``, checked together in ``params.mechanism_from_params``.
+``params.Mechanism``, checked together in ``params.mechanism_from_params``;
+their unit, words and range are declared here too (``MODEL``, which writes
+the page's model table: ``model_markdown_table()``).
 
 A node that reads a new parameter: declare it here (it is then known,
 checked and documented), and read it with ``read`` (``RigNode.param``).
@@ -25,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -32,6 +38,7 @@ import numpy as np
 
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.core.faults import FaultError, parse_faults
+from stewart63_ros.paths import RIG_CLOCK_MODE  # noqa: F401 - the rig's, beside the default
 
 #: The nodes of the rig. 'sim' stands for the offline executables that read
 #: a node's keys (``sim``, ``analyze``, ``sweep``).
@@ -69,12 +76,22 @@ def nonnegative(name: str, value: Any) -> float:
     return number
 
 
+#: The inclusive range ``ros2 param describe`` shows for a check (``ros_range``):
+#: rcl's ranges include both ends, so "> 0" is "from the smallest positive
+#: double"; an open end is infinity (the check's own words say "finite").
+positive.ros_range = (math.ulp(0.0), math.inf)
+nonnegative.ros_range = (0.0, math.inf)
+
+
 def nonnegative_or_infinite(name: str, value: Any) -> float:
     """A number >= 0, infinity allowed (an infinitely stiff end stop)."""
     number = _number(name, value)
     if not number >= 0:
         raise ParameterError(name, 'must be a number >= 0, got %r' % (value,))
     return number
+
+
+nonnegative_or_infinite.ros_range = (0.0, math.inf)
 
 
 def integer(low: int | None = None, high: int | None = None, what: str = '') -> Callable:
@@ -93,6 +110,8 @@ def integer(low: int | None = None, high: int | None = None, what: str = '') -> 
         return value
     check.range_text = ('integer %d–%d' % (low, high) if high is not None
                         else 'integer ≥ %d' % low if low is not None else 'integer')
+    if low is not None or high is not None:
+        check.ros_range = (-2**63 if low is None else low, 2**63 - 1 if high is None else high)
     return check
 
 
@@ -104,6 +123,7 @@ def number_from(low: float, high: float, what: str) -> Callable:
             raise ParameterError(name, 'must be %s from %g to %g, got %r'
                                  % (what, low, high, value))
         return number
+    check.ros_range = (float(low), float(high))
     return check
 
 
@@ -152,14 +172,7 @@ def gain_vector(name: str, value: Any) -> np.ndarray:
     Returns:
         (6,) float array.
     """
-    try:
-        arr = np.array(value, dtype=float).ravel()
-    except (TypeError, ValueError):
-        raise ParameterError(name, 'expected 6 numbers, got %r' % (value,)) from None
-    if arr.size != 6:
-        raise ParameterError(name, 'expected 6 numbers, got %d' % arr.size)
-    if not np.all(np.isfinite(arr)):
-        raise ParameterError(name, 'NaN or Inf in %s' % arr.tolist())
+    arr = six_lengths(name, value)
     if np.any(arr < 0):
         raise ParameterError(name, 'gains must be >= 0, got %s' % arr.tolist())
     return arr
@@ -171,6 +184,19 @@ def faults(name: str, value: Any) -> list:
         return parse_faults(value)
     except FaultError as exc:
         raise ParameterError(name, str(exc)) from None
+
+
+def six_lengths(name: str, value: Any) -> np.ndarray:
+    """Six finite numbers [m] (of either sign)."""
+    try:
+        arr = np.array(value, dtype=float).ravel()
+    except (TypeError, ValueError):
+        raise ParameterError(name, 'expected 6 numbers, got %r' % (value,)) from None
+    if arr.size != 6:
+        raise ParameterError(name, 'expected 6 numbers, got %d' % arr.size)
+    if not np.all(np.isfinite(arr)):
+        raise ParameterError(name, 'NaN or Inf in %s' % arr.tolist())
+    return arr
 
 
 def text_list(name: str, value: Any) -> list[str]:
@@ -234,6 +260,7 @@ DEFAULT_CT_KD = 100.0
 #: The end stops' spring [N/m] and damper [N s/m] past the stroke.
 DEFAULT_ENDSTOP_STIFFNESS = 2.0e6
 DEFAULT_ENDSTOP_DAMPING = 5.0e3
+
 
 _NAMES_RANGE = 'list of names, relative to the plant\'s namespace unless they start with `/`'
 
@@ -338,6 +365,20 @@ DECLARED: tuple[Declared, ...] = (
              'and normal scheduling)', integer(0, 99, '(0: normal scheduling)')),
     Declared('use_sim_time', ALL, False, '', '', 'rclpy\'s own: the node\'s clock follows '
              '`/clock` (the plant publishes it in lockstep)', boolean),
+    # Calibration (docs/calibration.md).
+    Declared('leg_length_offset', ('plant', 'controller', 'fk'), [0.0] * 6, 'm',
+             '6 numbers', 'each length sensor\'s zero offset: reading = true length + '
+             'offset. The plant adds it to the lengths it publishes; controller and fk '
+             'subtract it from every reading; `calibrate fit` identifies it '
+             '([calibration.md](calibration.md))', six_lengths, default_text='0 ×6'),
+    Declared('tracker_rate', ('plant',), 0.0, 'Hz', '0 or a divisor of `sensor_rate`',
+             'a simulated tracker: publish the true pose with noise on `tracker/pose` at '
+             'this rate; 0: no tracker ([calibration.md](calibration.md))', nonnegative),
+    Declared('tracker_position_noise', ('plant',), 1.0e-4, 'm', '', 'the simulated '
+             'tracker\'s Gaussian position noise per axis', nonnegative),
+    Declared('tracker_orientation_noise', ('plant',), 1.0e-4, 'rad', '', 'the simulated '
+             'tracker\'s Gaussian angle noise per axis (a rotation vector, base frame)',
+             nonnegative),
     # -- the field bus (docs/bus.md) --
     Declared('io', ('plant',), 'dds', '', '', '`dds`: the plant publishes `leg_lengths` and '
              'takes `leg_forces` itself; `canopen`: it stands on the field bus as the six '
@@ -371,6 +412,200 @@ BY_NAME: dict[str, Declared] = {d.name: d for d in DECLARED}
 NODE_KEYS: dict[str, frozenset[str]] = {
     node: frozenset(d.name for d in DECLARED if node in d.nodes)
     for node in (*NODES, 'sim')}
+
+
+# -- the model's keys ----------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class ModelKey:
+    """One key of the model (a field of ``params.Mechanism``, checked there,
+    in ``mechanism_from_params``): what the interface page and ``ros2 param
+    describe`` say of it. Every node reads every model key.
+
+    Attributes:
+        name: the key (the Mechanism field).
+        size: 1 for a number, n for a list of n numbers.
+        unit: the unit of each number.
+        packaged: the packaged file's value, in words.
+        doc: meaning and checks, one line.
+        bound: 'positive' (> 0) or 'nonnegative' (≥ 0) for a number with
+            that range; '' for none.
+        runtime: the nodes that let it change at run time.
+    """
+    name: str
+    size: int
+    unit: str
+    packaged: str
+    doc: str
+    bound: str = ''
+    runtime: tuple[str, ...] = ()
+
+
+MODEL: tuple[ModelKey, ...] = (
+    ModelKey('base_points', 18, 'm', 'see the file', 'b_1 … b_6, base frame; no two '
+             'coincide; not all on one line'),
+    ModelKey('platform_points', 9, 'm', '0.5 m circle at 0°, 120°, 240°', 'p_1 … p_3, '
+             'platform frame; legs 2k−1 and 2k meet at p_k; not coincident, not collinear'),
+    ModelKey('platform_mass', 1, 'kg', '15.0', 'the platform\'s mass; > 0', 'positive'),
+    ModelKey('platform_com', 3, 'm', '[0, 0, 0]', 'platform frame'),
+    ModelKey('platform_inertia', 6, 'kg m²', '[0.95, 0.95, 1.875, 0, 0, 0]', 'Ixx, Iyy, Izz, '
+             'Ixy, Ixz, Iyz: the matrix elements about the centre of mass, platform frame '
+             '(Ixy = −Σ m·x·y, as `geometry_msgs/Inertia` and MuJoCo\'s `fullinertia`); '
+             'positive definite, principal moments obey the triangle inequality'),
+    ModelKey('leg_lower_mass', 1, 'kg', '2.0', 'm_d, the cylinder; > 0', 'positive'),
+    ModelKey('leg_upper_mass', 1, 'kg', '1.0', 'm_u, the piston; > 0', 'positive'),
+    ModelKey('leg_lower_com', 1, 'm', '0.35', 'cylinder\'s centre of mass from b_i along the '
+             'leg; 0 ≤ value ≤ `leg_length_max`', 'nonnegative'),
+    ModelKey('leg_upper_com', 1, 'm', '0.35', 'piston\'s centre of mass from the platform '
+             'vertex towards the base; 0 ≤ value ≤ `leg_length_max`', 'nonnegative'),
+    ModelKey('leg_lower_inertia', 2, 'kg m²', '[0.0016, 0.11]', 'axial, transverse moment '
+             'about the cylinder\'s own centre of mass; axial ≥ 0, transverse > 0, axial ≤ '
+             '2·transverse'),
+    ModelKey('leg_upper_inertia', 2, 'kg m²', '[0.0003, 0.04]', 'the same for the piston'),
+    ModelKey('piston_damping', 1, 'N s/m', '50.0', 'C_p, viscous, between cylinder and '
+             'piston; ≥ 0', 'nonnegative'),
+    ModelKey('ujoint_damping', 1, 'N m s/rad', '0.5', 'C_u, viscous, at the universal joint, '
+             'on the leg\'s angular velocity; ≥ 0', 'nonnegative'),
+    ModelKey('gravity', 3, 'm/s²', '[0, 0, −9.81] (also when missing)', 'base frame'),
+    ModelKey('leg_length_min', 1, 'm', '1.2', 'stroke: > 0', 'positive'),
+    ModelKey('leg_length_max', 1, 'm', '2.3', 'stroke: > `leg_length_min`', 'positive'),
+    ModelKey('max_force', 1, 'N', '3000.0', 'piston force saturation; > 0', 'positive'),
+    ModelKey('kp', 6, 'N/m', '4000 each', 'PD gains per leg, eq. (40); ≥ 0; the '
+             'controller\'s can be changed at run time (`ros2 param set /controller kp ...`)',
+             runtime=('controller',)),
+    ModelKey('kv', 6, 'N s/m', '300 each', '≥ 0; changeable at run time, as `kp`',
+             runtime=('controller',)),
+    ModelKey('setpoint_lengths', 6, 'm', '[1.9, 1.9, 1.6, 1.6, 1.6, 1.6]', '(L_i)_0; > 0'),
+    ModelKey('initial_position', 3, 'm', '[0.01, 0.01, 1.0]', 't_0, base frame; every leg '
+             'within the stroke'),
+    ModelKey('initial_velocity', 3, 'm/s', '[0.01, 0.01, 0.01]', 'dt_0/dt'),
+    ModelKey('initial_orientation', 3, 'rad', '[0.01, 0.01, 0.01]', 'θ_0 (see '
+             '[conventions](#frames-and-conventions))'),
+    ModelKey('initial_orientation_rate', 3, 'rad/s', '[0.001, 0.001, 0.001]', 'dθ_0/dt'),
+)
+
+MODEL_BY_NAME: dict[str, ModelKey] = {m.name: m for m in MODEL}
+
+
+# -- what `ros2 param describe` shows -------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Description:
+    """One key as a node declares it to ROS (nodes/parameters.py makes the
+    rcl_interfaces ``ParameterDescriptor`` of it; this module knows no ROS).
+
+    Attributes:
+        name: the key.
+        type: 'double', 'integer', 'bool', 'string', 'double_array' or 'string_array'.
+        description: meaning and unit, plain text.
+        constraints: the range and checks in words (``additional_constraints``).
+        read_only: fixed at start-up on this node: ``ros2 param set`` is refused.
+        dynamic_typing: True for the number lists changeable at run time, so
+            that ``[4000, 4000, ...]`` (integers, as YAML reads them) is
+            taken as today; their check turns them into floats.
+        range: inclusive (from, to) of a number, or None. Never on a list:
+            rcl checks ranges of single numbers only, so a list's range is
+            in ``constraints``, and its check refuses what is out of it.
+    """
+    name: str
+    type: str
+    description: str
+    constraints: str
+    read_only: bool
+    dynamic_typing: bool
+    range: tuple | None
+
+
+_LINK = re.compile(r'\[([^\]]+)\]\([^)]*\)')
+
+
+def _plain(text: str) -> str:
+    """Markdown to plain text: links to their words, no backticks."""
+    return _LINK.sub(r'\1', text).replace('`', '')
+
+
+def _declared_type(d: Declared) -> str:
+    value = default(d.name)
+    if isinstance(value, bool):
+        return 'bool'
+    if isinstance(value, int):
+        return 'integer'
+    if isinstance(value, float):
+        return 'double'
+    if isinstance(value, str):
+        return 'string'
+    return 'double_array' if value and isinstance(value[0], float) else 'string_array'
+
+
+def node_keys(node: str) -> list[str]:
+    """Every key ``node`` reads and declares: the model's, then its own.
+
+    Args:
+        node: 'plant', 'controller' or 'fk'.
+
+    Returns:
+        The keys in the interface page's order (``use_sim_time`` too: rclpy declares it).
+    """
+    return [m.name for m in MODEL] + [d.name for d in DECLARED if node in d.nodes or
+                                      d.nodes == ALL]
+
+
+def describe(name: str, node: str) -> Description:
+    """What ``ros2 param describe`` shows of key ``name`` on ``node``.
+
+    Args:
+        name: a model key or a declared one.
+        node: 'plant', 'controller' or 'fk'.
+
+    Returns:
+        The Description, from the key's one declaration.
+
+    Raises:
+        KeyError: ``name`` is neither.
+    """
+    model = MODEL_BY_NAME.get(name)
+    if model is not None:
+        array = model.size > 1
+        bound = {'positive': positive, 'nonnegative': nonnegative}.get(model.bound)
+        return Description(
+            name, 'double_array' if array else 'double',
+            '%s [%s]' % (_plain(model.doc), model.unit),
+            '%d numbers' % model.size if array else {'positive': '> 0', 'nonnegative': '≥ 0'}
+            .get(model.bound, ''), node not in model.runtime, array and node in model.runtime,
+            getattr(bound, 'ros_range', None))
+    d = BY_NAME[name]
+    kind = _declared_type(d)
+    unit = ' [%s]' % d.unit if d.unit else ''
+    return Description(name, kind, _plain(d.doc) + unit, _plain(_range_text(d)),
+                       not d.runtime, kind == 'double_array' and d.runtime,
+                       getattr(d.check, 'ros_range', None) if kind in ('double', 'integer')
+                       else None)
+
+
+def ros_value(name: str, value: Any, node: str) -> Any:
+    """A value of key ``name`` that passed its check, as ROS holds it: of
+    the type ``describe`` gives (``1000`` as ``1000.0`` for a double, a
+    single fault string as a list of one).
+
+    Args:
+        name: a model key or a declared one.
+        value: the value as given (or the default).
+        node: the node that declares it.
+
+    Returns:
+        The value in its ROS type (unchanged where no conversion applies).
+    """
+    kind = describe(name, node).type
+    if kind == 'double' and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if kind == 'integer' and isinstance(value, float) and value.is_integer():
+        return int(value)
+    if kind == 'double_array' and isinstance(value, (list, tuple)):
+        return [float(v) if isinstance(v, int) and not isinstance(v, bool) else v
+                for v in value]
+    if kind == 'string_array' and isinstance(value, str):
+        return [value]
+    if kind == 'string' and value is None:
+        return ''
+    return value
 
 
 def default(name: str, params: Mapping[str, Any] | None = None) -> Any:
@@ -443,3 +678,16 @@ def markdown_table(packaged: Mapping[str, Any] | None = None) -> str:
             d.name, nodes, d.unit, shown, _range_text(d), 'yes' if d.runtime else '', d.doc))
     return '\n'.join(rows) + '\n'
 
+
+
+def model_markdown_table() -> str:
+    """docs/interface.md's table "The model (shared keys)", from ``MODEL``.
+
+    Returns:
+        The markdown table, one row per model key, ending in a newline.
+    """
+    rows = ['| key | type, unit | packaged value | range and checks |', '|---|---|---|---|']
+    for m in MODEL:
+        kind = 'double' if m.size == 1 else 'double[%d]' % m.size
+        rows.append('| `%s` | %s [%s] | %s | %s |' % (m.name, kind, m.unit, m.packaged, m.doc))
+    return '\n'.join(rows) + '\n'

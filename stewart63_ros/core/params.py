@@ -374,8 +374,9 @@ def _mechanism_from_params(params: Mapping[str, Any]) -> Mechanism:
         if np.any(getattr(mech, key) < 0):
             raise ParameterError(key, 'gains must be >= 0')
     # The end stops belong to the model the plant integrates (and sim); an
-    # infinitely stiff one is allowed (the integrators then report it).
-    for key in ('endstop_stiffness', 'endstop_damping'):
+    # infinitely stiff one is allowed (the integrators then report it). The
+    # sensors' zero offsets belong to the machine the file describes.
+    for key in ('endstop_stiffness', 'endstop_damping', 'leg_length_offset'):
         read_declared(params, key)
     if np.any(mech.setpoint_lengths <= 0):
         raise ParameterError('setpoint_lengths', 'lengths must be > 0')

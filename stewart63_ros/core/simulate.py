@@ -208,7 +208,8 @@ def _is_pd(controller) -> bool:
 def run_sampled(mech: Mechanism, duration: float, rate: float,
                 controller: ControllerLike | None = None, y0: ArrayLike | None = None,
                 dyn: Dynamics | None = None, loop: str = 'compiled',
-                faults: FaultModel | Iterable[str] | None = None) -> Result:
+                faults: FaultModel | Iterable[str] | None = None,
+                wrench: ArrayLike | None = None) -> Result:
     """Eq. (40) sampled at ``rate`` Hz with zero-order hold; RK4 in between.
 
     Sample k at t_k = k / rate: measure L, dL/dt; F_k = PD; hold F_k over
@@ -227,30 +228,32 @@ def run_sampled(mech: Mechanism, duration: float, rate: float,
         loop: ``'compiled'`` or ``'python'``.
         faults: a ``FaultModel``, or a list of fault strings: the faulted
             loop (``run_faulted``); None: none.
+        wrench: (N, 6) the external wrench (F_ext, M_ext) [N, N m], platform
+            frame, at its origin, held over each sample's period (a scenario's
+            schedule, ``scenario.wrench_samples``); None: none.
 
     Returns:
         One row per sample, N = duration * rate + 1: times (N,) [s], states
         (N, 13), forces (N, 6) [N] held from each time.
 
     Raises:
-        ValueError: an unknown ``loop``.
+        ValueError: an unknown ``loop``, a ``wrench`` not (N, 6).
         FaultError: a bad fault string.
     """
     if loop not in ('compiled', 'python'):
         raise ValueError("loop must be 'compiled' or 'python', not %r" % (loop,))
     dyn = dyn or Dynamics(mech)
     controller = controller or PDController(mech)
-    if faults is not None:
-        return run_faulted(mech, duration, rate, faults, controller, y0, dyn)
     period = 1.0 / rate
     steps = substeps_for(period)
     n = int(round(duration * rate))
+    wrenches = _wrench_rows(wrench, n)
+    if faults is not None:
+        return run_faulted(mech, duration, rate, faults, controller, y0, dyn, wrench)
     y = initial_state(mech) if y0 is None else np.array(y0, float)
     if loop == 'compiled' and _is_pd(controller):
-        states, forces, contact = _sampled_pd(
-            *dyn.kernel_args(), y, NO_WRENCH, controller.setpoint, controller.kp, controller.kv,
-            float(controller.max_force), float(mech.leg_length_min),
-            float(mech.leg_length_max), n, period / steps, steps)
+        states, forces, contact = _sampled_pd_segments(mech, dyn, controller, y, wrenches,
+                                                       n, period / steps, steps)
         return Result(np.arange(n + 1) * period, states, forces, int(contact), 4 * steps * n)
     states = np.empty((n + 1, STATE_SIZE))
     forces = np.empty((n + 1, 6))
@@ -263,14 +266,54 @@ def run_sampled(mech: Mechanism, duration: float, rate: float,
         forces[k] = (controller(lengths, rates, k * period) if timed
                      else controller(lengths, rates))
         if k < n:
-            y = dyn.step(y, forces[k], period, steps)
+            y = dyn.step(y, forces[k], period, steps, _wrench_at(wrenches, k))
     return Result(np.arange(n + 1) * period, states, forces, contact, 4 * steps * n)
+
+
+def _wrench_rows(wrench, n):
+    """The per-sample wrench (n + 1, 6), checked; None stays None."""
+    if wrench is None:
+        return None
+    rows = np.asarray(wrench, dtype=float)
+    if rows.shape != (n + 1, 6) or not np.all(np.isfinite(rows)):
+        raise ValueError('wrench must be (%d, 6) finite numbers, got shape %s'
+                         % (n + 1, rows.shape))
+    return rows
+
+
+def _wrench_at(wrenches, k):
+    """Sample k's wrench as Dynamics.step takes it (None: none)."""
+    return None if wrenches is None else (wrenches[k, :3], wrenches[k, 3:])
+
+
+def _sampled_pd_segments(mech, dyn, controller, y, wrenches, n, dt, steps):
+    """``_sampled_pd`` over the runs of samples with one wrench each, chained:
+    a segment starts from the state the previous one ended at, so the result
+    is the one call's with the wrench changing between samples."""
+    bounds = [0, n]
+    if wrenches is not None:
+        changes = np.flatnonzero(np.any(np.diff(wrenches[:n], axis=0) != 0.0, axis=1)) + 1
+        bounds = [0, *changes.tolist(), n]
+    args = (controller.setpoint, controller.kp, controller.kv, float(controller.max_force),
+            float(mech.leg_length_min), float(mech.leg_length_max))
+    states, forces, contact = [], [], 0
+    for a, b in zip(bounds, bounds[1:]):
+        w = NO_WRENCH if wrenches is None else np.ascontiguousarray(wrenches[a])
+        s, f, c = _sampled_pd(*dyn.kernel_args(), y, w, *args, b - a, dt, steps)
+        if states:      # the first sample is the last one of the segment before
+            c -= _outside(dyn.lengths_and_rates(s[0])[0], args[4], args[5])
+            s, f = s[1:], f[1:]
+        states.append(s)
+        forces.append(f)
+        contact += c
+        y = s[-1].copy() if len(s) else y
+    return np.concatenate(states), np.concatenate(forces), contact
 
 
 def run_faulted(mech: Mechanism, duration: float, rate: float,
                 faults: FaultModel | Iterable[str] | None,
                 controller: ControllerLike | None = None, y0: ArrayLike | None = None,
-                dyn: Dynamics | None = None) -> Result:
+                dyn: Dynamics | None = None, wrench: ArrayLike | None = None) -> Result:
     """``run_sampled`` with sensor and actuator faults, as the lockstep plant runs it.
 
     Sample k: the faults begin k; the sensors read L, dL/dt; ``faults.sense``
@@ -280,7 +323,7 @@ def run_faulted(mech: Mechanism, duration: float, rate: float,
     gives the applied forces, held over the period.
 
     Args:
-        mech, duration, rate, controller, y0, dyn: as ``run_sampled``.
+        mech, duration, rate, controller, y0, dyn, wrench: as ``run_sampled``.
         faults: a ``FaultModel`` (used as it is: a fresh one for a fresh
             run) or fault strings (a model at ``rate``, seed 0; None: none).
 
@@ -292,6 +335,7 @@ def run_faulted(mech: Mechanism, duration: float, rate: float,
 
     Raises:
         FaultError: a bad fault string.
+        ValueError: a ``wrench`` not (N, 6).
     """
     from stewart63_ros.core.faults import FaultModel, parse_faults
     if not isinstance(faults, FaultModel):
@@ -301,6 +345,7 @@ def run_faulted(mech: Mechanism, duration: float, rate: float,
     period = 1.0 / rate
     steps = substeps_for(period)
     n = int(round(duration * rate))
+    wrenches = _wrench_rows(wrench, n)
     y = initial_state(mech) if y0 is None else np.array(y0, float)
     states = np.empty((n + 1, STATE_SIZE))
     forces = np.empty((n + 1, 6))
@@ -322,7 +367,7 @@ def run_faulted(mech: Mechanism, duration: float, rate: float,
         forces[k] = held
         applied[k] = faults.actuate(held)
         if k < n:
-            y = dyn.step(y, applied[k], period, steps)
+            y = dyn.step(y, applied[k], period, steps, _wrench_at(wrenches, k))
     return Result(np.arange(n + 1) * period, states, forces, contact, 4 * steps * n,
                   applied=applied, measured=measured, faults=faults.summary())
 

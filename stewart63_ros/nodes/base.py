@@ -8,6 +8,7 @@ from rclpy.node import Node
 
 from stewart63_ros import topics
 from stewart63_ros.core.node_parameters import BY_NAME as DECLARED
+from stewart63_ros.core.node_parameters import NODE_KEYS, describe, node_keys
 from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.params import ParameterError, mechanism_from_params, unknown_keys
 from stewart63_ros.core.precompile import COMPILE_NOTICE, kernel_cache_cold
@@ -16,7 +17,7 @@ from stewart63_ros.nodes.diagnostics import Health
 from stewart63_ros.nodes.handshake import RecorderWord
 from stewart63_ros.nodes.hotloop import HotLoop
 from stewart63_ros.nodes.launcher import STOP
-from stewart63_ros.nodes.parameters import load_parameters, ros_parameters
+from stewart63_ros.nodes.parameters import declare_parameters, load_parameters, ros_parameters
 from stewart63_ros.nodes.realtime import realtime_scheduling
 from stewart63_ros.nodes.startup import StartupBarrier
 from stewart63_ros.nodes.stopping import Flush
@@ -41,16 +42,21 @@ class RigNode(HotLoop, Node):
 
     def __init__(self, name: str):
         # Parameters as nodes/parameters.py reads them (a -p wins over the
-        # files; a file given is the whole model), declared as the node's
-        # ROS parameters so that ros2 param shows what the node runs with.
+        # files; a file given is the whole model), checked, then declared as
+        # the node's ROS parameters (each with its descriptor) so that ros2
+        # param shows what the node runs with.
         self.created = time.monotonic()       # the graph's discovery starts about now
         _, params = load_parameters(name)
         super().__init__(name, parameter_overrides=ros_parameters(params),
-                         automatically_declare_parameters_from_overrides=True,
+                         automatically_declare_parameters_from_overrides=False,
                          allow_undeclared_parameters=True)
+        self.kind = name                      # 'plant', 'controller', 'fk' (whatever remapped)
         self.params = params
         self._check_unknown_keys()
         self.mech = mechanism_from_params(self.params)
+        for key in NODE_KEYS[name]:           # every key it reads passes its check first
+            self.param(key)
+        declare_parameters(self, name, self.params)
         if kernel_cache_cold():
             self.get_logger().info(COMPILE_NOTICE)
         self.wait_for_subscribers = self.param('wait_for_subscribers')
@@ -101,13 +107,14 @@ class RigNode(HotLoop, Node):
         ``apply(value)`` puts the new value into effect at once, or raises
         ``ParameterError`` with the reason: the change is then refused and
         nothing changes. A declared key (core/node_parameters.py) must be
-        declared changeable at run time, so that the interface page says so;
-        ``apply`` gets its value as its declaration's check returns it.
+        declared changeable at run time on this node, so that the interface
+        page says so and its descriptor is not read-only (rcl refuses a set
+        of a read-only one before this node sees it); ``apply`` gets its
+        value as its declaration's check returns it.
         """
-        declared = DECLARED.get(name)
-        if declared is not None and not declared.runtime:
-            raise ValueError('%s is declared fixed at start-up (core/node_parameters.py)'
-                             % name)
+        if name in node_keys(self.kind) and describe(name, self.kind).read_only:
+            raise ValueError('%s is declared fixed at start-up on the %s (core/node_parameters.py)'
+                             % (name, self.kind))
         self._tunable[name] = apply
 
     def _on_set_parameters(self, parameters):

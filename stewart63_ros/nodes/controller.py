@@ -140,6 +140,7 @@ class ControllerNode(RigNode):
         super().__init__('controller')
         mech = self.mech
         self.max_leg_speed = self.param('max_leg_speed')
+        self.offset = self.param('leg_length_offset')
         self.max_leg_acceleration = self.param('max_leg_acceleration')
         self.control = Controller(mech, self.params)        # ParameterError: exit 2
         # Load the compiled laws now (0.7-1.7 s measured), not on the first sample: a
@@ -266,7 +267,8 @@ class ControllerNode(RigNode):
             return
         if self.ref_start_ns is None:
             self.ref_start_ns = ns
-        lengths, rates = values['position'], values['velocity']
+        # The sensors read the true length plus leg_length_offset (the file's).
+        lengths, rates = values['position'] - self.offset, values['velocity']
         try:
             force = self.control.forces((ns - self.ref_start_ns) * 1e-9, lengths, rates)
         except LawError as exc:

@@ -37,6 +37,7 @@ class FKNode(RigNode):
         super().__init__('fk')
         threshold = self.param('singularity_threshold')
         self.tracker = FKTracker(self.mech, cond_threshold=threshold)
+        self.offset = self.param('leg_length_offset')
         self.warm_up()
         self.gate = StampGate(RESTART_PAUSE)
         self.singular = 0
@@ -99,8 +100,10 @@ class FKNode(RigNode):
                                rotation_from_euler(self.mech.initial_orientation))
         self.accept_sample(self.gate, ns, source, topics.LEG_LENGTHS)
         rates = values.get('velocity')
+        # The sensors read the true length plus leg_length_offset (the file's).
+        lengths = values['position'] - self.offset
         try:
-            result = self.tracker.solve(values['position'], rates)
+            result = self.tracker.solve(lengths, rates)
         except NoAssemblyError as exc:
             self.no_assembly += 1
             self.health.reject(topics.LEG_LENGTHS, Rejected('no_assembly', str(exc)))
@@ -114,7 +117,7 @@ class FKNode(RigNode):
             sec, nanosec, position=result.position, orientation=result.quaternion))
         self.health.published[topics.PLATFORM_POSE] += 1
         if self.markers is not None:       # references only: drawn by its timer
-            self.markers.sample = (sec, nanosec, values['position'], result.position,
+            self.markers.sample = (sec, nanosec, lengths, result.position,
                                    result.rotation)
         if rates is not None:
             self.send_twist(self.twist_out.get(frame_id).fill(

@@ -11,7 +11,12 @@ user expects rather than rcl's (where a file's ``/**/plant:`` entry beats a
 2. then every ``-p name:=value`` (value read as YAML, as rcl does).
 
 The result is also what the node declares as its ROS parameters, so
-``ros2 param get`` shows what the node runs with.
+``ros2 param get`` shows what the node runs with. Every key the node reads
+(the model's and its own, core/node_parameters.py) is declared, given or not
+(with its default), with a ``ParameterDescriptor`` made from its one
+declaration: ``ros2 param list`` shows every key, ``ros2 param describe`` its
+meaning and unit, its range, and ``read_only`` for a key fixed at start-up
+(rcl then refuses a ``ros2 param set`` of it). See ``declare_parameters``.
 """
 from __future__ import annotations
 
@@ -21,6 +26,7 @@ import sys
 
 import yaml
 
+from stewart63_ros.core.node_parameters import NODE_KEYS, default, describe, node_keys, ros_value
 from stewart63_ros.core.params import ParameterError, default_params_path, read_parameter_file
 from stewart63_ros.nodes.ros_args import WITH_VALUE, split_ros_args
 
@@ -114,3 +120,83 @@ def ros_parameters(params: dict) -> list:
         except (TypeError, ValueError):
             continue
     return out
+
+
+#: core/node_parameters.py's type names -> rclpy's parameter types
+_TYPES = {'double': 'DOUBLE', 'integer': 'INTEGER', 'bool': 'BOOL', 'string': 'STRING',
+          'double_array': 'DOUBLE_ARRAY', 'string_array': 'STRING_ARRAY'}
+
+
+def descriptor(name: str, node: str, writable: bool = False):
+    """The rcl_interfaces ParameterDescriptor of key ``name`` on ``node``
+    (core/node_parameters.describe: description with unit, range, read-only;
+    ``writable``: not read-only whatever the declaration says)."""
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+    from rclpy.parameter import Parameter
+    d = describe(name, node)
+    out = ParameterDescriptor(name=name, description=d.description,
+                              additional_constraints=d.constraints,
+                              read_only=d.read_only and not writable,
+                              dynamic_typing=d.dynamic_typing)
+    if not d.dynamic_typing:
+        out.type = getattr(Parameter.Type, _TYPES[d.type]).value
+    if d.range is not None and d.type == 'integer':
+        out.integer_range = [IntegerRange(from_value=d.range[0], to_value=d.range[1])]
+    elif d.range is not None:
+        out.floating_point_range = [FloatingPointRange(from_value=d.range[0],
+                                                       to_value=d.range[1])]
+    return out
+
+
+def declare_parameters(node, kind: str, params: dict) -> None:
+    """Declare the ROS parameters of ``node`` (a 'plant', 'controller' or
+    'fk'), after its values passed their checks: every key it reads, with
+    its value (given, or the default) and its descriptor; then every other
+    key given (a user's law's, an unknown one), as it is, without one.
+    The values are ours (this module's precedence), not rcl's.
+
+    rclpy types a declared value by itself (an empty list as bytes), and no
+    value goes into a read-only parameter once declared: so a key whose
+    value rclpy would type otherwise (``[]``) is declared with its type
+    alone, then set to its value, then given its descriptor (read-only too).
+    This runs before the node's own set-parameters callback exists.
+    """
+    from rclpy.parameter import Parameter
+    keys = node_keys(kind)
+    values, fixed = [], []
+    for name in keys:
+        if name == 'use_sim_time':          # rclpy's own, declared by rclpy
+            continue
+        value = params.get(name)
+        if value is None and name in NODE_KEYS[kind]:
+            value = default(name, params)
+        if value is None:                   # a model key left out (gravity: the model's default)
+            continue
+        desc = descriptor(name, kind)
+        value = ros_value(name, value, kind)
+        try:
+            typed = Parameter.Type.from_parameter_value(value).value == desc.type
+        except TypeError:
+            typed = False
+        if desc.dynamic_typing or typed:
+            node.declare_parameter(name, value, desc, ignore_override=True)
+            continue
+        kind_of = Parameter.Type(desc.type)
+        node.declare_parameter(name, kind_of, descriptor(name, kind, writable=True),
+                               ignore_override=True)
+        values.append(Parameter(name, kind_of, value))
+        if desc.read_only:
+            fixed.append((name, desc))
+    for param, result in zip(values, node.set_parameters(values)):
+        if not result.successful:           # (the checks passed: a declaration out of step)
+            raise ParameterError(param.name, result.reason)
+    for name, desc in fixed:
+        node.set_descriptor(name, desc)
+    for param in ros_parameters(params):
+        if param.name not in keys and param.name != 'use_sim_time':
+            node.declare_parameter(param.name, param.value, _dynamic(), ignore_override=True)
+
+
+def _dynamic():
+    from rcl_interfaces.msg import ParameterDescriptor
+    return ParameterDescriptor(dynamic_typing=True)

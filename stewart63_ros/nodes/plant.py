@@ -34,7 +34,7 @@ from sensor_msgs.msg import JointState
 
 from stewart63_ros import topics
 from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.sensor import SensorModel
+from stewart63_ros.core.sensor import SensorModel, TrackerModel
 from stewart63_ros.core.simulate import initial_state, substeps_for
 from stewart63_ros.nodes.base import RigNode
 from stewart63_ros.nodes.checks import (
@@ -110,7 +110,7 @@ class PlantNode(PlantBus, PlantControl, RigNode):
         self.endstop_samples = 0
 
         self.outputs = SampleOutputs(self, lockstep=self.mode == 'lockstep',
-                                     lengths=not self.on_bus)
+                                     tracker=TrackerModel(self.params), lengths=not self.on_bus)
         # The same dict as the outputs': on_forces pops the answered samples.
         self.sent_wall = self.outputs.sent_wall
         self.sub_forces = None      # on the bus the forces come from the drives
@@ -188,6 +188,7 @@ class PlantNode(PlantBus, PlantControl, RigNode):
         if self.devices is not None:
             self.bus_sample(lengths, rates)
         out.send(ns, sec, nanosec, lengths, rates, self.y)
+        out.send_tracked(self.k, sec, nanosec, self.y)
         return ns
 
     def step(self):

@@ -56,16 +56,10 @@ class PlantControl:
         self.step_count = self.param('step_count')
         self.tunable('faults', self.set_faults)
         self.tunable('step_count', self.set_step_count)
-        # Declared even when the file leaves them out: `ros2 param get` shows
-        # them, and a run-time value must have their types (a string list).
-        from rclpy.parameter import Parameter
-        if not self.has_parameter('faults'):
-            self.declare_parameter('faults', Parameter.Type.STRING_ARRAY)
-        if not self.has_parameter('step_count'):
-            self.declare_parameter('step_count', self.step_count)
         self.paused = False
         self.step_left = 0              # samples a ~/step still lets through
         self.reset_requested = False
+        self.resetting = False          # restart_run's quiet: the new run's number is out
         self.holding = False            # the loop waits between two samples
         self.hold_due = False           # the loop must call sample_boundary
         self.run_number = 1
@@ -80,10 +74,12 @@ class PlantControl:
 
     # -- faults ---------------------------------------------------------------------
     def set_faults(self, value) -> None:
-        """Run-time ``faults`` (parsed by their declaration): in force together."""
+        """Run-time ``faults`` (parsed by their declaration): in force together,
+        or ParameterError (a new fault whose times are past, a bus fault
+        without the bus: nothing changes)."""
         try:
-            events = self.fault_model.set_faults(value)
-        except FaultError as exc:       # a bus fault without the bus: refused
+            events = self.fault_model.set_faults(value, next_sample=self.next_sample())
+        except FaultError as exc:
             raise ParameterError('faults', str(exc)) from None
         for event in events:
             self.get_logger().warning(event)
@@ -119,7 +115,10 @@ class PlantControl:
 
     # -- services ----------------------------------------------------------------------
     def next_sample(self) -> int:
-        """The sample the loop publishes next (a request acts before it)."""
+        """The sample the loop publishes next (a request acts before it; during
+        a reset's quiet, the new run's first)."""
+        if self.resetting:
+            return 0
         return self.k if self.holding or self.forces_in is None else self.k + 1
 
     def on_pause(self, request, response):
@@ -165,18 +164,26 @@ class PlantControl:
         return response
 
     def on_reset(self, request, response):
-        """``~/reset``: a new run from the parameter file's initial state."""
+        """``~/reset``: a new run from the parameter file's initial state.
+
+        A reset is pending from its answer until the new run's state is set
+        (after the quiet): a second one meanwhile is refused.
+        """
         response.success = False
         if self.ended:
             response.message = 'the run has ended'
         elif self.reset_requested:
-            response.message = 'a reset is already pending'
+            response.message = 'a reset is already pending (run %d starts after the quiet)' % (
+                self.run_number + (0 if self.resetting else 1))
         else:
             self.reset_requested, self.hold_due = True, True
             response.success = True
-            response.message = ('resetting after sample %d: run %d starts from the initial '
-                                'state at sample 0 after %g s of quiet%s' % (
-                                    self.next_sample() - 1, self.run_number + 1, RESET_QUIET,
+            last = self.next_sample() - 1
+            response.message = ('resetting %s: run %d starts from the initial state at sample 0 '
+                                'after %g s of quiet%s' % (
+                                    'after sample %d' % last if last >= 0 else
+                                    'before the first sample of run %d' % self.run_number,
+                                    self.run_number + 1, RESET_QUIET,
                                     ', paused' if self.paused else ''))
         self.get_logger().info('~/reset: %s' % response.message)
         return response
@@ -243,9 +250,10 @@ class PlantControl:
 
     def restart_run(self, quiet_since) -> None:
         """``~/reset``: quiet for RESET_QUIET (announced ``run: reset``), then
-        the initial state of the parameter file at sample 0 of a new run."""
-        self.reset_requested = False
+        the initial state of the parameter file at sample 0 of a new run.
+        The reset stays pending (``reset_requested``) until then."""
         self.holding = True
+        self.resetting = True
         # The new run's number goes out with the announcement, a quiet
         # second before its first sample (the controller restarts its
         # reference on it; in realtime the stamps do not jump back).
@@ -253,10 +261,16 @@ class PlantControl:
         self.resets += 1
         self.health.values['run_number'] = self.run_number
         self.health.values['resets'] = self.resets
+        # The old run is over: its faults end with it, the new run's are
+        # scheduled from its t = 0 (a fault set during the quiet counts from there).
+        self.fault_model.reset()
         self.announce_run('reset')
         until = (quiet_since or time.monotonic()) + RESET_QUIET
-        while not STOP.requested and time.monotonic() < until:
-            self.serve_while_holding(until)
+        try:
+            while not STOP.requested and time.monotonic() < until:
+                self.serve_while_holding(until)
+        finally:
+            self.reset_requested = self.resetting = False
         if STOP.requested:
             return
         self.y = initial_state(self.mech)
@@ -266,7 +280,6 @@ class PlantControl:
         self.force_ns = None
         self.sent_wall.clear()
         self.sensor = SensorModel(self.params)      # its noise starts over, as on a restart
-        self.fault_model.reset()
         if self.tracking is not None:
             self.tracking.reset()
         # The new run's answers carry stamps from 0 again (lockstep): not from the past.

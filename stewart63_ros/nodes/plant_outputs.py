@@ -27,6 +27,8 @@ class SampleOutputs:
     Args:
         node: the plant (a RigNode): the publishers are its data publishers.
         lockstep: publish /clock too (simulated time).
+        tracker: a ``sensor.TrackerModel``; when it has a rate, ``tracker/pose``
+            is published (``send_tracked``) with the true pose plus its noise.
         lengths: publish ``leg_lengths`` (False: the plant stands on the
             field bus, and ``canopen_bridge`` publishes them).
     """
@@ -39,8 +41,13 @@ class SampleOutputs:
     #: never got one)
     SENT_KEPT = 1000
 
-    def __init__(self, node, lockstep: bool, lengths: bool = True):
+    def __init__(self, node, lockstep: bool, tracker=None, lengths: bool = True):
         self.health = node.health
+        self.tracker = tracker if tracker is not None and tracker.every else None
+        if self.tracker is not None:
+            self.tracker_out = wire.pose_template('base')
+            self.send_tracker = raw_publisher(node.publisher(PoseStamped, topics.TRACKER_POSE,
+                                                             topics.STREAM_PUB))
         self.pub_lengths = (node.publisher(JointState, topics.LEG_LENGTHS, topics.STREAM_PUB)
                             if lengths else None)
         self.pub_pose = node.publisher(PoseStamped, topics.TRUE_POSE, topics.STREAM_PUB)
@@ -95,3 +102,14 @@ class SampleOutputs:
         if self.to_twist:
             self.send_twist(self.twist_out.fill(sec, nanosec, linear=y[VEL], angular=y[OMEGA]))
             published[topics.TRUE_TWIST] += 1
+
+    def send_tracked(self, sample: int, sec: int, nanosec: int, y) -> None:
+        """``tracker/pose`` for sample number ``sample`` if the tracker measures
+        then: the true pose of the state ``y`` with the tracker's noise."""
+        if self.tracker is None or not self.tracker.due(sample):
+            return
+        quat = y[QUAT] / np.sqrt(y[QUAT] @ y[QUAT])
+        position, quat = self.tracker.measure(y[POS], quat)
+        self.send_tracker(self.tracker_out.fill(sec, nanosec, position=position,
+                                                orientation=quat))
+        self.health.published[topics.TRACKER_POSE] += 1

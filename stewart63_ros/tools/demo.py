@@ -16,13 +16,14 @@ import time
 from pathlib import Path
 
 from stewart63_ros.core.params import default_params_path
+from stewart63_ros.paths import RIG_CLOCK_MODE
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='demo', description=__doc__.split('\n\n')[0])
     parser.add_argument('--out', default='out/demo', help='folder for the run (out/demo)')
     parser.add_argument('--duration', type=float, default=10.0)
-    parser.add_argument('--mode', choices=('lockstep', 'realtime'), default='lockstep')
+    parser.add_argument('--mode', choices=('lockstep', 'realtime'), default=RIG_CLOCK_MODE)
     parser.add_argument('--separate', action='store_true',
                         help='one process per node instead of one for all (slower)')
     args = parser.parse_args(argv)

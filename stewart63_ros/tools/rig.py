@@ -3,7 +3,7 @@
     rig [--params FILE] [--mode realtime|lockstep] [--duration S] [--record DIR]
         [--namespace NS] [--nodes plant,controller,fk] [--realtime-priority P]
         [--compose] [--control-law NAME] [--reference CSV] [--fault FAULT]...
-        [--bus canopen]
+        [--plant-params FILE] [--bus canopen]
 
 One parameter file and one namespace for all. Every node waits until its
 peers are matched before the first sample, so a short run loses nothing at
@@ -18,7 +18,10 @@ controller's ``control_law``; --reference hands a reference CSV to the
 controller (``reference_file``, time 0 = the first sample) and to the plant,
 which reports the true tracking error in its summary. --fault (repeatable)
 adds a fault to the plant's ``faults`` (docs/faults.md); the summary names
-each fault and when it acted. --bus canopen puts the plant on the field bus
+each fault and when it acted. --plant-params gives the plant a file of its
+own, read after --params (its keys win, for the plant only): the plant then
+plays a machine built off the drawing that controller and fk run on
+(docs/calibration.md). --bus canopen puts the plant on the field bus
 as the legs' CiA 402 drives and starts ``canopen_bridge`` between the bus and
 the topics (docs/bus.md).
 """
@@ -37,7 +40,7 @@ from pathlib import Path
 # handlers: a Ctrl-C while numpy and scipy load (a third of a second) could
 # otherwise be swallowed by a library's bare ``except`` and never stop the rig.
 from stewart63_ros.core.errors import ParameterError
-from stewart63_ros.paths import default_params_path
+from stewart63_ros.paths import RIG_CLOCK_MODE, default_params_path
 
 NODES = ('plant', 'controller', 'fk')
 #: Bound on the nodes' start-up until the recorder has matched them [s]. It
@@ -65,7 +68,7 @@ def default_log_dir(record=None, namespace='') -> Path:
 class Rig:
     """The processes of one rig; ``start()``, ``wait()``, ``stop()``."""
 
-    def __init__(self, params, mode='lockstep', duration=None, record=None, namespace='',
+    def __init__(self, params, mode=RIG_CLOCK_MODE, duration=None, record=None, namespace='',
                  log_dir=None, extra_params=None, nodes=NODES, realtime_priority=0,
                  compose=False, bus=None):
         self.params = str(params)
@@ -87,6 +90,8 @@ class Rig:
         #: 'canopen': the plant on the field bus, and canopen_bridge (docs/bus.md)
         self.bus = bus
         self.procs: dict[str, subprocess.Popen] = {}
+        #: the plant's own parameter file (the machine), read after ``params``
+        self.plant_params = None
 
     def overlay(self) -> Path:
         """A second parameter file with what the rig decides; it comes after the
@@ -144,7 +149,10 @@ class Rig:
         doc['/**/canopen_bridge'] = {'ros__parameters': bridge}
 
     def ros_args(self, name):
-        args = ['--ros-args', '--params-file', self.params, '--params-file', str(self.overlay())]
+        own = ['--params-file', str(self.plant_params)] if (
+            name == 'plant' and self.plant_params) else []
+        args = ['--ros-args', '--params-file', self.params] + own + [
+            '--params-file', str(self.overlay())]
         if self.namespace:
             args += ['-r', '__ns:=%s' % self.namespace]
         return args
@@ -359,7 +367,7 @@ def main(argv=None) -> int:
                                      formatter_class=_DefaultsFormatter)
     parser.add_argument('--params', metavar='FILE',
                         help='parameter file (default: the packaged %s)' % default_params_path())
-    parser.add_argument('--mode', choices=('realtime', 'lockstep'), default='lockstep',
+    parser.add_argument('--mode', choices=('realtime', 'lockstep'), default=RIG_CLOCK_MODE,
                         help='clock mode of the plant')
     parser.add_argument('--duration', type=float, metavar='S',
                         help='simulated seconds, then stop (default: run until Ctrl-C)')
@@ -396,6 +404,10 @@ def main(argv=None) -> int:
                         help='inject a fault KIND:LEG[:VALUE][@T_START[-T_END]] into the plant, '
                         'e.g. actuator_dead:leg_4@2.0 (repeatable; added to the plant\'s '
                         'faults of the parameter file; docs/faults.md)')
+    parser.add_argument('--plant-params', metavar='FILE',
+                        help='a parameter file for the plant only, read after --params: the '
+                        'machine as built (geometry, leg_length_offset, a simulated tracker) '
+                        'while controller and fk run on --params (docs/calibration.md)')
     parser.add_argument('--bus', choices=('canopen',),
                         help='put the plant on the field bus as the legs\' CiA 402 drives and '
                         'start canopen_bridge between the bus and the topics (the device config: '
@@ -417,6 +429,11 @@ def main(argv=None) -> int:
             return 2
     if load_checked('rig', params, strict=args.strict) is None:
         return 2      # fail here, not in three processes
+    if args.plant_params is not None:
+        problem = plant_params_problem(args, params)
+        if problem:
+            print('rig: error: --plant-params: %s' % problem, file=sys.stderr)
+            return 2
     fault_extra = {}
     if args.fault and 'plant' not in nodes_arg(args.nodes):
         parser.error('--fault acts in the plant: it needs plant in --nodes')
@@ -478,6 +495,7 @@ def main(argv=None) -> int:
     rig = Rig(params, args.mode, args.duration, args.record, args.namespace, args.log_dir,
               nodes=nodes, realtime_priority=args.realtime_priority, compose=args.compose,
               extra_params=extra, bus=args.bus)
+    rig.plant_params = args.plant_params and str(Path(args.plant_params).resolve())
     ok = False
     start = time.monotonic()
     try:
@@ -520,6 +538,23 @@ def main(argv=None) -> int:
     if died or not ok:
         return 1
     return 0
+
+
+def plant_params_problem(args, params) -> str:
+    """Why --plant-params cannot be used ('' if it can): the plant's two files
+    must make a valid mechanism, and the plant must run in its own process."""
+    if args.compose:
+        return 'the composed nodes share one process and its files: not with --compose'
+    if 'plant' not in nodes_arg(args.nodes):
+        return 'it is the plant\'s file: it needs plant in --nodes'
+    from stewart63_ros.core.params import mechanism_from_params, read_parameter_file
+    try:
+        merged = read_parameter_file(params, 'plant')
+        merged.update(read_parameter_file(args.plant_params, 'plant', allow_empty=True))
+        mechanism_from_params(merged)
+    except ParameterError as exc:
+        return '%s: %s' % (args.plant_params, exc)
+    return ''
 
 
 def nodes_arg(text: str) -> tuple:

@@ -54,8 +54,11 @@ def format_tracking(err: dict) -> str:
 
 def fault_list(params_path, extra=()) -> list:
     """The plant's ``faults`` of the parameter file, then ``extra`` (--fault),
-    parsed (FaultError naming the first bad one)."""
-    from stewart63_ros.core.faults import FaultError, parse_faults
+    parsed (FaultError naming the first bad one). A blank ``--fault`` is
+    refused: the file's ``['']`` stands for no faults, an option for one."""
+    from stewart63_ros.core.faults import FaultError, parse_fault, parse_faults
+    for text in extra:
+        parse_fault(text)
     from stewart63_ros.core.params import read_parameter_file
     listed = read_parameter_file(params_path, 'plant').get('faults') or []
     if isinstance(listed, str):
@@ -63,7 +66,7 @@ def fault_list(params_path, extra=()) -> list:
     if not isinstance(listed, list):
         raise FaultError('faults in %s: expected a list of strings, got %r'
                          % (params_path, listed))
-    return parse_faults(list(listed) + list(extra))
+    return parse_faults([f.text for f in parse_faults(listed)] + list(extra))
 
 
 def format_fault(fault: dict) -> str:

@@ -1,0 +1,920 @@
+"""Scenario files: runs with expectations and their verdicts (docs/scenarios.md).
+
+A scenario file (YAML) holds ``scenarios:``, a list of runs, each with the
+expectations its result must meet. This module reads and checks a file (every
+key, with a "did you mean" for a typo), expands a ``matrix:`` into one
+scenario per combination, runs a ``sim`` scenario in this process
+(``run_sim``: the sampled loop of ``simulate.run_sampled`` at the plant's
+``sensor_rate``, the loop the lockstep rig closes over DDS sample for
+sample), and turns a run's samples (a ``Trace``) into verdicts
+(``evaluate``). Running on the rig is the ``scenario`` tool's (it starts
+``rig``); it builds a ``Trace`` from the recorded bag and the plant's summary.
+
+Metrics (``METRICS``), each over the window [``from``, ``to``] of the run
+(default: the whole run; the tracking errors from ``TRACKING_FROM``), the
+error e_i(t) = |L_i(t) - L_ref,i(t)| of the true leg lengths against the
+reference's (the setpoint (L_i)_0 without a reference):
+
+- ``final_error_percent``: max_i e_i / L_ref,i x 100 at the window's last
+  sample (without a window: ``sim``'s ``positioning_error_percent``);
+- ``tracking_error_rms_m``: sqrt(mean over samples and legs of e_i^2);
+- ``tracking_error_max_m``: max over samples and legs of e_i;
+- ``settling_time_s``: the 2 % settling time of the legs in the window
+  (``sweep.settling_time``; not settled: NaN, which fails any bound);
+- ``overshoot_percent``: how far a leg went past its final length in the
+  direction it moved, max_i max_t s_i (L_i(t) - L_i(T)) / travel x 100, with
+  s_i the sign of L_i(T) - L_i(t0) and travel the largest |L_i(T) - L_i(t0)|;
+- ``max_force``: the largest |F_i| the controller commanded [N];
+- ``endstop_samples``: samples with a leg outside its stroke;
+- ``withheld_samples``: samples with a complete reading the controller did
+  not answer because its law raised (a fault detector's trip, README
+  "Control laws"); on the rig: complete ``leg_lengths`` samples without a
+  ``leg_forces`` answer;
+- ``missed_cycles``: the plant's missed cycles plus its force timeouts (the
+  whole run: no window); ``lost_messages``: samples that readers skipped plus
+  ``leg_lengths`` samples missing from the bag (the whole run). Both only
+  mean something on the rig: in ``sim`` nothing is sent, so they are 0 by
+  construction.
+
+Supervisor trips (``PENDING_METRICS``) are refused as not yet available.
+"""
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import functools
+import itertools
+import math
+import os
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from stewart63_ros.core.errors import ParameterError
+
+#: Where a scenario runs.
+RUN_MODES = ('sim', 'lockstep', 'realtime')
+#: The keys of a scenario.
+SCENARIO_KEYS = ('name', 'description', 'run', 'duration', 'params_file', 'params',
+                 'control_law', 'reference', 'faults', 'wrench', 'expect', 'matrix')
+#: The keys of an expectation.
+EXPECT_KEYS = ('max', 'min', 'from', 'to')
+#: The keys of a wrench interval.
+WRENCH_KEYS = ('from', 'to', 'force', 'torque')
+#: metric -> (unit, whether it takes a window, what it is).
+METRICS: dict[str, tuple[str, bool, str]] = {
+    'final_error_percent': ('%', True, 'largest leg error at the window end, % of L_ref'),
+    'tracking_error_rms_m': ('m', True, 'RMS leg-length error over the window'),
+    'tracking_error_max_m': ('m', True, 'largest leg-length error over the window'),
+    'settling_time_s': ('s', True, '2 % settling time of the legs'),
+    'overshoot_percent': ('%', True, 'overshoot past the final leg length, % of travel'),
+    'max_force': ('N', True, 'largest commanded |F_i|'),
+    'endstop_samples': ('', True, 'samples with a leg outside its stroke'),
+    'withheld_samples': ('', True, 'samples the controller did not answer (law raised)'),
+    'missed_cycles': ('', False, 'missed cycles and force timeouts (rig; 0 in sim)'),
+    'lost_messages': ('', False, 'skipped or unrecorded samples (rig; 0 in sim)'),
+}
+#: Metrics named in the issue that wait for the supervisor node.
+PENDING_METRICS = ('trip', 'no_trip', 'supervisor_trip', 'trip_within_samples')
+#: The tracking errors count from this time by default [s], as ``sim`` and the
+#: rig's summary print them.
+TRACKING_FROM = 1.0
+#: Parameter keys the scenario sets through its own keys.
+SCENARIO_OWNED = {'control_law': 'control_law', 'faults': 'faults',
+                  'reference_file': 'reference', 'duration': 'duration',
+                  'clock_mode': 'run', 'summary_file': None}
+
+
+class ScenarioError(ValueError):
+    """A scenario file that cannot run: the message names the file and the key."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Expectation:
+    """One bound on one metric: ``kind`` 'max' (value <= limit) or 'min'
+    (value >= limit), over [t_from, t_to] [s] (None: the run's start or end)."""
+    metric: str
+    kind: str
+    limit: float
+    t_from: float | None = None
+    t_to: float | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class WrenchInterval:
+    """An external wrench on the platform (platform frame, at its origin) over
+    the samples with t_from <= t < t_to [s]: force (3,) [N], torque (3,) [N m]."""
+    t_from: float
+    t_to: float
+    force: tuple[float, float, float]
+    torque: tuple[float, float, float]
+
+
+@dataclasses.dataclass(frozen=True)
+class Scenario:
+    """One run and its expectations, checked (``load_scenarios``)."""
+    name: str
+    run: str
+    duration: float
+    params_file: str
+    params: Mapping[str, Any]
+    control_law: str | None
+    reference: str | None
+    faults: tuple[str, ...]
+    wrench: tuple[WrenchInterval, ...]
+    expect: tuple[Expectation, ...]
+    source: str = ''
+    description: str = ''
+
+
+@dataclasses.dataclass
+class Trace:
+    """The samples of a run that the metrics read.
+
+    Attributes:
+        times: (N,) sample times [s] from 0.
+        lengths: (N, 6) true leg lengths [m].
+        reference: (N, 6) the reference's leg lengths [m] at those times.
+        forces: (N, 6) the controller's commands [N] (held where it did not answer).
+        withheld: (N,) bool, a complete sample the controller did not answer.
+        stroke: (leg_length_min, leg_length_max) [m].
+        missed_cycles, lost_messages: whole-run counts (0 in sim).
+    """
+    times: np.ndarray
+    lengths: np.ndarray
+    reference: np.ndarray
+    forces: np.ndarray
+    withheld: np.ndarray
+    stroke: tuple[float, float]
+    missed_cycles: int = 0
+    lost_messages: int = 0
+
+
+@dataclasses.dataclass
+class Verdict:
+    """An expectation's outcome: the measured value beside the bound, and the
+    time it failed (a windowed metric), or None."""
+    expectation: Expectation
+    value: float
+    passed: bool
+    at_s: float | None
+    window: tuple[float, float]
+
+    def text(self) -> str:
+        """One line: ``max_force = 3120.5 N <= 3000 N: FAIL by 120.5 N at t = 0.012 s``."""
+        exp = self.expectation
+        unit = METRICS[exp.metric][0]
+        unit = ' ' + unit if unit else ''
+        op = '<=' if exp.kind == 'max' else '>='
+        line = '%s = %s%s (%s %s%s, window %g-%g s)' % (
+            exp.metric, _num(self.value), unit, op, _num(exp.limit), unit, *self.window)
+        if self.passed:
+            return line + ': pass'
+        if math.isnan(self.value):
+            line += ': FAIL (no value: %s)' % (
+                'not settled' if exp.metric == 'settling_time_s' else 'the run failed')
+        else:
+            line += ': FAIL by %s%s' % (_num(abs(self.value - exp.limit)), unit)
+        if self.at_s is not None:
+            line += ' at t = %.4f s' % self.at_s
+        return line
+
+
+def _num(value: float) -> str:
+    return '%.6g' % value
+
+
+# -- reading a file ------------------------------------------------------------
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, refusing a key given twice in one mapping (plain
+    YAML keeps the last one silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if key in seen:
+                raise ScenarioError('line %d: %s: given twice in one mapping (for two '
+                                    'windows of a metric, give a list of bounds)'
+                                    % (key_node.start_mark.line + 1, key))
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
+def _hint(key: str, known: Iterable[str]) -> str:
+    close = difflib.get_close_matches(str(key), list(known), n=1, cutoff=0.6)
+    return ' (did you mean %s?)' % close[0] if close else ' (known: %s)' % ', '.join(known)
+
+
+def _number(where: str, value: Any, positive: bool = False, nonnegative: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ScenarioError('%s: expected a number, got %r' % (where, value))
+    value = float(value)
+    if not math.isfinite(value):
+        raise ScenarioError('%s: expected a finite number, got %r' % (where, value))
+    if positive and value <= 0:
+        raise ScenarioError('%s: must be > 0, got %g' % (where, value))
+    if nonnegative and value < 0:
+        raise ScenarioError('%s: must be >= 0, got %g' % (where, value))
+    return value
+
+
+def _vector3(where: str, value: Any) -> tuple[float, float, float]:
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        raise ScenarioError('%s: expected three numbers, got %r' % (where, value))
+    x, y, z = (_number('%s[%d]' % (where, i), v) for i, v in enumerate(value))
+    return x, y, z
+
+
+def _mapping(where: str, value: Any) -> Mapping:
+    if not isinstance(value, Mapping):
+        raise ScenarioError('%s: expected a mapping (key: value), got %r' % (where, value))
+    return value
+
+
+def _unknown(where: str, doc: Mapping, known: Sequence[str]) -> None:
+    for key in doc:
+        if key not in known:
+            raise ScenarioError('%s.%s: unknown key%s' % (where, key, _hint(key, known)))
+
+
+def parse_expectations(where: str, doc: Any, duration: float) -> tuple[Expectation, ...]:
+    """The ``expect:`` mapping of a scenario, checked.
+
+    Args:
+        where: the scenario's place in its file, for messages.
+        doc: {metric: {max|min: B, from: T0, to: T1}}, or {metric: [such
+            a mapping, ...]} for several windows of one metric.
+        duration: the run's duration [s] (a window must lie inside it).
+
+    Returns:
+        One ``Expectation`` per bound (a metric may have both max and min).
+
+    Raises:
+        ScenarioError: an unknown metric or key, a bad number, a window outside
+            the run, a window on a whole-run metric, a pending (supervisor) metric.
+    """
+    out = []
+    for metric, spec in _mapping(where + '.expect', doc or {}).items():
+        at = '%s.expect.%s' % (where, metric)
+        if metric in PENDING_METRICS:
+            raise ScenarioError('%s: not yet available: supervisor trips come with the '
+                                'supervisor node, not yet in this package' % at)
+        if metric not in METRICS:
+            raise ScenarioError('%s: unknown metric%s' % (at, _hint(metric, METRICS)))
+        specs = spec if isinstance(spec, list) else [spec]
+        for k, one in enumerate(specs):
+            out.extend(_expectations(metric, one, '%s[%d]' % (at, k) if len(specs) > 1 else at,
+                                     duration))
+    return tuple(out)
+
+
+def _expectations(metric: str, spec: Any, at: str, duration: float) -> list[Expectation]:
+    out = []
+    spec = _mapping(at, spec)
+    _unknown(at, spec, EXPECT_KEYS)
+    bounds = [k for k in ('max', 'min') if k in spec]
+    if not bounds:
+        raise ScenarioError('%s: needs a bound, max: B or min: B' % at)
+    t_from = spec.get('from')
+    t_to = spec.get('to')
+    windowed = t_from is not None or t_to is not None
+    if windowed and not METRICS[metric][1]:
+        raise ScenarioError('%s: counts the whole run, a window (from/to) cannot apply'
+                            % at)
+    if t_from is not None:
+        t_from = _number(at + '.from', t_from, nonnegative=True)
+    if t_to is not None:
+        t_to = _number(at + '.to', t_to, nonnegative=True)
+    lo = t_from or 0.0
+    hi = duration if t_to is None else t_to
+    if not lo < hi or hi > duration + 1e-9:
+        raise ScenarioError('%s: the window %g-%g s must lie inside the run (0-%g s) and '
+                            'end after it starts' % (at, lo, hi, duration))
+    for kind in bounds:
+        limit = _number('%s.%s' % (at, kind), spec[kind])
+        out.append(Expectation(metric, kind, limit, t_from, t_to))
+    return out
+
+
+def parse_wrench(where: str, doc: Any, duration: float) -> tuple[WrenchInterval, ...]:
+    """The ``wrench:`` list of a scenario, checked.
+
+    Args:
+        where: the scenario's place, for messages.
+        doc: [{from: T0, to: T1, force: [fx, fy, fz], torque: [mx, my, mz]}, ...]
+            (platform frame, at its origin; ``to`` default: the end;
+            ``force`` or ``torque`` default zero).
+        duration: the run's duration [s].
+
+    Returns:
+        The intervals, in order.
+
+    Raises:
+        ScenarioError: a bad key, number or interval; intervals that overlap.
+    """
+    if doc is None:
+        return ()
+    if not isinstance(doc, list):
+        raise ScenarioError('%s.wrench: expected a list of {from, to, force, torque}' % where)
+    out = []
+    for i, item in enumerate(doc):
+        at = '%s.wrench[%d]' % (where, i)
+        item = _mapping(at, item)
+        _unknown(at, item, WRENCH_KEYS)
+        t_from = _number(at + '.from', item.get('from', 0.0), nonnegative=True)
+        t_to = _number(at + '.to', item.get('to', duration), nonnegative=True)
+        if not t_from < t_to:
+            raise ScenarioError('%s: from %g must be before to %g' % (at, t_from, t_to))
+        if t_from >= duration:
+            raise ScenarioError('%s: from %g s is at or after the end of the run (%g s): '
+                                'it would never act' % (at, t_from, duration))
+        if 'force' not in item and 'torque' not in item:
+            raise ScenarioError('%s: needs force: [fx, fy, fz] or torque: [mx, my, mz]' % at)
+        force = _vector3(at + '.force', item.get('force', [0, 0, 0]))
+        torque = _vector3(at + '.torque', item.get('torque', [0, 0, 0]))
+        out.append(WrenchInterval(t_from, t_to, force, torque))
+    out.sort(key=lambda w: w.t_from)
+    for a, b in zip(out, out[1:]):
+        if b.t_from < a.t_to:
+            raise ScenarioError('%s.wrench: intervals %g-%g s and %g-%g s overlap'
+                                % (where, a.t_from, a.t_to, b.t_from, b.t_to))
+    return tuple(out)
+
+
+def _check_params(where: str, params: Mapping, law: str | None, run: str) -> dict:
+    from stewart63_ros.core.node_parameters import BY_NAME
+    from stewart63_ros.core.params import known_keys
+    known = sorted(known_keys({'control_law': law} if law else None))
+    out = {}
+    for key, value in params.items():
+        at = '%s.params.%s' % (where, key)
+        if key in SCENARIO_OWNED:
+            own = SCENARIO_OWNED[key]
+            raise ScenarioError('%s: set by the scenario%s' % (
+                at, ' (use its %s: key)' % own if own else ' runner'))
+        if key not in known:
+            raise ScenarioError('%s: unknown parameter%s' % (at, _hint(key, known)))
+        declared = BY_NAME.get(key)
+        if run == 'sim' and declared is not None and 'sim' not in declared.nodes:
+            raise ScenarioError('%s: read by the %s node only, not by sim: it takes effect '
+                                'in run: lockstep or realtime' % (at, '/'.join(declared.nodes)))
+        out[str(key)] = value
+    return out
+
+
+def _resolve(base: Path, path: str) -> str:
+    p = Path(os.path.expanduser(str(path)))
+    return str(p if p.is_absolute() else (base / p))
+
+
+def parse_scenario(doc: Any, where: str, base: Path, source: str = '') -> Scenario:
+    """One scenario (no ``matrix:`` left), checked; the parameter values too
+    (the mechanism they give), the law, the reference and the faults.
+
+    Args:
+        doc: the scenario's mapping.
+        where: its place in its file (``file: scenarios[2] (name)``), for messages.
+        base: the folder relative paths (params_file, reference) start from.
+        source: the file it came from.
+
+    Returns:
+        The ``Scenario``.
+
+    Raises:
+        ScenarioError: anything that would keep it from running as written.
+    """
+    doc = _mapping(where, doc)
+    _unknown(where, doc, SCENARIO_KEYS)
+    name = doc.get('name')
+    if not isinstance(name, str) or not name.strip():
+        raise ScenarioError('%s.name: every scenario needs a name' % where)
+    run = doc.get('run', 'sim')
+    if run not in RUN_MODES:
+        raise ScenarioError('%s.run: %r is not one of %s%s' % (
+            where, run, ', '.join(RUN_MODES), _hint(run, RUN_MODES) if isinstance(run, str)
+            else ''))
+    duration = _number(where + '.duration', doc.get('duration', 10.0), positive=True)
+    law = doc.get('control_law')
+    if law is not None and not isinstance(law, str):
+        raise ScenarioError('%s.control_law: expected a name, got %r' % (where, law))
+    params = _check_params(where, _mapping(where + '.params', doc.get('params') or {}), law, run)
+    from stewart63_ros.core.params import default_params_path
+    params_file = (_resolve(base, doc['params_file']) if doc.get('params_file')
+                   else str(default_params_path()))
+    reference = _resolve(base, doc['reference']) if doc.get('reference') else None
+    faults = doc.get('faults') or []
+    if isinstance(faults, str):
+        faults = [faults]
+    if not isinstance(faults, list) or not all(isinstance(f, str) for f in faults):
+        raise ScenarioError('%s.faults: expected a list of fault strings' % where)
+    from stewart63_ros.core.faults import FaultError, parse_faults
+    try:
+        parse_faults(faults)
+    except FaultError as exc:
+        raise ScenarioError('%s.faults: %s' % (where, exc)) from None
+    wrench = parse_wrench(where, doc.get('wrench'), duration)
+    if wrench and run != 'sim':
+        raise ScenarioError('%s.wrench: a wrench schedule runs in sim only (the rig takes '
+                            'external_wrench from its topic, not on a schedule)' % where)
+    if 'expect' not in doc:
+        raise ScenarioError('%s.expect: a scenario needs at least one expectation' % where)
+    expect = parse_expectations(where, doc.get('expect'), duration)
+    if not expect:
+        raise ScenarioError('%s.expect: a scenario needs at least one expectation' % where)
+    description = doc.get('description') or ''
+    scenario = Scenario(name.strip(), run, duration, params_file, params, law, reference,
+                        tuple(faults), wrench, expect, source, str(description))
+    try:
+        build_plant(scenario)
+        build_controller(scenario)
+    except ScenarioError as exc:
+        raise ScenarioError('%s: %s' % (where, exc)) from None
+    return scenario
+
+
+def _matrix_label(value: Any) -> str:
+    if isinstance(value, float):
+        return '%g' % value
+    if isinstance(value, (list, tuple)):
+        return ','.join(_matrix_label(v) for v in value)
+    return str(value)
+
+
+def expand_matrix(doc: Mapping, where: str) -> list[tuple[str, dict]]:
+    """A scenario with ``matrix:`` as one scenario per combination of its values.
+
+    ``matrix: {KEY: [v1, v2, ...], ...}`` with KEY a scenario key
+    (``control_law``, ``duration``, ``faults``, ...) or ``params.NAME``; each
+    combination sets its keys and is named ``name[KEY=v,...]`` (the last part
+    of a dotted key).
+
+    Args:
+        doc: the scenario's mapping.
+        where: its place in its file.
+
+    Returns:
+        [(place, scenario mapping without ``matrix``)], first key slowest.
+
+    Raises:
+        ScenarioError: a bad key or an empty list of values.
+    """
+    matrix = doc.get('matrix')
+    if matrix is None:
+        return [(where, dict(doc))]
+    matrix = _mapping(where + '.matrix', matrix)
+    keys, values = [], []
+    for key, vals in matrix.items():
+        at = '%s.matrix.%s' % (where, key)
+        head, _, tail = str(key).partition('.')
+        if head not in SCENARIO_KEYS or head in ('name', 'matrix', 'expect') or (
+                head == 'params') != bool(tail):
+            choices = [k for k in SCENARIO_KEYS if k not in ('name', 'matrix', 'expect')]
+            raise ScenarioError('%s: not a scenario key or params.NAME%s'
+                                % (at, _hint(key, choices + ['params.NAME'])))
+        if not isinstance(vals, list) or not vals:
+            raise ScenarioError('%s: expected a non-empty list of values' % at)
+        keys.append(str(key))
+        values.append(vals)
+    out = []
+    for combo in itertools.product(*values):
+        item = {k: v for k, v in doc.items() if k != 'matrix'}
+        item['params'] = dict(item.get('params') or {})
+        labels = []
+        for key, value in zip(keys, combo):
+            head, _, tail = key.partition('.')
+            if tail:
+                item['params'][tail] = value
+            else:
+                item[head] = value
+            labels.append('%s=%s' % (tail or head, _matrix_label(value)))
+        item['name'] = '%s[%s]' % (doc.get('name'), ','.join(labels))
+        out.append(('%s (%s)' % (where, item['name']), item))
+    return out
+
+
+def load_scenarios(path: str | os.PathLike) -> list[Scenario]:
+    """Every scenario of a file, checked, matrices expanded.
+
+    Args:
+        path: the YAML file (``scenarios:`` a list of scenarios).
+
+    Returns:
+        The scenarios in file order.
+
+    Raises:
+        ScenarioError: one line naming the file and the first bad key.
+    """
+    path = Path(path)
+    try:
+        doc = yaml.load(path.read_text(), Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
+    except ScenarioError as exc:
+        raise ScenarioError('%s: %s' % (path, exc)) from None
+    except OSError as exc:
+        raise ScenarioError('%s: cannot read (%s)' % (path, exc.strerror)) from None
+    except yaml.YAMLError as exc:
+        raise ScenarioError('%s: not valid YAML: %s' % (
+            path, str(exc).replace('\n', ' '))) from None
+    if not isinstance(doc, Mapping) or 'scenarios' not in doc:
+        keys = list(doc) if isinstance(doc, Mapping) else []
+        hint = _hint(keys[0], ['scenarios']) if keys else ''
+        raise ScenarioError('%s: expected a top-level "scenarios:" list%s' % (path, hint))
+    _unknown(str(path), doc, ('scenarios',))
+    items = doc['scenarios']
+    if not isinstance(items, list) or not items:
+        raise ScenarioError('%s.scenarios: expected a non-empty list of scenarios' % path)
+    out: list[Scenario] = []
+    for i, item in enumerate(items):
+        where = '%s: scenarios[%d]' % (path, i)
+        if isinstance(item, Mapping) and isinstance(item.get('name'), str) and (
+                'matrix' not in item):
+            where += ' (%s)' % item['name']
+        item = _mapping(where, item)
+        for place, single in expand_matrix(item, where):
+            out.append(parse_scenario(single, place, path.parent, str(path)))
+    names = [s.name for s in out]
+    for name in names:
+        if names.count(name) > 1:
+            raise ScenarioError('%s: two scenarios named %r' % (path, name))
+    return out
+
+
+# -- building a run ------------------------------------------------------------
+@functools.lru_cache(maxsize=32)
+def _file_section(path: str, node: str, mtime_ns: int) -> Mapping[str, Any]:
+    """A node's parameters of a file, read once per version of the file (YAML
+    parsing would otherwise cost more than a 10 s run)."""
+    from stewart63_ros.core.params import read_parameter_file
+    return read_parameter_file(path, node)
+
+
+def node_parameters(scenario: Scenario, node: str) -> dict:
+    """The parameters a node of the scenario reads: its file's, then the overrides.
+
+    Args:
+        scenario: the scenario.
+        node: 'plant' or 'controller'.
+
+    Returns:
+        {key: value}.
+
+    Raises:
+        ScenarioError: the parameter file cannot be read.
+    """
+    try:
+        params = dict(_file_section(scenario.params_file, node,
+                                    os.stat(scenario.params_file).st_mtime_ns))
+    except OSError as exc:
+        raise ScenarioError('params_file: cannot read %s (%s)'
+                            % (scenario.params_file, exc.strerror)) from None
+    except ParameterError as exc:
+        raise ScenarioError('params_file: %s' % exc) from None
+    params.update(scenario.params)
+    if scenario.control_law is not None:
+        params['control_law'] = scenario.control_law
+    return params
+
+
+def build_plant(scenario: Scenario) -> Any:
+    """The plant's mechanism of the scenario.
+
+    Args:
+        scenario: the scenario.
+
+    Returns:
+        The ``Mechanism``.
+
+    Raises:
+        ScenarioError: a parameter value the validation refuses (its key named).
+    """
+    from stewart63_ros.core.params import mechanism_from_params
+    try:
+        return mechanism_from_params(node_parameters(scenario, 'plant'))
+    except ParameterError as exc:
+        raise ScenarioError('params: %s' % exc) from None
+
+
+def build_controller(scenario: Scenario) -> tuple[Any, Any]:
+    """(controller, reference) of the scenario: a ``laws.Controller`` with its law
+    and reference (None: the setpoint).
+
+    Args:
+        scenario: the scenario.
+
+    Returns:
+        (``Controller``, ``Reference`` or None).
+
+    Raises:
+        ScenarioError: the law cannot be built, the reference is refused.
+    """
+    from stewart63_ros.core.laws import Controller
+    from stewart63_ros.core.node_parameters import read as read_declared
+    from stewart63_ros.core.params import mechanism_from_params
+    from stewart63_ros.core.reference import ReferenceError, load_reference
+    params = node_parameters(scenario, 'controller')
+    try:
+        mech = mechanism_from_params(params)
+        reference = None
+        if scenario.reference is not None:
+            reference = load_reference(mech, scenario.reference,
+                                       read_declared(params, 'max_leg_speed'),
+                                       read_declared(params, 'max_leg_acceleration'))
+        return Controller(mech, params, reference=reference), reference
+    except ParameterError as exc:
+        raise ScenarioError('params: %s' % exc) from None
+    except ReferenceError as exc:
+        raise ScenarioError('reference: %s' % exc) from None
+
+
+def wrench_samples(wrench: Sequence[WrenchInterval], times: np.ndarray) -> np.ndarray | None:
+    """The wrench held over each sample period (None: no wrench at all).
+
+    Args:
+        wrench: the schedule; times: (N,) the sample times [s].
+
+    Returns:
+        (N, 6) [N, N m] (platform frame), or None for an empty schedule.
+    """
+    if not wrench:
+        return None
+    out = np.zeros((len(times), 6))
+    for w in wrench:
+        inside = (times >= w.t_from - 1e-9) & (times < w.t_to - 1e-9)
+        out[inside, :3] = w.force
+        out[inside, 3:] = w.torque
+    return out
+
+
+class _Withholding:
+    """A controller that, like the controller node, answers nothing when its
+    law raises: the previous forces hold, and the sample is marked."""
+    timed = True
+
+    def __init__(self, controller: Any, rate: float) -> None:
+        self.controller = controller
+        self.rate = rate
+        self.held = np.zeros(6)
+        self.withheld: list[int] = []
+
+    def __call__(self, lengths: np.ndarray, rates: np.ndarray, t: float = 0.0) -> np.ndarray:
+        from stewart63_ros.core.laws import LawError
+        try:
+            self.held = self.controller(lengths, rates, t)
+        except LawError:
+            self.withheld.append(int(round(t * self.rate)))
+        return self.held
+
+
+def run_sim(scenario: Scenario) -> Trace:
+    """Run a scenario in this process: ``run_sampled`` at the plant's
+    ``sensor_rate`` (the lockstep rig's loop), faults as the plant injects them
+    (seed ``sensor_seed``), the wrench schedule held per sample; a law that
+    raises has its sample withheld (the previous forces hold), as the
+    controller node does.
+
+    Args:
+        scenario: a scenario (any ``run``: this is how ``sim`` runs it).
+
+    Returns:
+        The run's ``Trace``.
+
+    Raises:
+        ScenarioError: the parameters, law or reference are refused.
+        RuntimeError: the simulation diverged (non-finite state).
+    """
+    from stewart63_ros.core.dynamics import Dynamics
+    from stewart63_ros.core.faults import FaultModel, parse_faults
+    from stewart63_ros.core.laws import PDLaw
+    from stewart63_ros.core.node_parameters import read as read_declared
+    from stewart63_ros.core.simulate import run_sampled
+    mech = build_plant(scenario)
+    controller, reference = build_controller(scenario)
+    rate = float(read_declared(mech.extra, 'sensor_rate'))
+    n = int(round(scenario.duration * rate))
+    times = np.arange(n + 1) / rate
+    wrenches = wrench_samples(scenario.wrench, times)
+    faults = None
+    plant_faults = list(mech.extra.get('faults') or []) + list(scenario.faults)
+    if plant_faults:
+        faults = FaultModel(parse_faults(plant_faults), rate,
+                            read_declared(mech.extra, 'sensor_seed'))
+    dyn = Dynamics(mech)
+    if reference is None and type(controller.law) is PDLaw and faults is None:
+        # eq. (40) towards the setpoint: the compiled loop (the same numbers)
+        from stewart63_ros.core.control import PDController
+        law: Any = PDController(build_controller_mechanism(scenario))
+    else:
+        law = _Withholding(controller, rate)
+    result = run_sampled(mech, scenario.duration, rate, controller=law, dyn=dyn,
+                         faults=faults, wrench=wrenches)
+    if not np.all(np.isfinite(result.states)):
+        raise RuntimeError('the simulation diverged (non-finite state)')
+    from stewart63_ros.core.sweep import leg_lengths_of_states
+    lengths = leg_lengths_of_states(dyn.base_points, dyn.leg_points, result.states)
+    withheld = np.zeros(len(times), bool)
+    if isinstance(law, _Withholding):
+        withheld[[k for k in law.withheld if k < len(times)]] = True
+    return Trace(times, lengths, reference_lengths(scenario, reference, times),
+                 result.forces, withheld, (mech.leg_length_min, mech.leg_length_max))
+
+
+def build_controller_mechanism(scenario: Scenario) -> Any:
+    """The controller's mechanism (its setpoint and gains) of the scenario.
+
+    Args:
+        scenario: the scenario.
+
+    Returns:
+        The ``Mechanism`` from the controller's parameters.
+
+    Raises:
+        ScenarioError: a parameter value the validation refuses.
+    """
+    from stewart63_ros.core.params import mechanism_from_params
+    try:
+        return mechanism_from_params(node_parameters(scenario, 'controller'))
+    except ParameterError as exc:
+        raise ScenarioError('params: %s' % exc) from None
+
+
+def reference_lengths(scenario: Scenario, reference: Any, times: np.ndarray) -> np.ndarray:
+    """The reference's leg lengths at ``times`` (the controller's setpoint
+    without a reference).
+
+    Args:
+        scenario: the scenario; reference: its ``Reference`` or None.
+        times: (N,) [s] from the run's first sample.
+
+    Returns:
+        (N, 6) [m].
+    """
+    if reference is None:
+        mech = build_controller_mechanism(scenario)
+        return np.tile(np.asarray(mech.setpoint_lengths, float), (len(times), 1))
+    from stewart63_ros.core.reference import R_LEN
+    return reference.sample_many(times)[:, R_LEN]
+
+
+# -- verdicts -------------------------------------------------------------------
+def _window(trace: Trace, exp: Expectation, default_from: float = 0.0) -> np.ndarray:
+    t = trace.times
+    lo = default_from if exp.t_from is None else exp.t_from
+    hi = t[-1] if exp.t_to is None else exp.t_to
+    return (t >= lo - 1e-9) & (t <= hi + 1e-9)
+
+
+def _first_over(times: np.ndarray, series: np.ndarray, exp: Expectation) -> float | None:
+    """The first time a per-sample series breaks a max bound (None for a min bound)."""
+    if exp.kind != 'max':
+        return None
+    over = np.flatnonzero(~(series <= exp.limit))
+    return float(times[over[0]]) if over.size else None
+
+
+def _count_at(times: np.ndarray, flags: np.ndarray, exp: Expectation) -> float | None:
+    """For a count with a max bound: the time of the sample that broke it."""
+    if exp.kind != 'max':
+        return None
+    hits = np.flatnonzero(flags)
+    k = int(math.floor(exp.limit))
+    return float(times[hits[k]]) if 0 <= k < hits.size else None
+
+
+def measure(trace: Trace, exp: Expectation) -> tuple[float, float | None, tuple[float, float]]:
+    """An expectation's metric on a run.
+
+    Args:
+        trace: the run's samples.
+        exp: the expectation (its metric and window).
+
+    Returns:
+        (value (NaN: none, e.g. not settled), the time the bound broke or
+        None, the window (from, to) [s] actually used).
+    """
+    metric = exp.metric
+    default_from = TRACKING_FROM if metric.startswith('tracking_') else 0.0
+    inside = _window(trace, exp, default_from)
+    if not inside.any():
+        inside[-1] = True
+    t = trace.times[inside]
+    window = (float(t[0]), float(t[-1]))
+    lengths = trace.lengths[inside]
+    error = np.abs(lengths - trace.reference[inside])
+    per_sample = error.max(axis=1)
+    if metric == 'final_error_percent':
+        value = float(np.max(100.0 * error[-1] / trace.reference[inside][-1]))
+        return value, (window[1] if not _passes(value, exp) else None), window
+    if metric == 'tracking_error_rms_m':
+        value = float(np.sqrt(np.mean(error ** 2)))
+        return value, (window[1] if not _passes(value, exp) else None), window
+    if metric == 'tracking_error_max_m':
+        return float(per_sample.max()), _first_over(t, per_sample, exp), window
+    if metric == 'settling_time_s':
+        from stewart63_ros.core.sweep import settling_time
+        value = settling_time(t, lengths)
+        return value, (None if _passes(value, exp) else
+                       (window[1] if math.isnan(value) else value)), window
+    if metric == 'overshoot_percent':
+        moved = lengths[-1] - lengths[0]
+        travel = float(np.max(np.abs(moved)))
+        if travel == 0.0:
+            return 0.0, None, window
+        past = np.sign(moved) * (lengths - lengths[-1]) / travel * 100.0
+        series = np.maximum(past.max(axis=1), 0.0)
+        return float(series.max()), _first_over(t, series, exp), window
+    if metric == 'max_force':
+        series = np.abs(trace.forces[inside]).max(axis=1)
+        return float(series.max()), _first_over(t, series, exp), window
+    if metric == 'endstop_samples':
+        lmin, lmax = trace.stroke
+        flags = np.any((lengths < lmin) | (lengths > lmax), axis=1)
+        return float(flags.sum()), _count_at(t, flags, exp), window
+    if metric == 'withheld_samples':
+        flags = trace.withheld[inside]
+        return float(flags.sum()), _count_at(t, flags, exp), window
+    if metric == 'missed_cycles':
+        return float(trace.missed_cycles), None, window
+    if metric == 'lost_messages':
+        return float(trace.lost_messages), None, window
+    raise ScenarioError('unknown metric %s' % metric)
+
+
+def _passes(value: float, exp: Expectation) -> bool:
+    if math.isnan(value):
+        return False
+    return value <= exp.limit if exp.kind == 'max' else value >= exp.limit
+
+
+def evaluate(trace: Trace, expectations: Iterable[Expectation]) -> list[Verdict]:
+    """Every expectation's verdict on a run.
+
+    Args:
+        trace: the run's samples.
+        expectations: the scenario's expectations.
+
+    Returns:
+        One ``Verdict`` per expectation, in order.
+    """
+    out = []
+    for exp in expectations:
+        value, at, window = measure(trace, exp)
+        passed = _passes(value, exp)
+        out.append(Verdict(exp, value, passed, None if passed else at, window))
+    return out
+
+
+def failed_run_verdicts(expectations: Iterable[Expectation], duration: float) -> list[Verdict]:
+    """Verdicts of a run that did not finish: every expectation fails, no value.
+
+    Args:
+        expectations: the scenario's expectations; duration: its length [s].
+
+    Returns:
+        One failing ``Verdict`` (value NaN) per expectation.
+    """
+    return [Verdict(exp, math.nan, False, None, (exp.t_from or 0.0, exp.t_to or duration))
+            for exp in expectations]
+
+
+def scenario_from_dict(doc: Mapping[str, Any], base: str | os.PathLike = '.') -> Scenario:
+    """A scenario built in Python (as one entry of a file's ``scenarios:``).
+
+    Args:
+        doc: the scenario's keys, as in a file (``matrix`` not allowed here:
+            use ``scenarios_from_dict``).
+        base: the folder relative paths start from.
+
+    Returns:
+        The checked ``Scenario``.
+
+    Raises:
+        ScenarioError: as ``load_scenarios``.
+    """
+    if 'matrix' in doc:
+        raise ScenarioError('matrix: expands to several scenarios, use scenarios_from_dict')
+    return parse_scenario(doc, '<python>', Path(base), '<python>')
+
+
+def scenarios_from_dict(doc: Mapping[str, Any], base: str | os.PathLike = '.') -> list[Scenario]:
+    """Scenarios built in Python, a ``matrix:`` expanded.
+
+    Args:
+        doc: one scenario's keys, as in a file.
+        base: the folder relative paths start from.
+
+    Returns:
+        The checked scenarios.
+
+    Raises:
+        ScenarioError: as ``load_scenarios``.
+    """
+    return [parse_scenario(single, place, Path(base), '<python>')
+            for place, single in expand_matrix(_mapping('<python>', doc), '<python>')]
+
+
+#: A function that runs a scenario on the rig and returns its ``Trace``
+#: (the ``scenario`` tool provides it; the core knows no DDS).
+RigRunner = Callable[[Scenario, str], Trace]

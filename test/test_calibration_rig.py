@@ -1,0 +1,91 @@
+"""A calibration end to end on the lockstep rig (docs/calibration.md):
+a machine built off its drawing (``calibrate machine``, played by the plant
+with ``rig --plant-params``, its simulated tracker on ``tracker/pose``),
+``calibrate plan`` -> ``rig --reference --record`` -> ``calibrate fit`` on
+the bag; then fk restarted on the calibrated file reports the true pose.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from stewart63_ros import bagio
+from stewart63_ros.tools import calibrate
+
+#: Bound on one rig run (start-up with discovery, the run, the stop) [s].
+RIG_TIMEOUT = 240.0
+TRACKER_NOISE = 1e-4
+
+
+def run_rig(ros, tmp_path, name, *args):
+    proc = ros.python('-m', 'stewart63_ros.tools.rig', '--mode', 'lockstep',
+                      '--log-dir', str(tmp_path / (name + '.logs')), *args, name=name)
+    code = proc.wait(RIG_TIMEOUT)
+    assert code == 0, proc.describe()
+
+
+def poses_by_stamp(bag, topic):
+    out = {}
+    for _, _, msg in bagio.read_messages(bag, [topic]):
+        p, q = msg.pose.position, msg.pose.orientation
+        out[bagio.header_stamp_ns(msg)] = (np.array([p.x, p.y, p.z]),
+                                           np.array([q.x, q.y, q.z, q.w]))
+    return out
+
+
+def fk_error(bag):
+    """Largest distance of fk's platform_pose from the plant's ground truth [m]."""
+    from stewart63_ros.core.rotation import rotation_angle_between, rotation_from_quaternion
+    truth = poses_by_stamp(bag, 'ground_truth/pose')
+    fk = poses_by_stamp(bag, 'platform_pose')
+    common = sorted(set(truth) & set(fk))
+    assert len(common) > 100
+    position = max(np.linalg.norm(truth[s][0] - fk[s][0]) for s in common)
+    angle = max(float(rotation_angle_between(rotation_from_quaternion(truth[s][1])[None],
+                                             fk[s][1][None])[0]) for s in common)
+    return position, angle
+
+
+def test_plan_run_record_fit_on_the_lockstep_rig(ros, tmp_path):
+    machine = tmp_path / 'machine.yaml'
+    assert calibrate.main(['machine', '--seed', '4', '--out', str(machine),
+                           '--tracker-rate', '50', '--tracker-noise', str(TRACKER_NOISE),
+                           str(TRACKER_NOISE)]) == 0
+    # Short holds and quick moves: lockstep time costs wall time here.
+    assert calibrate.main(['plan', '--poses', '10', '--out', str(tmp_path / 'plan'),
+                           '--hold', '0.3', '--move', '0.4', '--leg-speed', '1.0']) == 0
+    plan = json.loads((tmp_path / 'plan' / 'plan.json').read_text())
+    bag = tmp_path / 'bag'
+    run_rig(ros, tmp_path, 'rig', '--plant-params', str(machine), '--control-law', 'pd_gravity',
+            '--reference', str(tmp_path / 'plan' / 'reference.csv'),
+            '--duration', '%.3f' % plan['duration_s'], '--record', str(bag))
+    # In its own process, as a user runs it (one BLAS thread: tools/calibrate.py).
+    fit = ros.python('-m', 'stewart63_ros.tools.calibrate', 'fit', '--measurements', str(bag),
+                     '--out', str(tmp_path / 'fit'), name='fit')
+    assert fit.wait(RIG_TIMEOUT) == 0, fit.describe()
+    report = json.loads((tmp_path / 'fit' / 'report.json').read_text())
+    before, after = report['held_out']['before'], report['held_out']['after']
+    print('\nrig calibration: %d tracker samples, reading RMS %.3g -> %.3g mm; held-out fk '
+          'position RMS %.3g -> %.3g mm, angle RMS %.3g -> %.3g mrad' % (
+              report['source']['used'], report['rms_before_m'] * 1e3,
+              report['rms_after_m'] * 1e3, before['position_rms_m'] * 1e3,
+              after['position_rms_m'] * 1e3, before['angle_rms_rad'] * 1e3,
+              after['angle_rms_rad'] * 1e3))
+    assert report['unidentifiable'] == []
+    assert before['position_rms_m'] > 2e-3
+    # Within 3x the tracker's noise (per axis, so sqrt(3) of it as a distance).
+    assert after['position_rms_m'] < 3 * TRACKER_NOISE * np.sqrt(3)
+    assert after['position_rms_m'] * 10 < before['position_rms_m']
+    assert after['angle_rms_rad'] * 10 < before['angle_rms_rad']
+
+    # Controller and fk restarted on the calibrated file, the plant still the
+    # machine: fk removes the offsets and reports the true pose.
+    bag2 = tmp_path / 'bag2'
+    run_rig(ros, tmp_path, 'rig2', '--params', str(tmp_path / 'fit' / 'calibrated.yaml'),
+            '--plant-params', str(machine), '--control-law', 'pd_gravity',
+            '--duration', '0.5', '--record', str(bag2))
+    position, angle = fk_error(bag2)
+    print('fk on the calibrated file: max error %.3g mm, %.3g mrad' % (position * 1e3,
+                                                                      angle * 1e3))
+    assert position < 5e-4 and angle < 5e-4
