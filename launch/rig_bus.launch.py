@@ -23,6 +23,7 @@ def generate_launch_description():
     from launch_ros.actions import Node
 
     from launch import LaunchDescription
+    from stewart63_ros.paths import RIG_CLOCK_MODE
 
     params = LaunchConfiguration('params_file')
     namespace = LaunchConfiguration('namespace')
@@ -46,6 +47,6 @@ def generate_launch_description():
     return LaunchDescription([
         DeclareLaunchArgument('params_file', default_value=default_params()),
         DeclareLaunchArgument('namespace', default_value=''),
-        DeclareLaunchArgument('clock_mode', default_value='lockstep'),
+        DeclareLaunchArgument('clock_mode', default_value=RIG_CLOCK_MODE),
         DeclareLaunchArgument('bus_config', default_value=''),
         *nodes, *handlers])
