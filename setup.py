@@ -13,11 +13,11 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml']),
         ('share/' + PACKAGE + '/config', glob('config/*.yaml') + glob('config/*.rviz')
-         + glob('config/*.xml')),
+         + glob('config/*.xml') + glob('config/*.eds')),
         ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'numba', 'matplotlib', 'pyyaml', 'rosbags',
-                      'mcap', 'viser'],
+                      'mcap', 'viser', 'python-can', 'canopen'],
     # MuJoCo only for `make bench` and its agreement tests, never at run time;
     # Dask only for `sweep --scheduler` / `--dask-local`.
     extras_require={'bench': ['mujoco>=3.1'], 'cluster': ['dask', 'distributed']},
@@ -43,8 +43,12 @@ setup(
             'supervisor = stewart63_ros.nodes.supervisor:main',
             'calibrate = stewart63_ros.tools.calibrate:main',
             'scenario = stewart63_ros.tools.scenario:main',
+            'canopen_bridge = stewart63_ros.nodes.canopen_bridge:main',
         ],
         # a lab's tests get the run_scenarios fixture (docs/scenarios.md)
         'pytest11': ['stewart63_scenarios = stewart63_ros.pytest_plugin'],
+        # python-can finds the rig's lossless local bus under this name
+        # (can.Bus(interface='s63hub', channel=...)): stewart63_ros/canbus/hub.py.
+        'can.interface': ['s63hub = stewart63_ros.canbus.hub:HubBus'],
     },
 )

@@ -84,10 +84,11 @@ def test_every_kind_parses(text, kind, legs, value, start, end):
     assert fault.text == text.strip()
 
 
-def test_the_kinds_are_the_documented_nine():
+def test_the_kinds_are_the_documented_nine_and_the_five_of_the_bus():
     assert set(KINDS) == {'sensor_stuck', 'sensor_bias', 'sensor_noise', 'sensor_dropout',
                           'sensor_delay', 'actuator_dead', 'actuator_weak', 'actuator_stuck',
-                          'actuator_saturation'}
+                          'actuator_saturation', 'bus_no_boot', 'bus_heartbeat_lost',
+                          'bus_emcy', 'bus_drive_fault', 'bus_tpdo_missing'}
 
 
 @pytest.mark.parametrize('text, why', [

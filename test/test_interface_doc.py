@@ -107,6 +107,8 @@ def topic_names() -> dict[str, str]:
 
 def console_scripts() -> list[str]:
     text = (ROOT / 'setup.py').read_text()
+    text = text[text.index("'console_scripts'"):]       # not the can.interface entry point
+    text = text[:text.index(']')]
     return re.findall(r"'([\w-]+)\s*=\s*stewart63_ros\.[\w.]+:\w+'", text)
 
 

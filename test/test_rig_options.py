@@ -56,6 +56,7 @@ class _Ended:
     """A rig whose plant wrote ``summary``; no controller, no fk."""
     nodes = ('plant',)
     supervisor = False
+    bus = None
 
     def __init__(self, summary):
         self._summary = summary

@@ -206,8 +206,10 @@ class Client:
 def start_rig(ros, monkeypatch, tmp_path, mode, compose=False, extra=None):
     rig_env(ros, monkeypatch)
     client = Client(ros)        # before the plant: its first sample waits for us
-    rig = Rig(PARAMS, mode=mode, duration=None, log_dir=tmp_path / 'rig', compose=compose,
-              extra_params=extra)
+    # compose 'bus': separate processes, the plant on the field bus (rig --bus canopen)
+    bus = 'canopen' if compose == 'bus' else None
+    rig = Rig(PARAMS, mode=mode, duration=None, log_dir=tmp_path / 'rig',
+              compose=compose is True, extra_params=extra, bus=bus)
     rig.start()
     try:
         client.wait_ready(rig)
@@ -233,7 +235,7 @@ def stop_rig(rig, client):
     return rig.summary()
 
 
-@pytest.mark.parametrize('compose', [False, True], ids=['processes', 'composed'])
+@pytest.mark.parametrize('compose', [False, True, 'bus'], ids=['processes', 'composed', 'bus'])
 def test_pause_step_faults_and_reset_of_a_lockstep_rig(ros, monkeypatch, tmp_path, compose):
     rig, client = start_rig(ros, monkeypatch, tmp_path, 'lockstep', compose)
     try:

@@ -29,6 +29,21 @@ A fault is written ``KIND:LEG[:VALUE][@T_START[-T_END]]``:
                                      fault's first sample
   ``actuator_saturation`` N (> 0)    |force| clipped to VALUE
 
+Bus faults, for a plant that stands on the field bus as the legs' drives
+(``io: canopen``, docs/bus.md; elsewhere refused), act on the device's side
+of the bus (canbus/devices.py):
+
+  ``bus_no_boot``        --          the drive is off: no boot-up, hears nothing;
+                                     it boots when the fault ends
+  ``bus_heartbeat_lost`` --          a pulled cable: the drive neither sends
+                                     (heartbeat, TPDOs) nor hears
+  ``bus_emcy``           code        an EMCY with that error code (decimal or
+                                     0x hex, 1..0xFFFF) at the start, the error
+                                     reset EMCY 0x0000 at the end
+  ``bus_drive_fault``    --          the drive falls into FAULT; a fault reset is
+                                     refused until the fault ends
+  ``bus_tpdo_missing``   --          no TPDO (position, velocity) at the SYNCs
+
 On one sample the sensor faults act in the order delay, stuck, bias, noise,
 dropout, and the actuator faults stuck, dead, weak, saturation. Two faults of
 one kind on one leg: biases and noises add, fractions multiply, the lowest
@@ -57,7 +72,15 @@ KINDS: dict[str, tuple | None] = {
     'actuator_weak': ('', lambda v: 0 <= v <= 1, 'a fraction from 0 to 1'),
     'actuator_stuck': None,
     'actuator_saturation': ('N', lambda v: v > 0, 'a force limit > 0 in newtons'),
+    'bus_no_boot': None,
+    'bus_heartbeat_lost': None,
+    'bus_emcy': ('code', lambda v: v == int(v) and 1 <= v <= 0xFFFF,
+                 'an EMCY error code from 1 to 0xFFFF'),
+    'bus_drive_fault': None,
+    'bus_tpdo_missing': None,
 }
+#: the prefix of the kinds that act on the field bus (io: canopen)
+BUS_PREFIX = 'bus_'
 SENSOR_ORDER = ('sensor_delay', 'sensor_stuck', 'sensor_bias', 'sensor_noise',
                 'sensor_dropout')
 ACTUATOR_ORDER = ('actuator_stuck', 'actuator_dead', 'actuator_weak', 'actuator_saturation')
@@ -86,8 +109,13 @@ class Fault:
 
     @property
     def sensor(self) -> bool:
-        """True for a sensor fault (``sensor_*``), False for an actuator fault."""
+        """True for a sensor fault (``sensor_*``), False for an actuator or bus fault."""
         return self.kind.startswith('sensor_')
+
+    @property
+    def bus(self) -> bool:
+        """True for a fault of the field bus (``bus_*``)."""
+        return self.kind.startswith(BUS_PREFIX)
 
     def scheduled(self, t: float) -> bool:
         """Whether the fault acts on a sample at time ``t`` [s] of the run.
@@ -143,7 +171,10 @@ def parse_fault(text: str) -> Fault:
         try:
             value = float(parts[2])
         except ValueError:
-            raise bad('value %r is not a number' % parts[2]) from None
+            try:
+                value = float(int(parts[2], 0))     # an EMCY code in hex: 0x2310
+            except ValueError:
+                raise bad('value %r is not a number' % parts[2]) from None
         if not math.isfinite(value) or not spec[1](value):
             raise bad('value %s out of range: %s takes %s' % (parts[2], kind, spec[2]))
     elif spec is not None:
@@ -291,10 +322,17 @@ class FaultModel:
         rate: sample rate [Hz] (t = k / rate; sensor delays in samples).
         seed: seed of the fault noise (its own stream, apart from the sensor
             model's noise).
+        bus: the plant stands on a field bus (``io: canopen``): bus faults
+            are accepted (and act through ``bus_active``); elsewhere they are
+            refused.
+
+    Raises:
+        FaultError: a bus fault without a bus.
     """
 
     def __init__(self, faults: Iterable[Fault] = (), rate: float = 1000.0,
-                 seed: int = 0) -> None:
+                 seed: int = 0, bus: bool = False) -> None:
+        self.bus = bool(bus)
         self.rate = float(rate)
         self.period = 1.0 / self.rate
         self.seed = int(seed)
@@ -339,9 +377,14 @@ class FaultModel:
             What changed, one line each, for the log.
 
         Raises:
-            FaultError: a new fault ends before the run's next sample (nothing changed).
+            FaultError: a new fault ends before the run's next sample, or a bus
+                fault on a model without a bus (nothing changed).
         """
         faults = list(faults)
+        for fault in faults:
+            if fault.bus and not self.bus:
+                raise FaultError('fault %r acts on the field bus: it needs the plant on the '
+                                 'bus (io: canopen, docs/bus.md)' % fault.text)
         if next_sample is not None:
             self.next_t = next_sample / self.rate
         old = {s.fault.text: s for s in self.states}
@@ -395,7 +438,7 @@ class FaultModel:
         active = [s for s in self.states if s.active]
         self._sensor = sorted((s for s in active if s.fault.sensor),
                               key=lambda s: SENSOR_ORDER.index(s.fault.kind))
-        self._actuator = sorted((s for s in active if not s.fault.sensor),
+        self._actuator = sorted((s for s in active if not s.fault.sensor and not s.fault.bus),
                                 key=lambda s: ACTUATOR_ORDER.index(s.fault.kind))
 
     # -- the samples -----------------------------------------------------------------------
@@ -493,6 +536,19 @@ class FaultModel:
                     forces[legs] = np.clip(forces[legs], -f.value, f.value)
         self.applied = forces
         return forces
+
+    def bus_active(self) -> dict[int, dict[str, float | None]]:
+        """The bus faults acting on this sample.
+
+        Returns:
+            {leg (0-based): {kind: value}}, only the legs with one.
+        """
+        out: dict[int, dict[str, float | None]] = {}
+        for state in self.states:
+            if state.active and state.fault.bus:
+                for leg in state.fault.legs:
+                    out.setdefault(leg, {})[state.fault.kind] = state.fault.value
+        return out
 
     # -- reports -----------------------------------------------------------------------------
     @property

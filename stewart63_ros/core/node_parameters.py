@@ -46,6 +46,9 @@ from stewart63_ros.core.node_names import ALL_NODES
 NODES = ALL_NODES
 #: A key every node reads.
 ALL = NODES
+#: The nodes that sample the plant for the rig: the plant, or the bridge to
+#: the field bus when the plant stands on it as the legs' drives (docs/bus.md).
+SAMPLERS = ('plant', 'canopen_bridge')
 
 
 # -- checks: each takes (name, value as given) and returns the value used ----
@@ -208,6 +211,14 @@ def six_lengths(name: str, value: Any) -> np.ndarray:
     return arr
 
 
+def text_list(name: str, value: Any) -> list[str]:
+    """A list of non-empty strings (an empty list: none)."""
+    if isinstance(value, str) or not isinstance(value, (list, tuple)) or not all(
+            isinstance(v, str) and v for v in value):
+        raise ParameterError(name, 'expected a list of non-empty strings, got %r' % (value,))
+    return list(value)
+
+
 def law_name(name: str, value: Any) -> str:
     """A law's name (whether it exists is checked when the law is made)."""
     if not isinstance(value, str) or not value:
@@ -266,37 +277,37 @@ DEFAULT_ENDSTOP_DAMPING = 5.0e3
 _NAMES_RANGE = 'list of names, relative to the plant\'s namespace unless they start with `/`'
 
 DECLARED: tuple[Declared, ...] = (
-    Declared('sensor_rate', ('plant', 'supervisor', 'sim'), 1000.0, 'Hz', '', 'sample rate of '
+    Declared('sensor_rate', (*SAMPLERS, 'supervisor', 'sim'), 1000.0, 'Hz', '', 'sample rate of '
              '`leg_lengths`, and the physics step (also `sim --control sampled`)', positive),
-    Declared('clock_mode', ('plant', 'controller', 'fk', 'supervisor'), 'realtime', '', '',
+    Declared('clock_mode', (*SAMPLERS, 'controller', 'fk', 'supervisor'), 'realtime', '', '',
              'see [Clock modes](#clock-modes-plant-parameter-clock_mode); the controller takes its '
              'watchdog default from it, fk its lockstep progress', one_of('realtime', 'lockstep')),
-    Declared('duration', ('plant',), 0.0, 's (simulated)', '', 'end the run after this '
+    Declared('duration', SAMPLERS, 0.0, 's (simulated)', '', 'end the run after this '
              'long; 0: run until stopped', nonnegative),
-    Declared('force_timeout', ('plant',), 1.0, 's', '', 'lockstep: how long to wait for the '
+    Declared('force_timeout', SAMPLERS, 1.0, 's', '', 'lockstep: how long to wait for the '
              'force answering a sample before stepping on with the held one', positive),
     Declared('summary_file', ALL, '', 'path', '', 'write a JSON summary at the end of the '
              'run: the plant\'s ([Plant summary file](#plant-summary-file)), the '
              'controller\'s and fk\'s (below that table); `rig` sets it for each node in its '
              'log directory', text, default_text='"" (none)'),
-    Declared('lengths_subscribers', ('plant',), 0, 'count', '', 'matched `leg_lengths` '
+    Declared('lengths_subscribers', SAMPLERS, 0, 'count', '', 'matched `leg_lengths` '
              'subscriptions to wait for before the first sample (`rig` sets controller + fk '
              '+ recorder)', integer(0)),
-    Declared('lengths_peers', ('plant',), [], 'node names', _NAMES_RANGE, 'nodes whose '
+    Declared('lengths_peers', SAMPLERS, [], 'node names', _NAMES_RANGE, 'nodes whose '
              '`leg_lengths` subscription the ROS graph must show (and the plant have '
              'matched) before the first sample; `rig` sets its controller and fk. A count '
              'alone would be filled by a recorder started first while fk is still loading',
              node_names, default_text='[] (none)'),
-    Declared('lockstep_peers', ('plant',), [], 'node names', _NAMES_RANGE, 'lockstep: the '
+    Declared('lockstep_peers', SAMPLERS, [], 'node names', _NAMES_RANGE, 'lockstep: the '
              'readers of `leg_lengths` the plant never runs more than `lockstep_window` '
              'samples ahead of ([flow control](#lockstep-flow-control-and-what-is-counted-'
              'as-lost)); `rig` sets its fk and its recorder', node_names,
              default_text='[] (none)'),
-    Declared('lockstep_window', ('plant',), 200, 'samples', '', 'how far the plant may run '
+    Declared('lockstep_window', SAMPLERS, 200, 'samples', '', 'how far the plant may run '
              'ahead of its slowest lockstep peer (below the publishers\' 1000-sample '
              'history, so a sample a peer missed can still be re-sent)',
              integer(1, 900, 'number of samples')),
-    Declared('lockstep_peer_timeout', ('plant',), 10.0, 's (wall clock)', '', 'a lockstep '
+    Declared('lockstep_peer_timeout', SAMPLERS, 10.0, 's (wall clock)', '', 'a lockstep '
              'peer that has not advanced for this long while the plant waits for it is '
              'dropped (ERROR on `/diagnostics`)', positive),
     Declared('sensor_noise', ('plant',), 0.0, 'm', '', 'Gaussian standard deviation '
@@ -445,6 +456,31 @@ DECLARED: tuple[Declared, ...] = (
     Declared('homed_offset', ('plant',), [0.0] * 6, 'm', '6 numbers', 'the zero a homing '
              'found and set on the drives: subtracted from each reading (the supervisor '
              'sets it)', six_lengths, runtime=True, default_text='0 ×6'),
+    # -- the field bus (docs/bus.md) --
+    Declared('io', ('plant',), 'dds', '', '', '`dds`: the plant publishes `leg_lengths` and '
+             'takes `leg_forces` itself; `canopen`: it stands on the field bus as the six '
+             'legs\' CiA 402 drives instead, and `canopen_bridge` links the bus to the topics '
+             '([bus.md](bus.md))', one_of('dds', 'canopen')),
+    Declared('bus_config', SAMPLERS, '', 'path', 'a [device config]'
+             '(bus.md#the-device-config)', 'the legs\' drives on the bus: buses, node ids, EDS, '
+             'scaling, actuator', text, default_text='"" (the packaged config/canopen.yaml)'),
+    Declared('bus_interface', SAMPLERS, '', '', 'a python-can interface '
+             '(`s63hub`, `socketcan`, ...)', 'the interface of every bus, instead of the '
+             'config file\'s', text, default_text='"" (the config file\'s)'),
+    Declared('bus_channels', SAMPLERS, [], 'channel names', 'one per bus '
+             'of the config', 'the channel of each bus, instead of the config file\'s (`rig '
+             '--bus canopen` gives its own, so two rigs on one machine never meet)', text_list,
+             default_text='[] (the config file\'s)'),
+    Declared('bus_bitrate', ('canopen_bridge',), 0, 'bit/s', '≥ 0', 'the bitrate of every '
+             'bus, instead of the config file\'s; the bridge refuses a load over 100 %',
+             integer(0, 10**7, 'a bitrate in bit/s (0: the config file\'s)'),
+             default_text='0 (the config file\'s)'),
+    Declared('bus_timeout', ('canopen_bridge',), 1.0, 's (wall clock)', '', 'lockstep: after '
+             'a SYNC, how long to wait for a drive\'s TPDO before naming it missing (a '
+             'silent drive costs this much wall time a sample)', positive),
+    Declared('boot_timeout', ('canopen_bridge',), 30.0, 's', '', 'at start-up, how long to '
+             'wait for every drive\'s boot-up; one still missing is named on '
+             '`/diagnostics` and brought up when it boots', positive),
 )
 
 BY_NAME: dict[str, Declared] = {d.name: d for d in DECLARED}

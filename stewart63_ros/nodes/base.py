@@ -224,6 +224,25 @@ class RigNode(HotLoop, Node):
         if gap:
             self.health.skip(topic, gap)
 
+    def take_forces(self, data: bytes, info, gate) -> tuple[int, object] | None:
+        """A serialized ``leg_forces`` message (the plant's or the bridge's
+        hot input): counted, its sender's skips counted, checked against
+        ``gate`` and accepted. Returns (stamp ns, the six forces), or None
+        for a rejected one (counted on /diagnostics)."""
+        from stewart63_ros.nodes import wire
+        from stewart63_ros.nodes.checks import Rejected, source_of
+        self.health.received[topics.LEG_FORCES] += 1
+        source = source_of(info)
+        self.count_skips(topics.LEG_FORCES, source, info)
+        try:
+            ns, _, _, _, values = wire.joint_state_sample(data, gate, ('effort',),
+                                                          source=source)
+        except Rejected as exc:
+            self.health.reject(topics.LEG_FORCES, exc)
+            return None
+        self.accept_sample(gate, ns, source, topics.LEG_FORCES)
+        return ns, values['effort']
+
     def accept_sample(self, gate, ns: int, source, topic: str) -> None:
         """Accept a checked sample; a new run of its source is logged (and counted)."""
         if gate.new_run:

@@ -389,19 +389,18 @@ class ControllerNode(RigNode):
     SILENT_RUN = ('ended', 'paused', 'reset')
 
     def on_diagnostics(self, msg):
-        for status in msg.status:
-            if status.name != self.plant_status:
-                continue
-            for kv in status.values:
-                if kv.key == 'run':
-                    if kv.value in self.SILENT_RUN:
-                        self.source_ended = kv.value
-                    elif kv.value in ('running', 'stepping'):
-                        self.source_ended = False
-                elif kv.key == 'run_number':
-                    if self.plant_run is not None and kv.value != self.plant_run:
-                        self.ref_start_ns = None    # a new run: the reference starts again
-                    self.plant_run = kv.value
+        from stewart63_ros.nodes.handshake import plant_run
+        said = plant_run(msg, self.plant_status)
+        run = said.get('run')
+        if run in self.SILENT_RUN:
+            self.source_ended = run
+        elif run in ('running', 'stepping'):
+            self.source_ended = False
+        number = said.get('run_number')
+        if number is not None:
+            if self.plant_run is not None and number != self.plant_run:
+                self.ref_start_ns = None    # a new run: the reference starts again
+            self.plant_run = number
 
     def run(self):
         self.run_on(self.sub_samples)

@@ -114,6 +114,19 @@ def plant_startup_parameters(nodes, record: bool, mode: str, compose: bool) -> d
     return out
 
 
+def plant_run(msg, plant_status: str) -> dict[str, str]:
+    """What the plant (status name ``plant_status``) says of its run in a
+    /diagnostics message: ``{'run': ..., 'run_number': ...}``, the keys it
+    holds (the controller and the bridge follow the plant's run by them)."""
+    out = {}
+    for status in msg.status:
+        if status.name == plant_status:
+            for kv in status.values:
+                if kv.key in (RUN, 'run_number'):
+                    out[kv.key] = kv.value
+    return out
+
+
 def recorder_waits_for(nodes) -> list[str]:
     """The topics whose publishers ``rig``'s recorder must match (``MATCHED``)
     before the plant starts: those of the controller and fk run here."""

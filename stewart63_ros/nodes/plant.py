@@ -16,6 +16,11 @@ cycle, counted and reported.
 
 Faults (parameter ``faults``) and the simulation control services
 ``~/pause``, ``~/reset`` and ``~/step``: nodes/plant_control.py, docs/faults.md.
+
+io ``canopen``: the plant stands on the field bus as the legs' CiA 402 drives
+instead of publishing ``leg_lengths`` and taking ``leg_forces`` (each SYNC
+advances it one period; ``canopen_bridge`` links the bus to the topics):
+nodes/plant_bus.py, docs/bus.md.
 """
 from __future__ import annotations
 
@@ -32,7 +37,6 @@ from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.sensor import SensorModel, TrackerModel
 from stewart63_ros.core.simulate import initial_state, substeps_for
 from stewart63_ros.exits import quiet_on_closed_pipe
-from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
 from stewart63_ros.nodes.checks import (
     RESTART_PAUSE,
@@ -40,17 +44,17 @@ from stewart63_ros.nodes.checks import (
     StampGate,
     finite_vector,
     ros_time,
-    source_of,
 )
 from stewart63_ros.nodes.commands import CommandInput
 from stewart63_ros.nodes.launcher import STOP, run
+from stewart63_ros.nodes.plant_bus import PlantBus
 from stewart63_ros.nodes.plant_control import PlantControl
 from stewart63_ros.nodes.plant_outputs import SampleOutputs
 from stewart63_ros.nodes.plant_summary import TRACKING_FROM, TrackingError, run_summary
 from stewart63_ros.nodes.startup import PlantStartup
 
 
-class PlantNode(PlantControl, RigNode):
+class PlantNode(PlantBus, PlantControl, RigNode):
     """The plant node (see the module's doc). Its parts: the samples out
     (plant_outputs.SampleOutputs), what it waits for before the first one
     (startup.PlantStartup), faults and simulation control (a PlantControl),
@@ -60,6 +64,7 @@ class PlantNode(PlantControl, RigNode):
         super().__init__('plant')
         self.rate = self.param('sensor_rate')
         self.mode = self.param('clock_mode')
+        self.on_bus = self.param('io') == 'canopen'     # the drives on the bus: plant_bus.py
         self.duration = self.param('duration')      # simulated seconds; 0 = forever
         self.force_timeout = self.param('force_timeout')
         # Matched leg_lengths subscriptions, and the nodes whose subscription
@@ -106,13 +111,16 @@ class PlantNode(PlantControl, RigNode):
         self.endstop_samples = 0
 
         self.outputs = SampleOutputs(self, lockstep=self.mode == 'lockstep',
-                                     tracker=TrackerModel(self.params))
+                                     tracker=TrackerModel(self.params), lengths=not self.on_bus)
         # The same dict as the outputs': on_forces pops the answered samples.
         self.sent_wall = self.outputs.sent_wall
-        self.sub_forces = self.create_subscription(JointState, topics.LEG_FORCES,
-                                                   self.on_forces, topics.LATEST_SUB, raw=True)
+        self.sub_forces = None      # on the bus the forces come from the drives
+        if not self.on_bus:
+            self.sub_forces = self.create_subscription(
+                JointState, topics.LEG_FORCES, self.on_forces, topics.LATEST_SUB, raw=True)
         self.wrench_in = CommandInput(self, WrenchStamped, topics.EXTERNAL_WRENCH, self.on_wrench)
-        self.watch_source(self.sub_forces, topics.LEG_FORCES, self.force_gate)
+        if not self.on_bus:
+            self.watch_source(self.sub_forces, topics.LEG_FORCES, self.force_gate)
         self.plant_startup = PlantStartup(self)
         self.t0_wall = None
         #: time.time() as the run began (t0_wall moves with a realtime pause):
@@ -122,22 +130,16 @@ class PlantNode(PlantControl, RigNode):
         self.t_phys = 0.0           # realtime: simulated time the state is at
         self.forces_in = None       # DirectTake, made when the loop starts
         self.init_control()         # faults, ~/pause, ~/reset, ~/step (plant_control.py)
+        self.devices = self.init_bus() if self.on_bus else None    # plant_bus.py
 
     # -- inputs ---------------------------------------------------------------
     def on_forces(self, data: bytes, info):
         """A serialized leg_forces message: the newest force, from now on."""
         received = time.perf_counter()      # the loop latency ends here, at the take
-        self.health.received[topics.LEG_FORCES] += 1
-        source = source_of(info)
-        self.count_skips(topics.LEG_FORCES, source, info)
-        try:
-            ns, _, _, _, values = wire.joint_state_sample(data, self.force_gate, ('effort',),
-                                                          source=source)
-        except Rejected as exc:
-            self.health.reject(topics.LEG_FORCES, exc)
+        taken = self.take_forces(data, info, self.force_gate)
+        if taken is None:
             return
-        force = values['effort']
-        self.accept_sample(self.force_gate, ns, source, topics.LEG_FORCES)
+        ns, force = taken
         if self.t0_mono is not None:
             # Realtime: the old force acted until now; the new one from now on.
             self.advance_to(min(time.monotonic() - self.t0_mono, (self.k + 1) * self.period))
@@ -189,6 +191,8 @@ class PlantNode(PlantControl, RigNode):
             lengths = lengths + self.encoder_shift
         lengths, rates = self.sensor.measure(lengths, rates)
         lengths, rates, self.sample_complete = self.fault_model.sense(lengths, rates)
+        if self.devices is not None:
+            self.bus_sample(lengths, rates)
         out.send(ns, sec, nanosec, lengths, rates, self.y)
         out.send_tracked(self.k, sec, nanosec, self.y)
         return ns
@@ -208,6 +212,8 @@ class PlantNode(PlantControl, RigNode):
                          'missed_cycles': self.missed, 'late_cycles': self.late,
                          'endstop_samples': self.endstop_samples})
         self.report_faults()
+        if self.devices is not None:
+            self.report_bus()
         if not self.started:
             return
         if self.mode == 'lockstep':
@@ -219,13 +225,16 @@ class PlantNode(PlantControl, RigNode):
     # -- main loops -----------------------------------------------------------
     def run(self):
         self.wait_for_matches(self.plant_startup.missing)     # the start-up order: handshake.py
-        self.forces_in = self.start_hot_loop(self.sub_forces)
+        self.forces_in = self.start_hot_loop(self.sub_forces if self.sub_forces is not None
+                                             else self.wrench_in.subscriptions[0])
         self.announce_run('running')
         self.t0_wall = self.run_began_unix = time.time()
         n_samples = int(round(self.duration * self.rate)) if self.duration > 0 else None
         self.get_logger().info('%s at %g Hz%s' % (
             self.mode, self.rate, ', %d samples' % n_samples if n_samples else ''))
-        if self.mode == 'lockstep':
+        if self.devices is not None:
+            self.run_bus(n_samples)
+        elif self.mode == 'lockstep':
             self.run_lockstep(n_samples)
         else:
             self.run_realtime(n_samples)
@@ -250,6 +259,7 @@ class PlantNode(PlantControl, RigNode):
             self.write_summary(stopped=True)
         self.summary_written = True     # stopped before its first sample: no summary
         super().close()
+        self.close_bus()
 
     def wait_for_answer(self, ns, timeout, until=None, housekeeping=True) -> bool:
         """Take leg_forces until the answer to sample ``ns`` is in, or time is up.

@@ -48,7 +48,11 @@ class PlantControl:
     def init_control(self) -> None:
         """Called by the plant's constructor once its model and loop state exist."""
         from std_srvs.srv import SetBool, Trigger
-        self.fault_model = FaultModel(self.param('faults'), self.rate, self.param('sensor_seed'))
+        try:
+            self.fault_model = FaultModel(self.param('faults'), self.rate,
+                                          self.param('sensor_seed'), bus=self.on_bus)
+        except FaultError as exc:       # a bus fault without the bus
+            raise ParameterError('faults', str(exc)) from None
         self.force_stale_ns = int(round(self.param('force_stale_ms') * 1e6))
         self.stale_force_from = None    # (sample, stamp of the force gone stale)
         self.answer_every_sample = self.param('answer_every_sample')
@@ -79,7 +83,8 @@ class PlantControl:
     # -- faults ---------------------------------------------------------------------
     def set_faults(self, value) -> None:
         """Run-time ``faults`` (parsed by their declaration): in force together,
-        or ParameterError (a new fault whose times are past: nothing changes)."""
+        or ParameterError (a new fault whose times are past, a bus fault
+        without the bus: nothing changes)."""
         try:
             events = self.fault_model.set_faults(value, next_sample=self.next_sample())
         except FaultError as exc:
@@ -315,5 +320,7 @@ class PlantControl:
             self.tracking.reset()
         # The new run's answers carry stamps from 0 again (lockstep): not from the past.
         self.force_gate.last_ns = None
+        if self.devices is not None:
+            self.restart_on_bus()       # plant_bus.py
         self.get_logger().warning('reset: run %d starts from the initial state'
                                   % self.run_number)

@@ -29,6 +29,8 @@ class SampleOutputs:
         lockstep: publish /clock too (simulated time).
         tracker: a ``sensor.TrackerModel``; when it has a rate, ``tracker/pose``
             is published (``send_tracked``) with the true pose plus its noise.
+        lengths: publish ``leg_lengths`` (False: the plant stands on the
+            field bus, and ``canopen_bridge`` publishes them).
     """
 
     #: s: how often the plant looks up the subscriptions matched on /clock and
@@ -39,14 +41,15 @@ class SampleOutputs:
     #: never got one)
     SENT_KEPT = 1000
 
-    def __init__(self, node, lockstep: bool, tracker=None):
+    def __init__(self, node, lockstep: bool, tracker=None, lengths: bool = True):
         self.health = node.health
         self.tracker = tracker if tracker is not None and tracker.every else None
         if self.tracker is not None:
             self.tracker_out = wire.pose_template('base')
             self.send_tracker = raw_publisher(node.publisher(PoseStamped, topics.TRACKER_POSE,
                                                              topics.STREAM_PUB))
-        self.pub_lengths = node.publisher(JointState, topics.LEG_LENGTHS, topics.STREAM_PUB)
+        self.pub_lengths = (node.publisher(JointState, topics.LEG_LENGTHS, topics.STREAM_PUB)
+                            if lengths else None)
         self.pub_pose = node.publisher(PoseStamped, topics.TRUE_POSE, topics.STREAM_PUB)
         self.pub_twist = node.publisher(TwistStamped, topics.TRUE_TWIST, topics.STREAM_PUB)
         self.pub_clock = (node.publisher(Clock, topics.CLOCK, topics.STREAM_PUB)
@@ -57,7 +60,7 @@ class SampleOutputs:
         self.twist_out = wire.twist_template('base')
         self.clock_out = wire.clock_template()
         wire.warm_up(('effort',))
-        self.send_lengths = raw_publisher(self.pub_lengths)
+        self.send_lengths = raw_publisher(self.pub_lengths) if lengths else None
         self.send_pose = raw_publisher(self.pub_pose)
         self.send_twist = raw_publisher(self.pub_twist)
         self.send_clock = raw_publisher(self.pub_clock) if self.pub_clock is not None else None
@@ -78,13 +81,15 @@ class SampleOutputs:
         """One sample stamped ``ns`` (= ``sec``, ``nanosec``): the measured
         ``lengths`` and ``rates`` first, then the rest, from the state ``y``,
         while the controller works on the sample."""
-        data = self.lengths_out.fill(sec, nanosec, position=lengths, velocity=rates)
-        sent_wall = self.sent_wall
-        sent_wall[ns] = time.perf_counter()
-        if len(sent_wall) > self.SENT_KEPT:   # answers that never came
-            sent_wall.pop(next(iter(sent_wall)))
-        self.send_lengths(data)
         published = self.health.published
+        if self.send_lengths is not None:
+            data = self.lengths_out.fill(sec, nanosec, position=lengths, velocity=rates)
+            sent_wall = self.sent_wall
+            sent_wall[ns] = time.perf_counter()
+            if len(sent_wall) > self.SENT_KEPT:   # answers that never came
+                sent_wall.pop(next(iter(sent_wall)))
+            self.send_lengths(data)
+            published[topics.LEG_LENGTHS] += 1
         if self.to_clock:
             self.send_clock(self.clock_out.fill(sec, nanosec))
             published[topics.CLOCK] += 1
@@ -97,7 +102,6 @@ class SampleOutputs:
         if self.to_twist:
             self.send_twist(self.twist_out.fill(sec, nanosec, linear=y[VEL], angular=y[OMEGA]))
             published[topics.TRUE_TWIST] += 1
-        published[topics.LEG_LENGTHS] += 1
 
     def send_tracked(self, sample: int, sec: int, nanosec: int, y) -> None:
         """``tracker/pose`` for sample number ``sample`` if the tracker measures

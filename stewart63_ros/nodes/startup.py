@@ -130,6 +130,8 @@ class PlantStartup:
         """What the plant still waits for (empty: nothing)."""
         plant = self.plant
         out = []
+        if plant.sub_forces is None:
+            return out      # on the bus: the bridge waits for these (canopen_bridge)
         if plant.sub_forces.get_publisher_count() < self.need_forces:
             out.append('a %s publisher (a controller: lockstep steps only on its '
                        'answers)' % plant.sub_forces.topic_name)

@@ -28,6 +28,7 @@ from sensor_msgs.msg import JointState
 
 from stewart63_ros import topics
 from stewart63_ros.core.supervisor import LIMIT_KEYS, limits_from_params, supervisor_from_params
+from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.nodes import wire
 from stewart63_ros.nodes.base import RigNode
 from stewart63_ros.nodes.checks import (
@@ -364,6 +365,7 @@ class SupervisorNode(RigNode):
         return out
 
 
+@quiet_on_closed_pipe
 def main(argv=None):
     sys.exit(run('supervisor', __doc__.split('\n\n')[0], SupervisorNode, argv))
 

@@ -3,7 +3,7 @@
     rig [--params FILE] [--mode realtime|lockstep] [--duration S] [--record DIR]
         [--namespace NS] [--nodes plant,controller,fk] [--realtime-priority P]
         [--compose] [--control-law NAME] [--reference CSV] [--fault FAULT]...
-        [--supervisor] [--plant-params FILE]
+        [--supervisor] [--plant-params FILE] [--bus canopen]
 
 One parameter file and one namespace for all. Every node waits until its
 peers are matched before the first sample, so a short run loses nothing at
@@ -23,7 +23,9 @@ controller and the plant (docs/supervisor.md); the summary lists its trips.
 --plant-params gives the plant a file of its
 own, read after --params (its keys win, for the plant only): the plant then
 plays a machine built off the drawing that controller and fk run on
-(docs/calibration.md).
+(docs/calibration.md). --bus canopen puts the plant on the field bus
+as the legs' CiA 402 drives and starts ``canopen_bridge`` between the bus and
+the topics (docs/bus.md).
 """
 from __future__ import annotations
 
@@ -51,7 +53,8 @@ START_TIMEOUT = 180.0
 MODULES = {'plant': 'stewart63_ros.nodes.plant', 'controller': 'stewart63_ros.nodes.controller',
            'fk': 'stewart63_ros.nodes.fk_node', 'record': 'stewart63_ros.tools.record',
            'composed': 'stewart63_ros.nodes.composed', 'view': 'stewart63_ros.tools.view',
-           'supervisor': 'stewart63_ros.nodes.supervisor'}
+           'supervisor': 'stewart63_ros.nodes.supervisor',
+           'canopen_bridge': 'stewart63_ros.nodes.canopen_bridge'}
 
 
 def default_log_dir(record=None, namespace='') -> Path:
@@ -71,7 +74,7 @@ class Rig:
 
     def __init__(self, params, mode=RIG_CLOCK_MODE, duration=None, record=None, namespace='',
                  log_dir=None, extra_params=None, nodes=NODES, realtime_priority=0,
-                 compose=False, supervisor=False):
+                 compose=False, supervisor=False, bus=None):
         self.params = str(params)
         #: ``rig --supervisor``: the supervisor between controller and plant
         self.supervisor = bool(supervisor)
@@ -91,6 +94,8 @@ class Rig:
         self.realtime_priority = int(realtime_priority)
         #: One process (``composed``) hosts the nodes and the recorder.
         self.compose = bool(compose)
+        #: 'canopen': the plant on the field bus, and canopen_bridge (docs/bus.md)
+        self.bus = bus
         self.procs: dict[str, subprocess.Popen] = {}
         #: the plant's own parameter file (the machine), read after ``params``
         self.plant_params = None
@@ -123,6 +128,8 @@ class Rig:
                     self.log_dir / ('%s_summary.json' % node))
         if self.supervisor:
             supervised(doc, plant, shared, self.log_dir)
+        if self.bus:
+            self.bus_overlay(doc, shared)
         for node, values in self.extra_params.items():
             section = doc.setdefault('/**/%s' % node, {'ros__parameters': dict(shared)})
             section['ros__parameters'].update(values)
@@ -130,6 +137,25 @@ class Rig:
         import yaml
         path.write_text(yaml.safe_dump(doc, sort_keys=False))
         return path
+
+    def bus_overlay(self, doc, shared) -> None:
+        """--bus canopen: the plant on the bus; the bridge publishes the samples,
+        so the plant's start-up waits (handshake.py) become the bridge's. The
+        buses of the local hub get channels of this rig's own."""
+        plant = doc['/**/plant']['ros__parameters']
+        bridge = dict(shared, summary_file=str(self.log_dir / 'canopen_bridge_summary.json'))
+        for key in ('lengths_subscribers', 'lengths_peers', 'lockstep_peers', 'duration'):
+            if key in plant:
+                bridge[key] = plant[key] if key == 'duration' else plant.pop(key)
+        plant['io'] = 'canopen'
+        from stewart63_ros.core.bus import load_bus_config
+        from stewart63_ros.core.params import file_parameters
+        config_file = file_parameters(self.params).get('bus_config') or None
+        buses = load_bus_config(config_file).buses
+        if all(bus.interface == 's63hub' for bus in buses):
+            channels = ['rig%d-%s' % (os.getpid(), bus.name) for bus in buses]
+            plant['bus_channels'], bridge['bus_channels'] = channels, list(channels)
+        doc['/**/canopen_bridge'] = {'ros__parameters': bridge}
 
     def ros_args(self, name):
         own = ['--params-file', str(self.plant_params)] if (
@@ -183,6 +209,8 @@ class Rig:
             self.spawn(name, self.ros_args(name))
         if self.record and wanted:
             self.wait_for_line('record', MATCHED_LINE, START_TIMEOUT + 10)
+        if self.bus and 'plant' in self.nodes:
+            self.spawn('canopen_bridge', self.ros_args('canopen_bridge'))
         if 'plant' in self.nodes:
             self.spawn('plant', self.ros_args('plant'))
 
@@ -263,7 +291,8 @@ class Rig:
         stopped as asked: 0.
         """
         interrupted = set()
-        order = [n for n in ('composed', 'plant', 'controller', 'supervisor', 'fk', 'view')
+        order = [n for n in ('composed', 'plant', 'canopen_bridge', 'controller', 'supervisor',
+                             'fk', 'view')
                  if n in self.procs] + (
             ['record'] if 'record' in self.procs else [])
         # The nodes together, then the recorder; each group on one deadline,
@@ -415,6 +444,10 @@ def main(argv=None) -> int:
                         help='a parameter file for the plant only, read after --params: the '
                         'machine as built (geometry, leg_length_offset, a simulated tracker) '
                         'while controller and fk run on --params (docs/calibration.md)')
+    parser.add_argument('--bus', choices=('canopen',),
+                        help='put the plant on the field bus as the legs\' CiA 402 drives and '
+                        'start canopen_bridge between the bus and the topics (the device config: '
+                        'bus_config, default config/canopen.yaml; docs/bus.md)')
     parser.add_argument('--strict', action='store_true', help=STRICT_HELP)
     parser.add_argument('--view', action='store_true',
                         help='also serve the live 3D view of this rig in a web browser '
@@ -455,6 +488,10 @@ def main(argv=None) -> int:
             return 2
         if args.fault:
             fault_extra['faults'] = [f.text for f in faults]
+        if any(f.bus for f in faults) and not args.bus:
+            print('rig: error: fault %r acts on the field bus: add --bus canopen'
+                  % next(f.text for f in faults if f.bus), file=sys.stderr)
+            return 2
     announce_compile('rig', 'the nodes start by ')
     if args.duration is not None and not args.duration > 0:
         parser.error('--duration must be positive')
@@ -490,9 +527,24 @@ def main(argv=None) -> int:
                      'process: it needs both in --nodes, and no --compose')
     if args.supervisor and reference_file_extra(extra):
         extra.setdefault('supervisor', {})['reference_file'] = reference_file_extra(extra)
+    if args.bus and args.supervisor:
+        parser.error('--supervisor and --bus canopen together are not supported yet: the '
+                     'supervisor does not home or fail safe through the bridge '
+                     '(docs/supervisor.md)')
+    if args.bus and (args.compose or 'plant' not in nodes):
+        parser.error('--bus canopen starts the bridge beside the plant: it needs plant in '
+                     '--nodes, and separate processes (not --compose)')
+    if args.bus:
+        from stewart63_ros.core.bus import BusConfigError, load_bus_config
+        from stewart63_ros.core.params import file_parameters
+        try:     # fail here, with the reason, not in two processes
+            load_bus_config(file_parameters(params).get('bus_config') or None)
+        except BusConfigError as exc:
+            print('rig: error: %s' % exc, file=sys.stderr)
+            return 2
     rig = Rig(params, args.mode, args.duration, args.record, args.namespace, args.log_dir,
               nodes=nodes, realtime_priority=args.realtime_priority, compose=args.compose,
-              extra_params=extra, supervisor=args.supervisor)
+              extra_params=extra, supervisor=args.supervisor, bus=args.bus)
     rig.plant_params = args.plant_params and str(Path(args.plant_params).resolve())
     ok = False
     start, start_unix = time.monotonic(), time.time()
@@ -615,6 +667,14 @@ def print_summary(rig, wall, started_unix=None):
             print('  ' + format_fault(fault))
     if rig.supervisor:
         print_trips(rig.summary('supervisor'))
+    if rig.bus:
+        s = rig.summary('canopen_bridge')
+        print('  canopen_bridge: %s' % ('no summary' if not s else
+                                        '%d cycles, missed cycles %d, force timeouts %d, TPDOs '
+                                        'missed %s, computed bus load %s %%' % (
+                                            s['cycles'], s['missed_cycles'],
+                                            s['force_timeouts'], s['tpdo_missed'],
+                                            s['bus_load_computed_percent'])))
     for node in ('controller', 'fk'):
         if node not in rig.nodes:
             continue

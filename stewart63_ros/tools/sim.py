@@ -156,6 +156,10 @@ def main(argv=None) -> int:
         return 2
     try:
         faults = fault_list(params_path, args.fault)
+        bus = [f.text for f in faults if f.bus]
+        if bus:
+            raise FaultError('fault %r acts on the field bus: it needs the plant on the bus '
+                             '(rig --bus canopen, docs/bus.md), not sim' % bus[0])
     except FaultError as exc:
         print('sim: error: %s' % (exc,), file=sys.stderr)
         return 2

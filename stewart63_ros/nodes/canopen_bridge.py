@@ -1,0 +1,378 @@
+"""canopen_bridge: the master of the legs' CANopen buses, linking them to the topics.
+
+At start-up it computes the bus load of its configuration (refused over 100 %,
+with the rates that fit), resets every drive (NMT), and brings each one up
+as it boots: PDO mapping by SDO from its EDS, heartbeat, mode 10 (cyclic
+synchronous torque), the CiA 402 state machine to OPERATION ENABLED, NMT
+start (canbus/master.py). Then, per sample: a SYNC on every bus; each
+drive's TPDO (position 0x6064, velocity 0x606C, in counts) becomes
+``leg_lengths`` [m, m/s] stamped with the SYNC's time; the ``leg_forces``
+answer becomes each drive's target torque 0x6071 [per mille of 0x6076].
+
+clock_mode ``lockstep``: the next SYNC goes out once the controller has
+answered (or ``force_timeout`` passed), so a run through the bus is
+deterministic; stamps are the simulated time k / sensor_rate. ``realtime``:
+SYNC on the wall clock, forces written as they arrive; an answer that has
+not arrived by the next SYNC is a missed cycle, counted.
+
+A drive that does not boot, goes silent (no TPDO, no heartbeat), sends an
+EMCY, or falls into FAULT is named on ``/diagnostics`` (ERROR) at the cycle
+it is seen, and torque is withheld from all drives (zero torque to those
+that listen) until every drive is back: a drive that boots again is brought
+up again, a drive in FAULT gets a fault reset and is re-enabled.
+docs/bus.md.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+import types
+
+from sensor_msgs.msg import JointState
+
+from stewart63_ros import topics
+from stewart63_ros.core.bus import BusConfigError, BusLoadError, load_bus_config
+from stewart63_ros.core.errors import ParameterError
+from stewart63_ros.exits import quiet_on_closed_pipe
+from stewart63_ros.nodes import wire
+from stewart63_ros.nodes.base import RigNode
+from stewart63_ros.nodes.checks import (
+    RESTART_PAUSE,
+    StampGate,
+    ros_time,
+)
+from stewart63_ros.nodes.launcher import STOP, run
+from stewart63_ros.nodes.rclpy_internals import raw_publisher
+from stewart63_ros.nodes.startup import PlantStartup
+
+#: s: realtime: after a drive's TPDO has come, the others of the cycle must follow
+#: within this (lockstep waits ``bus_timeout``: a load spike must not decide a run)
+BURST = 0.05
+#: s: the slice of a wait between two turns of housekeeping
+SLICE = 0.02
+#: the plant's ``run`` values during which its drives hold the SYNCs (no error)
+HELD_RUN = ('paused', 'reset')
+
+
+class BridgeNode(RigNode):
+    """The bridge (see the module's doc)."""
+
+    def __init__(self, options):
+        super().__init__('canopen_bridge')
+        self.rate = self.param('sensor_rate')
+        self.period = 1.0 / self.rate
+        self.period_ns = int(round(1e9 / self.rate))
+        self.mode = self.param('clock_mode')
+        self.duration = self.param('duration')
+        self.force_timeout = self.param('force_timeout')
+        self.bus_timeout = self.param('bus_timeout')
+        self.boot_timeout = self.param('boot_timeout')
+        try:
+            config = load_bus_config(self.param('bus_config'), self.param('bus_channels'),
+                                     self.param('bus_interface'), self.param('bus_bitrate'))
+        except BusConfigError as exc:
+            raise ParameterError('bus_config', str(exc)) from None
+        self.config = config
+        from stewart63_ros.canbus.master import Master
+        try:
+            self.master = Master(config, self.rate, log=self.get_logger().info)
+        except BusLoadError as exc:
+            raise ParameterError('bus_bitrate', str(exc)) from None
+        except BusConfigError as exc:
+            raise ParameterError('bus_config', str(exc)) from None
+        except ValueError as exc:      # the interface or its channel
+            raise ParameterError('bus_interface', str(exc)) from None
+        for load in config.loads(self.rate):
+            self.get_logger().info(load.text())
+        # The plant's start-up waits, now the bridge's: it publishes the samples.
+        self.lengths_subscribers = self.param('lengths_subscribers')
+        self.lengths_peers = self.peer_names('lengths_peers')
+        self.peers = None
+        lockstep_peers = self.peer_names('lockstep_peers')
+        if lockstep_peers and self.mode == 'lockstep':
+            from stewart63_ros.nodes.lockstep import PeerWindow
+            self.peers = PeerWindow(self, lockstep_peers, self.param('lockstep_window'),
+                                    self.period_ns, self.param('lockstep_peer_timeout'))
+        pub = self.publisher(JointState, topics.LEG_LENGTHS, topics.STREAM_PUB)
+        self.outputs = types.SimpleNamespace(pub_lengths=pub)
+        self.send_lengths = raw_publisher(pub)
+        self.lengths_out = wire.JointStateTemplates(('position', 'velocity')).get('base')
+        wire.warm_up(('effort',))
+        self.force_gate = StampGate(RESTART_PAUSE)
+        self.sub_forces = self.create_subscription(JointState, topics.LEG_FORCES,
+                                                   self.on_forces, topics.LATEST_SUB, raw=True)
+        self.watch_source(self.sub_forces, topics.LEG_FORCES, self.force_gate)
+        self.plant_startup = PlantStartup(self)
+        # The plant's run on /diagnostics: paused or reset, its drives hold the SYNC.
+        from diagnostic_msgs.msg import DiagnosticArray
+        self.plant_status = topics.status_name(topics.node_full_name(self.get_namespace(),
+                                                                     'plant'))
+        self.plant_run = 'running'
+        self.plant_run_number = None
+        self.new_run = False
+        self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics,
+                                 topics.DIAGNOSTICS_QOS)
+        self.force = None
+        self.force_ns = None
+        self.sent_wall = {}
+        self.errors: list[str] = []
+        self.k = 0
+        self.missed = 0
+        self.timeouts = 0
+        self.cycles = 0
+        self.bus_wait_s = 0.0           # SYNC to the last TPDO (lockstep): the plant's step
+        self.answer_wait_s = 0.0        # leg_lengths to leg_forces: the controller
+        self.forces_in = None
+        self._load_since = (time.monotonic(), dict(self.master.bits))
+
+    # -- inputs -----------------------------------------------------------------------------
+    def on_forces(self, data: bytes, info):
+        received = time.perf_counter()
+        taken = self.take_forces(data, info, self.force_gate)
+        if taken is None:
+            return
+        self.force_ns, self.force = taken
+        sent = self.sent_wall.pop(self.force_ns, None)
+        if sent is not None:
+            self.health.latency.add(received - sent)
+        if self.mode == 'realtime':         # on the bus at once; applied at the next SYNC
+            self.master.command(self.force, withhold=bool(self.errors))
+
+    def on_diagnostics(self, msg):
+        from stewart63_ros.nodes.handshake import plant_run
+        said = plant_run(msg, self.plant_status)
+        self.plant_run = said.get('run', self.plant_run)
+        number = said.get('run_number')
+        if number is not None:
+            if self.plant_run_number is not None and number != self.plant_run_number:
+                self.new_run = True
+            self.plant_run_number = number
+
+    # -- the bus ----------------------------------------------------------------------------
+    def bring_up(self) -> None:
+        """Reset every drive and bring up those that boot within ``boot_timeout``."""
+        master = self.master
+        master.reset_all()
+        missing = master.wait_for_boot(self.boot_timeout)
+        for link in master.links:
+            if link.booted:
+                master.bring_up(link)
+        for link in missing:
+            link.boot_error = ('%s: no boot-up within %g s (boot_timeout): node id, wiring, '
+                               'power?' % (link.name, self.boot_timeout))
+            self.get_logger().error(link.boot_error)
+        self.judge()
+
+    def judge(self) -> None:
+        """The drives' errors now; a change is reported at once (ERROR while any)."""
+        errors = self.master.errors()
+        if errors != self.errors:
+            if errors:
+                self.get_logger().error('torque withheld: %s' % '; '.join(errors))
+            elif self.errors:
+                self.get_logger().info('every drive is back: torque again')
+            self.errors = errors
+            self.health.fault = ('torque withheld: ' + '; '.join(errors)) if errors else ''
+            self.report()
+
+    def serve(self, timeout: float) -> None:
+        """Housekeeping, and forces for up to ``timeout`` s."""
+        self.housekeeping(time.monotonic())
+        self.forces_in.poll(timeout)
+
+    def publish(self, ns: int) -> bool:
+        """This cycle's readings as ``leg_lengths`` stamped ``ns``; True if complete."""
+        lengths, rates = self.master.readings()
+        sec, nanosec = divmod(ns, 1_000_000_000)
+        self.sent_wall[ns] = time.perf_counter()
+        if len(self.sent_wall) > 1000:
+            self.sent_wall.pop(next(iter(self.sent_wall)))
+        self.send_lengths(self.lengths_out.fill(sec, nanosec, position=lengths, velocity=rates))
+        self.health.published[topics.LEG_LENGTHS] += 1
+        self.cycles += 1
+        return all(math.isfinite(v) for v in lengths + rates)
+
+    def report(self):
+        master = self.master
+        values = self.health.values
+        now = time.monotonic()
+        since, bits = self._load_since
+        if now - since > 0.5:
+            for bus in self.config.buses:
+                values['bus_load_percent/%s' % bus.name] = '%.1f' % (
+                    100.0 * (master.bits[bus.name] - bits[bus.name]) / (now - since)
+                    / bus.bitrate)
+            self._load_since = (now, dict(master.bits))
+        for load in self.config.loads(self.rate):
+            values['bus_load_computed_percent/%s' % load.bus] = '%.1f' % load.percent
+        values.update({'sample': self.k, 'clock_mode': self.mode, 'missed_cycles': self.missed,
+                       'force_timeouts': self.timeouts})
+        for link in master.links:
+            values['drive/%s' % link.leg.name] = '%s, %s, TPDOs missed %d, EMCYs %d' % (
+                'up' if link.up else 'down', link.state.lower(), link.missed_tpdo, link.emcys)
+        if not self.started:
+            return
+        if self.mode == 'lockstep':
+            self.health.report(ros_time(self.k * self.period), final=self.closing)
+        else:
+            self.health.report(final=self.closing)
+
+    # -- the loops ---------------------------------------------------------------------------
+    def run(self):
+        self.bring_up()
+        self.wait_for_matches(self.plant_startup.missing)
+        self.forces_in = self.start_hot_loop(self.sub_forces)
+        n_samples = int(round(self.duration * self.rate)) if self.duration > 0 else None
+        self.get_logger().info('%s at %g Hz%s' % (self.mode, self.rate,
+                                                  ', %d samples' % n_samples if n_samples
+                                                  else ''))
+        if self.mode == 'lockstep':
+            self.run_lockstep(n_samples)
+        else:
+            self.run_realtime(n_samples)
+        self.write_summary_file(self.summary())
+        return 0
+
+    def summary(self) -> dict:
+        out = super().summary()
+        out.update({'cycles': self.cycles, 'missed_cycles': self.missed,
+                    'bus_wait_s': round(self.bus_wait_s, 3),
+                    'answer_wait_s': round(self.answer_wait_s, 3),
+                    'force_timeouts': self.timeouts,
+                    'tpdo_missed': {link.leg.name: link.missed_tpdo
+                                    for link in self.master.links},
+                    'bus_load_computed_percent': {load.bus: round(load.percent, 1)
+                                                  for load in self.config.loads(self.rate)}})
+        return out
+
+    def wait_for_tpdos(self, first: bool) -> bool:
+        """Lockstep: wait for this cycle's TPDOs, serving the node meanwhile.
+        While the plant holds its run (paused, reset) there is no timeout.
+        False if a stop was requested or the plant started a new run."""
+        master = self.master
+        timeout = max(self.bus_timeout, self.boot_timeout) if first else self.bus_timeout
+        waited = 0.0
+        while not master.collect(SLICE, self.bus_timeout):
+            if STOP.requested or self.new_run:
+                return False
+            self.serve(0.0)
+            if self.plant_run in HELD_RUN:
+                waited = 0.0
+                continue
+            waited += SLICE
+            if waited >= timeout:
+                break
+        return True
+
+    def run_lockstep(self, n_samples):
+        master = self.master
+        k = 0
+        while not STOP.requested:
+            if self.new_run or self.plant_run in HELD_RUN:
+                if not self.hold_for_plant():
+                    return
+                k = 0
+            if self.peers is not None and not self.peers.hold(k * self.period_ns, self.serve):
+                return
+            for name in master.bring_up_rebooted():
+                self.get_logger().info('%s: back on the bus' % name)
+            self.k = k
+            started = time.perf_counter()
+            master.sync(k)
+            if not self.wait_for_tpdos(first=k == 0):
+                continue
+            self.bus_wait_s += time.perf_counter() - started
+            master.missing()
+            self.judge()
+            ns = k * self.period_ns
+            complete = self.publish(ns)
+            timeout = self.force_timeout if k else max(self.force_timeout,
+                                                       self.discovery_timeout)
+            started = time.perf_counter()
+            if complete and not self.wait_for_answer(ns, timeout):
+                if STOP.requested:
+                    return
+                self.timeouts += 1
+                self.health.warning = 'no force for sample %d within %.3f s' % (k, timeout)
+                self.get_logger().warning(self.health.warning)
+            self.answer_wait_s += time.perf_counter() - started
+            master.command(self.force, withhold=bool(self.errors))
+            if n_samples is not None and k >= n_samples:
+                return
+            k += 1
+
+    def hold_for_plant(self) -> bool:
+        """The plant holds its run (paused, reset): wait until it runs again."""
+        self.new_run = False
+        while self.plant_run in HELD_RUN or self.new_run:
+            self.new_run = False
+            if STOP.requested:
+                return False
+            self.serve(SLICE)
+        self.force = None
+        self.force_ns = None
+        self.force_gate.last_ns = None
+        for link in self.master.links:      # the new run's cycles count from 0 again
+            link.heartbeat_cycle = 0 if link.heartbeat_cycle is not None else None
+            link.silent_since = None
+        return True
+
+    def wait_for_answer(self, ns, timeout) -> bool:
+        deadline = time.monotonic() + timeout
+        while self.force_ns != ns:
+            now = time.monotonic()
+            if now >= deadline or STOP.requested:
+                return False
+            wake = min(deadline, self.housekeeping(now))
+            if self.force_ns == ns:
+                break
+            self.forces_in.poll(max(0.0, wake - time.monotonic()))
+        return True
+
+    def run_realtime(self, n_samples):
+        master = self.master
+        # SYNC 0 waits for the drives' first answer (the plant may still be
+        # starting); the wall-clock schedule starts from it.
+        master.sync(0)
+        if not self.wait_for_tpdos(first=True):
+            return
+        t0 = time.monotonic()
+        t0_wall = time.time()
+        k = 0
+        answered_ns = None
+        while not STOP.requested:
+            due = t0 + k * self.period
+            while time.monotonic() < due:
+                wake = min(due, self.housekeeping(time.monotonic()))
+                self.forces_in.poll(max(0.0, wake - time.monotonic()))
+            if k and self.force_ns != answered_ns:
+                self.missed += 1
+            for name in master.bring_up_rebooted():
+                self.get_logger().info('%s: back on the bus' % name)
+            self.k = k
+            if k:
+                master.sync(k)
+            master.collect(0.5 * self.period, min(BURST, 0.5 * self.period))
+            master.missing()
+            self.judge()
+            ns = int(round((t0_wall + k * self.period) * 1e9))
+            answered_ns = ns if self.publish(ns) else self.force_ns
+            if self.errors:
+                master.command(None, withhold=True)
+            if n_samples is not None and k >= n_samples:
+                return
+            k += 1
+
+    def close(self):
+        super().close()
+        self.master.close()
+
+
+@quiet_on_closed_pipe
+def main(argv=None):
+    sys.exit(run('canopen_bridge', __doc__.split('\n\n')[0], BridgeNode, argv))
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,172 @@
+"""The plant on the field bus (``io: canopen``): the six legs' CiA 402 drives.
+
+``PlantBus`` is mixed into the plant (nodes/plant.py). Its drives
+(canbus/devices.py, ``DeviceSet``) stand on the buses of the device config
+(parameter ``bus_config``) instead of the plant's ``leg_lengths`` publisher
+and ``leg_forces`` subscription; ``canopen_bridge`` links the bus to the
+topics. Ground truth, ``/clock`` and ``/diagnostics`` stay on DDS.
+
+Each SYNC (one on every bus) advances the plant one period: the physics
+steps to the SYNC's sample with the forces the drives apply (the target
+torques their RPDOs carried, if enabled), then each drive answers with its
+TPDO: the sample's position and velocity in encoder counts. The bridge
+sends the SYNCs: in lockstep once the controller has answered (so the run
+is deterministic), in realtime on the wall clock (the bus's own timing; a
+realtime plant that falls behind lets the time of every SYNC that came pass,
+with the force held, answers the newest, and counts the others as late).
+
+Before its loop the plant serves the bus from a timer (the bridge brings the
+drives up by SDO while the plant waits for its subscribers); while paused
+it keeps serving it (NMT, SDO) and holds the SYNCs that come.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+from stewart63_ros.core.bus import BusConfigError, load_bus_config
+from stewart63_ros.core.errors import ParameterError
+from stewart63_ros.nodes.launcher import STOP
+
+#: s: how often the bus is served before the loop starts (SDO answers of the bring-up)
+IDLE_SERVICE_PERIOD = 0.002
+
+
+class PlantBus:
+    """The plant's drives on the bus (see the module's doc)."""
+
+    def init_bus(self):
+        """The drives, on the buses of ``bus_config``; a timer serves them
+        until the loop starts. ParameterError for a config that cannot work."""
+        from stewart63_ros.canbus.devices import DeviceSet
+        try:
+            config = load_bus_config(self.param('bus_config'), self.param('bus_channels'),
+                                     self.param('bus_interface'))
+        except BusConfigError as exc:
+            raise ParameterError('bus_config', str(exc)) from None
+        # A drive whose bus_no_boot acts from the run's start stays off.
+        off = {leg for state in self.fault_model.states
+               if state.fault.kind == 'bus_no_boot' and state.fault.scheduled(0.0)
+               for leg in state.fault.legs}
+        try:
+            devices = DeviceSet(config, booted=[i for i in range(6) if i not in off])
+        except ValueError as exc:
+            raise ParameterError('bus_interface', str(exc)) from None
+        self.get_logger().info('on the bus: %s' % ', '.join(
+            '%s = node %d on %s (%s %s)' % (leg.name, leg.node_id, leg.bus,
+                                             config.buses[[b.name for b in config.buses]
+                                                          .index(leg.bus)].interface,
+                                             config.buses[[b.name for b in config.buses]
+                                                          .index(leg.bus)].channel)
+            for leg in config.legs))
+        self.bus_timer = self.create_timer(IDLE_SERVICE_PERIOD, lambda: devices.poll(0.0))
+        self.syncs_skipped = 0
+        self.bus_first = True
+        return devices
+
+    def bus_sample(self, lengths, rates) -> None:
+        """Sample ``self.k`` on the bus: faults, heartbeats, each drive's TPDO
+        (a leg without a reading, NaN, sends none)."""
+        devices = self.devices
+        for event in devices.apply_faults(self.fault_model.bus_active()):
+            self.get_logger().warning(event)
+        devices.heartbeats(self.k * self.period)
+        for drive in devices.drives:
+            i = drive.leg.leg
+            if math.isfinite(lengths[i]) and math.isfinite(rates[i]):
+                drive.answer_sync(float(lengths[i]), float(rates[i]))
+
+    def wait_for_sync(self, interruptible: bool = True) -> bool:
+        """Serve the bus (and the node's housekeeping) until a SYNC is on
+        every bus, or (``interruptible``) a pause, step or reset is asked
+        for. False if a stop was requested meanwhile."""
+        devices = self.devices
+        while not devices.poll(0.0):
+            if STOP.requested:
+                return False
+            if self.hold_due and interruptible:
+                return True
+            now = time.monotonic()
+            wake = self.housekeeping(now)
+            self.forces_in.poll(0.0)            # external_wrench
+            devices.poll(max(0.0, min(wake - time.monotonic(), 0.005)))
+        return True
+
+    def run_bus(self, n_samples) -> None:
+        """The loop on the bus: a sample per SYNC (see the module's doc)."""
+        self.destroy_timer(self.bus_timer)
+        devices = self.devices
+        self.bus_first = True
+        while True:
+            stepping = False
+            if self.hold_due:
+                if not self.sample_boundary():          # pause, step, reset
+                    return
+                stepping = self.hold_due                # ~/step let this sample through
+            if not self.wait_for_sync(interruptible=not stepping):
+                return
+            if self.hold_due and not stepping:
+                continue
+            periods = 1
+            if self.mode == 'realtime':
+                # Behind the bus: the time of every SYNC that came passes (with
+                # the force held), and the newest one is answered.
+                periods = min(devices.syncs.values())
+                if n_samples is not None:
+                    periods = max(1, min(periods, n_samples - self.k))
+                self.syncs_skipped += periods - 1
+                self.late += periods - 1
+                for name in devices.syncs:
+                    devices.syncs[name] -= periods - 1
+            devices.take_sync()
+            if not self.bus_first:
+                self.force = self.bus_forces()
+                for _ in range(periods):
+                    self.step()
+            self.bus_first = False
+            self.publish_sample()
+            if n_samples is not None and self.k >= n_samples:
+                return
+
+    def bus_forces(self):
+        import numpy as np
+        return np.array(self.devices.forces())
+
+    def restart_on_bus(self) -> None:
+        """A reset (``~/reset``): the SYNCs that came before it are not the new run's."""
+        for name in self.devices.syncs:
+            self.devices.syncs[name] = 0
+        self.bus_first = True
+
+    def serve_while_holding(self, until: float) -> None:
+        """Held (paused, reset): the node's waits, and the bus's NMT and SDO
+        (the SYNCs that come are counted, answered once the run goes on)."""
+        super().serve_while_holding(min(until, time.monotonic() + 0.01)
+                                    if getattr(self, 'devices', None) is not None else until)
+        if getattr(self, 'devices', None) is not None:
+            self.devices.poll(0.0)
+
+    def next_sample(self) -> int:
+        """The sample the loop publishes next: on the bus the physics steps at
+        the SYNC, so a plant held between two samples has not stepped yet."""
+        if getattr(self, 'devices', None) is None:
+            return super().next_sample()
+        return self.k if self.bus_first or self.forces_in is None else self.k + 1
+
+    def report_bus(self) -> None:
+        devices = self.devices
+        values = self.health.values
+        if self.holding:
+            values['sample'] = self.next_sample()
+        values['bus_frames_in'] = devices.frames_in
+        values['bus_frames_out'] = devices.frames_out
+        values['bus_syncs_skipped'] = self.syncs_skipped
+        values['bus_drives'] = ', '.join(
+            '%s: %s%s' % (d.leg.name, 'off' if d.off else d.nmt.lower(),
+                          '' if d.off else ' ' + d.drive.state.lower())
+            for d in devices.drives)
+
+    def close_bus(self) -> None:
+        devices = getattr(self, 'devices', None)
+        if devices is not None:
+            devices.close()
