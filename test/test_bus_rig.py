@@ -22,8 +22,8 @@ from test_rig import PARAMS, assert_every_status_is_in_the_bag, by_stamp, final_
 
 from stewart63_ros import bagio
 from stewart63_ros.core.bus import OverTheBus, load_bus_config
-from stewart63_ros.core.laws import PDController
 from stewart63_ros.core.dynamics import Dynamics
+from stewart63_ros.core.laws import PDController
 from stewart63_ros.core.params import load_mechanism
 from stewart63_ros.core.simulate import run_sampled
 from stewart63_ros.tools.rig import Rig
