@@ -145,7 +145,8 @@ def _tunable_keys() -> set[str]:
     calls, and the controller's ``for name in LAW_PARAMETERS`` loop."""
     from stewart63_ros.core.laws import LAW_PARAMETERS
     keys = set()
-    for path in (REPO / 'stewart63_ros' / 'nodes').glob('*.py'):
+    for path in [path for package in ('nodes', 'runtime', 'recording')
+                 for path in (REPO / 'stewart63_ros' / package).glob('*.py')]:
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) \
                     and node.func.attr == 'tunable' and node.args:
