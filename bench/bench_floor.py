@@ -5,7 +5,7 @@ cost per sample with none of the nodes' own code. Prints figures, asserts nothin
   nothing else: leg_lengths published to two subscriptions (controller, fk)
   and taken by both, leg_forces published and taken by the plant,
   platform_pose and platform_twist published; the rig's QoS profiles and
-  serialized templates (nodes/wire.py), raw takes as the nodes do them.
+  serialized templates (runtime/wire.py), raw takes as the nodes do them.
 - ``composed_dds_kernels_us``: the same with the sample's compiled work in
   between (leg lengths and rates, eq. 40, one dynamics step, tracking FK
   with its twist and quaternion) on real numbers: a composed sample with no
@@ -60,8 +60,8 @@ class ComposedFloor:
         from stewart63_ros.core.laws import Controller
         from stewart63_ros.core.params import load_mechanism
         from stewart63_ros.core.simulate import initial_state, substeps_for
-        from stewart63_ros.nodes import wire
-        from stewart63_ros.nodes.rclpy_internals import raw_publisher, take_with_info
+        from stewart63_ros.runtime import wire
+        from stewart63_ros.runtime.rclpy_internals import raw_publisher, take_with_info
         self.take_with_info = take_with_info
         self.nodes = [rclpy.create_node(n) for n in ('floor_plant', 'floor_controller', 'floor_fk')]
         plant, ctl, fk = self.nodes
@@ -172,7 +172,7 @@ def _subscriber(n: int) -> None:
     from sensor_msgs.msg import JointState
 
     from stewart63_ros import topics
-    from stewart63_ros.nodes.rclpy_internals import WaitAny, take
+    from stewart63_ros.runtime.rclpy_internals import WaitAny, take
     rclpy.init()
     node = rclpy.create_node('floor_sub_%d' % os.getpid())
     sub = node.create_subscription(JointState, _TOPIC, lambda _: None, topics.EVERY_SUB,
@@ -199,8 +199,8 @@ def cross_process(n: int, readers: int = 2) -> dict:
     from sensor_msgs.msg import JointState
 
     from stewart63_ros import topics
-    from stewart63_ros.nodes import wire
-    from stewart63_ros.nodes.rclpy_internals import raw_publisher
+    from stewart63_ros.runtime import wire
+    from stewart63_ros.runtime.rclpy_internals import raw_publisher
     procs = [subprocess.Popen([sys.executable, __file__, '--subscriber', str(n)],
                               stdout=subprocess.PIPE, text=True) for _ in range(readers)]
     node = rclpy.create_node('floor_pub')

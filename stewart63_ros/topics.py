@@ -12,7 +12,7 @@ Why these profiles:
   (``view``, ``play``); ``external_wrench`` is not latched (``play``
   replays it with the stream profile; no other tool publishes it). A node
   receives every command, ``external_wrench`` included, through two subscriptions
-  (``nodes/commands.py``): a VOLATILE one, which matches every reliable
+  (``runtime/commands.py``): a VOLATILE one, which matches every reliable
   publisher (``ros2 topic pub`` with its defaults included), and a
   TRANSIENT_LOCAL one, which receives the command a latched publisher sent
   before the node started; a sample that comes through both is used once.

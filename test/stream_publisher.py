@@ -91,7 +91,7 @@ def main(argv=None) -> int:
     from rclpy.node import Node
 
     from stewart63_ros import topics as T
-    from stewart63_ros.nodes.recorder import message_class
+    from stewart63_ros.recording.recorder import message_class
 
     rclpy.init()
     node = Node('stream_publisher', namespace=a.namespace)

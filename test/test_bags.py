@@ -333,7 +333,7 @@ def test_recorder_class_in_namespace_then_player(ros, tmp_path, fast_path):
     from sensor_msgs.msg import JointState
 
     from stewart63_ros import topics as T
-    from stewart63_ros.nodes.recorder import Recorder
+    from stewart63_ros.recording.recorder import Recorder
     from stewart63_ros.tools.play import Player
     bag = tmp_path / 'nsbag'
     rec = Recorder(bag, namespace='rig2', domain_id=ros.domain_id, fast_path=fast_path).start()
@@ -419,7 +419,7 @@ def test_recorder_discovers_late_topic_of_unknown_type(ros, tmp_path):
     its publisher appears, after the recorder started."""
     from std_msgs.msg import String
 
-    from stewart63_ros.nodes.recorder import Recorder
+    from stewart63_ros.recording.recorder import Recorder
     bag = tmp_path / 'late'
     rec = Recorder(bag, ['leg_lengths', 'extra'], domain_id=ros.domain_id,
                    discovery_period=0.1).start()
@@ -446,7 +446,7 @@ def test_a_message_before_its_publisher_is_known_still_reads_back(ros, tmp_path)
     from rclpy.serialization import serialize_message
 
     from stewart63_ros import topics as T
-    from stewart63_ros.nodes.recorder import Recorder
+    from stewart63_ros.recording.recorder import Recorder
     bag = tmp_path / 'early'
     rec = Recorder(bag, ['leg_setpoint'], domain_id=ros.domain_id).open()
     try:
@@ -473,7 +473,7 @@ def test_commands_from_volatile_and_latched_publishers_are_recorded_once_each(ro
     from rclpy.qos import DurabilityPolicy, QoSProfile
 
     from stewart63_ros import topics as T
-    from stewart63_ros.nodes.recorder import Recorder
+    from stewart63_ros.recording.recorder import Recorder
     bag = tmp_path / 'commands'
     rec = Recorder(bag, ['pose_setpoint'], domain_id=ros.domain_id).start()
     try:
@@ -579,7 +579,7 @@ def test_what_never_reached_the_recorder_is_counted_and_reported(ros, tmp_path, 
     from sensor_msgs.msg import JointState
 
     from stewart63_ros import topics as T
-    from stewart63_ros.nodes.recorder import Recorder
+    from stewart63_ros.recording.recorder import Recorder
     monkeypatch.setattr(T, 'RECORD_SUB', QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                                                     reliability=ReliabilityPolicy.RELIABLE))
     bag = tmp_path / 'lossy'

@@ -202,7 +202,7 @@ def test_the_recorder_names_the_nodes_it_has_matched(ros, tmp_path):
     from sensor_msgs.msg import JointState
 
     from stewart63_ros import topics
-    from stewart63_ros.nodes.recorder import Recorder
+    from stewart63_ros.recording.recorder import Recorder
     rec = Recorder(tmp_path / 'bag', ['leg_lengths'], domain_id=ros.domain_id).start()
     try:
         node = ros.node('talker', namespace='/rn')
@@ -333,7 +333,7 @@ def test_p_override_wins_over_the_files_node_section(ros, tmp_path):
 
 
 def test_parameter_loading_order(tmp_path):
-    from stewart63_ros.nodes.parameters import load_parameters
+    from stewart63_ros.runtime.parameters import load_parameters
     second = tmp_path / 'second.yaml'
     second.write_text('/**:\n  ros__parameters:\n    clock_mode: realtime\n'
                       '/**/controller:\n  ros__parameters:\n    watchdog_timeout: 0.5\n')

@@ -10,9 +10,14 @@ own floor or those below:
    leaf modules. ``Mechanism``, the linear solver and eq. (40) live here, so
    every module may name them, even in type hints, without a circle.
 1. the core (``stewart63_ros.core``) and the package's ROS-free modules
-   beside it (paths, topics, bagio, middleware, mujoco_model).
-2. the nodes and their runtime (``stewart63_ros.nodes``).
-3. the tools, the examples and the pytest plugin (``stewart63_ros.tools``,
+   beside it (paths, topics, exits, bagio, middleware, mujoco_model).
+2. the runtime (``stewart63_ros.runtime``): the rclpy machinery under the
+   nodes; it imports neither the recorder nor a node.
+3. recording (``stewart63_ros.recording``): the recorder, on the runtime; it
+   imports no node.
+4. the nodes (``stewart63_ros.nodes``): plant, controller, fk, composed (which
+   runs the recorder in its process, hence above recording).
+5. the tools, the examples and the pytest plugin (``stewart63_ros.tools``,
    ``stewart63_ros.examples``, ``stewart63_ros.pytest_plugin``).
 """
 from __future__ import annotations
@@ -42,7 +47,7 @@ def modules() -> dict[str, Path]:
 LEAVES = frozenset('stewart63_ros.core.' + m for m in (
     '_jit', 'errors', 'legs', 'rotation', 'linalg', 'control', 'mechanism', 'faults',
     'node_names', 'node_parameters', 'stamps', 'trajectory'))
-FLOOR_NAMES = ('core leaf', 'core', 'nodes/runtime', 'tools')
+FLOOR_NAMES = ('core leaf', 'core', 'runtime', 'recording', 'nodes', 'tools')
 
 
 def floor(name: str) -> int:
@@ -51,9 +56,10 @@ def floor(name: str) -> int:
         return 0
     if name.startswith(('stewart63_ros.tools', 'stewart63_ros.examples',
                         'stewart63_ros.pytest_plugin')):
-        return 3
-    if name.startswith('stewart63_ros.nodes'):
-        return 2
+        return 5
+    for number, package in ((4, 'nodes'), (3, 'recording'), (2, 'runtime')):
+        if name == 'stewart63_ros.' + package or name.startswith('stewart63_ros.%s.' % package):
+            return number
     return 1
 
 
@@ -139,11 +145,23 @@ def up_a_floor(edges: dict[str, set[str]]) -> list[str]:
 
 
 def test_the_floor_rule_sees_an_import_up_a_floor():
-    assert up_a_floor({'stewart63_ros.core.laws': {'stewart63_ros.nodes.wire'}}) == [
-        'stewart63_ros.core.laws (core) imports stewart63_ros.nodes.wire (nodes/runtime)']
+    assert up_a_floor({'stewart63_ros.core.laws': {'stewart63_ros.runtime.wire'}}) == [
+        'stewart63_ros.core.laws (core) imports stewart63_ros.runtime.wire (runtime)']
+    assert up_a_floor({'stewart63_ros.runtime.base': {'stewart63_ros.nodes.plant',
+                                                      'stewart63_ros.recording.recorder'}}) == [
+        'stewart63_ros.runtime.base (runtime) imports stewart63_ros.nodes.plant (nodes)',
+        'stewart63_ros.runtime.base (runtime) imports stewart63_ros.recording.recorder'
+        ' (recording)']
+    assert up_a_floor({'stewart63_ros.recording.recorder': {'stewart63_ros.nodes.composed',
+                                                            'stewart63_ros.runtime.wire'}}) == [
+        'stewart63_ros.recording.recorder (recording) imports stewart63_ros.nodes.composed'
+        ' (nodes)']
+    assert up_a_floor({'stewart63_ros.nodes.composed': {'stewart63_ros.recording.recorder',
+                                                        'stewart63_ros.tools.rig'}}) == [
+        'stewart63_ros.nodes.composed (nodes) imports stewart63_ros.tools.rig (tools)']
     assert up_a_floor({'stewart63_ros.core.mechanism': {'stewart63_ros.core.params'}}) == [
         'stewart63_ros.core.mechanism (core leaf) imports stewart63_ros.core.params (core)']
-    assert up_a_floor({'stewart63_ros.tools.rig': {'stewart63_ros.nodes.wire',
+    assert up_a_floor({'stewart63_ros.tools.rig': {'stewart63_ros.runtime.wire',
                                                    'stewart63_ros.core.legs'}}) == []
 
 
@@ -212,3 +230,4 @@ def test_one_list_of_the_rigs_nodes():
     from stewart63_ros.tools import rig
     assert rig.NODES is composed.NODE_NAMES is node_names.NODES
     assert tuple(node_parameters.NODES) == node_names.ALL_NODES
+

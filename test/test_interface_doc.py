@@ -45,7 +45,7 @@ def _tail_name(node):
 
 def _rignode_accessors() -> set[str]:
     """RigNode methods taking a parameter name first (``param``, ``positive``, ...)."""
-    tree = ast.parse((PACKAGE / 'nodes' / 'base.py').read_text())
+    tree = ast.parse((PACKAGE / 'runtime' / 'base.py').read_text())
     found = set()
     for cls in ast.walk(tree):
         if isinstance(cls, ast.ClassDef) and cls.name == 'RigNode':

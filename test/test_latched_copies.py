@@ -3,8 +3,8 @@ told from new samples (commands.LatchedCopies; no DDS): what CommandInput
 and the recorder drop."""
 from __future__ import annotations
 
-from stewart63_ros.nodes import commands
-from stewart63_ros.nodes.commands import DUPLICATE_WINDOW, LatchedCopies
+from stewart63_ros.runtime import commands
+from stewart63_ros.runtime.commands import DUPLICATE_WINDOW, LatchedCopies
 
 
 def test_the_copy_through_the_other_subscription_is_dropped_once():

@@ -41,9 +41,9 @@ from test_rig import (
 
 from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.simulate import run_sampled, sensor_reading
-from stewart63_ros.nodes.checks import SkipCounter
-from stewart63_ros.nodes.launcher import signals_deferred
-from stewart63_ros.nodes.recorder import header_stamp_ns
+from stewart63_ros.recording.recorder import header_stamp_ns
+from stewart63_ros.runtime.checks import SkipCounter
+from stewart63_ros.runtime.launcher import signals_deferred
 from stewart63_ros.tools.rig import Rig
 
 # test_rig's module fixtures: the mechanism, the kernels compiled once

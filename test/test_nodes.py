@@ -718,7 +718,7 @@ def test_parameter_errors_stop_the_node(ros, tmp_path):
         print('\n%s exit %d: %s' % (exe, rc, lines[0]))
 
 
-# -- 6. the serialized hot-path messages (nodes/wire.py), no DDS ---------------------
+# -- 6. the serialized hot-path messages (runtime/wire.py), no DDS ---------------------
 def _joint_state(names, position, velocity, effort, frame_id='base', ns=1_234_567_891):
     from sensor_msgs.msg import JointState
     msg = JointState(name=list(names), position=list(position), velocity=list(velocity),
@@ -730,7 +730,7 @@ def _joint_state(names, position, velocity, effort, frame_id='base', ns=1_234_56
 
 def _object_path(msg, gate, want, optional=()):
     """What the nodes did with a message object: the reference for the fast path."""
-    from stewart63_ros.nodes.checks import leg_vector
+    from stewart63_ros.runtime.checks import leg_vector
     ns = gate.check(msg.header.stamp)
     values = {f: leg_vector(msg.name, getattr(msg, f), f) for f in want}
     for f in optional:
@@ -747,8 +747,8 @@ def test_serialized_joint_states_read_as_message_objects_do():
 
     from rclpy.serialization import serialize_message
 
-    from stewart63_ros.nodes import wire
-    from stewart63_ros.nodes.checks import Rejected, StampGate
+    from stewart63_ros.runtime import wire
+    from stewart63_ros.runtime.checks import Rejected, StampGate
     rng = np.random.default_rng(7)
     six = rng.normal(size=6)
     arrays = {'empty': [], 'six': six, 'five': six[:5], 'seven': np.append(six, 1.0),
@@ -806,7 +806,7 @@ def test_message_templates_serialize_like_rclpy():
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import JointState
 
-    from stewart63_ros.nodes import wire
+    from stewart63_ros.runtime import wire
     rng = np.random.default_rng(3)
     for frame_id in ('', 'base', 'base_link', b'base', 'ünï'):
         text = frame_id.decode() if isinstance(frame_id, bytes) else frame_id

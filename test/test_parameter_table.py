@@ -147,7 +147,8 @@ def _tunable_keys() -> set[str]:
     from stewart63_ros.core.laws import LAW_PARAMETERS
     from stewart63_ros.core.supervisor import LIMIT_KEYS
     keys = set()
-    for path in (REPO / 'stewart63_ros' / 'nodes').glob('*.py'):
+    for path in [path for package in ('nodes', 'runtime', 'recording')
+                 for path in (REPO / 'stewart63_ros' / package).glob('*.py')]:
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) \
                     and node.func.attr == 'tunable' and node.args:

@@ -305,8 +305,8 @@ def test_sim_refuses_non_yaml(tmp_path):
 def test_one_splitter_for_the_ros_arguments():
     """record, play and the nodes' parameters split --ros-args the same way:
     every group up to its ``--``, a value taken whole even when it starts with '-'."""
-    from stewart63_ros.nodes.parameters import ros_arguments
-    from stewart63_ros.nodes.ros_args import rclpy_args, split_ros_args
+    from stewart63_ros.runtime.parameters import ros_arguments
+    from stewart63_ros.runtime.ros_args import rclpy_args, split_ros_args
     line = ['bag', '--rate', '2', '--ros-args', '-r', '__ns:=/rig2', '-p', 'x:=--', '--',
             '--loop', '--ros-args', '--params-file', 'f.yaml']
     own, ros = split_ros_args(line)

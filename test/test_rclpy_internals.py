@@ -1,4 +1,4 @@
-"""The private rclpy calls of the 1 kHz loops (nodes/rclpy_internals.py).
+"""The private rclpy calls of the 1 kHz loops (runtime/rclpy_internals.py).
 
 These are not rclpy's public API: if a rclpy release changes them, this test
 fails loudly, instead of a hot loop that quietly stops taking messages or
@@ -8,7 +8,12 @@ import time
 
 from sensor_msgs.msg import JointState
 
-from stewart63_ros.nodes.rclpy_internals import DirectTake, raw_publisher, run_timer_if_ready, take
+from stewart63_ros.runtime.rclpy_internals import (
+    DirectTake,
+    raw_publisher,
+    run_timer_if_ready,
+    take,
+)
 
 
 def test_take_direct_take_and_timers_work_in_this_rclpy(ros):
@@ -51,7 +56,7 @@ def test_take_direct_take_and_timers_work_in_this_rclpy(ros):
 
 
 def test_wait_any_wakes_on_any_of_its_subscriptions(ros):
-    from stewart63_ros.nodes.rclpy_internals import WaitAny
+    from stewart63_ros.runtime.rclpy_internals import WaitAny
     node = ros.node('wait_any_probe')
     subs = [node.create_subscription(JointState, 'wait_any_%d' % i, lambda m: None, 10,
                                      raw=True) for i in range(2)]
@@ -70,7 +75,7 @@ def test_wait_any_wakes_on_any_of_its_subscriptions(ros):
 
 def test_wait_any_wakes_on_a_guard_condition_and_take_with_info_gives_the_info(ros):
     """The recorder's wait: its subscriptions plus a guard condition (its stop)."""
-    from stewart63_ros.nodes.rclpy_internals import WaitAny, take_with_info
+    from stewart63_ros.runtime.rclpy_internals import WaitAny, take_with_info
     node = ros.node('guard_probe')
     sub = node.create_subscription(JointState, 'guarded', lambda _m: None, 10, raw=True)
     pub = node.create_publisher(JointState, 'guarded', 10)

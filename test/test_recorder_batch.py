@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from stewart63_ros import bagio
-from stewart63_ros.nodes.recorder import BatchWriter
+from stewart63_ros.recording.recorder import BatchWriter
 
 
 def _bag(path, batched, topics):

@@ -1,18 +1,18 @@
 """The runtime under the nodes, against small fakes: no DDS, no processes,
 milliseconds a test (the rig tests check the same over DDS, in seconds).
 
-- the hot loop (nodes/hotloop.py): side subscriptions, timers and executor
+- the hot loop (runtime/hotloop.py): side subscriptions, timers and executor
   turns between two 1 kHz messages, an outer loop's pace;
-- the start-up barrier (nodes/startup.py): no first message before the
+- the start-up barrier (runtime/startup.py): no first message before the
   subscribers matched, bounded by discovery_timeout;
-- the lockstep window (nodes/lockstep.py, PeerWindow): the plant waits for a
+- the lockstep window (runtime/lockstep.py, PeerWindow): the plant waits for a
   slow peer, drops a silent or vanished one;
-- the flush at stop (nodes/stopping.py): done on the recorder's word, on the
+- the flush at stop (runtime/stopping.py): done on the recorder's word, on the
   acknowledgements, or at the timeout;
-- the source watch (nodes/sources.py): two publishers on one input, restarts;
-- the handshake (nodes/handshake.py): its words and the plant's start-up keys.
+- the source watch (runtime/sources.py): two publishers on one input, restarts;
+- the handshake (runtime/handshake.py): its words and the plant's start-up keys.
 
-The skip counter (nodes/checks.py) and the stamp gate have theirs in
+The skip counter (runtime/checks.py) and the stamp gate have theirs in
 test_load.py and test_sources.py.
 """
 from __future__ import annotations
@@ -25,9 +25,9 @@ import pytest
 from test_sources import Clock, feed
 
 from stewart63_ros import topics
-from stewart63_ros.nodes import handshake, hotloop, lockstep, sources, startup, stopping
-from stewart63_ros.nodes.checks import Rejected, StampGate
-from stewart63_ros.nodes.launcher import STOP
+from stewart63_ros.runtime import handshake, hotloop, lockstep, sources, startup, stopping
+from stewart63_ros.runtime.checks import Rejected, StampGate
+from stewart63_ros.runtime.launcher import STOP
 
 MS = 1_000_000          # ns
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import pytest
 
-from stewart63_ros.nodes.checks import Rejected, StampGate
+from stewart63_ros.runtime.checks import Rejected, StampGate
 
 A, B = b'A' * 16, b'B' * 16
 
@@ -108,7 +108,7 @@ def test_gate_bad_content_from_a_second_publisher_keeps_its_own_reason():
     """The source check comes after the content checks (see wire)."""
     import numpy as np
 
-    from stewart63_ros.nodes import wire
+    from stewart63_ros.runtime import wire
     gate = StampGate(0.5)
     good = wire.JointStateTemplates(('effort',)).get('base')
     wire_ok = good.fill(1, 0, effort=np.ones(6))

@@ -1,10 +1,10 @@
 """What ``rig`` tells its plant to wait for before the first sample
-(nodes/startup.py), checked through the rig's own parameter file."""
+(runtime/startup.py), checked through the rig's own parameter file."""
 from __future__ import annotations
 
 import yaml
 
-from stewart63_ros.nodes.handshake import plant_startup_parameters, recorder_waits_for
+from stewart63_ros.runtime.handshake import plant_startup_parameters, recorder_waits_for
 from stewart63_ros.tools.rig import Rig
 
 

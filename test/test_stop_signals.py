@@ -14,8 +14,8 @@ import signal
 
 import pytest
 
-from stewart63_ros.nodes import launcher
-from stewart63_ros.nodes.launcher import StopSignals
+from stewart63_ros.runtime import launcher
+from stewart63_ros.runtime.launcher import StopSignals
 
 
 @pytest.fixture
@@ -101,7 +101,7 @@ class FakeRecorder:
 
 
 def test_record_asks_for_the_stop_on_every_signal_and_exits_0(deadlines, monkeypatch, tmp_path):
-    from stewart63_ros.nodes import recorder
+    from stewart63_ros.recording import recorder
     from stewart63_ros.tools import record
     made = []
     monkeypatch.setattr(recorder, 'Recorder',       # record's main imports it from there
@@ -176,7 +176,7 @@ def test_record_stopped_before_its_recorder_exists_records_nothing_and_exits_0(
         deadlines, monkeypatch, tmp_path):
     """A signal while ``record`` still loads its modules (before the Recorder
     exists) is kept: the recorder, once made, stops at once, exit 0."""
-    from stewart63_ros.nodes import recorder
+    from stewart63_ros.recording import recorder
     from stewart63_ros.tools import record
     made = []
 

@@ -156,7 +156,7 @@ def test_rig_stops_cleanly_on_repeated_signals_and_loses_nothing(ros, tmp_path, 
 
 STUCK_NODE = '''
 import sys, time
-from stewart63_ros.nodes.launcher import run
+from stewart63_ros.runtime.launcher import run
 
 class Stuck:
     """A node whose stop never ends (as one stuck inside the middleware)."""

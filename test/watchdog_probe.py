@@ -19,8 +19,8 @@ from sensor_msgs.msg import JointState
 from stewart63_ros import topics
 from stewart63_ros.core.params import load_mechanism
 from stewart63_ros.nodes.controller import ControllerNode
-from stewart63_ros.nodes.parameters import set_arguments
-from stewart63_ros.nodes.rclpy_internals import WaitAny
+from stewart63_ros.runtime.parameters import set_arguments
+from stewart63_ros.runtime.rclpy_internals import WaitAny
 
 #: s, the controller's watchdog_timeout here
 TIMEOUT = 0.5

@@ -15,7 +15,7 @@ declarations, and nowhere else, come:
   (test/test_parameter_table.py keeps the page equal to it;
   ``python test/test_parameter_table.py --write`` rewrites it);
 - what ``ros2 param describe`` shows of each key on each node
-  (``describe``: description with unit, range, read-only; nodes/parameters.py
+  (``describe``: description with unit, range, read-only; runtime/parameters.py
   makes the ParameterDescriptor of it) and the value's ROS type (``ros_value``).
 
 The model's keys (geometry, masses, gains, initial state) are the fields of
@@ -566,7 +566,7 @@ MODEL_BY_NAME: dict[str, ModelKey] = {m.name: m for m in MODEL}
 # -- what `ros2 param describe` shows -------------------------------------------
 @dataclasses.dataclass(frozen=True)
 class Description:
-    """One key as a node declares it to ROS (nodes/parameters.py makes the
+    """One key as a node declares it to ROS (runtime/parameters.py makes the
     rcl_interfaces ``ParameterDescriptor`` of it; this module knows no ROS).
 
     Attributes:

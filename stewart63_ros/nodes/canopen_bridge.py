@@ -35,16 +35,16 @@ from stewart63_ros import topics
 from stewart63_ros.core.bus import BusConfigError, BusLoadError, load_bus_config
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.exits import quiet_on_closed_pipe
-from stewart63_ros.nodes import wire
-from stewart63_ros.nodes.base import RigNode
-from stewart63_ros.nodes.checks import (
+from stewart63_ros.runtime import wire
+from stewart63_ros.runtime.base import RigNode
+from stewart63_ros.runtime.checks import (
     RESTART_PAUSE,
     StampGate,
     ros_time,
 )
-from stewart63_ros.nodes.launcher import STOP, run
-from stewart63_ros.nodes.rclpy_internals import raw_publisher
-from stewart63_ros.nodes.startup import PlantStartup
+from stewart63_ros.runtime.launcher import STOP, run
+from stewart63_ros.runtime.rclpy_internals import raw_publisher
+from stewart63_ros.runtime.startup import PlantStartup
 
 #: s: realtime: after a drive's TPDO has come, the others of the cycle must follow
 #: within this (lockstep waits ``bus_timeout``: a load spike must not decide a run)
@@ -91,7 +91,7 @@ class BridgeNode(RigNode):
         self.peers = None
         lockstep_peers = self.peer_names('lockstep_peers')
         if lockstep_peers and self.mode == 'lockstep':
-            from stewart63_ros.nodes.lockstep import PeerWindow
+            from stewart63_ros.runtime.lockstep import PeerWindow
             self.peers = PeerWindow(self, lockstep_peers, self.param('lockstep_window'),
                                     self.period_ns, self.param('lockstep_peer_timeout'))
         pub = self.publisher(JointState, topics.LEG_LENGTHS, topics.STREAM_PUB)
@@ -140,7 +140,7 @@ class BridgeNode(RigNode):
             self.master.command(self.force, withhold=bool(self.errors))
 
     def on_diagnostics(self, msg):
-        from stewart63_ros.nodes.handshake import plant_run
+        from stewart63_ros.runtime.handshake import plant_run
         said = plant_run(msg, self.plant_status)
         self.plant_run = said.get('run', self.plant_run)
         number = said.get('run_number')

@@ -56,7 +56,7 @@ class Peers:
         """The loop begins; ``own``: the plant's DirectTake on ``leg_forces``
         (None: no plant in this process). Returns the loop, for the plant to
         poll (see ``HotLoop.start_hot_loop``)."""
-        from stewart63_ros.nodes.rclpy_internals import WaitAny
+        from stewart63_ros.runtime.rclpy_internals import WaitAny
         self.own = own
         subs = [d.sub for _, d in self.answer_first + self.then] + ([own.sub] if own else [])
         self.waiter = WaitAny(self.context, subs)
@@ -161,7 +161,7 @@ class Composed:
         if options.record:
             # First, so that its subscriptions exist before any node publishes.
             from stewart63_ros.bagio import BagError
-            from stewart63_ros.nodes.recorder import Recorder
+            from stewart63_ros.recording.recorder import Recorder
             self.recorder = Recorder(options.record, context=rclpy.get_default_context())
             try:
                 self.recorder.open()
@@ -178,7 +178,7 @@ class Composed:
         peers = [nodes[n] for n in ('controller', 'fk') if n in nodes]
         # Each node waits for its own subscribers (the recorder, with
         # wait_for_subscribers), as when it runs alone; the plant last
-        # (the start-up order: nodes/handshake.py).
+        # (the start-up order: runtime/handshake.py).
         for node in peers:
             node.wait_for_matches()
         directs = {n: nodes[n].start_hot_loop(nodes[n].sub_samples)
@@ -200,7 +200,7 @@ class Composed:
         if plant is None:
             import rclpy
 
-            from stewart63_ros.nodes.launcher import STOP
+            from stewart63_ros.runtime.launcher import STOP
             self.loop = loop.start()
             while rclpy.ok() and not STOP.requested:
                 loop.poll(0.1)
@@ -220,8 +220,8 @@ class Composed:
         errors = []
         if self.loop is not None and self.loop.waiter is not None:     # it has started
             self.loop.drain()
-        from stewart63_ros.nodes.base import RigNode
-        from stewart63_ros.nodes.launcher import STOP
+        from stewart63_ros.runtime.base import RigNode
+        from stewart63_ros.runtime.launcher import STOP
         # One flush bound for all the nodes, not one each: three nodes waiting
         # in turn for a subscriber that never acknowledges would outlast the
         # stop deadline (launcher.STOP_DEADLINE).
@@ -255,7 +255,7 @@ def _options(parser):
 
 @quiet_on_closed_pipe
 def main(argv=None):
-    from stewart63_ros.nodes.launcher import run
+    from stewart63_ros.runtime.launcher import run
     sys.exit(run('composed', __doc__.split('\n\n')[0], Composed, argv, extra_args=_options))
 
 

@@ -47,9 +47,9 @@ from stewart63_ros.core.reference import (
 )
 from stewart63_ros.core.rotation import euler_rate_matrix
 from stewart63_ros.exits import quiet_on_closed_pipe
-from stewart63_ros.nodes import wire
-from stewart63_ros.nodes.base import RigNode
-from stewart63_ros.nodes.checks import (
+from stewart63_ros.runtime import wire
+from stewart63_ros.runtime.base import RigNode
+from stewart63_ros.runtime.checks import (
     RESTART_PAUSE,
     Rejected,
     StampGate,
@@ -58,9 +58,9 @@ from stewart63_ros.nodes.checks import (
     source_of,
     stamp_ns,
 )
-from stewart63_ros.nodes.commands import CommandInput
-from stewart63_ros.nodes.launcher import run
-from stewart63_ros.nodes.rclpy_internals import raw_publisher, take, take_with_info
+from stewart63_ros.runtime.commands import CommandInput
+from stewart63_ros.runtime.launcher import run
+from stewart63_ros.runtime.rclpy_internals import raw_publisher, take, take_with_info
 
 #: The one joint of a pose_trajectory.
 PLATFORM_JOINT = 'platform'
@@ -175,7 +175,7 @@ class ControllerNode(RigNode):
         self.forces_out.get('base')             # made now, not on the first sample
         self.send_forces = raw_publisher(self.pub_forces)
         wire.warm_up(('position', 'velocity'))
-        # Serialized samples in, serialized forces out: see nodes/wire.py.
+        # Serialized samples in, serialized forces out: see runtime/wire.py.
         self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
                                                     self.on_sample, topics.LATEST_SUB, raw=True)
         self.commands = [
@@ -389,7 +389,7 @@ class ControllerNode(RigNode):
     SILENT_RUN = ('ended', 'paused', 'reset')
 
     def on_diagnostics(self, msg):
-        from stewart63_ros.nodes.handshake import plant_run
+        from stewart63_ros.runtime.handshake import plant_run
         said = plant_run(msg, self.plant_status)
         run = said.get('run')
         if run in self.SILENT_RUN:

@@ -25,11 +25,11 @@ from stewart63_ros import topics
 from stewart63_ros.core.fk import FKTracker, NoAssemblyError
 from stewart63_ros.core.kinematics import leg_lengths
 from stewart63_ros.core.rotation import rotation_from_euler
-from stewart63_ros.nodes import wire
-from stewart63_ros.nodes.base import RigNode
-from stewart63_ros.nodes.checks import RESTART_PAUSE, Rejected, StampGate, source_of
-from stewart63_ros.nodes.launcher import run
-from stewart63_ros.nodes.rclpy_internals import raw_publisher
+from stewart63_ros.runtime import wire
+from stewart63_ros.runtime.base import RigNode
+from stewart63_ros.runtime.checks import RESTART_PAUSE, Rejected, StampGate, source_of
+from stewart63_ros.runtime.launcher import run
+from stewart63_ros.runtime.rclpy_internals import raw_publisher
 
 
 class FKNode(RigNode):
@@ -58,18 +58,18 @@ class FKNode(RigNode):
             from stewart63_ros.nodes.markers import MarkerPublisher
             self.markers = MarkerPublisher(self, self.mech, float(rate), self.tracker.fk)
         # Every sample gets a pose: a short queue rather than newest-only.
-        # Serialized samples in, serialized poses out: see nodes/wire.py.
+        # Serialized samples in, serialized poses out: see runtime/wire.py.
         self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
                                                     self.on_sample, topics.EVERY_SUB,
                                                     raw=True)
         self.watch_source(self.sub_samples, topics.LEG_LENGTHS, self.gate)
         # Every sample must reach fk; in lockstep it tells the plant how far it
-        # has got (nodes/lockstep.py), so the plant never outruns it.
+        # has got (runtime/lockstep.py), so the plant never outruns it.
         self.health.every_message.add(topics.LEG_LENGTHS)
         self.lockstep = self.param('clock_mode') == 'lockstep'
         self.progress = None
         if self.lockstep:
-            from stewart63_ros.nodes.lockstep import ProgressPublisher
+            from stewart63_ros.runtime.lockstep import ProgressPublisher
             self.progress = ProgressPublisher(self)
             self.after_batch = self.progress.publish
 

@@ -23,7 +23,7 @@ import numpy as np
 from stewart63_ros import topics
 from stewart63_ros.core import markers as shapes_mod
 from stewart63_ros.core.kinematics import leg_lengths
-from stewart63_ros.nodes import wire
+from stewart63_ros.runtime import wire
 
 FRAME = 'base'
 PLATFORM_FRAME = 'platform'
@@ -85,7 +85,7 @@ class MarkerArrayBuilder:
 class MarkerTemplate:
     """The serialized MarkerArray of a scene, refilled in place per frame.
 
-    Like the 1 kHz messages (nodes/wire.py): the array is built and
+    Like the 1 kHz messages (runtime/wire.py): the array is built and
     serialized once by rclpy with distinct sentinels in every number that
     changes (``core.markers.flatten`` order: poses, scales, points as
     float64, colours as float32, each marker's stamp); the sentinels found in
@@ -213,7 +213,7 @@ class MarkerPublisher:
         node.create_subscription(JointState, topics.LEG_FORCES, self.on_forces,
                                  topics.LATEST_SUB, raw=True)
         # The setpoints as the controller takes them: volatile and latched publishers.
-        from stewart63_ros.nodes.commands import CommandInput
+        from stewart63_ros.runtime.commands import CommandInput
         self.commands = [
             CommandInput(node, PoseStamped, topics.POSE_SETPOINT, self.on_pose_setpoint),
             CommandInput(node, JointState, topics.LEG_SETPOINT, self.on_leg_setpoint)]

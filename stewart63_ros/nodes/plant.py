@@ -37,21 +37,21 @@ from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.sensor import SensorModel, TrackerModel
 from stewart63_ros.core.simulate import initial_state, substeps_for
 from stewart63_ros.exits import quiet_on_closed_pipe
-from stewart63_ros.nodes.base import RigNode
-from stewart63_ros.nodes.checks import (
+from stewart63_ros.nodes.plant_bus import PlantBus
+from stewart63_ros.nodes.plant_control import PlantControl
+from stewart63_ros.nodes.plant_outputs import SampleOutputs
+from stewart63_ros.nodes.plant_summary import TRACKING_FROM, TrackingError, run_summary
+from stewart63_ros.runtime.base import RigNode
+from stewart63_ros.runtime.checks import (
     RESTART_PAUSE,
     Rejected,
     StampGate,
     finite_vector,
     ros_time,
 )
-from stewart63_ros.nodes.commands import CommandInput
-from stewart63_ros.nodes.launcher import STOP, run
-from stewart63_ros.nodes.plant_bus import PlantBus
-from stewart63_ros.nodes.plant_control import PlantControl
-from stewart63_ros.nodes.plant_outputs import SampleOutputs
-from stewart63_ros.nodes.plant_summary import TRACKING_FROM, TrackingError, run_summary
-from stewart63_ros.nodes.startup import PlantStartup
+from stewart63_ros.runtime.commands import CommandInput
+from stewart63_ros.runtime.launcher import STOP, run
+from stewart63_ros.runtime.startup import PlantStartup
 
 
 class PlantNode(PlantBus, PlantControl, RigNode):
@@ -68,10 +68,10 @@ class PlantNode(PlantBus, PlantControl, RigNode):
         self.duration = self.param('duration')      # simulated seconds; 0 = forever
         self.force_timeout = self.param('force_timeout')
         # Matched leg_lengths subscriptions, and the nodes whose subscription
-        # the graph must show, before the first sample (nodes/handshake.py).
+        # the graph must show, before the first sample (runtime/handshake.py).
         self.lengths_subscribers = self.param('lengths_subscribers')
         self.lengths_peers = self.peer_names('lengths_peers')
-        # Lockstep flow control (nodes/lockstep.py): the readers of
+        # Lockstep flow control (runtime/lockstep.py): the readers of
         # leg_lengths outside the control loop (fk, the rig's recorder) that
         # the plant never runs more than lockstep_window samples ahead of.
         self.peers = None
@@ -79,7 +79,7 @@ class PlantNode(PlantBus, PlantControl, RigNode):
         window = self.param('lockstep_window')
         peer_timeout = self.param('lockstep_peer_timeout')
         if lockstep_peers and self.mode == 'lockstep':
-            from stewart63_ros.nodes.lockstep import PeerWindow
+            from stewart63_ros.runtime.lockstep import PeerWindow
             self.peers = PeerWindow(self, lockstep_peers, window,
                                     int(round(1e9 / self.rate)), peer_timeout)
         elif lockstep_peers:

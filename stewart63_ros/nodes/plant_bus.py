@@ -26,7 +26,7 @@ import time
 
 from stewart63_ros.core.bus import BusConfigError, load_bus_config
 from stewart63_ros.core.errors import ParameterError
-from stewart63_ros.nodes.launcher import STOP
+from stewart63_ros.runtime.launcher import STOP
 
 #: s: how often the bus is served before the loop starts (SDO answers of the bring-up)
 IDLE_SERVICE_PERIOD = 0.002

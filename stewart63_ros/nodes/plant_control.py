@@ -30,8 +30,8 @@ from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.core.faults import FaultError, FaultModel
 from stewart63_ros.core.sensor import SensorModel
 from stewart63_ros.core.simulate import initial_state
-from stewart63_ros.nodes.checks import RESTART_PAUSE
-from stewart63_ros.nodes.launcher import STOP
+from stewart63_ros.runtime.checks import RESTART_PAUSE
+from stewart63_ros.runtime.launcher import STOP
 
 #: s: the quiet before the first sample of a new run (``~/reset``): longer
 #: than the nodes' RESTART_PAUSE, so their stamp gates accept the new run's

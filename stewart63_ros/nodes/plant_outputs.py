@@ -1,7 +1,7 @@
 """The plant's samples out: leg_lengths, ground_truth pose and twist, /clock.
 
 ``SampleOutputs`` is the plant's publishing part: it owns the publishers,
-their serialized-message templates (nodes/wire.py) and the wall time each
+their serialized-message templates (runtime/wire.py) and the wall time each
 sample went out (the loop latency starts there). ``leg_lengths`` goes out on
 every sample; /clock (lockstep) and ground_truth only while somebody
 subscribes to them: they are VOLATILE, so no subscriber can tell.
@@ -17,8 +17,8 @@ from sensor_msgs.msg import JointState
 
 from stewart63_ros import topics
 from stewart63_ros.core.dynamics import OMEGA, POS, QUAT, VEL
-from stewart63_ros.nodes import wire
-from stewart63_ros.nodes.rclpy_internals import raw_publisher
+from stewart63_ros.runtime import wire
+from stewart63_ros.runtime.rclpy_internals import raw_publisher
 
 
 class SampleOutputs:
@@ -54,7 +54,7 @@ class SampleOutputs:
         self.pub_twist = node.publisher(TwistStamped, topics.TRUE_TWIST, topics.STREAM_PUB)
         self.pub_clock = (node.publisher(Clock, topics.CLOCK, topics.STREAM_PUB)
                           if lockstep else None)
-        # Serialized messages out and forces in: see nodes/wire.py.
+        # Serialized messages out and forces in: see runtime/wire.py.
         self.lengths_out = wire.JointStateTemplates(('position', 'velocity')).get('base')
         self.pose_out = wire.pose_template('base')
         self.twist_out = wire.twist_template('base')

@@ -29,9 +29,9 @@ from sensor_msgs.msg import JointState
 from stewart63_ros import topics
 from stewart63_ros.core.supervisor import LIMIT_KEYS, limits_from_params, supervisor_from_params
 from stewart63_ros.exits import quiet_on_closed_pipe
-from stewart63_ros.nodes import wire
-from stewart63_ros.nodes.base import RigNode
-from stewart63_ros.nodes.checks import (
+from stewart63_ros.runtime import wire
+from stewart63_ros.runtime.base import RigNode
+from stewart63_ros.runtime.checks import (
     RESTART_PAUSE,
     Rejected,
     StampGate,
@@ -39,8 +39,8 @@ from stewart63_ros.nodes.checks import (
     source_of,
     stamp_ns,
 )
-from stewart63_ros.nodes.launcher import STOP, run
-from stewart63_ros.nodes.rclpy_internals import WaitAny, raw_publisher, take_with_info
+from stewart63_ros.runtime.launcher import STOP, run
+from stewart63_ros.runtime.rclpy_internals import WaitAny, raw_publisher, take_with_info
 
 #: The controller's forces, remapped here when the supervisor is in the rig.
 REQUEST_TOPIC = 'leg_forces_request'

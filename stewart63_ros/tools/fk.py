@@ -21,7 +21,7 @@ def main(argv=None):
         argv: the whole command line, program name first (default ``sys.argv``).
     """
     argv = list(sys.argv if argv is None else argv)
-    from stewart63_ros.nodes.ros_args import split_ros_args
+    from stewart63_ros.runtime.ros_args import split_ros_args
     if '--solve' in split_ros_args(argv[1:])[0]:
         from stewart63_ros.tools.fk_solve import main as solve
         sys.exit(solve(argv[1:]))

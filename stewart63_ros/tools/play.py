@@ -28,8 +28,8 @@ from stewart63_ros.bagio import (
     read_raw,
     resolve_bag_topics,
 )
-from stewart63_ros.nodes.launcher import StopSignals
-from stewart63_ros.nodes.ros_args import rclpy_args, split_ros_args
+from stewart63_ros.runtime.launcher import StopSignals
+from stewart63_ros.runtime.ros_args import rclpy_args, split_ros_args
 from stewart63_ros.tools.cli import quiet_on_closed_pipe
 
 
@@ -107,7 +107,7 @@ class Player:
         import rclpy
         from rclpy.node import Node
 
-        from stewart63_ros.nodes.recorder import message_class
+        from stewart63_ros.recording.recorder import message_class
         classes = {}
         for name in names:
             try:

@@ -20,12 +20,12 @@ from pathlib import Path
 # Light imports only up to main's first line, which installs the stop
 # handlers (the recorder's modules, rclpy and rosbags, load after them): a
 # Ctrl-C while they load could otherwise be swallowed by a library's catch-all.
-from stewart63_ros.nodes.launcher import (
+from stewart63_ros.runtime.launcher import (
     StopSignals,
     dump_stacks_on_sigusr1,
     ignore_stop_signals,
 )
-from stewart63_ros.nodes.ros_args import rclpy_args, split_ros_args
+from stewart63_ros.runtime.ros_args import rclpy_args, split_ros_args
 from stewart63_ros.tools.cli import quiet_on_closed_pipe
 
 
@@ -99,8 +99,8 @@ def main(argv=None) -> int:
     StopSignals(stop_recording, deadline=True, interrupt=False).install()
     dump_stacks_on_sigusr1()
     from stewart63_ros.bagio import BagError
-    from stewart63_ros.nodes.handshake import MATCHED_LINE, READY_LINE
-    from stewart63_ros.nodes.recorder import Recorder
+    from stewart63_ros.recording.recorder import Recorder
+    from stewart63_ros.runtime.handshake import MATCHED_LINE, READY_LINE
     argv = list(sys.argv[1:] if argv is None else argv)
     argv, ros = split_ros_args(argv)
     ros_args = rclpy_args('record', ros)

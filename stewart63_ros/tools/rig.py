@@ -103,8 +103,8 @@ class Rig:
     def overlay(self) -> Path:
         """A second parameter file with what the rig decides; it comes after the
         user's file, so it wins over the user's node sections (a ``-p`` does not)."""
-        from stewart63_ros.nodes.handshake import plant_startup_parameters
-        # Who waits for whom before the first sample: nodes/handshake.py.
+        from stewart63_ros.runtime.handshake import plant_startup_parameters
+        # Who waits for whom before the first sample: runtime/handshake.py.
         shared = {'clock_mode': self.mode, 'wait_for_subscribers': 1 if self.record else 0}
         plant = dict(shared, summary_file=str(self.summary_file),
                      **plant_startup_parameters(self.nodes, bool(self.record), self.mode,
@@ -170,7 +170,7 @@ class Rig:
         return args
 
     def spawn(self, name, argv):
-        from stewart63_ros.nodes.launcher import signals_deferred
+        from stewart63_ros.runtime.launcher import signals_deferred
         log = open(self.log_dir / ('%s.log' % name), 'w')
         # Own process group: a Ctrl-C in the terminal reaches only the rig,
         # which then stops each child itself, in order. A stop signal during
@@ -184,14 +184,14 @@ class Rig:
 
     def start(self):
         """Recorder first; then controller and fk; the plant once they are
-        matched (the order and its reasons: nodes/handshake.py)."""
+        matched (the order and its reasons: runtime/handshake.py)."""
         if self.compose:
             argv = ['--nodes', ','.join(self.nodes)]
             if self.record:
                 argv += ['--record', str(self.record)]
             self.spawn('composed', argv + self.ros_args('composed'))
             return
-        from stewart63_ros.nodes.handshake import MATCHED_LINE, READY_LINE, recorder_waits_for
+        from stewart63_ros.runtime.handshake import MATCHED_LINE, READY_LINE, recorder_waits_for
         downstream = [n for n in self.nodes if n != 'plant']
         wanted = recorder_waits_for(self.nodes)
         if self.record:
@@ -381,7 +381,7 @@ class _DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 @quiet_on_closed_pipe
 def main(argv=None) -> int:
-    from stewart63_ros.nodes.launcher import StopSignals, dump_stacks_on_sigusr1
+    from stewart63_ros.runtime.launcher import StopSignals, dump_stacks_on_sigusr1
     # The first SIGINT or SIGTERM stops the rig (KeyboardInterrupt wherever it
     # waits, also in start()); later ones, and any once the rig is stopping
     # its nodes anyway, are only noted: a terminal's Ctrl-C under a launcher
@@ -569,7 +569,7 @@ def main(argv=None) -> int:
         # starting (importing, compiling) ends with whatever code that gives.
         failed_before = set(rig.failed())
         codes = rig.stop()
-        from stewart63_ros.nodes.launcher import ignore_stop_signals
+        from stewart63_ros.runtime.launcher import ignore_stop_signals
         ignore_stop_signals()      # the rig has stopped: nothing left to interrupt
     wall = time.monotonic() - start
     died = {n: c for n, c in codes.items() if c not in (0, None)}

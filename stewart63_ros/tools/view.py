@@ -208,7 +208,7 @@ class LiveSource:
         return (np.asarray(r.position), np.asarray(r.rotation))
 
     def _newest(self, name):
-        from stewart63_ros.nodes.rclpy_internals import take
+        from stewart63_ros.runtime.rclpy_internals import take
         sub, last = self.subs[name], None
         while True:
             msg = take(sub)
@@ -218,7 +218,7 @@ class LiveSource:
 
     def poll(self):
         """Take what came in since the last call."""
-        from stewart63_ros.nodes import rclpy_internals, wire
+        from stewart63_ros.runtime import rclpy_internals, wire
         msg = self._newest('pose')
         if msg is not None:
             p, q = msg.pose.position, msg.pose.orientation
@@ -614,7 +614,7 @@ def run_bag(server, mech, bag_run: BagRun, stop):
 
 @quiet_on_closed_pipe
 def main(argv=None) -> int:
-    from stewart63_ros.nodes.launcher import StopSignals, dump_stacks_on_sigusr1
+    from stewart63_ros.runtime.launcher import StopSignals, dump_stacks_on_sigusr1
     dump_stacks_on_sigusr1()
     parser = argparse.ArgumentParser(
         prog='view', description=__doc__.split('\n\n')[0],

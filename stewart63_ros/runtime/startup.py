@@ -2,7 +2,7 @@
 ``PlantStartup`` (what the plant waits for besides).
 
 The order itself, who waits for whom and why, is described once, with the
-rest of the handshake, in nodes/handshake.py (for users: docs/interface.md,
+rest of the handshake, in runtime/handshake.py (for users: docs/interface.md,
 "The handshake between nodes, recorder and rig").
 """
 from __future__ import annotations

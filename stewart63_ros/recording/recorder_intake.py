@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import time
 
-from stewart63_ros.nodes.rclpy_internals import take_with_info
-from stewart63_ros.nodes.recorder_bag import header_stamp_ns
+from stewart63_ros.recording.recorder_bag import header_stamp_ns
+from stewart63_ros.runtime.rclpy_internals import take_with_info
 
 
 class Intake:
@@ -20,7 +20,7 @@ class Intake:
     Two topics are read as they are written: ``diag_topic`` (/diagnostics,
     if recorded: the nodes' last statuses, RecorderStatus.note_final) and
     ``lengths_topic`` (leg_lengths, if recorded: ``progress``, lockstep flow
-    control, nodes/lockstep.py: how far the bag has got, for a plant that
+    control, runtime/lockstep.py: how far the bag has got, for a plant that
     lists this recorder in lockstep_peers).
     """
 

@@ -4,10 +4,10 @@
 and the tests use the ``Recorder`` class in-process. See docs/bags.md.
 
 The Recorder composes its parts, each with one job: ``RecordedTopics``
-(nodes/recorder_topics.py: the subscriptions, and what the ROS graph shows
-of their publishers), ``BagOut`` (nodes/recorder_bag.py: the bag),
-``RecorderStatus`` and ``LossCount`` (nodes/recorder_status.py: what it says
-on /diagnostics) and ``Intake`` (nodes/recorder_intake.py: the one path
+(recording/recorder_topics.py: the subscriptions, and what the ROS graph shows
+of their publishers), ``BagOut`` (recording/recorder_bag.py: the bag),
+``RecorderStatus`` and ``LossCount`` (recording/recorder_status.py: what it says
+on /diagnostics) and ``Intake`` (recording/recorder_intake.py: the one path
 every message takes into the bag). Its own job is the recording loop: open,
 wait, take, housekeeping, close.
 """
@@ -18,15 +18,15 @@ import time
 from pathlib import Path
 
 from stewart63_ros import topics as T
-from stewart63_ros.nodes.recorder_bag import (
+from stewart63_ros.recording.recorder_bag import (
     BagOut,
     BatchWriter,
     header_stamp_ns,
     qos_to_rosbags,
 )
-from stewart63_ros.nodes.recorder_intake import Intake
-from stewart63_ros.nodes.recorder_status import LossCount, RecorderStatus
-from stewart63_ros.nodes.recorder_topics import RecordedTopics, message_class
+from stewart63_ros.recording.recorder_intake import Intake
+from stewart63_ros.recording.recorder_status import LossCount, RecorderStatus
+from stewart63_ros.recording.recorder_topics import RecordedTopics, message_class
 
 # BatchWriter, qos_to_rosbags and message_class are imported from here too.
 __all__ = ['BatchWriter', 'Recorder', 'header_stamp_ns',
@@ -110,7 +110,7 @@ class Recorder:
             # recorded: starting nodes wait for what it says.
             self.status = RecorderStatus(node, self.path, self.counts, self.losses,
                                          self.subs.subs)
-            from stewart63_ros.nodes.lockstep import ProgressPublisher
+            from stewart63_ros.runtime.lockstep import ProgressPublisher
             diag, lengths = (node.resolve_topic_name(t) for t in (T.DIAGNOSTICS, T.LEG_LENGTHS))
             self.intake = Intake(self.bag, self.subs, self.status, self.losses,
                                  ProgressPublisher(node),

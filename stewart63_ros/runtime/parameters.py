@@ -28,7 +28,7 @@ import yaml
 
 from stewart63_ros.core.node_parameters import NODE_KEYS, default, describe, node_keys, ros_value
 from stewart63_ros.core.params import ParameterError, default_params_path, read_parameter_file
-from stewart63_ros.nodes.ros_args import WITH_VALUE, split_ros_args
+from stewart63_ros.runtime.ros_args import WITH_VALUE, split_ros_args
 
 _argv: list[str] | None = None
 

@@ -31,7 +31,7 @@ nothing anybody publishes is lost:
    each node named in ``lengths_peers`` (a count alone is not enough: a
    recorder started first fills it while fk, still loading, has none yet, and
    fk would miss the run); in lockstep the progress publisher of each node
-   named in ``lockstep_peers`` (nodes/lockstep.py). ``rig`` writes these
+   named in ``lockstep_peers`` (runtime/lockstep.py). ``rig`` writes these
    parameters for the plant (``plant_startup_parameters``, below, through
    ``Rig.overlay``).
 5. Composed (``rig --compose``): one process, the same waits in the same
@@ -108,7 +108,7 @@ def plant_startup_parameters(nodes, record: bool, mode: str, compose: bool) -> d
            'lengths_peers': ['controller'] + (['fk'] if 'fk' in nodes else [])}
     if mode == 'lockstep' and not compose:
         # The readers outside the control loop hold the plant back rather
-        # than lose samples (nodes/lockstep.py). Composed, one loop serves
+        # than lose samples (runtime/lockstep.py). Composed, one loop serves
         # them all and none can fall behind.
         out['lockstep_peers'] = (['fk'] if 'fk' in nodes else []) + (['record'] if record else [])
     return out
@@ -170,7 +170,7 @@ class RecorderWord:
 
     def take_waiting(self) -> None:
         """Read what has come, without the executor (the node is stopping)."""
-        from stewart63_ros.nodes.rclpy_internals import take
+        from stewart63_ros.runtime.rclpy_internals import take
         while True:
             data = take(self.sub)
             if data is None:

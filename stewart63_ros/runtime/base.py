@@ -12,28 +12,28 @@ from stewart63_ros.core.node_parameters import NODE_KEYS, describe, node_keys
 from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.params import ParameterError, mechanism_from_params, unknown_keys
 from stewart63_ros.core.precompile import COMPILE_NOTICE, kernel_cache_cold
-from stewart63_ros.nodes.checks import SkipCounter
-from stewart63_ros.nodes.diagnostics import Health
-from stewart63_ros.nodes.handshake import RecorderWord
-from stewart63_ros.nodes.hotloop import HotLoop
-from stewart63_ros.nodes.launcher import STOP
-from stewart63_ros.nodes.parameters import declare_parameters, load_parameters, ros_parameters
-from stewart63_ros.nodes.realtime import realtime_scheduling
-from stewart63_ros.nodes.startup import StartupBarrier
-from stewart63_ros.nodes.stopping import Flush
+from stewart63_ros.runtime.checks import SkipCounter
+from stewart63_ros.runtime.diagnostics import Health
+from stewart63_ros.runtime.handshake import RecorderWord
+from stewart63_ros.runtime.hotloop import HotLoop
+from stewart63_ros.runtime.launcher import STOP
+from stewart63_ros.runtime.parameters import declare_parameters, load_parameters, ros_parameters
+from stewart63_ros.runtime.realtime import realtime_scheduling
+from stewart63_ros.runtime.startup import StartupBarrier
+from stewart63_ros.runtime.stopping import Flush
 
 
 class RigNode(HotLoop, Node):
     """Loads the mechanism from the node's parameters and owns the diagnostics.
 
-    Its hot loop (``run_on``, ``housekeeping``, ``drive_by``): nodes/hotloop.py.
+    Its hot loop (``run_on``, ``housekeeping``, ``drive_by``): runtime/hotloop.py.
 
     Node-specific keys shared by all nodes (docs/interface.md, "Parameters"):
     ``wait_for_subscribers`` (int, 0): before its first message, wait until
     every data publisher of this node has that many matched subscriptions
     (``rig --record`` sets 1 so that the recorder misses nothing);
     ``discovery_timeout`` (s, 20): the bound on that wait (who waits for whom
-    before the first sample: nodes/handshake.py);
+    before the first sample: runtime/handshake.py);
     ``realtime_priority`` (0..99, 0): when not 0, the node's threads run
     SCHED_FIFO at that priority (where the OS allows it; a warning and normal
     scheduling where it does not), so that other work on the machine cannot
@@ -41,7 +41,7 @@ class RigNode(HotLoop, Node):
     """
 
     def __init__(self, name: str):
-        # Parameters as nodes/parameters.py reads them (a -p wins over the
+        # Parameters as runtime/parameters.py reads them (a -p wins over the
         # files; a file given is the whole model), checked, then declared as
         # the node's ROS parameters (each with its descriptor) so that ros2
         # param shows what the node runs with.
@@ -206,11 +206,11 @@ class RigNode(HotLoop, Node):
         self.wait_for_matches()
         self.executor_.spin()
 
-    # -- sources of the 1 kHz input (nodes/sources.py) -------------------------
+    # -- sources of the 1 kHz input (runtime/sources.py) -------------------------
     def watch_source(self, subscription, topic: str, gate) -> None:
         """Watch the sources of the 1 kHz input ``subscription`` (its StampGate:
         ``gate``) for collisions and restarts: see ``sources.SourceWatch``."""
-        from stewart63_ros.nodes.sources import SourceWatch
+        from stewart63_ros.runtime.sources import SourceWatch
         self.source_watch = SourceWatch(self, subscription, topic, gate)
 
     def count_skips(self, topic: str, source, info) -> None:
@@ -229,8 +229,8 @@ class RigNode(HotLoop, Node):
         hot input): counted, its sender's skips counted, checked against
         ``gate`` and accepted. Returns (stamp ns, the six forces), or None
         for a rejected one (counted on /diagnostics)."""
-        from stewart63_ros.nodes import wire
-        from stewart63_ros.nodes.checks import Rejected, source_of
+        from stewart63_ros.runtime import wire
+        from stewart63_ros.runtime.checks import Rejected, source_of
         self.health.received[topics.LEG_FORCES] += 1
         source = source_of(info)
         self.count_skips(topics.LEG_FORCES, source, info)

@@ -27,7 +27,7 @@ import numpy as np
 
 from stewart63_ros.core.params import LEG_NAMES
 from stewart63_ros.core.stamps import ns_of
-from stewart63_ros.nodes.checks import Rejected, leg_vector
+from stewart63_ros.runtime.checks import Rejected, leg_vector
 
 #: Plain CDR, little endian (the 4-byte encapsulation header).
 CDR_LE = b'\x00\x01\x00\x00'
@@ -380,7 +380,7 @@ def joint_state_sample(data: bytes, gate, want: tuple, optional: tuple = (), sou
 def warm_up(want: tuple, optional: tuple = (), frame_id: str = 'base') -> None:
     """Run the reading path once on a sample (its first call costs about a
     millisecond: the first sample of a realtime run would be late)."""
-    from stewart63_ros.nodes.checks import StampGate
+    from stewart63_ros.runtime.checks import StampGate
     sample = JointStateTemplates(want + optional).get(frame_id).fill(
         0, 0, **{field: np.ones(6) for field in want + optional})
     joint_state_sample(sample, StampGate(), want, optional)

@@ -1,6 +1,6 @@
 """The recorder's subscriptions: one raw subscription per recorded topic, a
 second one per latched topic, and what the ROS graph shows of their
-publishers (see nodes/recorder.py).
+publishers (see recording/recorder.py).
 """
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import importlib
 import sys
 
 from stewart63_ros import topics as T
-from stewart63_ros.nodes.commands import LatchedCopies
-from stewart63_ros.nodes.rclpy_internals import WaitAny
+from stewart63_ros.runtime.commands import LatchedCopies
+from stewart63_ros.runtime.rclpy_internals import WaitAny
 
 
 def message_class(type_name: str):

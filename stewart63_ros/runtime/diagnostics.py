@@ -7,13 +7,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from stewart63_ros.nodes import handshake
+from stewart63_ros.runtime import handshake
 
 if TYPE_CHECKING:
     # Only a hint: checks imports core.params (scipy, a fifth of a second),
     # which the recorder, publishing through StatusPublisher, does not need
     # before it is ready.
-    from stewart63_ros.nodes.checks import Rejected
+    from stewart63_ros.runtime.checks import Rejected
 
 #: the ``hardware_id`` of every status of the package's nodes
 HARDWARE_ID = 'stewart63_ros'
@@ -21,7 +21,7 @@ HARDWARE_ID = 'stewart63_ros'
 
 class StatusPublisher:
     """A node's status on /diagnostics, under the node's own name (``name``):
-    what ``Health`` and the recorder (nodes/recorder_status.py) publish through."""
+    what ``Health`` and the recorder (recording/recorder_status.py) publish through."""
 
     def __init__(self, node):
         from diagnostic_msgs.msg import DiagnosticArray

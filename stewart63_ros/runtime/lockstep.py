@@ -147,7 +147,7 @@ class PeerWindow:
         ``timeout`` s. Returns False if a stop was requested meanwhile."""
         if ns - self.window_ns <= self.slowest:     # the usual case, per sample
             return True
-        from stewart63_ros.nodes.launcher import STOP
+        from stewart63_ros.runtime.launcher import STOP
         late = self.behind(ns)
         if not late:
             return True

@@ -1,6 +1,6 @@
 """A node's hot loop: its 1 kHz input taken directly, the rest served in between.
 
-``HotLoop`` is mixed into ``RigNode`` (nodes/base.py). A node's hot loop
+``HotLoop`` is mixed into ``RigNode`` (runtime/base.py). A node's hot loop
 (``run_on``, the plant's loops) takes its 1 kHz input with a ``DirectTake``
 and calls ``housekeeping`` between two messages for everything else.
 
@@ -15,8 +15,8 @@ import gc
 import time
 from typing import Protocol
 
-from stewart63_ros.nodes.launcher import STOP
-from stewart63_ros.nodes.rclpy_internals import DirectTake, run_timer_if_ready, take
+from stewart63_ros.runtime.launcher import STOP
+from stewart63_ros.runtime.rclpy_internals import DirectTake, run_timer_if_ready, take
 
 
 class OuterLoop(Protocol):

@@ -1,5 +1,5 @@
 """The recorder's bag: a rosbags MCAP writer, one connection per topic, and
-the fast batch writes the recording loop makes (see nodes/recorder.py).
+the fast batch writes the recording loop makes (see recording/recorder.py).
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """What the recorder says: its status on /diagnostics, its side of the
-handshake with the rig's nodes (nodes/handshake.py), and the messages that
-never reached it (see nodes/recorder.py).
+handshake with the rig's nodes (runtime/handshake.py), and the messages that
+never reached it (see recording/recorder.py).
 """
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import collections
 import sys
 import time
 
-from stewart63_ros.nodes import handshake
-from stewart63_ros.nodes.diagnostics import StatusPublisher
-from stewart63_ros.nodes.recorder_topics import own_endpoint
+from stewart63_ros.recording.recorder_topics import own_endpoint
+from stewart63_ros.runtime import handshake
+from stewart63_ros.runtime.diagnostics import StatusPublisher
 
 
 class LossCount:
@@ -30,7 +30,7 @@ class LossCount:
         """The checks.SkipCounter of ``topic``: gaps in each publisher's numbers."""
         counter = self._skips.get(topic)
         if counter is None:
-            from stewart63_ros.nodes.checks import SkipCounter
+            from stewart63_ros.runtime.checks import SkipCounter
             counter = self._skips[topic] = SkipCounter()
         return counter
 

@@ -8,7 +8,7 @@ import signal
 import sys
 import time
 
-from stewart63_ros.nodes.realtime import reduce_timer_slack
+from stewart63_ros.runtime.realtime import reduce_timer_slack
 
 
 def make_parser(prog: str, description: str) -> argparse.ArgumentParser:
@@ -111,7 +111,7 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
     parser = make_parser(prog, description)
     if extra_args:
         extra_args(parser)
-    from stewart63_ros.nodes.parameters import check_params_files, ros_arguments, set_arguments
+    from stewart63_ros.runtime.parameters import check_params_files, ros_arguments, set_arguments
     set_arguments(argv)
     try:
         # rcl would end in a traceback on a missing file or a bad -p.

@@ -4,7 +4,7 @@ Every executable takes the standard ROS arguments after ``--ros-args``, up
 to a ``--`` that closes them (or the end of the line); there may be several
 such groups, as rcl allows. ``record`` and ``play`` hand them to
 ``rclpy.init`` and parse the rest themselves; the nodes read their
-parameter files and ``-p`` overrides from them (``nodes/parameters.py``).
+parameter files and ``-p`` overrides from them (``runtime/parameters.py``).
 """
 from __future__ import annotations
 
