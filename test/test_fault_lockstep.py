@@ -23,6 +23,7 @@ from pathlib import Path
 import pytest
 from ros_harness import rig_env, run_to_end
 
+from stewart63_ros.core.faults import BUS_PREFIX
 from stewart63_ros.core.faults import KINDS as ALL_KINDS
 from stewart63_ros.tools.rig import Rig
 
@@ -30,7 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / 'config' / 'stewart63.yaml'
 RATE = 1000.0
 #: the plant's own fault kinds (the bus kinds need `rig --bus canopen`: test_bus_rig.py)
-KINDS = [kind for kind in ALL_KINDS if not kind.startswith('bus_')]
+KINDS = [kind for kind in ALL_KINDS if not kind.startswith(BUS_PREFIX)]
 #: s simulated: the fault acts from START to END, longer than lockstep_window (200 samples)
 START, END, DURATION = 0.2, 0.6, 0.8
 #: s: a stalled peer is dropped after this long (10 s by default; shorter, so
