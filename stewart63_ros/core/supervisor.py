@@ -160,7 +160,8 @@ def rest_lengths(mech: Mechanism, limits: Limits) -> np.ndarray:
         (6,) lengths [m], inside the soft stroke.
 
     Raises:
-        ParameterError: (``rest_clearance``) no such level pose inside the soft stroke.
+        ParameterError: (``rest_clearance``) no such level pose inside the soft
+            stroke; (``pose_box``) the rest pose outside ``pose_box``.
     """
     rot = rotation_from_euler(np.zeros(3))
     x, y = float(mech.initial_position[0]), float(mech.initial_position[1])
@@ -181,6 +182,13 @@ def rest_lengths(mech: Mechanism, limits: Limits) -> np.ndarray:
         raise ParameterError('rest_clearance', 'the level rest pose (z = %.4f m) puts a leg at '
                              '%.4f m, past the soft upper limit %.4f m'
                              % (high, np.max(lengths), limits.soft_max))
+    box = limits.box
+    rest = np.array([x, y, high])
+    if box is not None and ((rest < box[:3]) | (rest > box[3:])).any():
+        # a platform at rest would trip on the box, and no reset would clear it
+        raise ParameterError('pose_box', 'the rest pose (%.4f, %.4f, %.4f) m is outside the '
+                             'box %s m: a platform at rest could never be reset'
+                             % (x, y, high, np.round(box, 4).tolist()))
     return lengths
 
 
