@@ -133,6 +133,93 @@ def test_each_trip_on_its_cause_and_sample_with_zero_latency_the_same_every_run(
         assert (trip.cause, k) == ('estop', 300)
 
 
+def drive(sup, mech, samples=200, lengths=None, rates=None, request=None, event=None):
+    """Samples 0.. as the node hands them over: the readings, then the
+    controller's request (None: none comes) unless tripped; ``event(k)``
+    trips from outside before sample k (estop, /diagnostics, trip_request).
+    Returns the index of the trip's sample, its first safe answer's."""
+    hold = np.array(mech.setpoint_lengths, float)
+    answered = None
+    for k in range(samples):
+        ns = k * 1_000_000
+        if event is not None:
+            event(k)
+        sup.on_sample(ns, hold if lengths is None else lengths(k),
+                      np.zeros(6) if rates is None else rates(k))
+        if sup.trip is None:
+            forces = None if request is None else request(k)
+            if forces is not None:
+                sup.on_request(ns, forces)
+            else:
+                sup.no_request(ns)
+        if sup.trip is not None:
+            sup.safe_forces(ns)
+            answered = k
+            break
+    return answered
+
+
+@pytest.mark.parametrize('cause', sorted(CAUSES))
+def test_every_cause_reports_its_sample_and_its_latency_in_samples(mech, params, cause):
+    """What /diagnostics (``trip/latency_samples``) and the summary say for
+    each cause (``trip_report``): the sample that crossed, the latency to
+    the first safe force, in samples: 0 for every cause."""
+    setpoint = np.array(mech.setpoint_lengths, float)
+    steady = (lambda k: np.zeros(6))     # noqa: E731
+    overrides, kwargs = {}, {'request': steady}
+    if cause == 'lengths_stale':        # a leg missing from sample 100: 20 ms at 120
+        kwargs['lengths'] = lambda k: np.where((np.arange(6) == 1) & (k >= 100), np.nan,
+                                                setpoint)
+    elif cause == 'forces_stale':       # no request from sample 100: 50 ms at 150
+        kwargs['request'] = lambda k: np.zeros(6) if k < 100 else None
+    elif cause == 'bad_command':
+        kwargs['request'] = lambda k: np.full(6, np.nan if k == 100 else 0.0)
+    elif cause == 'force':
+        kwargs['request'] = lambda k: np.full(6, 5000.0 if k == 100 else 0.0)
+    elif cause == 'force_rate':
+        overrides['trip_force_rate'] = 1e5     # 100 N a sample
+        kwargs['request'] = lambda k: np.full(6, 1000.0 if k >= 100 else 0.0)
+    elif cause == 'stroke':         # leg 3 at 1.2 m: 5 cm past the soft stroke
+        kwargs['lengths'] = lambda k: setpoint - np.where((np.arange(6) == 2) & (k >= 100),
+                                                          0.4, 0.0)
+    elif cause == 'leg_speed':
+        kwargs['rates'] = lambda k: np.full(6, 0.6 if k >= 100 else 0.0)
+    elif cause == 'tracking_error':     # 6 cm off from sample 0 for 0.1 s
+        overrides.update(trip_tracking_time=0.1)
+        kwargs['lengths'] = lambda k: setpoint + 0.06
+    elif cause == 'pose_box':           # the platform 15 cm along x, past a 10 cm box
+        from stewart63_ros.core.kinematics import leg_lengths
+        overrides['pose_box'] = [-0.1, -0.1, 0.5, 0.1, 0.1, 1.6]
+        aside = leg_lengths(mech, np.array([0.15, 0.01, 1.07]), np.eye(3))
+        kwargs['lengths'] = lambda k: aside if k >= 100 else setpoint
+    else:                               # the node's: estop, /diagnostics, trip_request, homing
+        kwargs['event'] = lambda k: k == 100 and sup.trip_now(cause, 'test', k * 1_000_000)
+    sup = supervisor_from_params(mech, dict(params, **overrides), RATE)
+    answered = drive(sup, mech, **kwargs)
+    # (stale: the last good reading or request on 99, 20 or 50 ms before)
+    expected = {'lengths_stale': 119, 'forces_stale': 149, 'tracking_error': 100}.get(cause, 100)
+    report = sup.trip_report(sup.trip)
+    assert (report['cause'], report['sample'], answered) == (cause, expected, expected), report
+    assert report['latency_samples'] == 0 and report['action'] == CAUSES[cause][0]
+
+
+def test_readings_no_pose_has_trip_the_box_and_the_descent_still_answers(mech, params):
+    """Legs 1 and 2 read 1.3 m, too short to meet over their base points: a
+    lying sensor. The box trips, and its safe action answers (PD with the
+    gravity load of the last pose the readings gave) instead of raising."""
+    sup = supervisor_from_params(mech, params, RATE)
+    setpoint = np.array(mech.setpoint_lengths, float)
+    sup.on_sample(0, setpoint, np.zeros(6))
+    sup.on_request(0, np.zeros(6))
+    sup.trip_now('estop', 'test')
+    holding = sup.safe_forces(0)            # the load at the setpoint pose
+    sup.reset()
+    lying = np.where(np.arange(6) < 2, 1.3, setpoint)
+    sup.on_sample(1_000_000, lying, np.zeros(6))
+    assert sup.trip.cause == 'pose_box' and 'no pose has these leg lengths' in sup.trip.detail
+    np.testing.assert_allclose(sup.safe_forces(1_000_000), holding)
+
+
 def test_dropout_trips_exactly_when_the_reading_has_been_missing_for_stale_lengths_ms(
         mech, params):
     sup, out = supervised(mech, params, 1.0, ['sensor_dropout:leg_2@0.5'],

@@ -354,6 +354,7 @@ class Supervisor:
         self.last_forwarded = np.zeros(6)
         self.last_request = self.previous_request = None
         self.start_ns: int | None = None             # the reference's time 0
+        self.first_ns: int | None = None             # the run's sample 0
         self.tracking_since: int | None = None       # first sample of the current excess
         self.descent: Descent | None = None
         self.sample_ns = -1
@@ -375,7 +376,7 @@ class Supervisor:
     def new_run(self) -> None:
         """The samples' source started a new run (stamps from 0 again): the
         clocks of the checks start over; a latched trip stays."""
-        self.start_ns = self.last_request_ns = self.last_good_ns = None
+        self.start_ns = self.last_request_ns = self.last_good_ns = self.first_ns = None
         self.tracking_since = None
 
     # -- the checks -------------------------------------------------------------------
@@ -386,6 +387,8 @@ class Supervisor:
         self.lengths, self.rates = lengths, rates
         if self.start_ns is None:
             self.start_ns = ns
+        if self.first_ns is None:
+            self.first_ns = ns
         if self.last_request_ns is None:
             self.last_request_ns = ns       # the controller's silence counts from here
         cause = self._sample_cause(ns, lengths, rates)
@@ -521,6 +524,22 @@ class Supervisor:
         return self.last_forwarded
 
     # -- the latch --------------------------------------------------------------------
+    def sample_index(self, ns: int) -> int:
+        """The index of the sample stamped ``ns`` in this run, counted from its
+        first sample (realtime stamps are wall-clock times; a homing does not
+        restart the count)."""
+        return int(round((ns - (self.first_ns or 0)) * 1e-9 / self.period))
+
+    def trip_report(self, trip: Trip) -> dict[str, Any]:
+        """What a trip says (/diagnostics, the summary): cause, detail, safe
+        action, the sample that crossed the limit, its stamp, and the latency
+        in samples from it to the first safe force (None: not yet answered)."""
+        sample = self.sample_index(trip.sample_ns)
+        return {'cause': trip.cause, 'detail': trip.detail, 'action': trip.action,
+                'sample': sample, 'stamp_ns': trip.sample_ns,
+                'latency_samples': None if trip.safe_ns is None else
+                self.sample_index(trip.safe_ns) - sample}
+
     def trip_now(self, cause: str, detail: str, ns: int | None = None) -> Trip | None:
         """Trip for ``cause`` (a key of CAUSES) on sample ``ns`` (default: the
         current one). An existing trip stays (the first cause is the one named).
@@ -582,12 +601,19 @@ class Supervisor:
 
     def _holding(self, lengths, rates):
         """The forces that hold the mechanism against gravity at the pose the
-        readings give (``PDGravityLaw.holding_forces``)."""
+        readings give (``PDGravityLaw.holding_forces``); readings that no pose
+        has (a lying sensor, the ``pose_box`` trip's) keep those of the last
+        pose they gave (none yet: zero), so the safe action still acts."""
         if self._gravity is None:
             from stewart63_ros.core.laws import PDGravityLaw
             self._gravity = PDGravityLaw(self.mech, {})
-        position, rotation, _ = self._gravity.estimator(lengths, rates)
-        return self._gravity.holding_forces(position, rotation)
+            self._last_holding = np.zeros(6)
+        try:
+            position, rotation, _ = self._gravity.estimator(lengths, rates)
+        except ValueError:                  # NoAssemblyError
+            return self._last_holding
+        self._last_holding = self._gravity.holding_forces(position, rotation)
+        return self._last_holding
 
     def _pd_gravity(self, lengths, rates, setpoint, setpoint_rate):
         """Eq. (40) towards ``setpoint`` (its rate as feed-forward) plus the
@@ -657,8 +683,8 @@ class Supervisor:
         # from the force forwarded before the trip.
         self.last_forwarded = np.zeros(6)
         self.last_request_ns = self.sample_ns
-        return True, 'reset: %s trip of sample %d cleared' % (cleared.cause,
-                                                               cleared.sample_ns)
+        return True, 'reset: %s trip of sample %d cleared' % (
+            cleared.cause, self.sample_index(cleared.sample_ns))
 
 
 def _legs(mask) -> str:
