@@ -66,6 +66,7 @@ def true_tilt(out) -> np.ndarray:
     """The platform's true tilt (N,) [rad] from the plant's quaternions, not
     from the forward kinematics the supervisor uses."""
     from scipy.spatial.transform import Rotation
+
     from stewart63_ros.core.simulate import QUAT
     z_axis = Rotation.from_quat(out['states'][:, QUAT]).as_matrix()[:, 2, 2]
     return np.arccos(np.clip(z_axis, -1.0, 1.0))

@@ -248,8 +248,8 @@ def test_estop_faults_errors_requests_reset_and_a_killed_supervisor(ros, monkeyp
             logs_of(rig.log_dir)
         # a run-time limit goes through the start-up's checks
         from rcl_interfaces.srv import SetParameters
-        from std_srvs.srv import SetBool
         from rclpy.parameter import Parameter
+        from std_srvs.srv import SetBool
         limits = client.node.create_client(SetParameters, '/supervisor/set_parameters')
         assert limits.wait_for_service(timeout_sec=30)
         for value, ok, why in ((0.7, False, 'stroke_margin: 0.7 m on each end leaves no soft'),

@@ -409,8 +409,9 @@ DECLARED: tuple[Declared, ...] = (
     Declared('trip_tracking_time', ('supervisor',), 1.0, 's (samples)', '', 'how long the '
              'tracking error must stay over `trip_tracking_error`', nonnegative, runtime=True),
     Declared('pose_box', ('supervisor',), [-0.3, -0.3, 0.5, 0.3, 0.3, 1.6], 'm', '[] or 6 '
-             'numbers, min < max, the rest pose inside', 'x, y, z minimum then maximum of the platform\'s position '
-             '(its forward kinematics from the readings); outside trips (descent); []: off',
+             'numbers, min < max, the rest pose inside', 'x, y, z minimum then maximum of the '
+             'platform\'s position (its forward kinematics from the readings); outside trips '
+             '(descent); []: off',
              pose_box, runtime=True),
     Declared('trip_tilt', ('supervisor',), 0.35, 'rad', '', 'the platform\'s z axis tilted '
              'more than this from the base\'s trips (descent); 0: off', nonnegative,
