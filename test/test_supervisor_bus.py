@@ -11,9 +11,9 @@ Two short lockstep rigs:
   Then the supervisor is killed while it forwards the controller's
   (non-zero) forces: the bridge sends zero torque from exactly
   ``stale_forces_ms`` after its last answer, and the drives apply none.
-- a bus fault (a drive's TPDO missing) trips the supervisor on staleness of
-  ``leg_lengths`` on the sample the core's closed loop gives for the same
-  missing reading.
+- ``rig --supervisor --bus canopen`` (the command line): a bus fault (a
+  drive's TPDO missing) trips the supervisor on staleness of ``leg_lengths``
+  on the sample the core's closed loop gives for the same missing reading.
 
 Every wait is bounded; every process is stopped by its pid.
 """
@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_harness import logs_of, rig_env
 from scipy.spatial.transform import Rotation
-from ros_harness import logs_of, rig_env, run_to_end
 
 from stewart63_ros.core.bus import load_bus_config
 from stewart63_ros.core.fk import ForwardKinematics
@@ -143,23 +143,34 @@ def test_homing_over_the_bus_sets_the_drives_and_a_killed_supervisor_leaves_no_t
                                                                        logs_of(rig.log_dir))
 
 
-def test_a_bus_fault_trips_the_supervisor_on_stale_lengths(ros, monkeypatch, tmp_path):
+def test_rig_cli_runs_supervisor_on_the_bus_and_a_bus_fault_trips_on_stale_lengths(
+        ros, tmp_path):
+    import subprocess
+
+    import yaml
+    from ros_harness import PYTHON, child_env
     duration, fault = 0.3, 'bus_tpdo_missing:leg_3@0.1-0.13'
-    rig_env(ros, monkeypatch)
     # The bridge's own ERROR would trip too (diagnostics_error), on whichever
-    # sample it arrives: off here, to see the staleness limit on its sample.
-    extra = {'supervisor': {'trip_on_diagnostics': False},
-             'plant': {'faults': [fault]}, 'canopen_bridge': {'bus_timeout': 0.05}}
-    rig = Rig(PARAMS, mode='lockstep', duration=duration, nodes=NODES,
-              log_dir=tmp_path / 'rig', supervisor=True, bus='canopen', extra_params=extra)
-    ok, codes, logs = run_to_end(rig, START_TIMEOUT)
-    assert ok and set(codes.values()) == {0}, logs
+    # sample it reaches the supervisor: off here, to see the staleness limit
+    # trip on its sample.
+    params = yaml.safe_load(PARAMS.read_text())
+    params['/**/supervisor'] = {'ros__parameters': {'trip_on_diagnostics': False}}
+    params['/**/canopen_bridge'] = {'ros__parameters': {'bus_timeout': 0.05}}
+    (tmp_path / 'params.yaml').write_text(yaml.safe_dump(params))
+    done = subprocess.run([PYTHON, '-m', 'stewart63_ros.tools.rig', '--params',
+                           str(tmp_path / 'params.yaml'), '--mode', 'lockstep', '--duration',
+                           str(duration), '--nodes', ','.join(NODES), '--supervisor', '--bus',
+                           'canopen', '--fault', fault, '--log-dir', str(tmp_path / 'rig')],
+                          env=child_env(ros.domain_id), capture_output=True, text=True,
+                          timeout=START_TIMEOUT)
+    assert done.returncode == 0, (done.stdout, done.stderr, logs_of(tmp_path / 'rig'))
+    assert 'supervisor: 1 trip' in done.stdout and 'lengths_stale' in done.stdout, done.stdout
     # the core, with that leg's reading missing over the same samples
-    params = dict(load_mechanism(PARAMS).to_params())
-    mech = mechanism_from_params(params)
-    core = supervisor_from_params(mech, params, RATE)
+    core_params = dict(load_mechanism(PARAMS).to_params())
+    mech = mechanism_from_params(core_params)
+    core = supervisor_from_params(mech, core_params, RATE)
     run_supervised(mech, core, duration, RATE, ['sensor_dropout:leg_3@0.1-0.13'])
+    assert core.trip.cause == 'lengths_stale'
     summary = json.loads((tmp_path / 'rig' / 'supervisor_summary.json').read_text())
     assert [(t['cause'], t['sample'], t['latency_samples']) for t in summary['trips']] == [
         ('lengths_stale', core.trip.sample_ns // 1_000_000, 0)], summary['trips']
-    assert core.trip.cause == 'lengths_stale'
