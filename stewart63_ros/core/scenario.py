@@ -556,6 +556,15 @@ def parse_scenario(doc: Any, where: str, base: Path, source: str = '') -> Scenar
     expect = parse_expectations(where, doc.get('expect'), duration, faults)
     if not expect:
         raise ScenarioError('%s.expect: a scenario needs at least one expectation' % where)
+    if reference is not None and run != 'sim' and os.path.isdir(reference):
+        from stewart63_ros.bagio import BagError, reference_points_from_bag
+        try:
+            with_rates = reference_points_from_bag(reference)['rates'] is not None
+        except BagError as exc:
+            raise ScenarioError('%s.reference: %s' % (where, exc)) from None
+        if with_rates:
+            raise ScenarioError('%s.reference: a trajectory with velocities runs in sim only '
+                                '(the rig takes its reference as a CSV of poses)' % where)
     description = doc.get('description') or ''
     scenario = Scenario(name.strip(), run, duration, params_file, params, law, reference,
                         tuple(faults), wrench, expect, source, str(description))
@@ -752,9 +761,14 @@ def build_controller(scenario: Scenario) -> tuple[Any, Any]:
         mech = mechanism_from_params(params)
         reference = None
         if scenario.reference is not None:
-            reference = load_reference(mech, scenario.reference,
-                                       read_declared(params, 'max_leg_speed'),
-                                       read_declared(params, 'max_leg_acceleration'))
+            limits = (read_declared(params, 'max_leg_speed'),
+                      read_declared(params, 'max_leg_acceleration'))
+            if os.path.isdir(scenario.reference):
+                # a topic file: read with the package's bag I/O (rosbags, no ROS)
+                from stewart63_ros.bagio import reference_from_bag
+                reference = reference_from_bag(mech, scenario.reference, *limits)
+            else:
+                reference = load_reference(mech, scenario.reference, *limits)
         return Controller(mech, params, reference=reference), reference
     except ParameterError as exc:
         raise ScenarioError('params: %s' % exc) from None

@@ -192,6 +192,20 @@ def _stop_group(proc: subprocess.Popen) -> None:
             proc.wait(wait)
 
 
+def rig_reference(reference: str, workdir: Path) -> str:
+    """The reference CSV ``rig --reference`` takes: the scenario's, or a topic
+    file's poses written as one (a trajectory with velocities is refused when
+    the scenario is read)."""
+    if not os.path.isdir(reference):
+        return reference
+    from stewart63_ros.bagio import reference_points_from_bag
+    from stewart63_ros.core.reference import write_reference_csv
+    points = reference_points_from_bag(reference)
+    path = workdir / 'reference.csv'
+    write_reference_csv(path, points['times'], points['poses'])
+    return str(path)
+
+
 def run_rig(scenario, workdir: Path, domain: int | None = None):
     """Run a scenario with ``rig --mode lockstep|realtime`` on a leased ROS domain.
 
@@ -208,7 +222,7 @@ def run_rig(scenario, workdir: Path, domain: int | None = None):
     if scenario.control_law:
         cmd += ['--control-law', scenario.control_law]
     if scenario.reference:
-        cmd += ['--reference', scenario.reference]
+        cmd += ['--reference', rig_reference(scenario.reference, workdir)]
     for fault in scenario.faults:
         cmd += ['--fault', fault]
     if scenario.supervised:
