@@ -655,3 +655,35 @@ def test_a_topic_file_without_a_reference_topic_is_one_line_and_exit_2(tmp_path,
     assert tool.main(['run', str(path), '--out', str(tmp_path / 'o')]) == 2
     err = capsys.readouterr().err
     assert err.count('\n') == 1 and 'reference: ' in err and 'empty' in err, err
+
+
+def test_trajectory_poses_turn_twists_into_euler_rates():
+    """core.reference.trajectory_poses (the controller's and the topic file's
+    conversion) against finite differences of scipy's rotations: omega from
+    R(t + h) R(t)^T, theta's rates from theta(t +- h), 2 pi jumps unwrapped."""
+    from scipy.spatial.transform import Rotation
+
+    from stewart63_ros.core.reference import trajectory_poses
+
+    def theta(t):       # R = Rz Ry Rx; theta_z passes pi (a jump in the quaternion's Euler angles)
+        return np.array([0.2 * np.sin(t), 0.1 * t - 0.05 * t ** 2, 2.8 + 0.4 * t])
+
+    def rot(t):
+        return Rotation.from_euler('ZYX', theta(t)[::-1])
+
+    times = np.linspace(0.0, 2.0, 9)
+    h = 1e-5
+
+    def omega(t):       # base frame: R(t + h) R(t)^T = exp([omega] h)
+        return ((rot(t + h) * rot(t - h).inv()).as_rotvec()) / (2 * h)
+    quats = np.array([rot(t).as_quat() for t in times])
+    twists = np.array([np.r_[0.1, 0.0, -0.2, omega(t)] for t in times])
+    accels = np.array([np.r_[0.0, 0.0, 0.0, (omega(t + 1e-3) - omega(t - 1e-3)) / 2e-3]
+                       for t in times])
+    poses, rates, accs = trajectory_poses(np.zeros((9, 3)), quats, twists, accels)
+    np.testing.assert_allclose(poses[:, 3:], [theta(t) for t in times], atol=1e-12)
+    want = [(theta(t + h) - theta(t - h)) / (2 * h) for t in times]
+    np.testing.assert_allclose(rates[:, 3:], want, atol=1e-6)
+    np.testing.assert_allclose(rates[:, :3], twists[:, :3])
+    want = [(theta(t + 1e-3) - 2 * theta(t) + theta(t - 1e-3)) / 1e-6 for t in times]
+    np.testing.assert_allclose(accs[:, 3:], want, atol=1e-4)
