@@ -263,9 +263,11 @@ def test_a_law_that_raises_has_every_sample_withheld(tmp_path, capsys):
      'params.platfrom_mass: unknown parameter (did you mean platform_mass?)'),
     ('  - name: a\n    run: lockstpe\n    expect: {max_force: {max: 1}}\n',
      "run: 'lockstpe' is not one of sim, lockstep, realtime (did you mean lockstep?)"),
-    ('  - name: a\n    faults: [sensor_stuck:leg_1@1]\n    expect: {trip: {cause: tracking_eror, within: 9}}\n',
+    ('  - name: a\n    faults: [sensor_stuck:leg_1@1]\n'
+     '    expect: {trip: {cause: tracking_eror, within: 9}}\n',
      "expect.trip.cause: unknown trip cause 'tracking_eror' (did you mean tracking_error?)"),
-    ('  - name: a\n    faults: [sensor_stuck:leg_1@1]\n    expect: {trip: {cause: stroke, whithin: 9}}\n',
+    ('  - name: a\n    faults: [sensor_stuck:leg_1@1]\n'
+     '    expect: {trip: {cause: stroke, whithin: 9}}\n',
      'expect.trip.whithin: unknown key (did you mean within?)'),
     ('  - name: a\n    expect: {trip: {cause: stroke, within: 9}}\n',
      'expect.trip.after: the scenario has no fault to count from'),
@@ -274,7 +276,8 @@ def test_a_law_that_raises_has_every_sample_withheld(tmp_path, capsys):
     ('  - name: a\n    expect: {no_trip: {max: 0}}\n', 'expect.no_trip: expected true'),
     ('  - name: a\n    expect: {no_trpi: true}\n', 'unknown metric (did you mean no_trip?)'),
     ('  - name: a\n    params: {trip_force: 100}\n    expect: {max_force: {max: 1}}\n',
-     'params.trip_force: read by the supervisor, which runs only in a scenario that expects a trip'),
+     'params.trip_force: read by the supervisor, which runs only in a scenario that '
+     'expects a trip'),
     ('  - name: a\n    params: {request_timeout: 1}\n    expect: {no_trip: true}\n',
      'params.request_timeout: the supervisor node\'s only, not sim\'s'),
     ('  - name: a\n    params: {descent_speed: 0.9}\n    expect: {no_trip: true}\n',
@@ -546,8 +549,8 @@ def test_sim_runs_the_supervisor_as_run_supervised_does(tmp_path):
     limits of its params, sample for sample; the limits take effect."""
     from stewart63_ros.core.faults import FaultModel, parse_faults
     from stewart63_ros.core.laws import Controller
-    from stewart63_ros.core.supervisor import limits_from_params, run_supervised, Supervisor
     from stewart63_ros.core.reference import Reference
+    from stewart63_ros.core.supervisor import Supervisor, limits_from_params, run_supervised
     scenario, = scenarios_from_dict({
         'name': 'push', 'duration': 2.5, 'faults': ['actuator_weak:leg_1:0.5@1.0'],
         'wrench': [{'from': 1.5, 'force': [200.0, 0, 0]}],
