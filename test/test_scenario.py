@@ -581,8 +581,8 @@ def test_sim_runs_the_supervisor_as_run_supervised_does(tmp_path):
 
 
 # -- a reference from a topic file ---------------------------------------------------------
-def write_reference_bag(path, times, poses, topic):
-    """A bag holding the motion as one pose_trajectory, or as pose_setpoint messages."""
+def write_reference_bag(path, times, poses, *topics):
+    """A bag holding the motion as one pose_trajectory, and/or as pose_setpoint messages."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from scipy.spatial.transform import Rotation
 
@@ -595,7 +595,7 @@ def write_reference_bag(path, times, poses, topic):
         return t['std_msgs/msg/Header'](stamp=t['builtin_interfaces/msg/Time'](
             sec=ns // 10**9, nanosec=ns % 10**9), frame_id='base')
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        if topic == 'pose_trajectory':
+        if 'pose_trajectory' in topics:
             msg_t = t['trajectory_msgs/msg/MultiDOFJointTrajectory']
             points = [t['trajectory_msgs/msg/MultiDOFJointTrajectoryPoint'](
                 transforms=[t['geometry_msgs/msg/Transform'](
@@ -608,15 +608,15 @@ def write_reference_bag(path, times, poses, topic):
             conn = writer.add_connection('/pose_trajectory', msg_t.__msgtype__, typestore=store)
             msg = msg_t(header=header(5 * 10**9), joint_names=['platform'], points=points)
             writer.write(conn, 5 * 10**9, store.serialize_cdr(msg, msg.__msgtype__))
-            return
-        msg_t = t['geometry_msgs/msg/PoseStamped']
-        conn = writer.add_connection('/pose_setpoint', msg_t.__msgtype__, typestore=store)
-        for s, p, q in zip(times, poses, quats):
-            ns = 7 * 10**9 + int(round(s * 1e9))
-            msg = msg_t(header=header(ns), pose=t['geometry_msgs/msg/Pose'](
-                position=t['geometry_msgs/msg/Point'](*p[:3]),
-                orientation=t['geometry_msgs/msg/Quaternion'](*q)))
-            writer.write(conn, ns, store.serialize_cdr(msg, msg.__msgtype__))
+        if 'pose_setpoint' in topics:
+            msg_t = t['geometry_msgs/msg/PoseStamped']
+            conn = writer.add_connection('/pose_setpoint', msg_t.__msgtype__, typestore=store)
+            for s, p, q in zip(times, poses, quats):
+                ns = 7 * 10**9 + int(round(s * 1e9))
+                msg = msg_t(header=header(ns), pose=t['geometry_msgs/msg/Pose'](
+                    position=t['geometry_msgs/msg/Point'](*p[:3]),
+                    orientation=t['geometry_msgs/msg/Quaternion'](*q)))
+                writer.write(conn, ns, store.serialize_cdr(msg, msg.__msgtype__))
 
 
 @pytest.mark.parametrize('topic', ['pose_trajectory', 'pose_setpoint'])
@@ -644,20 +644,25 @@ def test_a_topic_file_reference_gives_the_csvs_verdicts_and_values(tmp_path, top
     assert bag_trace.trips == csv_trace.trips
 
 
-def test_a_topic_file_without_a_reference_topic_is_one_line_and_exit_2(tmp_path, capsys):
+@pytest.mark.parametrize('folder, expected', [
+    ('empty', 'empty: not a bag (no metadata.yaml)'),
+    ('both', 'both: holds both pose_trajectory and pose_setpoint: a reference is one of them'),
+])
+def test_a_topic_file_it_cannot_follow_is_one_line_and_exit_2(tmp_path, capsys, folder,
+                                                              expected):
     from stewart63_ros.core.reference import read_reference_csv
     times, poses = read_reference_csv(SIX_AXIS)
-    write_reference_bag(tmp_path / 'both', times, poses, 'pose_setpoint')
+    write_reference_bag(tmp_path / 'both', times, poses, 'pose_setpoint', 'pose_trajectory')
     (tmp_path / 'empty').mkdir()
     path = write(tmp_path, """
     scenarios:
       - name: a
-        reference: empty
+        reference: %s
         expect: {max_force: {max: 1}}
-    """)
+    """ % folder)
     assert tool.main(['run', str(path), '--out', str(tmp_path / 'o')]) == 2
     err = capsys.readouterr().err
-    assert err.count('\n') == 1 and 'reference: ' in err and 'empty' in err, err
+    assert err.count('\n') == 1 and 'reference: ' in err and expected in err, err
 
 
 def test_trajectory_poses_turn_twists_into_euler_rates():
