@@ -404,6 +404,10 @@ def test_the_package_suite_passes_and_gives_a_report(tmp_path):
     names = [c.name for s in xml for c in s]
     assert 'paper' in names and 'track-computed_torque' in names
     assert sum(n.startswith('detect[') for n in names) == 4
+    # the supervisor's trips: each provoked cause, and the paper's run without one
+    assert {'paper-supervised', 'trip-sensor_stuck', 'trip-sensor_dropout', 'trip-actuator_dead',
+            'trip-stroke', 'trip-pose_box'} <= set(names)
+    assert sum(n.startswith('trip-detector[') for n in names) == 4
     assert (tmp_path / 'report' / 'report.md').read_text().count('![') == len(names)
 
 
