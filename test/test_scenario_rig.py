@@ -37,12 +37,12 @@ def test_a_trip_expectation_on_the_lockstep_rig_is_sims_trip(ros, tmp_path):
     rig = tool.run_rig(scenario, tmp_path, ros.domain_id)
     sim = run_sim(dataclasses.replace(scenario, run='sim'))
     assert [(t.cause, t.sample, t.latency_samples) for t in rig.trips] == [
-        (t.cause, t.sample, t.latency_samples) for t in sim.trips] == [('lengths_stale', 519, 0)]
+        (t.cause, t.sample, t.latency_samples) for t in sim.trips] == [('lengths_stale', 529, 0)]
     trip = [e for e in scenario.expect if e.metric == 'trip']
     on_rig, in_sim = evaluate(rig, trip)[0], evaluate(sim, trip)[0]
     assert (on_rig.value, on_rig.passed, on_rig.measured) == (
-        in_sim.value, in_sim.passed, in_sim.measured) == (19.0, True, in_sim.measured)
-    assert 'lengths_stale at sample 519' in on_rig.text()
+        in_sim.value, in_sim.passed, in_sim.measured) == (29.0, True, in_sim.measured)
+    assert 'lengths_stale at sample 529' in on_rig.text()
     assert rig.lost_messages == 0
 
 
