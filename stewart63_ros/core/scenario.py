@@ -457,12 +457,10 @@ def parse_wrench(where: str, doc: Any, duration: float) -> tuple[WrenchInterval,
     return tuple(out)
 
 
-#: Supervisor keys ``sim`` runs with (``run_supervised``): the limits and the
-#: homing; ``request_timeout`` (wall clock) and ``trip_on_diagnostics`` act on the rig.
-SIM_SUPERVISOR_KEYS = ('stroke_margin', 'trip_leg_speed', 'trip_force', 'trip_force_rate',
-                       'trip_tracking_error', 'trip_tracking_time', 'pose_box', 'trip_tilt',
-                       'stale_lengths_ms', 'stale_forces_ms', 'descent_speed', 'rest_clearance',
-                       'homing', 'homing_direction', 'homing_speed', 'homing_force')
+#: Supervisor keys ``sim`` runs with (``run_supervised``) besides its limits
+#: (``supervisor.LIMIT_KEYS``); ``request_timeout`` (wall clock) and
+#: ``trip_on_diagnostics`` act on the rig only.
+SIM_HOMING_KEYS = ('homing', 'homing_direction', 'homing_speed', 'homing_force')
 
 
 def _check_params(where: str, params: Mapping, law: str | None, run: str,
@@ -484,7 +482,8 @@ def _check_params(where: str, params: Mapping, law: str | None, run: str,
             if not supervised:
                 raise ScenarioError('%s: read by the supervisor, which runs only in a scenario '
                                     'that expects a trip or no_trip' % at)
-            if run == 'sim' and key not in SIM_SUPERVISOR_KEYS:
+            from stewart63_ros.core.supervisor import LIMIT_KEYS
+            if run == 'sim' and key not in LIMIT_KEYS + SIM_HOMING_KEYS:
                 raise ScenarioError('%s: the supervisor node\'s only, not sim\'s: it takes '
                                     'effect in run: lockstep or realtime' % at)
         elif run == 'sim' and declared is not None and 'sim' not in declared.nodes:
