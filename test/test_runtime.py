@@ -690,3 +690,37 @@ def test_a_refused_publish_is_counted_warned_of_and_not_among_the_final_counts()
     # The next period with no refusal is OK again.
     health.report(Time())
     assert node.statuses[-1].status[0].level == DiagnosticStatus.OK
+
+
+@pytest.mark.parametrize('fast_path', [True, False], ids=['waitset', 'executor'])
+def test_the_recorder_says_its_progress_on_either_path_and_while_nothing_comes(fast_path):
+    """A lockstep plant waits for the recorder's word on how far the recorded
+    leg_lengths got: the executor path (rclpy versions without the fast wait
+    set) must say it too, and a turn with no message repeats it."""
+    from stewart63_ros.recording.recorder import Recorder
+    from stewart63_ros.recording.recorder_intake import Intake
+    from stewart63_ros.runtime.lockstep import ProgressPublisher
+    sent = []
+    progress = ProgressPublisher.__new__(ProgressPublisher)
+    progress.handled_ns, progress._sent_ns, progress._sent_at = -1, -1, -1e9
+    progress.clock = time.monotonic
+    progress._msg = SimpleNamespace(sec=0, nanosec=0)
+    progress.pub = SimpleNamespace(publish=lambda msg: sent.append((msg.sec, msg.nanosec)))
+    intake = Intake.__new__(Intake)
+    intake.progress = progress
+    intake.take_all = lambda: 0
+    rec = Recorder.__new__(Recorder)
+    rec.fast_path, rec.intake, rec.batch_period = fast_path, intake, 0.0
+    rec.subs = SimpleNamespace(wait=lambda _timeout: None)
+    rec._housekeeping = lambda: None
+
+    def executor_turn(timeout_sec):     # a leg_lengths sample written meanwhile
+        progress.note(7 * MS)
+    rec._executor = SimpleNamespace(spin_once=executor_turn)
+    if fast_path:
+        rec.subs.wait = lambda _timeout: progress.note(7 * MS)
+    rec.spin_once(0.0)
+    assert sent == [(0, 7 * MS)]
+    progress._sent_at -= ProgressPublisher.RESEND_PERIOD    # as if that long passed
+    rec.spin_once(0.0)
+    assert sent == [(0, 7 * MS)] * 2
