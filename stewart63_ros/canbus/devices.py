@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import select
 import struct
+import time
 
 import can
 
@@ -95,6 +96,7 @@ class Drive:
 
     def reset_values(self) -> None:
         """Power-on values: the EDS defaults, the state machine at its start."""
+        # lazy: optional: canopen costs {canopen} ms; the simulated bus runs without it
         from canopen.objectdictionary import ODVariable
         self.values: dict[tuple[int, int], int] = {}
         self.vars = {}
@@ -287,6 +289,7 @@ class DeviceSet:
     """
 
     def __init__(self, config: BusConfig, booted=range(6)) -> None:
+        # lazy: optional: canopen costs {canopen} ms; the simulated bus runs without it
         import canopen
         self.config = config
         self.buses = {}
@@ -336,7 +339,6 @@ class DeviceSet:
             try:
                 select.select([b.fileno() for b in self.buses.values()], [], [], timeout)
             except (OSError, NotImplementedError, ValueError):
-                import time
                 time.sleep(min(timeout, 0.001))
             waited = True
 

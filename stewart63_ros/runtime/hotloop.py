@@ -15,6 +15,8 @@ import gc
 import time
 from typing import Protocol
 
+import rclpy
+
 from stewart63_ros.runtime.launcher import STOP
 from stewart63_ros.runtime.rclpy_internals import DirectTake, run_timer_if_ready, take
 
@@ -129,7 +131,6 @@ class HotLoop:
         due) before waiting again: one wake-up per batch instead of one per
         message, for a node nothing waits on (every message is still
         served, in order)."""
-        import rclpy
         self.wait_for_matches()
         direct = self.start_hot_loop(subscription)
         while rclpy.ok() and not STOP.requested:

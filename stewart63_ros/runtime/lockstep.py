@@ -27,7 +27,11 @@ from __future__ import annotations
 
 import time
 
+from builtin_interfaces.msg import Time
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
 from stewart63_ros.core.stamps import stamp_ns
+from stewart63_ros.runtime.launcher import STOP
 
 #: A peer's progress topic, private to the peer's node: ``/<ns>/<node>/lockstep_progress``.
 PROGRESS_TOPIC = 'lockstep_progress'
@@ -35,7 +39,6 @@ PROGRESS_TOPIC = 'lockstep_progress'
 
 def progress_qos():
     """Reliable, volatile, depth 1: only the newest progress matters."""
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                       reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
@@ -45,7 +48,6 @@ class ProgressPublisher:
     """A peer's side: ``note(ns)`` per sample handled, ``publish()`` per batch."""
 
     def __init__(self, node):
-        from builtin_interfaces.msg import Time
         self._msg = Time()
         self.pub = node.create_publisher(Time, '~/' + PROGRESS_TOPIC, progress_qos())
         self.handled_ns = -1
@@ -84,7 +86,6 @@ class PeerWindow:
     """
 
     def __init__(self, node, peers: list[str], window: int, period_ns: int, timeout: float):
-        from builtin_interfaces.msg import Time
         self.node = node
         self.window = int(window)
         self.period_ns = int(period_ns)
@@ -147,7 +148,6 @@ class PeerWindow:
         ``timeout`` s. Returns False if a stop was requested meanwhile."""
         if ns - self.window_ns <= self.slowest:     # the usual case, per sample
             return True
-        from stewart63_ros.runtime.launcher import STOP
         late = self.behind(ns)
         if not late:
             return True
