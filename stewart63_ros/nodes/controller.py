@@ -30,6 +30,7 @@ import sys
 import time
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
@@ -45,7 +46,12 @@ from stewart63_ros.core.reference import (
     load_reference,
     tracking_summary,
 )
-from stewart63_ros.core.rotation import euler_rate_matrix
+from stewart63_ros.core.rotation import (
+    euler_from_quaternion,
+    euler_rate_matrix,
+    rotation_from_euler,
+    rotation_from_quaternion,
+)
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode
@@ -59,6 +65,7 @@ from stewart63_ros.runtime.checks import (
     stamp_ns,
 )
 from stewart63_ros.runtime.commands import CommandInput
+from stewart63_ros.runtime.handshake import plant_run
 from stewart63_ros.runtime.launcher import run
 from stewart63_ros.runtime.rclpy_internals import raw_publisher, take, take_with_info
 
@@ -83,7 +90,6 @@ def reference_from_trajectory(mech, msg, max_leg_speed=0.0, max_leg_acceleration
     (twist, base frame) and accelerations used when every point has them
     (quintic Hermite pieces with both, cubic Hermite with velocities only),
     otherwise the poses are splined as a reference CSV is (clamped cubic)."""
-    from stewart63_ros.core.rotation import euler_from_quaternion
     if list(msg.joint_names) != [PLATFORM_JOINT]:
         raise Rejected('unknown_joint_names', 'joint_names must be [%r], got %s'
                        % (PLATFORM_JOINT, list(msg.joint_names)))
@@ -188,7 +194,6 @@ class ControllerNode(RigNode):
         # ("run: ended", "run: paused", "run: reset"): the silence that
         # follows is then not a lost sensor. Its "run_number" goes up on a
         # reset: a new run, whose reference starts again at its first sample.
-        from diagnostic_msgs.msg import DiagnosticArray
         self.plant_status = topics.status_name(topics.node_full_name(self.get_namespace(),
                                                                      'plant'))
         self.source_ended = False       # or why the plant is silent: 'ended', 'paused', ...
@@ -208,7 +213,6 @@ class ControllerNode(RigNode):
     def _warm_up(self, name=None):
         """Load the compiled kernels of law ``name`` (default: the active one), on a
         throwaway copy: the first sample must not wait for them."""
-        from stewart63_ros.core.rotation import rotation_from_euler
         mech = self.mech
         rot = rotation_from_euler(mech.initial_orientation)
         lengths = leg_lengths(mech, mech.initial_position, rot)
@@ -354,7 +358,6 @@ class ControllerNode(RigNode):
         self.setpoint_gate.accept(ns)
 
     def on_pose_setpoint(self, msg: PoseStamped):
-        from stewart63_ros.core.rotation import rotation_from_quaternion
         self.health.received[topics.POSE_SETPOINT] += 1
         p = msg.pose.position
         try:
@@ -389,7 +392,6 @@ class ControllerNode(RigNode):
     SILENT_RUN = ('ended', 'paused', 'reset')
 
     def on_diagnostics(self, msg):
-        from stewart63_ros.runtime.handshake import plant_run
         said = plant_run(msg, self.plant_status)
         run = said.get('run')
         if run in self.SILENT_RUN:
