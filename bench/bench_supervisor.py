@@ -14,12 +14,15 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import tempfile
 import time
 
 import numpy as np
+from bench_loop import PAIR, private_domain
 
 from stewart63_ros.core.params import default_params_path, load_mechanism
 from stewart63_ros.core.supervisor import run_supervised, supervisor_from_params
+from stewart63_ros.tools.rig import Rig
 
 
 def per_sample_us(samples: int = 5000) -> dict:
@@ -52,7 +55,6 @@ def per_sample_us(samples: int = 5000) -> dict:
 
 def rig_throughput(duration: float, repeat: int) -> dict:
     """Lockstep samples per second, plant + controller, supervisor out and in."""
-    from bench_loop import PAIR, private_domain
     results = {'out': [], 'in': []}
     with private_domain():
         for _ in range(repeat):
@@ -65,9 +67,6 @@ def rig_throughput(duration: float, repeat: int) -> dict:
 
 
 def run_rig(duration, nodes, supervisor):
-    import tempfile
-
-    from stewart63_ros.tools.rig import Rig
     log_dir = tempfile.mkdtemp(prefix='bench_supervisor_')
     rig = Rig(default_params_path(), 'lockstep', duration, nodes=nodes, log_dir=log_dir,
               supervisor=supervisor)
