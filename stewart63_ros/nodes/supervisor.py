@@ -24,7 +24,12 @@ import sys
 import time
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rcl_interfaces.srv import SetParameters
+from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
 
 from stewart63_ros import topics
 from stewart63_ros.core.supervisor import LIMIT_KEYS, limits_from_params, supervisor_from_params
@@ -84,9 +89,6 @@ class SupervisorNode(RigNode):
                                                     self.on_sample, topics.LATEST_SUB, raw=True)
         self.sub_requests = self.create_subscription(JointState, REQUEST_TOPIC,
                                                      self.on_request, topics.EVERY_SUB, raw=True)
-        from diagnostic_msgs.msg import DiagnosticArray
-        from std_msgs.msg import String
-        from std_srvs.srv import Trigger
         self.sub_diagnostics = self.create_subscription(
             DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics, topics.DIAGNOSTICS_QOS)
         self.sub_trip = self.create_subscription(String, TRIP_TOPIC, self.on_trip_request,
@@ -97,7 +99,6 @@ class SupervisorNode(RigNode):
         own = topics.node_full_name(self.get_namespace(), 'x')
         self.rig_prefix = topics.status_name(own[:-1])
         if self.core.homing is not None:
-            from rcl_interfaces.srv import SetParameters
             self.plant_parameters = self.create_client(SetParameters, '%s/set_parameters' % (
                 topics.node_full_name(self.get_namespace(), 'plant')))
             self.health.values['homed'] = 'false'
@@ -190,7 +191,6 @@ class SupervisorNode(RigNode):
         """A node of this rig whose status turns ERROR (or names a new error)
         trips; one that stays in the same ERROR does not trip again, and a
         reset after such a trip is refused until no node of the rig is in ERROR."""
-        from diagnostic_msgs.msg import DiagnosticStatus
         for status in msg.status:
             name = status.name
             if name == self.health.status_name or not name.startswith(self.rig_prefix) \
@@ -258,8 +258,6 @@ class SupervisorNode(RigNode):
 
     def set_plant_zero(self, zero) -> str:
         """``homed_offset`` of the plant of this namespace; '' or why it failed."""
-        from rcl_interfaces.srv import SetParameters
-        from rclpy.parameter import Parameter
         client = self.plant_parameters
         if not client.wait_for_service(timeout_sec=5.0):
             return '%s: no such service' % client.srv_name
