@@ -54,6 +54,9 @@ import numpy as np
 import yaml
 
 from stewart63_ros.core.errors import ParameterError
+from stewart63_ros.core.faults import FaultError, FaultModel, parse_faults
+from stewart63_ros.core.node_parameters import BY_NAME
+from stewart63_ros.core.node_parameters import read as read_declared
 
 #: Where a scenario runs.
 RUN_MODES = ('sim', 'lockstep', 'realtime')
@@ -346,7 +349,7 @@ def parse_wrench(where: str, doc: Any, duration: float) -> tuple[WrenchInterval,
 
 
 def _check_params(where: str, params: Mapping, law: str | None, run: str) -> dict:
-    from stewart63_ros.core.node_parameters import BY_NAME
+    # lazy: core.params costs {core.params} ms (numba); scenario --help, pytest
     from stewart63_ros.core.params import known_keys
     known = sorted(known_keys({'control_law': law} if law else None))
     out = {}
@@ -402,6 +405,7 @@ def parse_scenario(doc: Any, where: str, base: Path, source: str = '') -> Scenar
     if law is not None and not isinstance(law, str):
         raise ScenarioError('%s.control_law: expected a name, got %r' % (where, law))
     params = _check_params(where, _mapping(where + '.params', doc.get('params') or {}), law, run)
+    # lazy: core.params costs {core.params} ms (numba); scenario --help, pytest
     from stewart63_ros.core.params import default_params_path
     params_file = (_resolve(base, doc['params_file']) if doc.get('params_file')
                    else str(default_params_path()))
@@ -411,7 +415,6 @@ def parse_scenario(doc: Any, where: str, base: Path, source: str = '') -> Scenar
         faults = [faults]
     if not isinstance(faults, list) or not all(isinstance(f, str) for f in faults):
         raise ScenarioError('%s.faults: expected a list of fault strings' % where)
-    from stewart63_ros.core.faults import FaultError, parse_faults
     try:
         parse_faults(faults)
     except FaultError as exc:
@@ -547,6 +550,7 @@ def load_scenarios(path: str | os.PathLike) -> list[Scenario]:
 def _file_section(path: str, node: str, mtime_ns: int) -> Mapping[str, Any]:
     """A node's parameters of a file, read once per version of the file (YAML
     parsing would otherwise cost more than a 10 s run)."""
+    # lazy: core.params costs {core.params} ms (numba); scenario --help, pytest
     from stewart63_ros.core.params import read_parameter_file
     return read_parameter_file(path, node)
 
@@ -590,6 +594,7 @@ def build_plant(scenario: Scenario) -> Any:
     Raises:
         ScenarioError: a parameter value the validation refuses (its key named).
     """
+    # lazy: core.params costs {core.params} ms (numba); scenario --help, pytest
     from stewart63_ros.core.params import mechanism_from_params
     try:
         return mechanism_from_params(node_parameters(scenario, 'plant'))
@@ -610,8 +615,8 @@ def build_controller(scenario: Scenario) -> tuple[Any, Any]:
     Raises:
         ScenarioError: the law cannot be built, the reference is refused.
     """
+    # lazy: the core's kernels cost {core.sweep} ms (numba); scenario --help, pytest
     from stewart63_ros.core.laws import Controller
-    from stewart63_ros.core.node_parameters import read as read_declared
     from stewart63_ros.core.params import mechanism_from_params
     from stewart63_ros.core.reference import ReferenceError, load_reference
     params = node_parameters(scenario, 'controller')
@@ -665,6 +670,7 @@ class _Withholding:
 
     def forces(self, t: float, lengths: np.ndarray, rates: np.ndarray) -> np.ndarray:
         """The law's forces, or the previous ones when the law raises."""
+        # lazy: core.laws costs {core.laws} ms (numba); scenario --help, pytest
         from stewart63_ros.core.laws import LawError
         try:
             self.held = self.controller.forces(t, lengths, rates)
@@ -690,10 +696,9 @@ def run_sim(scenario: Scenario) -> Trace:
         ScenarioError: the parameters, law or reference are refused.
         RuntimeError: the simulation diverged (non-finite state).
     """
+    # lazy: the core's kernels cost {core.sweep} ms (numba); scenario --help, pytest
     from stewart63_ros.core.dynamics import Dynamics
-    from stewart63_ros.core.faults import FaultModel, parse_faults
     from stewart63_ros.core.laws import PDLaw
-    from stewart63_ros.core.node_parameters import read as read_declared
     from stewart63_ros.core.simulate import run_sampled
     mech = build_plant(scenario)
     controller, reference = build_controller(scenario)
@@ -716,6 +721,7 @@ def run_sim(scenario: Scenario) -> Trace:
                          faults=faults, wrench=wrenches)
     if not np.all(np.isfinite(result.states)):
         raise RuntimeError('the simulation diverged (non-finite state)')
+    # lazy: core.sweep costs {core.sweep} ms (numba, scipy.optimize)
     from stewart63_ros.core.sweep import leg_lengths_of_states
     lengths = leg_lengths_of_states(dyn.base_points, dyn.leg_points, result.states)
     withheld = np.zeros(len(times), bool)
@@ -737,6 +743,7 @@ def build_controller_mechanism(scenario: Scenario) -> Any:
     Raises:
         ScenarioError: a parameter value the validation refuses.
     """
+    # lazy: core.params costs {core.params} ms (numba); scenario --help, pytest
     from stewart63_ros.core.params import mechanism_from_params
     try:
         return mechanism_from_params(node_parameters(scenario, 'controller'))
@@ -758,6 +765,7 @@ def reference_lengths(scenario: Scenario, reference: Any, times: np.ndarray) -> 
     if reference is None:
         mech = build_controller_mechanism(scenario)
         return np.tile(np.asarray(mech.setpoint_lengths, float), (len(times), 1))
+    # lazy: core.reference costs {core.reference} ms (numba)
     from stewart63_ros.core.reference import R_LEN
     return reference.sample_many(times)[:, R_LEN]
 
@@ -817,6 +825,7 @@ def measure(trace: Trace, exp: Expectation) -> tuple[float, float | None, tuple[
     if metric == 'tracking_error_max_m':
         return float(per_sample.max()), _first_over(t, per_sample, exp), window
     if metric == 'settling_time_s':
+        # lazy: core.sweep costs {core.sweep} ms (numba, scipy.optimize)
         from stewart63_ros.core.sweep import settling_time
         value = settling_time(t, lengths)
         return value, (None if _passes(value, exp) else
