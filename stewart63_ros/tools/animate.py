@@ -26,10 +26,9 @@ class Animator:
         matplotlib.use('Agg')
         import matplotlib.pyplot as plt  # lazy: pyplot costs {mpl} ms; only a figure needs it
 
-        # lazy: mplot3d costs {mplot3d} ms; only --animate needs it
+        # lazy: mplot3d, core.rotation cost {mplot3d+rotation} ms; only --animate needs them
         from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-        # lazy: core.rotation costs {core.rotation} ms; plot imports animate
         from stewart63_ros.core.rotation import rotation_from_euler
         self.plt = plt
         self.mech = mech

@@ -160,10 +160,8 @@ class Rig:
             if key in plant:
                 bridge[key] = plant[key] if key == 'duration' else plant.pop(key)
         plant['io'] = 'canopen'
-        # lazy: numpy costs {numpy} ms; --help answers without it
+        # lazy: core.params costs {core.params} ms (numba); --help answers without it
         from stewart63_ros.core.bus import load_bus_config
-
-        # lazy: core.params costs {core.params} ms (numba); --help answers
         from stewart63_ros.core.params import file_parameters
         config_file = file_parameters(self.params).get('bus_config') or None
         buses = load_bus_config(config_file).buses
@@ -553,10 +551,8 @@ def main(argv=None) -> int:
         parser.error('--bus canopen starts the bridge beside the plant: it needs plant in '
                      '--nodes, and separate processes (not --compose)')
     if args.bus:
-        # lazy: numpy costs {numpy} ms; --help answers without it
+        # lazy: core.params costs {core.params} ms (numba); --help answers without it
         from stewart63_ros.core.bus import BusConfigError, load_bus_config
-
-        # lazy: core.params costs {core.params} ms (numba); --help answers
         from stewart63_ros.core.params import file_parameters
         try:     # fail here, with the reason, not in two processes
             load_bus_config(file_parameters(params).get('bus_config') or None)

@@ -225,8 +225,6 @@ def run_one(scenario, keep_trace: bool = True, domain: int | None = None) -> Out
     """One scenario, its verdicts (a run that fails: every verdict fails, with the reason)."""
     # lazy: core.laws costs {core.laws} ms (numba); --help answers
     from stewart63_ros.core.laws import LawError
-
-    # lazy: core.scenario costs {core.scenario} ms; --help answers without
     from stewart63_ros.core.scenario import ScenarioError, evaluate, failed_run_verdicts, run_sim
     start = time.perf_counter()
     try:
