@@ -88,7 +88,7 @@ class Client:
         self.draw = draw
         self.received = 0
         if draw:
-            # lazy: optional (a test dependency): playwright costs {playwright} ms
+            # lazy: optional (a test dependency): playwright costs 78 ms
             from playwright.sync_api import sync_playwright
             self._pw = sync_playwright().start()
             self.ctx = self._pw.chromium.launch_persistent_context(

@@ -6,6 +6,7 @@ from __future__ import annotations
 import fcntl
 import os
 import sys
+import tempfile
 from pathlib import Path
 
 #: The clock mode a rig runs in unless told otherwise (``rig --mode``, ``demo
@@ -21,7 +22,7 @@ def default_params_path() -> Path:
     """Where the packaged ``config/stewart63.yaml`` is, installed or in a checkout."""
     candidates = []
     try:  # a colcon / ROS install
-        # lazy: optional, a ROS install only: ament_index_python costs {ament} ms
+        # lazy: optional, a ROS install only: ament_index_python costs 3 ms
         from ament_index_python.packages import get_package_share_directory
         candidates.append(Path(get_package_share_directory('stewart63_ros')) / 'config')
     except Exception:  # noqa: BLE001 - not a ROS install, or package not indexed
@@ -37,8 +38,6 @@ def default_params_path() -> Path:
 def domain_lock_dir() -> Path:
     """The lock files by which processes on this machine lease ROS domain ids
     (test/ros_harness.py, the benchmarks, ``scenario``)."""
-    # lazy: tempfile (bz2, lzma, random, shutil) costs 30 ms; every tool imports paths
-    import tempfile
     return Path(tempfile.gettempdir()) / 'stewart63_ros_domains'
 
 

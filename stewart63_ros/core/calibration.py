@@ -534,7 +534,7 @@ def fit(mech: Mechanism, meas: Measurements, noise: NoiseModel | None = None,
         CalibrationError: too few poses, poses that leave a combination
             unidentifiable (named), a fit that does not converge.
     """
-    # lazy: scipy.optimize costs {scipy.optimize} ms; only a fit needs it
+    # lazy: scipy.optimize costs 968 ms; only a fit needs it
     from scipy.optimize import least_squares
     noise = noise or NoiseModel()
     if meas.count < MIN_POSES:

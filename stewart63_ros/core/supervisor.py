@@ -692,7 +692,7 @@ def run_supervised(mech: Mechanism, supervisor: Supervisor, duration: float, rat
         (N, 6), 'forces' (N, 6) sent [N], 'requests' (N, 6) the controller's
         (NaN: none)}, N = duration * rate + 1.
     """
-    # lazy: core.simulate costs {core.simulate} ms (scipy.optimize); the node never runs it
+    # lazy: core.simulate costs 990 ms (scipy.optimize); the node never runs it
     from stewart63_ros.core.simulate import initial_state, sensor_reading, substeps_for
     if not isinstance(faults, FaultModel):
         faults = FaultModel(parse_faults(faults or []), rate)

@@ -757,7 +757,7 @@ def check_scheduler_address(address: str) -> str:
         SweepError: not an address with a host and a port (the reason).
         ImportError: ``distributed`` is not installed.
     """
-    # lazy: optional: distributed costs {distributed} ms; only --scheduler
+    # lazy: optional: distributed costs 543 ms; only --scheduler
     from distributed.comm import parse_address
     from distributed.comm.addressing import parse_host_port
     try:
@@ -772,7 +772,7 @@ def check_scheduler_address(address: str) -> str:
 
 def _run_chunk_on_worker(plan: SweepPlan, chunk) -> tuple[str, list[dict[str, Any]]]:
     """``run_chunk`` on a Dask worker, with the worker's address (who ran it)."""
-    # lazy: optional: distributed costs {distributed} ms; only --scheduler
+    # lazy: optional: distributed costs 543 ms; only --scheduler
     from distributed import get_worker
     return get_worker().address, run_chunk(plan, chunk)
 
@@ -823,7 +823,7 @@ def run_dask_report(plan: SweepPlan, values: np.ndarray, scheduler: str | None =
         SweepError: the cluster lost runs it could not do again (every
             worker gone, or a run's worker killed too often).
     """
-    # lazy: optional: distributed costs {distributed} ms; only --scheduler
+    # lazy: optional: distributed costs 543 ms; only --scheduler
     from distributed import Client, LocalCluster
     cluster = None
     if scheduler is None:

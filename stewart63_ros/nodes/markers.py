@@ -221,7 +221,7 @@ class MarkerPublisher:
     @staticmethod
     def _tf_publisher(node):
         try:
-            # lazy: optional, a ROS install only: tf2_msgs costs {tf2} ms
+            # lazy: optional: tf2_msgs comes with a ROS install, not the wheels
             from tf2_msgs.msg import TFMessage
         except ImportError:        # the Python wheels have no tf2_msgs: markers only
             return None
@@ -292,7 +292,7 @@ class MarkerPublisher:
             self.tf_pub.publish(self._transform(sec, nanosec, position, rotation))
 
     def _transform(self, sec, nanosec, position, rotation):
-        # lazy: optional, a ROS install only: tf2_msgs costs {tf2} ms
+        # lazy: optional: tf2_msgs comes with a ROS install, not the wheels
         from tf2_msgs.msg import TFMessage
 
         tf = TransformStamped()

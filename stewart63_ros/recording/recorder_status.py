@@ -33,7 +33,7 @@ class LossCount:
         """The checks.SkipCounter of ``topic``: gaps in each publisher's numbers."""
         counter = self._skips.get(topic)
         if counter is None:
-            # lazy: runtime.checks costs {rt.checks} ms (numba); record starts without
+            # lazy: runtime.checks costs 1462 ms (numba); record starts without
             from stewart63_ros.runtime.checks import SkipCounter
             counter = self._skips[topic] = SkipCounter()
         return counter

@@ -46,9 +46,9 @@ def draw_figure(columns: dict, out_path, title: str = '', reference: dict | None
     sag of the legs below or above them shows. ``faults``: dicts with
     ``fault``, ``active_from_s`` and ``active_until_s`` (None: to the end;
     times from the first sample), shaded on every panel."""
-    import matplotlib  # lazy: matplotlib costs {mpl0} ms; only a figure needs it
+    import matplotlib  # lazy: matplotlib costs 425 ms; only a figure needs it
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt  # lazy: pyplot costs {mpl} ms; only a figure needs it
+    import matplotlib.pyplot as plt  # lazy: pyplot costs 794 ms; only a figure needs it
 
     t = columns['t']
     panels = 3 if reference is None else 4
@@ -79,7 +79,7 @@ def draw_figure(columns: dict, out_path, title: str = '', reference: dict | None
         axes[2].plot(t, columns[name], label=label)
     axes[2].set_ylabel('orientation [rad]')
     if reference is not None:
-        # lazy: scipy.interpolate costs {scipy.interpolate} ms; only a figure needs it
+        # lazy: scipy.interpolate costs 825 ms; only a figure needs it
         from scipy.interpolate import CubicSpline
         names = ('x', 'y', 'z', 'theta_x', 'theta_y', 'theta_z')
         rt = np.asarray(reference['t'], float)
@@ -140,7 +140,7 @@ def load_faults(source, run=None) -> list | None:
     if not is_bag(source):
         path = (source if source.is_dir() else source.parent) / 'faults.json'
         return json.loads(path.read_text()) if path.is_file() else None
-    # lazy: bagio costs {bagio} ms (tempfile, csv); plot --help needs no bag
+    # lazy: bagio costs 197 ms (tempfile, csv); plot --help needs no bag
     from stewart63_ros import bagio
     if run is None:
         runs = bagio.bag_runs(source)
@@ -178,7 +178,7 @@ def load_columns(source, run=None) -> dict:
         if (source / 'trajectory.csv').is_file() and not (source / 'metadata.yaml').exists():
             source = source / 'trajectory.csv'
         else:
-            # lazy: bagio costs {bagio} ms (tempfile, csv); plot --help needs no bag
+            # lazy: bagio costs 197 ms (tempfile, csv); plot --help needs no bag
             from stewart63_ros.bagio import trajectory_from_bag
             return trajectory_from_bag(source, run=run)
     return read_csv(source)
@@ -190,11 +190,11 @@ def source_runs(source, number=None) -> list:
     ``number`` (``--run``). Raises BagError for a run the bag does not hold."""
     if not is_bag(source):
         if number is not None:
-            # lazy: bagio costs {bagio} ms (tempfile, csv); plot --help needs no bag
+            # lazy: bagio costs 197 ms (tempfile, csv); plot --help needs no bag
             from stewart63_ros.bagio import BagError
             raise BagError('--run is for a bag; %s is a trajectory of one run' % source)
         return [None]
-    # lazy: bagio costs {bagio} ms (tempfile, csv); plot --help needs no bag
+    # lazy: bagio costs 197 ms (tempfile, csv); plot --help needs no bag
     from stewart63_ros import bagio
     runs = bagio.bag_runs(source)
     if number is not None or not runs:
@@ -254,7 +254,7 @@ def main(argv=None) -> int:
         return animate_main(parser, args, source)
     if args.fps != 15.0:
         parser.exit(2, 'plot: error: --fps goes with --animate\n')
-    # lazy: bagio costs {bagio} ms (tempfile, csv); plot --help needs no bag
+    # lazy: bagio costs 197 ms (tempfile, csv); plot --help needs no bag
     from stewart63_ros.bagio import BagError
     reference = None
     ref_path = Path(args.reference) if args.reference else (
@@ -263,7 +263,7 @@ def main(argv=None) -> int:
         runs = source_runs(source, args.run)
         drawn = [(run, load_columns(source, run), load_faults(source, run)) for run in runs]
         if args.reference or ref_path.is_file():
-            # lazy: core.reference costs {core.reference} ms (numba); only --reference
+            # lazy: core.reference costs 570 ms (numba); only --reference
             from stewart63_ros.core.reference import CSV_COLUMNS, read_reference_csv
             times, poses = read_reference_csv(ref_path)
             reference = dict(zip(CSV_COLUMNS, np.column_stack([times, poses]).T))
@@ -294,7 +294,7 @@ def main(argv=None) -> int:
 
 
 def animate_main(parser, args, source) -> int:
-    # lazy: bagio costs {bagio} ms (tempfile, csv); plot --help needs no bag
+    # lazy: bagio costs 197 ms (tempfile, csv); plot --help needs no bag
     from stewart63_ros.bagio import BagError
     if not 0 < args.fps <= 60:
         parser.exit(2, 'plot: error: --fps must be in (0, 60]\n')

@@ -114,7 +114,7 @@ class Rig:
     def overlay(self) -> Path:
         """A second parameter file with what the rig decides; it comes after the
         user's file, so it wins over the user's node sections (a ``-p`` does not)."""
-        # lazy: rclpy costs {rclpy} ms; --help answers without it
+        # lazy: rclpy costs 302 ms; --help answers without it
         from stewart63_ros.runtime.handshake import plant_startup_parameters
         # Who waits for whom before the first sample: runtime/handshake.py.
         shared = {'clock_mode': self.mode, 'wait_for_subscribers': 1 if self.record else 0}
@@ -146,7 +146,7 @@ class Rig:
             section = doc.setdefault('/**/%s' % node, {'ros__parameters': dict(shared)})
             section['ros__parameters'].update(values)
         path = self.log_dir / 'rig_params.yaml'
-        import yaml  # lazy: yaml costs {yaml} ms; --help answers without it
+        import yaml  # lazy: yaml costs 76 ms; --help answers without it
         path.write_text(yaml.safe_dump(doc, sort_keys=False))
         return path
 
@@ -160,7 +160,7 @@ class Rig:
             if key in plant:
                 bridge[key] = plant[key] if key == 'duration' else plant.pop(key)
         plant['io'] = 'canopen'
-        # lazy: core.params costs {core.params} ms (numba); --help answers without it
+        # lazy: core.params costs 715 ms (numba); --help answers without it
         from stewart63_ros.core.bus import load_bus_config
         from stewart63_ros.core.params import file_parameters
         config_file = file_parameters(self.params).get('bus_config') or None
@@ -176,7 +176,7 @@ class Rig:
         args = ['--ros-args', '--params-file', self.params] + own + [
             '--params-file', str(self.overlay())]
         if self.supervisor and name == 'controller':
-            # lazy: the node costs {supervisor} ms; --help answers without it
+            # lazy: the node costs 1050 ms; --help answers without it
             from stewart63_ros.nodes.supervisor import REQUEST_TOPIC
             args += ['-r', '%s:=%s' % ('leg_forces', REQUEST_TOPIC)]
         if self.namespace:
@@ -204,7 +204,7 @@ class Rig:
                 argv += ['--record', str(self.record)]
             self.spawn('composed', argv + self.ros_args('composed'))
             return
-        # lazy: rclpy costs {rclpy} ms; --help answers without it
+        # lazy: rclpy costs 302 ms; --help answers without it
         from stewart63_ros.runtime.handshake import MATCHED_LINE, READY_LINE, recorder_waits_for
         downstream = [n for n in self.nodes if n != 'plant']
         wanted = recorder_waits_for(self.nodes)
@@ -360,7 +360,7 @@ def supervised(doc: dict, plant: dict, shared: dict, log_dir: Path) -> None:
     to every sample (a sample with a missing reading too), and applies zero
     force once its newest answers a sample older than ``stale_forces_ms``
     (the supervisor's default: the plant fails safe when the supervisor dies)."""
-    # lazy: numpy costs {numpy} ms; --help answers without it
+    # lazy: numpy costs 50 ms; --help answers without it
     from stewart63_ros.core.node_parameters import default
     plant['lengths_subscribers'] += 1
     plant['lengths_peers'] = plant['lengths_peers'] + ['supervisor']
@@ -475,7 +475,7 @@ def main(argv=None) -> int:
         return 2
     params = args.params or str(default_params_path())
     if args.view:
-        # lazy: tools.view costs {tools.view} ms; only --view needs it
+        # lazy: tools.view costs 2255 ms; only --view needs it
         from stewart63_ros.tools.view import port_free
         problem = port_free('127.0.0.1', args.view_port) if 0 <= args.view_port <= 65535 \
             else '--view-port must be from 0 to 65535'
@@ -493,7 +493,7 @@ def main(argv=None) -> int:
     if args.fault and 'plant' not in nodes_arg(args.nodes):
         parser.error('--fault acts in the plant: it needs plant in --nodes')
     if 'plant' in nodes_arg(args.nodes):
-        # lazy: tools.sim costs {tools.sim} ms (numba); only --fault needs it
+        # lazy: tools.sim costs 1092 ms (numba); only --fault needs it
         from stewart63_ros.core.faults import FaultError
         from stewart63_ros.tools.sim import fault_list
         try:     # the file's faults and --fault's: fail here, with the reason, not in the plant
@@ -512,7 +512,7 @@ def main(argv=None) -> int:
         parser.error('--duration must be positive')
     extra = {}
     if args.control_law or args.reference:
-        # lazy: tools.sim costs {tools.sim} ms (numba); only --reference
+        # lazy: tools.sim costs 1092 ms (numba); only --reference
         from stewart63_ros.core.reference import ReferenceError
         from stewart63_ros.tools.sim import make_controller
         try:     # fail here, with the reason, not in the controller
@@ -551,7 +551,7 @@ def main(argv=None) -> int:
         parser.error('--bus canopen starts the bridge beside the plant: it needs plant in '
                      '--nodes, and separate processes (not --compose)')
     if args.bus:
-        # lazy: core.params costs {core.params} ms (numba); --help answers without it
+        # lazy: core.params costs 715 ms (numba); --help answers without it
         from stewart63_ros.core.bus import BusConfigError, load_bus_config
         from stewart63_ros.core.params import file_parameters
         try:     # fail here, with the reason, not in two processes
@@ -613,7 +613,7 @@ def plant_params_problem(args, params) -> str:
         return 'the composed nodes share one process and its files: not with --compose'
     if 'plant' not in nodes_arg(args.nodes):
         return 'it is the plant\'s file: it needs plant in --nodes'
-    # lazy: core.params costs {core.params} ms (numba); --help answers
+    # lazy: core.params costs 715 ms (numba); --help answers
     from stewart63_ros.core.params import mechanism_from_params, read_parameter_file
     try:
         merged = read_parameter_file(params, 'plant')
@@ -674,13 +674,13 @@ def print_summary(rig, wall, started_unix=None):
         if summary.get('skipped'):
             print('  plant skipped (never received): %s' % _counts(summary['skipped']))
         if 'tracking_error' in summary:
-            # lazy: tools.sim costs {tools.sim} ms (numba); --help answers
+            # lazy: tools.sim costs 1092 ms (numba); --help answers
             from stewart63_ros.tools.sim import format_tracking
             print('  ' + format_tracking(summary['tracking_error']))
         if summary.get('resets'):
             print('  resets %d (this summary is of run %d)' % (summary['resets'],
                                                               summary['run_number']))
-        # lazy: tools.sim costs {tools.sim} ms (numba); --help answers
+        # lazy: tools.sim costs 1092 ms (numba); --help answers
         from stewart63_ros.tools.sim import format_fault
         for fault in summary.get('faults', ()):
             print('  ' + format_fault(fault))
