@@ -45,13 +45,9 @@ from stewart63_ros.core.reference import (
     accumulate_tracking,
     load_reference,
     tracking_summary,
+    trajectory_poses,
 )
-from stewart63_ros.core.rotation import (
-    euler_from_quaternion,
-    euler_rate_matrix,
-    rotation_from_euler,
-    rotation_from_quaternion,
-)
+from stewart63_ros.core.rotation import rotation_from_euler, rotation_from_quaternion
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode
@@ -67,7 +63,7 @@ from stewart63_ros.runtime.checks import (
 from stewart63_ros.runtime.commands import CommandInput
 from stewart63_ros.runtime.handshake import plant_run
 from stewart63_ros.runtime.launcher import run
-from stewart63_ros.runtime.rclpy_internals import raw_publisher, take, take_with_info
+from stewart63_ros.runtime.rclpy_internals import take, take_with_info
 
 #: The one joint of a pose_trajectory.
 PLATFORM_JOINT = 'platform'
@@ -117,20 +113,7 @@ def reference_from_trajectory(mech, msg, max_leg_speed=0.0, max_leg_acceleration
                 lin, ang = items[0].linear, items[0].angular
                 arr[k] = finite_vector([lin.x, lin.y, lin.z, ang.x, ang.y, ang.z], 6,
                                        'point %d twist' % k)
-    # theta continuous from point to point (no 2 pi jumps)
-    poses[:, 3:] = np.unwrap(euler_from_quaternion(quats), axis=0)
-    rates = accs = None
-    if twists is not None:
-        # dtheta/dt = E^-1 omega; ddtheta = E^-1 (alpha - dE/dt dtheta), per point
-        rates = twists.copy()
-        accs = accels.copy() if accels is not None else None
-        for k in range(n):
-            e = euler_rate_matrix(poses[k, 3:])
-            rates[k, 3:] = np.linalg.solve(e, twists[k, 3:])
-            if accs is not None:
-                h = 1e-7
-                de = (euler_rate_matrix(poses[k, 3:] + h * rates[k, 3:]) - e) / h
-                accs[k, 3:] = np.linalg.solve(e, accels[k, 3:] - de @ rates[k, 3:])
+    poses, rates, accs = trajectory_poses(poses[:, :3], quats, twists, accels)
     try:
         ref = Reference.from_poses(mech, times, poses, rates, accs)
         ref.check(max_leg_speed, max_leg_acceleration)
@@ -179,7 +162,7 @@ class ControllerNode(RigNode):
         self.pub_forces = self.publisher(JointState, topics.LEG_FORCES, topics.STREAM_PUB)
         self.forces_out = wire.JointStateTemplates(('effort',))
         self.forces_out.get('base')             # made now, not on the first sample
-        self.send_forces = raw_publisher(self.pub_forces)
+        self.send_forces = self.health.sender(topics.LEG_FORCES, self.pub_forces)
         wire.warm_up(('position', 'velocity'))
         # Serialized samples in, serialized forces out: see runtime/wire.py.
         self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
@@ -287,7 +270,6 @@ class ControllerNode(RigNode):
             self.on_law_error(exc)
             return
         self.send_forces(self.forces_out.get(frame_id).fill(sec, nanosec, effort=force))
-        self.health.published[topics.LEG_FORCES] += 1
         estimate = self.control.estimate
         if estimate is None:
             accumulate_tracking(self.tracking, lengths, self.control.sample.array, lengths,

@@ -117,15 +117,22 @@ def write_parameter_file(scenario, path: Path) -> None:
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
 
 
-def trace_from_rig(scenario, bag: Path, summary: dict):
+def trace_from_rig(scenario, bag: Path, summary: dict, trips: list | None = None):
     """The ``Trace`` of a rig run from its bag (ground truth, leg_lengths,
-    leg_forces) and the plant's summary."""
+    leg_forces), the plant's summary and the supervisor's trips (its summary's
+    ``trips``: cause, sample, latency_samples, detail)."""
     # lazy: numpy and the core cost 692 ms; only a rig run needs them
     import numpy as np
 
     from stewart63_ros.bagio import header_stamp_ns, read_messages
     from stewart63_ros.core.dynamics import Dynamics
-    from stewart63_ros.core.scenario import Trace, build_controller, build_plant, reference_lengths
+    from stewart63_ros.core.scenario import (
+        Trace,
+        TripRecord,
+        build_controller,
+        build_plant,
+        reference_lengths,
+    )
     from stewart63_ros.core.sweep import leg_lengths_of_states
     lengths_msgs, poses, forces = {}, {}, {}
     for topic, _, msg in read_messages(bag, ['leg_lengths', 'leg_forces', 'ground_truth/pose']):
@@ -165,8 +172,15 @@ def trace_from_rig(scenario, bag: Path, summary: dict):
     lost = sum(int(v) for v in (summary.get('skipped') or {}).values())
     lost += max(0, expected - len(lengths_msgs))
     missed = int(summary.get('missed_cycles', 0)) + int(summary.get('force_timeouts', 0))
+    if rate <= 0:
+        # lazy: numpy costs 50 ms; --help answers without it
+        from stewart63_ros.core.node_parameters import read as read_declared
+        rate = float(read_declared(mech.extra, 'sensor_rate'))
+    records = tuple(TripRecord(t['cause'], int(t['sample']), t.get('latency_samples'),
+                               t.get('detail', '')) for t in trips or ())
     return Trace(times, lengths, reference_lengths(scenario, reference, times), rows, withheld,
-                 (mech.leg_length_min, mech.leg_length_max), missed, lost)
+                 (mech.leg_length_min, mech.leg_length_max), missed, lost,
+                 rate, records)
 
 
 def _stop_group(proc: subprocess.Popen) -> None:
@@ -180,6 +194,21 @@ def _stop_group(proc: subprocess.Popen) -> None:
             proc.wait(wait)
 
 
+def rig_reference(reference: str, workdir: Path) -> str:
+    """The reference CSV ``rig --reference`` takes: the scenario's, or a topic
+    file's poses written as one (a trajectory with velocities is refused when
+    the scenario is read)."""
+    if not os.path.isdir(reference):
+        return reference
+    # lazy: bagio costs 197 ms; only a rig run needs it
+    from stewart63_ros.bagio import reference_points_from_bag
+    from stewart63_ros.core.reference import write_reference_csv
+    points = reference_points_from_bag(reference)
+    path = workdir / 'reference.csv'
+    write_reference_csv(path, points['times'], points['poses'])
+    return str(path)
+
+
 def run_rig(scenario, workdir: Path, domain: int | None = None):
     """Run a scenario with ``rig --mode lockstep|realtime`` on a leased ROS domain.
 
@@ -190,13 +219,17 @@ def run_rig(scenario, workdir: Path, domain: int | None = None):
     bag, logs = workdir / 'bag', workdir / 'logs'
     cmd = [sys.executable, '-m', 'stewart63_ros.tools.rig', '--params', str(params),
            '--mode', scenario.run, '--duration', repr(scenario.duration),
-           '--record', str(bag), '--log-dir', str(logs)]
+           '--record', str(bag), '--log-dir', str(logs),
+           # no fk: the verdicts read the plant's ground truth, not its pose
+           '--nodes', 'plant,controller']
     if scenario.control_law:
         cmd += ['--control-law', scenario.control_law]
     if scenario.reference:
-        cmd += ['--reference', scenario.reference]
+        cmd += ['--reference', rig_reference(scenario.reference, workdir)]
     for fault in scenario.faults:
         cmd += ['--fault', fault]
+    if scenario.supervised:
+        cmd += ['--supervisor']
     bound = RIG_START_BOUND + 60.0 * scenario.duration
     with leased_domain(domain) as domain:
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED='1',
@@ -217,7 +250,13 @@ def run_rig(scenario, workdir: Path, domain: int | None = None):
     summary_path = logs / 'plant_summary.json'
     if code != 0 or not summary_path.exists():
         raise RuntimeError('the rig failed (exit %s): %s' % (code, tail))
-    return trace_from_rig(scenario, bag, json.loads(summary_path.read_text()))
+    trips = None
+    if scenario.supervised:
+        supervisor = logs / 'supervisor_summary.json'
+        if not supervisor.exists():
+            raise RuntimeError('the rig wrote no supervisor summary: %s' % tail)
+        trips = json.loads(supervisor.read_text()).get('trips') or []
+    return trace_from_rig(scenario, bag, json.loads(summary_path.read_text()), trips)
 
 
 # -- running --------------------------------------------------------------------
@@ -248,7 +287,7 @@ def run_chunk(scenarios: Sequence, keep_trace: bool = True) -> list[Outcome]:
 
 def warm_up(scenarios: Sequence) -> None:
     """Load (or compile) the kernels the sim scenarios use, before forking workers."""
-    # lazy: core.scenario costs 129 ms; --help answers without
+    # lazy: core.scenario costs 129 ms; --help answers without it
     from stewart63_ros.core.scenario import run_sim
     seen = set()
     for s in scenarios:
@@ -282,8 +321,7 @@ def run_all(scenarios: Sequence, jobs: int = 1, scheduler: str | None = None,
     tasks = [[i] for i in rigs] + _chunks(sims, workers * 4)
     out: list[Outcome | None] = [None] * len(scenarios)
     if scheduler is not None:
-        # lazy: optional: distributed costs 543 ms; only --dask
-        from distributed import Client
+        from distributed import Client  # lazy: optional: distributed costs 543 ms; only --dask
         client = Client(scheduler, timeout='10s')
         try:
             client.run(warm_up, list(scenarios))
@@ -404,6 +442,10 @@ def draw_outcome(outcome: Outcome, path: Path) -> Path:
             if v.at_s is not None:
                 ax.axvline(v.at_s, color=color, lw=1,
                            label='%s fails at %.3f s' % (exp.metric, v.at_s))
+    for trip in trace.trips[:1]:        # the latched trip (later ones are not drawn)
+        for ax in (ax_e, ax_f):
+            ax.axvline(trip.sample / trace.rate, color='#8e44ad', ls=':', lw=1.2,
+                       label='supervisor trip: %s' % trip.cause if ax is ax_e else None)
     for ax in (ax_e, ax_f):
         ax.grid(True, alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
@@ -439,8 +481,10 @@ def write_report(outcomes: Sequence[Outcome], out: Path, figures: bool = True) -
             exp = v.expectation
             verdict = 'pass' if v.passed else '**FAIL**' + (
                 ' at %.4f s' % v.at_s if v.at_s is not None else '')
-            lines.append('| %s | %s %g | %.6g | %g-%g | %s |' % (
-                exp.metric, exp.kind, exp.limit, v.value, *v.window, verdict))
+            if v.why:
+                verdict += ': ' + v.why
+            lines.append('| %s | %s | %s | %g-%g | %s |' % (
+                exp.metric, v.bound_text(), v.measured_text(), *v.window, verdict))
         if figures and o.trace is not None:
             fig_dir = out / 'figures'
             fig_dir.mkdir(exist_ok=True)
@@ -455,7 +499,7 @@ def write_report(outcomes: Sequence[Outcome], out: Path, figures: bool = True) -
 def load_files(paths: Iterable[str]) -> list:
     """Every scenario of the files, in order (ScenarioError for a bad file; two
     scenarios of one name refused)."""
-    # lazy: core.scenario costs 129 ms; --help answers without
+    # lazy: core.scenario costs 129 ms; --help answers without it
     from stewart63_ros.core.scenario import ScenarioError, load_scenarios
     out = []
     for path in paths:
@@ -491,7 +535,7 @@ def build_parser() -> argparse.ArgumentParser:
 @quiet_on_closed_pipe
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    # lazy: core.scenario costs 129 ms; --help answers without
+    # lazy: core.scenario costs 129 ms; --help answers without it
     from stewart63_ros.core.scenario import ScenarioError
     if args.jobs < 1:
         return _fail('--jobs must be at least 1, got %d' % args.jobs)
