@@ -23,8 +23,8 @@ own floor or those below:
 from __future__ import annotations
 
 import ast
-import re
 import importlib
+import re
 from pathlib import Path
 
 import pytest
