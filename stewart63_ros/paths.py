@@ -6,7 +6,6 @@ from __future__ import annotations
 import fcntl
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 #: The clock mode a rig runs in unless told otherwise (``rig --mode``, ``demo
@@ -38,6 +37,7 @@ def default_params_path() -> Path:
 def domain_lock_dir() -> Path:
     """The lock files by which processes on this machine lease ROS domain ids
     (test/ros_harness.py, the benchmarks, ``scenario``)."""
+    import tempfile  # lazy: tempfile costs 4 ms alone, 15 ms in rig's and record's start-up
     return Path(tempfile.gettempdir()) / 'stewart63_ros_domains'
 
 

@@ -22,7 +22,6 @@ from __future__ import annotations
 import sys
 import time
 
-from stewart63_ros.bagio import BagError
 from stewart63_ros.core.node_names import NODES as NODE_NAMES
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.runtime.launcher import STOP, run
@@ -165,6 +164,7 @@ class Composed:
         if options.record:
             # First, so that its subscriptions exist before any node publishes.
             # lazy: the recorder costs 973 ms; only --record needs it
+            from stewart63_ros.bagio import BagError
             from stewart63_ros.recording.recorder import Recorder
             self.recorder = Recorder(options.record, context=rclpy.get_default_context())
             try:
