@@ -51,6 +51,7 @@ from stewart63_ros.runtime.checks import (
 )
 from stewart63_ros.runtime.commands import CommandInput
 from stewart63_ros.runtime.launcher import STOP, run
+from stewart63_ros.runtime.lockstep import PeerWindow
 from stewart63_ros.runtime.startup import PlantStartup
 
 
@@ -79,7 +80,6 @@ class PlantNode(PlantBus, PlantControl, RigNode):
         window = self.param('lockstep_window')
         peer_timeout = self.param('lockstep_peer_timeout')
         if lockstep_peers and self.mode == 'lockstep':
-            from stewart63_ros.runtime.lockstep import PeerWindow
             self.peers = PeerWindow(self, lockstep_peers, window,
                                     int(round(1e9 / self.rate)), peer_timeout)
         from stewart63_ros.runtime.lockstep import AnswerWatch

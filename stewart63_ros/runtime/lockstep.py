@@ -29,7 +29,11 @@ from __future__ import annotations
 
 import time
 
+from builtin_interfaces.msg import Time
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
 from stewart63_ros.core.stamps import stamp_ns
+from stewart63_ros.runtime.launcher import STOP
 
 #: A peer's progress topic, private to the peer's node: ``/<ns>/<node>/lockstep_progress``.
 PROGRESS_TOPIC = 'lockstep_progress'
@@ -37,7 +41,6 @@ PROGRESS_TOPIC = 'lockstep_progress'
 
 def progress_qos():
     """Reliable, volatile, depth 1: only the newest progress matters."""
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                       reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
@@ -54,7 +57,6 @@ class ProgressPublisher:
     RESEND_PERIOD = 0.1
 
     def __init__(self, node):
-        from builtin_interfaces.msg import Time
         self._msg = Time()
         self.pub = node.create_publisher(Time, '~/' + PROGRESS_TOPIC, progress_qos())
         self.clock = time.monotonic      # (a test's fake clock)
@@ -99,7 +101,6 @@ class PeerWindow:
     """
 
     def __init__(self, node, peers: list[str], window: int, period_ns: int, timeout: float):
-        from builtin_interfaces.msg import Time
         self.node = node
         self.window = int(window)
         self.period_ns = int(period_ns)
@@ -162,7 +163,6 @@ class PeerWindow:
         ``timeout`` s. Returns False if a stop was requested meanwhile."""
         if ns - self.window_ns <= self.slowest:     # the usual case, per sample
             return True
-        from stewart63_ros.runtime.launcher import STOP
         late = self.behind(ns)
         if not late:
             return True
