@@ -51,7 +51,7 @@ from stewart63_ros.runtime.checks import (
 )
 from stewart63_ros.runtime.commands import CommandInput
 from stewart63_ros.runtime.launcher import STOP, run
-from stewart63_ros.runtime.lockstep import PeerWindow
+from stewart63_ros.runtime.lockstep import AnswerWatch, PeerWindow
 from stewart63_ros.runtime.startup import PlantStartup
 
 
@@ -82,7 +82,6 @@ class PlantNode(PlantBus, PlantControl, RigNode):
         if lockstep_peers and self.mode == 'lockstep':
             self.peers = PeerWindow(self, lockstep_peers, window,
                                     int(round(1e9 / self.rate)), peer_timeout)
-        from stewart63_ros.runtime.lockstep import AnswerWatch
         self.answers = AnswerWatch(self.health, self.get_logger(), peer_timeout)
         if lockstep_peers and self.mode != 'lockstep':
             self.get_logger().info('lockstep_peers apply in lockstep only: in realtime a '
