@@ -166,7 +166,7 @@ class MujocoPlatform:
     """The MuJoCo model with the scenario's initial state and eq. (40) set up."""
 
     def __init__(self, mech: Mechanism, settings: Settings | None = None):
-        import mujoco
+        import mujoco  # lazy: optional (the bench extra): mujoco costs 240 ms
         self.mujoco = mujoco
         self.mech = mech
         self.settings = settings or Settings()
