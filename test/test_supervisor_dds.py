@@ -87,7 +87,7 @@ CHECKED_PD = 'stewart63_ros.examples.fault_detector:CheckedPD'
 LAB_SPEED = {'trip_leg_speed': 1.5}
 #: Lockstep waits of a loaded machine: the session's first rig has stalled
 #: about 1 s on sample 1 (cold caches), and a request answered without it
-#: (request_timeout, 0.25 s) is not the core's; the plant outwaits it.
+#: (request_timeout, 0.8 s) is not the core's; the plant outwaits it.
 PATIENT = {'supervisor': {'request_timeout': 2.5}, 'plant': {'force_timeout': 3.0}}
 
 

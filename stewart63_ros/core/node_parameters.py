@@ -423,9 +423,11 @@ DECLARED: tuple[Declared, ...] = (
              runtime=True),
     Declared('stale_forces_ms', ('supervisor',), 50.0, 'ms (samples)', '> 0', 'no request '
              'from the controller for longer trips (hold)', positive, runtime=True),
-    Declared('request_timeout', ('supervisor',), 0.25, 's (wall clock)', '> 0, below the '
+    Declared('request_timeout', ('supervisor',), 0.8, 's (wall clock)', '> 0, below the '
              'plant\'s `force_timeout`', 'lockstep: the longest the supervisor waits for the '
-             'controller\'s request answering a sample before it answers without one',
+             'controller\'s request answering a sample before it answers without one (a '
+             'first compute on a loaded machine has taken over 0.25 s; 0.2 s below the '
+             'plant\'s 1 s leaves the hop to the plant its time)',
              positive),
     Declared('descent_speed', ('supervisor',), 0.05, 'm/s', '> 0, < `trip_leg_speed`', 'peak '
              'leg speed of the descent to the rest pose', positive, runtime=True),
