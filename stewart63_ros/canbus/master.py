@@ -161,6 +161,9 @@ class Master:
         except Exception:
             self.close()
             raise
+        #: cycles in a row without a TPDO after which a drive is an error (1:
+        #: the first miss, as in lockstep, where a miss has waited ``bus_timeout``)
+        self.tpdo_error_cycles = 1
         #: cycles without a heartbeat after which a drive counts as lost (3 periods)
         self.heartbeat_cycles = (3 * config.heartbeat_ms / 1000.0 * self.rate
                                  if config.heartbeat_ms else math.inf)
@@ -278,6 +281,10 @@ class Master:
                                                               BRING_UP_TRIES)
             self.log(link.boot_error)
             return False
+        if link.booted:     # it booted again meanwhile: its configuration is lost
+            link.boot_error = '%s: booted again during its bring-up' % link.name
+            self.log(link.boot_error + ': brought up once more')
+            return False
         link.up = True
         link.boot_error = ''
         link.failed_bring_ups = 0
@@ -374,8 +381,11 @@ class Master:
             if link.tpdo_cycle != self.cycle:
                 if link.silent_since is None:
                     link.silent_since = self.cycle
-                out.append('%s: TPDO missing since SYNC %d (silent: cable, power?)'
-                           % (link.name, link.silent_since))
+                # realtime: an isolated miss is a late message (a warning, counted,
+                # ``late_tpdos``); silent this many cycles in a row, a bus fault
+                if self.cycle - link.silent_since + 1 >= self.tpdo_error_cycles:
+                    out.append('%s: TPDO missing since SYNC %d (silent: cable, power?)'
+                               % (link.name, link.silent_since))
             else:
                 link.silent_since = None
             if link.heartbeat_cycle is not None and \
@@ -387,6 +397,15 @@ class Master:
             if link.state != OPERATION_ENABLED:
                 out.append('%s: drive in %s' % (link.name, link.state))
         return out
+
+    def late_tpdos(self) -> list[str]:
+        """The drives whose TPDO missed this cycle but not yet for
+        ``tpdo_error_cycles`` cycles in a row (not errors): one line each."""
+        return ['%s: TPDO missed at SYNC %d (%d missed in all)'
+                % (link.name, self.cycle, link.missed_tpdo) for link in self.links
+                if link.up and link.tpdo_cycle != self.cycle
+                and self.cycle - (link.silent_since if link.silent_since is not None
+                                  else self.cycle) + 1 < self.tpdo_error_cycles]
 
     def command(self, forces, withhold: bool) -> None:
         """Each drive's RPDO1: the controlword towards OPERATION ENABLED and

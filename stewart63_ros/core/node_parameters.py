@@ -488,6 +488,11 @@ DECLARED: tuple[Declared, ...] = (
     Declared('bus_timeout', ('canopen_bridge',), 1.0, 's (wall clock)', '', 'lockstep: after '
              'a SYNC, how long to wait for a drive\'s TPDO before naming it missing (a '
              'silent drive costs this much wall time a sample)', positive),
+    Declared('tpdo_missing_error_cycles', ('canopen_bridge',), 5, 'cycles (SYNCs)', '1-1000',
+             'realtime: a drive\'s TPDO missing this many cycles in a row is a bus fault (ERROR, '
+             'torque withheld); fewer is a late message (WARN, counted): the supervisor\'s '
+             '`stale_lengths_ms` judges the missing readings. Lockstep: every miss (after '
+             '`bus_timeout`) is a fault', integer(1, 1000, 'a number of cycles')),
     Declared('boot_timeout', ('canopen_bridge',), 30.0, 's', '', 'at start-up, how long to '
              'wait for every drive\'s boot-up; one still missing is named on '
              '`/diagnostics` and brought up when it boots', positive),

@@ -101,6 +101,9 @@ class BridgeNode(RigNode):
             raise ParameterError('bus_interface', str(exc)) from None
         for load in config.loads(self.rate):
             self.get_logger().info(load.text())
+        if self.mode == 'realtime':     # lockstep: a miss has waited bus_timeout already
+            self.master.tpdo_error_cycles = self.param('tpdo_missing_error_cycles')
+        self.late_tpdo = ''             # the last TPDO that missed its cycle (realtime)
         # The plant's start-up waits, now the bridge's: it publishes the samples.
         self.lengths_subscribers = self.param('lengths_subscribers')
         self.lengths_peers = self.peer_names('lengths_peers')
@@ -188,6 +191,11 @@ class BridgeNode(RigNode):
         for link in master.links:
             if link.booted:
                 master.bring_up(link)
+        # A drive that booted again meanwhile (a reset that reached it after its
+        # power-on boot-up) is configured again now, not at the first SYNC.
+        deadline = time.monotonic() + self.boot_timeout
+        while any(link.booted for link in master.links) and time.monotonic() < deadline:
+            master.bring_up_rebooted()
         for link in missing:
             link.boot_error = ('%s: no boot-up within %g s (boot_timeout): node id, wiring, '
                                'power?' % (link.name, self.boot_timeout))
@@ -210,6 +218,11 @@ class BridgeNode(RigNode):
             self.errors = errors
             self.health.fault = ('torque withheld: ' + '; '.join(errors)) if errors else ''
             self.report()
+        late = self.master.late_tpdos()
+        if late:        # WARN with the counts: the reading is one period late
+            self.late_tpdo = '; '.join(late)
+            self.health.warning = 'late, not yet a fault (tpdo_missing_error_cycles %d): %s' % (
+                self.master.tpdo_error_cycles, self.late_tpdo)
 
     def serve(self, timeout: float) -> None:
         """Housekeeping, and forces for up to ``timeout`` s."""
@@ -270,7 +283,8 @@ class BridgeNode(RigNode):
 
     def summary(self) -> dict:
         out = super().summary()
-        out.update({'cycles': self.cycles, 'missed_cycles': self.missed,
+        out.update({'rate_hz': self.rate, 'clock_mode': self.mode,
+                    'cycles': self.cycles, 'missed_cycles': self.missed,
                     'bus_wait_s': round(self.bus_wait_s, 3),
                     'answer_wait_s': round(self.answer_wait_s, 3),
                     'force_timeouts': self.timeouts,
@@ -369,7 +383,11 @@ class BridgeNode(RigNode):
     def run_realtime(self, n_samples):
         master = self.master
         # SYNC 0 waits for the drives' first answer (the plant may still be
-        # starting); the wall-clock schedule starts from it.
+        # starting); the wall-clock schedule starts from it. A drive that
+        # booted again is brought up first: after SYNC 0 its bring-up would
+        # drop the TPDO it answered with.
+        for name in master.bring_up_rebooted():
+            self.get_logger().info('%s: back on the bus' % name)
         master.sync(0)
         if not self.wait_for_tpdos(first=True):
             return

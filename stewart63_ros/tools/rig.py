@@ -174,6 +174,11 @@ class Rig:
         if all(bus.interface == 's63hub' for bus in buses):
             channels = ['rig%d-%s' % (os.getpid(), bus.name) for bus in buses]
             plant['bus_channels'], bridge['bus_channels'] = channels, list(channels)
+        # One rate: the plant steps one period a SYNC, so the bridge's SYNCs
+        # come at the plant's sensor_rate (main() refuses two).
+        rates = bus_rates(self.params, self.plant_params)
+        if rates['plant'] is not None:
+            bridge['sensor_rate'] = rates['plant']
         doc['/**/canopen_bridge'] = {'ros__parameters': bridge}
 
     def ros_args(self, name):
@@ -561,6 +566,15 @@ def main(argv=None) -> int:
         except BusConfigError as exc:
             print('rig: error: %s' % exc, file=sys.stderr)
             return 2
+        from stewart63_ros.core.node_parameters import BY_NAME
+        rates = bus_rates(params, args.plant_params)
+        plant_rate = rates['plant'] if rates['plant'] is not None \
+            else BY_NAME['sensor_rate'].default
+        if rates['canopen_bridge'] is not None and rates['canopen_bridge'] != plant_rate:
+            print('rig: error: the bus has one rate: canopen_bridge sensor_rate %g Hz, plant '
+                  '%g Hz (the plant steps one period a SYNC): set sensor_rate once, for both'
+                  % (rates['canopen_bridge'], plant_rate), file=sys.stderr)
+            return 2
     rig = Rig(params, args.mode, args.duration, args.record, args.namespace, args.log_dir,
               nodes=nodes, realtime_priority=args.realtime_priority, compose=args.compose,
               extra_params=extra, supervisor=args.supervisor, bus=args.bus)
@@ -624,6 +638,18 @@ def plant_params_problem(args, params) -> str:
     except ParameterError as exc:
         return '%s: %s' % (args.plant_params, exc)
     return ''
+
+
+def bus_rates(params, plant_params=None) -> dict:
+    """The ``sensor_rate`` [Hz] the parameter files give the plant (after its
+    ``plant_params``) and the bridge; None where a file sets none."""
+    # lazy: core.params costs 715 ms (numba); --help answers without it
+    from stewart63_ros.core.params import read_parameter_file
+    plant = read_parameter_file(params, 'plant', allow_empty=True)
+    if plant_params:
+        plant.update(read_parameter_file(plant_params, 'plant', allow_empty=True))
+    bridge = read_parameter_file(params, 'canopen_bridge', allow_empty=True)
+    return {'plant': plant.get('sensor_rate'), 'canopen_bridge': bridge.get('sensor_rate')}
 
 
 def nodes_arg(text: str) -> tuple:
@@ -691,9 +717,9 @@ def print_summary(rig, wall, started_unix=None):
     if rig.bus:
         s = rig.summary('canopen_bridge')
         print('  canopen_bridge: %s' % ('no summary' if not s else
-                                        '%d cycles, missed cycles %d, force timeouts %d, TPDOs '
+                                        '%g Hz, %d cycles, missed cycles %d, force timeouts %d, TPDOs '
                                         'missed %s, computed bus load %s %%' % (
-                                            s['cycles'], s['missed_cycles'],
+                                            s['rate_hz'], s['cycles'], s['missed_cycles'],
                                             s['force_timeouts'], s['tpdo_missed'],
                                             s['bus_load_computed_percent'])))
     for node in ('controller', 'fk'):
