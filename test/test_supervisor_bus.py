@@ -174,3 +174,33 @@ def test_rig_cli_runs_supervisor_on_the_bus_and_a_bus_fault_trips_on_stale_lengt
     summary = json.loads((tmp_path / 'rig' / 'supervisor_summary.json').read_text())
     assert [(t['cause'], t['sample'], t['latency_samples']) for t in summary['trips']] == [
         ('lengths_stale', core.trip.sample_ns // 1_000_000, 0)], summary['trips']
+
+
+def test_rig_cli_realtime_supervised_bus_answers_sync_0_and_prints_the_bus_rate(ros, tmp_path):
+    # A file that sets the plant's rate only (200 Hz: what this shared machine
+    # carries in realtime, docs/bus.md): the bus runs at it too. The drives'
+    # start-up (a reset that reaches them after their power-on boot-up) must
+    # not cost SYNC 0's TPDO, and an isolated late TPDO must not trip.
+    import subprocess
+
+    import yaml
+    from ros_harness import PYTHON, child_env
+    params = yaml.safe_load(PARAMS.read_text())
+    params['/**/plant']['ros__parameters']['sensor_rate'] = 200.0
+    (tmp_path / 'params.yaml').write_text(yaml.safe_dump(params))
+    done = subprocess.run([PYTHON, '-m', 'stewart63_ros.tools.rig', '--params',
+                           str(tmp_path / 'params.yaml'), '--mode', 'realtime', '--duration',
+                           '1', '--nodes', ','.join(NODES), '--supervisor', '--bus', 'canopen',
+                           '--log-dir', str(tmp_path / 'rig')],
+                          env=child_env(ros.domain_id), capture_output=True, text=True,
+                          timeout=START_TIMEOUT)
+    logs = logs_of(tmp_path / 'rig')
+    assert done.returncode == 0, (done.stdout, done.stderr, logs)
+    assert '(realtime, 200 Hz)' in done.stdout and 'stopped early' not in done.stdout, \
+        done.stdout
+    assert 'canopen_bridge: 200 Hz, 201 cycles' in done.stdout, done.stdout
+    assert 'supervisor: no trip' in done.stdout, (done.stdout, logs)
+    bridge_log = (tmp_path / 'rig' / 'canopen_bridge.log').read_text()
+    assert 'SYNC 0 ' not in bridge_log and 'SYNC 0)' not in bridge_log, bridge_log
+    bridge = json.loads((tmp_path / 'rig' / 'canopen_bridge_summary.json').read_text())
+    assert bridge['rate_hz'] == 200.0 and bridge['cycles'] == 201, bridge
