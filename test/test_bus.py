@@ -14,6 +14,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+import time
 import uuid
 from pathlib import Path
 
@@ -300,6 +301,51 @@ def test_node_that_does_not_answer_is_named_and_others_run(bench):
     lengths, _ = b.master.readings()
     assert np.isnan(lengths[5]) and np.all(np.isfinite(lengths[:5]))
     assert b.devices.forces() == [0.0] * 6      # torque withheld from all
+
+
+def test_a_drive_that_boots_again_during_its_bring_up_is_brought_up_again_before_sync_0(
+        bench):
+    # The rig's race: a reset heard by the drives after the boot-up the master
+    # took; the second boot-up comes while leg_1 is being configured (and
+    # resets what was written). The master must not call it up, and brings
+    # it up again before SYNC 0, which every drive then answers.
+    b = bench()
+    b._stop = True
+    b.thread.join(5)
+    master = b.master
+    master.reset_all()
+    deadline = time.monotonic() + 5.0
+    while any(not link.booted for link in master.links) and time.monotonic() < deadline:
+        b.devices.poll(0.01)
+    assert all(link.booted for link in master.links)
+    master.reset_all()          # not served yet: heard once leg_1's bring-up has begun
+    b._stop = False
+    b.thread = threading.Thread(target=b._serve, daemon=True)
+    threading.Timer(0.05, b.thread.start).start()
+    assert not master.bring_up(master.links[0])
+    assert not master.links[0].up and 'booted again' in master.links[0].boot_error
+    assert master.bring_up_rebooted() == [link.name for link in master.links]
+    assert b.cycle(0) == [] and master.missing() == [] and master.late_tpdos() == []
+
+
+def test_realtime_tpdo_miss_is_late_until_it_persists_for_tpdo_error_cycles(bench):
+    b = bench()
+    master = b.master
+    master.reset_all()
+    assert master.wait_for_boot(5.0) == []
+    assert all(master.bring_up(link) for link in master.links)
+    master.tpdo_error_cycles = 3            # the bridge's tpdo_missing_error_cycles
+    assert b.cycle(0) == []
+    b.faults = {3: {'bus_tpdo_missing': None}}
+    for k in (1, 2):        # missed, not yet persistent: late (WARN), torque kept
+        assert b.cycle(k) == [], k
+        assert master.late_tpdos() == ['leg_4 (node 4, bus b): TPDO missed at SYNC %d '
+                                       '(%d missed in all)' % (k, k)]
+    assert b.cycle(3) == ['leg_4 (node 4, bus b): TPDO missing since SYNC 1 (silent: '
+                          'cable, power?)']
+    assert master.late_tpdos() == []
+    b.faults = {}
+    assert b.cycle(4) == [] and master.late_tpdos() == []
 
 
 def test_eds_without_mapped_objects_is_refused(tmp_path):
