@@ -180,36 +180,20 @@ def parameter_vector(mech: Mechanism) -> np.ndarray:
     """The 33 parameters of a mechanism: b (18), p (9), offsets (6) [m].
 
     Args:
-        mech: the mechanism (its ``leg_length_offset``, default zeros).
+        mech: the mechanism (its ``leg_length_offset``).
 
     Returns:
         (33,) the parameter vector, ordered as ``PARAMETER_NAMES``.
     """
     return np.concatenate([np.ravel(mech.base_points), np.ravel(mech.platform_points),
-                           leg_length_offset(mech)])
-
-
-def leg_length_offset(mech: Mechanism) -> np.ndarray:
-    """The mechanism's sensor zero offsets, ``leg_length_offset`` (zeros if unset).
-
-    Args:
-        mech: the mechanism.
-
-    Returns:
-        (6,) o_i [m]: reading = true length + o_i.
-
-    Raises:
-        ParameterError: the key is not six finite numbers.
-    """
-    from stewart63_ros.core.node_parameters import read
-    return np.asarray(read(mech.extra, OFFSET_KEY), dtype=float)
+                           mech.leg_length_offset])
 
 
 def mechanism_with(mech: Mechanism, theta: ArrayLike) -> Mechanism:
     """``mech`` with the geometry and offsets of the parameter vector, validated.
 
     Args:
-        mech: the mechanism to start from (masses, gains, ... are kept).
+        mech: the mechanism to start from (masses, stroke, ... are kept).
         theta: (33,) parameters.
 
     Returns:
@@ -599,7 +583,7 @@ def pose_errors(mech: Mechanism, meas: Measurements) -> dict:
     from stewart63_ros.core.fk import ForwardKinematics
     from stewart63_ros.core.rotation import rotation_angle_between
     fk = ForwardKinematics(mech)
-    offsets = leg_length_offset(mech)
+    offsets = mech.leg_length_offset
     dpos, dang = [], []
     for n in range(meas.count):
         try:

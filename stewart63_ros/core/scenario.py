@@ -579,20 +579,20 @@ def node_parameters(scenario: Scenario, node: str) -> dict:
 
 
 def build_plant(scenario: Scenario) -> Any:
-    """The plant's mechanism of the scenario.
+    """The plant's setup of the scenario (its machine, initial state, settings).
 
     Args:
         scenario: the scenario.
 
     Returns:
-        The ``Mechanism``.
+        The ``Setup``.
 
     Raises:
         ScenarioError: a parameter value the validation refuses (its key named).
     """
-    from stewart63_ros.core.params import mechanism_from_params
+    from stewart63_ros.core.params import setup_from_params
     try:
-        return mechanism_from_params(node_parameters(scenario, 'plant'))
+        return setup_from_params(node_parameters(scenario, 'plant'))
     except ParameterError as exc:
         raise ScenarioError('params: %s' % exc) from None
 
@@ -612,17 +612,17 @@ def build_controller(scenario: Scenario) -> tuple[Any, Any]:
     """
     from stewart63_ros.core.laws import Controller
     from stewart63_ros.core.node_parameters import read as read_declared
-    from stewart63_ros.core.params import mechanism_from_params
+    from stewart63_ros.core.params import setup_from_params
     from stewart63_ros.core.reference import ReferenceError, load_reference
     params = node_parameters(scenario, 'controller')
     try:
-        mech = mechanism_from_params(params)
+        setup = setup_from_params(params)
         reference = None
         if scenario.reference is not None:
-            reference = load_reference(mech, scenario.reference,
+            reference = load_reference(setup.mechanism, scenario.reference,
                                        read_declared(params, 'max_leg_speed'),
                                        read_declared(params, 'max_leg_acceleration'))
-        return Controller(mech, params, reference=reference), reference
+        return Controller(setup, params, reference=reference), reference
     except ParameterError as exc:
         raise ScenarioError('params: %s' % exc) from None
     except ReferenceError as exc:
@@ -693,26 +693,25 @@ def run_sim(scenario: Scenario) -> Trace:
     from stewart63_ros.core.dynamics import Dynamics
     from stewart63_ros.core.faults import FaultModel, parse_faults
     from stewart63_ros.core.laws import PDLaw
-    from stewart63_ros.core.node_parameters import read as read_declared
     from stewart63_ros.core.simulate import run_sampled
-    mech = build_plant(scenario)
+    plant = build_plant(scenario)
+    mech = plant.mechanism
     controller, reference = build_controller(scenario)
-    rate = float(read_declared(mech.extra, 'sensor_rate'))
+    rate = float(plant.setting('sensor_rate'))
     n = int(round(scenario.duration * rate))
     times = np.arange(n + 1) / rate
     wrenches = wrench_samples(scenario.wrench, times)
     faults = None
-    plant_faults = list(mech.extra.get('faults') or []) + list(scenario.faults)
+    plant_faults = list(plant.settings.get('faults') or []) + list(scenario.faults)
     if plant_faults:
-        faults = FaultModel(parse_faults(plant_faults), rate,
-                            read_declared(mech.extra, 'sensor_seed'))
+        faults = FaultModel(parse_faults(plant_faults), rate, plant.setting('sensor_seed'))
     dyn = Dynamics(mech)
     if reference is None and type(controller.law) is PDLaw and faults is None:
         # eq. (40) towards the setpoint: the compiled loop (controller.pd_gains())
         law: Any = controller
     else:
         law = _Withholding(controller, rate)
-    result = run_sampled(mech, scenario.duration, rate, controller=law, dyn=dyn,
+    result = run_sampled(plant, scenario.duration, rate, controller=law, dyn=dyn,
                          faults=faults, wrench=wrenches)
     if not np.all(np.isfinite(result.states)):
         raise RuntimeError('the simulation diverged (non-finite state)')
@@ -725,21 +724,21 @@ def run_sim(scenario: Scenario) -> Trace:
                  result.forces, withheld, (mech.leg_length_min, mech.leg_length_max))
 
 
-def build_controller_mechanism(scenario: Scenario) -> Any:
-    """The controller's mechanism (its setpoint and gains) of the scenario.
+def build_controller_setup(scenario: Scenario) -> Any:
+    """The controller's setup (its setpoint and gains) of the scenario.
 
     Args:
         scenario: the scenario.
 
     Returns:
-        The ``Mechanism`` from the controller's parameters.
+        The ``Setup`` from the controller's parameters.
 
     Raises:
         ScenarioError: a parameter value the validation refuses.
     """
-    from stewart63_ros.core.params import mechanism_from_params
+    from stewart63_ros.core.params import setup_from_params
     try:
-        return mechanism_from_params(node_parameters(scenario, 'controller'))
+        return setup_from_params(node_parameters(scenario, 'controller'))
     except ParameterError as exc:
         raise ScenarioError('params: %s' % exc) from None
 
@@ -756,8 +755,8 @@ def reference_lengths(scenario: Scenario, reference: Any, times: np.ndarray) -> 
         (N, 6) [m].
     """
     if reference is None:
-        mech = build_controller_mechanism(scenario)
-        return np.tile(np.asarray(mech.setpoint_lengths, float), (len(times), 1))
+        setup = build_controller_setup(scenario)
+        return np.tile(np.asarray(setup.task.setpoint_lengths, float), (len(times), 1))
     from stewart63_ros.core.reference import R_LEN
     return reference.sample_many(times)[:, R_LEN]
 

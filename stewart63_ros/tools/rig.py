@@ -597,11 +597,11 @@ def plant_params_problem(args, params) -> str:
         return 'the composed nodes share one process and its files: not with --compose'
     if 'plant' not in nodes_arg(args.nodes):
         return 'it is the plant\'s file: it needs plant in --nodes'
-    from stewart63_ros.core.params import mechanism_from_params, read_parameter_file
+    from stewart63_ros.core.params import read_parameter_file, setup_from_params
     try:
         merged = read_parameter_file(params, 'plant')
         merged.update(read_parameter_file(args.plant_params, 'plant', allow_empty=True))
-        mechanism_from_params(merged)
+        setup_from_params(merged)
     except ParameterError as exc:
         return '%s: %s' % (args.plant_params, exc)
     return ''

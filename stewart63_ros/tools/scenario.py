@@ -140,7 +140,7 @@ def trace_from_rig(scenario, bag: Path, summary: dict):
     if not stamps:
         raise RuntimeError('the bag %s has no sample with both leg_lengths and '
                            'ground_truth/pose' % bag)
-    mech = build_plant(scenario)
+    mech = build_plant(scenario).mechanism
     dyn = Dynamics(mech)
     states = np.zeros((len(stamps), 13))
     states[:, :7] = [poses[s] for s in stamps]
