@@ -74,8 +74,8 @@ def matched(ours, theirs):
 
 
 @pytest.mark.parametrize('law', [None, 'pd'])
-def test_modes_agree_with_mujocos_linearization(default_mech, law):
-    model = analysis.linearize(default_mech, law)
+def test_modes_agree_with_mujocos_linearization(default_setup, default_mech, law):
+    model = analysis.linearize(default_setup, law)
     values, vectors = np.linalg.eig(model.A)
     gaps, estimates = [], []
     for dt in TIMESTEPS:

@@ -90,8 +90,8 @@ class Trajectory:
 
     def __init__(self, mech):
         self.mech = mech
-        self.p0 = np.array(mech.initial_position, float)
-        self.th0 = np.array(mech.initial_orientation, float)
+        self.p0 = np.array(setup.task.initial_position, float)
+        self.th0 = np.array(setup.task.initial_orientation, float)
 
     def pose(self, t):
         w, g = 2 * np.pi * self.F, 2 * np.pi * self.G
@@ -117,7 +117,7 @@ class Rig:
 
         from stewart63_ros import topics as T
         self.rt, self.mech = rt, mech
-        self.setpoint = np.array(mech.setpoint_lengths, float)   # the /a controller's
+        self.setpoint = np.array(setup.task.setpoint_lengths, float)   # the /a controller's
         self.stamp = {'a': 1_000 * 10**9, 'wd': 1_000 * 10**9}    # last leg_lengths stamp
         self.setpoint_stamp = 10**9
         self.node = node = rt.node('probe')
@@ -359,8 +359,8 @@ def test_fk_and_controller_follow_a_known_trajectory(rig, mech):
 
 # -- 2. setpoints ----------------------------------------------------------------
 def _steady_sample(mech):
-    legs = LegState(mech, np.array(mech.initial_position), rotation_from_euler(
-        mech.initial_orientation), np.array([0.01, -0.02, 0.03]), np.array([0.02, 0.01, -0.01]))
+    legs = LegState(mech, np.array(setup.task.initial_position), rotation_from_euler(
+        setup.task.initial_orientation), np.array([0.01, -0.02, 0.03]), np.array([0.02, 0.01, -0.01]))
     return legs.L.copy(), legs.Ldot.copy()
 
 
@@ -379,7 +379,7 @@ def _forces_until(rig, lengths, rates, setpoint, timeout=6.0):
     return effort, want
 
 
-def test_setpoints(rig, mech):
+def test_setpoints(setup, rig, mech):
     lengths, rates = _steady_sample(mech)
     # the current setpoint first
     _, force, _, _ = rig.exchange(lengths, rates, fk=False)
@@ -393,7 +393,7 @@ def test_setpoints(rig, mech):
     effort, want = _forces_until(rig, lengths, rates, new)
     np.testing.assert_allclose(effort, want, rtol=0, atol=FORCE_TOL)
     # the change is Kp (new - old), as eq. (40) says (no saturation here)
-    np.testing.assert_allclose(effort - before, np.asarray(mech.kp) * (new - rig.setpoint),
+    np.testing.assert_allclose(effort - before, np.asarray(setup.gains.kp) * (new - rig.setpoint),
                                rtol=1e-9, atol=1e-6)
     rig.setpoint = new
 
@@ -610,10 +610,10 @@ def test_bad_plant_inputs_are_rejected_and_do_not_corrupt_the_simulation(rig):
 
 
 # -- 4. the controller's watchdog ---------------------------------------------------
-def test_watchdog(rig, mech):
+def test_watchdog(setup, rig, mech):
     name = NAMES['wd']
     lengths, rates = _steady_sample(mech)
-    want = pd_forces(lengths, rates, mech.setpoint_lengths, mech.kp, mech.kv, mech.max_force)
+    want = pd_forces(lengths, rates, setup.task.setpoint_lengths, setup.gains.kp, setup.gains.kv, mech.max_force)
 
     def stream(seconds, until=None):
         """leg_lengths at ~50 Hz for up to ``seconds`` (or until ``until()``)."""

@@ -132,20 +132,20 @@ def test_a_passing_scenario_exits_0_and_writes_valid_junit_and_a_report(tmp_path
     assert (tmp_path / 'out' / 'figures' / 'paper.png').stat().st_size > 1000
 
 
-def test_the_measured_values_are_the_simulations(tmp_path):
+def test_the_measured_values_are_the_simulations(setup, tmp_path):
     """final error, max force, end stops against run_sampled's own Result."""
     scenario, = load_scenarios(write(tmp_path, PASSING))
     mech = load_mechanism()
     dyn = Dynamics(mech)
-    result = run_sampled(mech, 3.0, 1000.0, dyn=dyn, loop='python')
+    result = run_sampled(setup, 3.0, 1000.0, dyn=dyn, loop='python')
     trace = run_sim(scenario)
     verdicts = evaluate(trace, scenario.expect)
-    final = float(result.final_leg_error_percent(dyn, mech.setpoint_lengths).max())
+    final = float(result.final_leg_error_percent(dyn, setup.task.setpoint_lengths).max())
     assert verdicts[0].value == pytest.approx(final, rel=1e-12)
     assert verdicts[1].value == pytest.approx(np.abs(result.forces).max(), rel=1e-12)
 
 
-def test_each_kind_of_expectation_fails_with_its_value_bound_and_time(tmp_path):
+def test_each_kind_of_expectation_fails_with_its_value_bound_and_time(setup, tmp_path):
     """One scenario per metric, each bound set to fail; the verdict's value is
     checked against an independent computation from the samples."""
     ref = REPO / 'scenarios' / 'references' / 'six_axis.csv'
@@ -199,7 +199,7 @@ def test_each_kind_of_expectation_fails_with_its_value_bound_and_time(tmp_path):
     # the endstop count is the simulation's own (Result.endstop_samples)
     mech = load_mechanism().replace(leg_length_min=1.5)
     wrench = wrench_samples(bounds.wrench, t)
-    assert outside.size == run_sampled(mech, 4.0, 1000.0, loop='python',
+    assert outside.size == run_sampled(setup, 4.0, 1000.0, loop='python',
                                        wrench=wrench).endstop_samples
     assert verdicts['missed_cycles'].value == 0 and verdicts['lost_messages'].value == 0
     text = verdicts['max_force'].text()
@@ -314,7 +314,7 @@ def test_a_matrix_expands_to_one_scenario_per_combination_named_by_its_values(tm
     assert forces[1] > forces[0]
 
 
-def test_the_wrench_schedule_is_the_python_loops_with_the_wrench(tmp_path):
+def test_the_wrench_schedule_is_the_python_loops_with_the_wrench(setup, tmp_path):
     """The compiled loop in segments of one wrench each == Dynamics.step per
     sample with that sample's wrench (the plant node's arithmetic)."""
     scenario, = scenarios_from_dict({
@@ -326,12 +326,12 @@ def test_the_wrench_schedule_is_the_python_loops_with_the_wrench(tmp_path):
     mech = load_mechanism()
     wrench = wrench_samples(scenario.wrench, trace.times)
     assert wrench[200, 2] == -200 and wrench[199, 2] == 0 and wrench[500, 3] == 5
-    reference = run_sampled(mech, 1.0, 1000.0, loop='python', wrench=wrench)
-    plain = run_sampled(mech, 1.0, 1000.0)
+    reference = run_sampled(setup, 1.0, 1000.0, loop='python', wrench=wrench)
+    plain = run_sampled(setup, 1.0, 1000.0)
     np.testing.assert_array_equal(trace.forces, reference.forces)
     assert np.abs(trace.forces - plain.forces).max() > 1.0      # the push took effect
     with pytest.raises(ValueError, match='wrench must be'):
-        run_sampled(mech, 1.0, 1000.0, wrench=wrench[:-1])
+        run_sampled(setup, 1.0, 1000.0, wrench=wrench[:-1])
 
 
 def test_same_file_same_values_and_parallel_equals_serial():

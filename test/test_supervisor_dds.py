@@ -49,9 +49,9 @@ def core_run(faults, duration, law=None, homing=False):
         params.update(HOMING['supervisor'])
         sensor, offset = SensorModel(HOMING['plant']), HOMING['plant']['homing_offset']
     mech = mechanism_from_params(params)
-    sup = supervisor_from_params(mech, params, RATE)
-    return sup, run_supervised(mech, sup, duration, RATE, faults,
-                               controller=Controller(mech, params, law=law), sensor=sensor,
+    sup = supervisor_from_params(setup, params, RATE)
+    return sup, run_supervised(setup, sup, duration, RATE, faults,
+                               controller=Controller(setup, params, law=law), sensor=sensor,
                                homing_offset=offset)
 
 
