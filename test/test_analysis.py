@@ -104,7 +104,8 @@ def test_linear_model_agrees_with_the_nonlinear_one_to_first_order(
         assert 3.5 < big / small < 4.5, gaps          # quadratic in the step
 
 
-def test_frequency_response_agrees_with_a_sine_excited_nonlinear_run(default_setup, default_mech, dyn,
+def test_frequency_response_agrees_with_a_sine_excited_nonlinear_run(default_setup, default_mech,
+                                                                     dyn,
                                                                      pd_model):
     """Reference L1_ref = u0_1 + 0.1 mm sin(2 pi f t) into the nonlinear closed
     loop (eq. 40 inside scipy's DOP853); after 1.5 s the transient has decayed
@@ -159,7 +160,7 @@ def test_output_matrix_is_the_jacobian_and_the_equilibrium_holds(default_setup, 
     assert np.abs(open_model.B[:6]).max() == 0.0
 
 
-def test_pd_loop_folded_in_analytically_equals_the_law_differenced(default_setup, default_mech, pd_model):
+def test_pd_loop_folded_in_analytically_equals_the_law_differenced(default_setup, pd_model):
     numeric = analysis.closed_loop(default_setup, pd_model.equilibrium, 'pd', numeric=True)
     scale = np.abs(pd_model.A).max()
     assert np.abs(numeric.A - pd_model.A).max() < 1e-6 * scale
@@ -373,8 +374,8 @@ def test_analyze_bad_input_is_one_line_and_exit_2(capsys, argv, words):
     assert len(lines) == 1 and words in lines[0] and 'Traceback' not in err, err
 
 
-def test_a_law_that_cannot_hold_the_pose_is_refused(default_mech):
+def test_a_law_that_cannot_hold_the_pose_is_refused(default_setup):
     with pytest.raises(analysis.AnalysisError, match='kp is zero on leg_3'):
-        analysis.linearize(default_mech.replace(kp=[4000, 4000, 0, 4000, 4000, 4000]), 'pd')
+        analysis.linearize(default_setup.replace(kp=[4000, 4000, 0, 4000, 4000, 4000]), 'pd')
     with pytest.raises(analysis.AnalysisError, match='beyond max_force'):
-        analysis.linearize(default_mech.replace(max_force=50.0), None)
+        analysis.linearize(default_setup.replace(max_force=50.0), None)

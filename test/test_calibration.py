@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from stewart63_ros.core import calibration as cal
 from stewart63_ros.core import calibration_plan as cp
-from stewart63_ros.core.params import ParameterError, load_mechanism
+from stewart63_ros.core.params import ParameterError, load_setup
 from stewart63_ros.core.sensor import SensorModel, TrackerModel
 from stewart63_ros.tools import calibrate
 
@@ -269,7 +269,8 @@ def test_fit_writes_a_calibrated_file_every_node_reads(setup, tmp_path, mech, tr
     write_measurements(tmp_path / 'm.csv', tracked(truth, positions, rotations, rng))
     assert calibrate.main(['fit', '--measurements', str(tmp_path / 'm.csv'),
                            '--out', str(tmp_path / 'out')]) == 0
-    calibrated = load_mechanism(tmp_path / 'out' / 'calibrated.yaml')
+    calibrated_setup = load_setup(tmp_path / 'out' / 'calibrated.yaml')
+    calibrated = calibrated_setup.mechanism
     error = cal.parameter_vector(calibrated) - truth
     assert np.abs(error).max() < 5e-3
     report = json.loads((tmp_path / 'out' / 'report.json').read_text())
@@ -280,7 +281,7 @@ def test_fit_writes_a_calibrated_file_every_node_reads(setup, tmp_path, mech, tr
         report['held_out']['before']['position_rms_m'] / 10
     assert isinstance(report['unidentifiable'], list) and len(report['singular_values']) == 33
     # The nodes' own keys of the drawing survive (a full parameter file).
-    assert calibrated.kp.tolist() == setup.gains.kp.tolist()
+    assert calibrated_setup.gains.kp.tolist() == setup.gains.kp.tolist()
 
 
 def test_fit_refuses_bad_input_in_one_line(tmp_path, mech, truth, planned, capsys):

@@ -59,7 +59,7 @@ def run(tmp_path, name, compose, record=True, duration=DURATION, extra_params=No
     return bag, rig.summary(), ok, codes, logs
 
 
-def test_composed_lockstep_equals_offline_run_and_separate_rig_and_records_everything(setup, 
+def test_composed_lockstep_equals_offline_run_and_separate_rig_and_records_everything(setup,
         ros, monkeypatch, tmp_path, mech):
     rig_env(ros, monkeypatch)
     n = int(round(DURATION * RATE)) + 1

@@ -25,7 +25,7 @@ from ros_harness import rig_env, run_to_end, wait_matched
 
 from stewart63_ros.core.control import pd_forces
 from stewart63_ros.core.kinematics import LegState, leg_lengths
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.params import load_mechanism, load_setup
 from stewart63_ros.core.rotation import quaternion_from_euler, rotation_from_euler
 
 REPO = Path(__file__).resolve().parents[1]
@@ -129,8 +129,9 @@ class Probe:
 
 
 def steady(mech):
-    legs = LegState(mech, np.array(setup.task.initial_position),
-                    rotation_from_euler(setup.task.initial_orientation),
+    task = load_setup(PARAMS).task
+    legs = LegState(mech, np.array(task.initial_position),
+                    rotation_from_euler(task.initial_orientation),
                     np.array([0.01, -0.02, 0.03]), np.array([0.02, 0.01, -0.01]))
     return legs.L.copy(), legs.Ldot.copy()
 
@@ -141,7 +142,8 @@ def test_run_time_tuning_changes_the_very_next_force(setup, ros, mech):
     lengths, rates = steady(mech)
     sp = setup.task.setpoint_lengths
     before = probe.sample(lengths, rates)
-    np.testing.assert_allclose(before, pd_forces(lengths, rates, sp, setup.gains.kp, setup.gains.kv, 3000.0),
+    gains = setup.gains
+    np.testing.assert_allclose(before, pd_forces(lengths, rates, sp, gains.kp, gains.kv, 3000.0),
                                atol=1e-9)
     kp = [1000.0, 1100.0, 1200.0, 1300.0, 1400.0, 1500.0]
     ok, reason = probe.set('kp', kp)
@@ -251,7 +253,8 @@ def test_pose_trajectory_is_followed_and_a_bad_one_refused(setup, ros, mech):
         probe.stamp = max(probe.stamp, start)
         got = probe.sample(lengths, rates, dt=0.1)
         s = reference.sample((probe.stamp - start) * 1e-9)
-        want = np.clip(setup.gains.kp * (s[R_LEN] - lengths) - setup.gains.kv * (rates - s[R_RATE]), -3000, 3000)
+        want = np.clip(setup.gains.kp * (s[R_LEN] - lengths)
+                       - setup.gains.kv * (rates - s[R_RATE]), -3000, 3000)
         matched = got is not None and np.allclose(got, want, atol=1e-6)
     assert matched, 'the controller did not follow the pose_trajectory'
     # the tracking error on /diagnostics: |L_ref - L| of these samples (about 0.1 m here)
@@ -273,7 +276,8 @@ def test_pose_trajectory_is_followed_and_a_bad_one_refused(setup, ros, mech):
     print('\n' + report[2])
     got = probe.sample(lengths, rates, dt=0.1)
     s = reference.sample((probe.stamp - start) * 1e-9)
-    want = np.clip(setup.gains.kp * (s[R_LEN] - lengths) - setup.gains.kv * (rates - s[R_RATE]), -3000, 3000)
+    want = np.clip(setup.gains.kp * (s[R_LEN] - lengths)
+                   - setup.gains.kv * (rates - s[R_RATE]), -3000, 3000)
     np.testing.assert_allclose(got, want, atol=1e-6)
 
 

@@ -135,14 +135,18 @@ def rng():
     return np.random.default_rng(7)
 
 
-def random_pose(rng, setup, spread=1.0):
+#: the packaged file's initial position [m]: the poses are drawn around it
+START = (0.01, 0.01, 1.0)
+
+
+def random_pose(rng, mech, spread=1.0):
     for _ in range(1000):
-        t = np.asarray(setup.task.initial_position) + spread * rng.uniform([-0.3, -0.3, -0.25],
-                                                              [0.3, 0.3, 0.3])
+        t = np.asarray(START) + spread * rng.uniform([-0.3, -0.3, -0.25],
+                                                     [0.3, 0.3, 0.3])
         theta = spread * rng.uniform(-0.4, 0.4, 3)
         rot = rot_euler(theta)
-        L = legs_of(setup.mechanism, t, rot, np.zeros(3), np.zeros(3))[1]
-        if np.all((L > setup.mechanism.leg_length_min) & (L < setup.mechanism.leg_length_max)):
+        L = legs_of(mech, t, rot, np.zeros(3), np.zeros(3))[1]
+        if np.all((L > mech.leg_length_min) & (L < mech.leg_length_max)):
             return t, theta, rot
     raise AssertionError('no pose inside the stroke found')
 

@@ -35,8 +35,11 @@ SIDES = [(0, 1), (1, 2), (2, 0)]
 
 
 @pytest.fixture(scope='module')
-def fk(default_mech):
-    return ForwardKinematics(default_mech)
+def fk(default_setup):
+    """The default machine's, its modes ordered by nearness to the task's start."""
+    task = default_setup.task
+    return ForwardKinematics(default_setup.mechanism,
+                             start=(task.initial_position, task.initial_rotation))
 
 
 def angle_between(ra, rb):
@@ -157,7 +160,7 @@ def test_nearest_mode_to_the_initial_pose_is_the_setpoint_pose(default_setup, fk
     best = modes[0]
     assert abs(best.position[2] - 1.0737) < 1e-3 and np.abs(best.position[:2]).max() < 1e-3
     assert angle_between(best.rotation, np.eye(3)) < 1e-3
-    np.testing.assert_allclose(leg_lengths(default_mech, best.position, best.rotation),
+    np.testing.assert_allclose(leg_lengths(default_setup.mechanism, best.position, best.rotation),
                                default_setup.task.setpoint_lengths, atol=1e-14)
 
 
@@ -365,7 +368,8 @@ def paper_trajectory(setup, duration=10.0, rate=1000.0):
 
     def rhs(_, y):
         legs = dyn.legs(y)
-        forces = np.clip(setup.gains.kp * (setup.task.setpoint_lengths - legs.L) - setup.gains.kv * legs.Ldot,
+        forces = np.clip(setup.gains.kp * (setup.task.setpoint_lengths - legs.L)
+                         - setup.gains.kv * legs.Ldot,
                          -setup.mechanism.max_force, setup.mechanism.max_force)
         return dyn.derivative(y, forces)
 
@@ -409,7 +413,8 @@ def test_tracking_follows_the_paper_scenario(default_setup, default_mech, fk):
 # -- 6. the command line -------------------------------------------------------
 
 def test_cli_prints_the_nearest_pose(default_setup, default_mech, capsys):
-    assert fk_solve.main(['--solve'] + ['%.17g' % v for v in default_setup.task.setpoint_lengths]) == 0
+    setpoint = default_setup.task.setpoint_lengths
+    assert fk_solve.main(['--solve'] + ['%.17g' % v for v in setpoint]) == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out) >= {'position', 'theta', 'quaternion', 'condition_number'}
     rot = rotation_from_euler(out['theta'])

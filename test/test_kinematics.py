@@ -55,14 +55,18 @@ def central(f, h):
     return (f(h) - f(-h)) / (2 * h)
 
 
-def random_pose(rng, setup):
+#: the packaged file's initial position [m]: the poses are drawn around it
+START = (0.01, 0.01, 1.0)
+
+
+def random_pose(rng, mech):
     """A pose inside the stroke, around the initial pose."""
     for _ in range(1000):
-        t = np.asarray(setup.task.initial_position) + rng.uniform(-0.15, 0.15, 3)
+        t = np.asarray(START) + rng.uniform(-0.15, 0.15, 3)
         theta = rng.uniform(-0.3, 0.3, 3)
         rot = rot_euler(theta)
-        lengths = np.linalg.norm(leg_vectors(setup.mechanism, t, rot), axis=1)
-        if np.all((lengths > setup.mechanism.leg_length_min) & (lengths < setup.mechanism.leg_length_max)):
+        lengths = np.linalg.norm(leg_vectors(mech, t, rot), axis=1)
+        if np.all((lengths > mech.leg_length_min) & (lengths < mech.leg_length_max)):
             return t, theta, rot
     raise AssertionError('no pose inside the stroke found')
 

@@ -51,7 +51,7 @@ def _angle(q1, q2):
 
 
 def _gaps(setup, duration, timesteps):
-    lengths, positions, quats = _ours(setup.mechanism, duration)
+    lengths, positions, quats = _ours(setup, duration)
     out = []
     for dt in timesteps:
         _, L, pos, q, violation = MujocoPlatform(setup, Settings(timestep=dt)).run(duration)
@@ -74,7 +74,7 @@ def _assert_within_convergence(coarse, fine):
     assert fine['gap_L'] < 0.5 * coarse['gap_L'], (coarse['gap_L'], fine['gap_L'])
 
 
-def test_paper_scenario_agrees_with_mujoco_within_its_convergence(default_setup, default_mech):
+def test_paper_scenario_agrees_with_mujoco_within_its_convergence(default_setup):
     coarse, fine = _gaps(default_setup, 10.0, (1e-3, 5e-4))
     _assert_within_convergence(coarse, fine)
     # The figure docs/design.md states: 1.0e-8 m at 0.5 ms.
@@ -83,11 +83,11 @@ def test_paper_scenario_agrees_with_mujoco_within_its_convergence(default_setup,
     assert fine['violation'] < 1e-7
 
 
-def test_a_lopsided_mechanism_agrees_too(setup, default_mech):
+def test_a_lopsided_mechanism_agrees_too(setup):
     """Centre of mass off the origin, a full inertia tensor with products of
     inertia, heavier legs, other dampings and gravity off the axis: terms the
     default mechanism leaves at zero."""
-    mech = default_mech.replace(
+    setup = setup.replace(
         platform_com=[0.03, -0.02, 0.05],
         platform_inertia=[1.1, 0.9, 1.7, 0.05, -0.03, 0.02],
         leg_lower_mass=3.0, leg_upper_mass=1.5, leg_lower_com=0.4, leg_upper_com=0.3,
@@ -98,11 +98,11 @@ def test_a_lopsided_mechanism_agrees_too(setup, default_mech):
     assert fine['gap_L'] < 1e-7
 
 
-def test_mujoco_model_is_built_from_the_parameter_file(setup, default_mech):
+def test_mujoco_model_is_built_from_the_parameter_file(setup):
     """The MJCF carries the file's masses, inertia, damping, gains and limits."""
     import mujoco
-    mech = default_mech.replace(platform_mass=17.5, piston_damping=42.0,
-                                kp=[3000.0] * 6, max_force=2500.0)
+    setup = setup.replace(platform_mass=17.5, piston_damping=42.0,
+                          kp=[3000.0] * 6, max_force=2500.0)
     model = mujoco.MjModel.from_xml_string(build_xml(setup))
     platform = model.body('platform')
     assert platform.mass[0] == pytest.approx(17.5)

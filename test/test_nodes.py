@@ -30,7 +30,7 @@ from ros_harness import PYTHON, REPO, RosTest, lease_domain_id, wait_matched, wa
 
 from stewart63_ros.core.control import pd_forces
 from stewart63_ros.core.kinematics import LegState, leg_lengths
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.params import load_mechanism, load_setup
 from stewart63_ros.core.rotation import (
     euler_rate_matrix,
     quaternion_from_euler,
@@ -90,8 +90,9 @@ class Trajectory:
 
     def __init__(self, mech):
         self.mech = mech
-        self.p0 = np.array(setup.task.initial_position, float)
-        self.th0 = np.array(setup.task.initial_orientation, float)
+        task = load_setup(PARAMS).task
+        self.p0 = np.array(task.initial_position, float)
+        self.th0 = np.array(task.initial_orientation, float)
 
     def pose(self, t):
         w, g = 2 * np.pi * self.F, 2 * np.pi * self.G
@@ -117,7 +118,7 @@ class Rig:
 
         from stewart63_ros import topics as T
         self.rt, self.mech = rt, mech
-        self.setpoint = np.array(setup.task.setpoint_lengths, float)   # the /a controller's
+        self.setpoint = np.array(load_setup(PARAMS).task.setpoint_lengths, float)   # /a's
         self.stamp = {'a': 1_000 * 10**9, 'wd': 1_000 * 10**9}    # last leg_lengths stamp
         self.setpoint_stamp = 10**9
         self.node = node = rt.node('probe')
@@ -359,8 +360,9 @@ def test_fk_and_controller_follow_a_known_trajectory(rig, mech):
 
 # -- 2. setpoints ----------------------------------------------------------------
 def _steady_sample(mech):
-    legs = LegState(mech, np.array(setup.task.initial_position), rotation_from_euler(
-        setup.task.initial_orientation), np.array([0.01, -0.02, 0.03]), np.array([0.02, 0.01, -0.01]))
+    task = load_setup(PARAMS).task
+    legs = LegState(mech, np.array(task.initial_position), rotation_from_euler(
+        task.initial_orientation), np.array([0.01, -0.02, 0.03]), np.array([0.02, 0.01, -0.01]))
     return legs.L.copy(), legs.Ldot.copy()
 
 
@@ -613,7 +615,8 @@ def test_bad_plant_inputs_are_rejected_and_do_not_corrupt_the_simulation(rig):
 def test_watchdog(setup, rig, mech):
     name = NAMES['wd']
     lengths, rates = _steady_sample(mech)
-    want = pd_forces(lengths, rates, setup.task.setpoint_lengths, setup.gains.kp, setup.gains.kv, mech.max_force)
+    want = pd_forces(lengths, rates, setup.task.setpoint_lengths, setup.gains.kp, setup.gains.kv,
+                     mech.max_force)
 
     def stream(seconds, until=None):
         """leg_lengths at ~50 Hz for up to ``seconds`` (or until ``until()``)."""

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.params import load_setup
 from stewart63_ros.core.scenario import (
     ScenarioError,
     evaluate,
@@ -132,11 +132,11 @@ def test_a_passing_scenario_exits_0_and_writes_valid_junit_and_a_report(tmp_path
     assert (tmp_path / 'out' / 'figures' / 'paper.png').stat().st_size > 1000
 
 
-def test_the_measured_values_are_the_simulations(setup, tmp_path):
+def test_the_measured_values_are_the_simulations(tmp_path):
     """final error, max force, end stops against run_sampled's own Result."""
     scenario, = load_scenarios(write(tmp_path, PASSING))
-    mech = load_mechanism()
-    dyn = Dynamics(mech)
+    setup = load_setup()
+    dyn = Dynamics(setup.mechanism)
     result = run_sampled(setup, 3.0, 1000.0, dyn=dyn, loop='python')
     trace = run_sim(scenario)
     verdicts = evaluate(trace, scenario.expect)
@@ -145,7 +145,7 @@ def test_the_measured_values_are_the_simulations(setup, tmp_path):
     assert verdicts[1].value == pytest.approx(np.abs(result.forces).max(), rel=1e-12)
 
 
-def test_each_kind_of_expectation_fails_with_its_value_bound_and_time(setup, tmp_path):
+def test_each_kind_of_expectation_fails_with_its_value_bound_and_time(tmp_path):
     """One scenario per metric, each bound set to fail; the verdict's value is
     checked against an independent computation from the samples."""
     ref = REPO / 'scenarios' / 'references' / 'six_axis.csv'
@@ -197,7 +197,7 @@ def test_each_kind_of_expectation_fails_with_its_value_bound_and_time(setup, tmp
     assert verdicts['endstop_samples'].value == outside.size > 5
     assert verdicts['endstop_samples'].at_s == pytest.approx(t[outside[5]])
     # the endstop count is the simulation's own (Result.endstop_samples)
-    mech = load_mechanism().replace(leg_length_min=1.5)
+    setup = load_setup().replace(leg_length_min=1.5)
     wrench = wrench_samples(bounds.wrench, t)
     assert outside.size == run_sampled(setup, 4.0, 1000.0, loop='python',
                                        wrench=wrench).endstop_samples
@@ -314,7 +314,7 @@ def test_a_matrix_expands_to_one_scenario_per_combination_named_by_its_values(tm
     assert forces[1] > forces[0]
 
 
-def test_the_wrench_schedule_is_the_python_loops_with_the_wrench(setup, tmp_path):
+def test_the_wrench_schedule_is_the_python_loops_with_the_wrench(tmp_path):
     """The compiled loop in segments of one wrench each == Dynamics.step per
     sample with that sample's wrench (the plant node's arithmetic)."""
     scenario, = scenarios_from_dict({
@@ -323,7 +323,7 @@ def test_the_wrench_schedule_is_the_python_loops_with_the_wrench(setup, tmp_path
             {'from': 0.5, 'to': 0.7, 'torque': [5, 0, 0]}],
         'expect': {'max_force': {'max': 3000}}})
     trace = run_sim(scenario)
-    mech = load_mechanism()
+    setup = load_setup()
     wrench = wrench_samples(scenario.wrench, trace.times)
     assert wrench[200, 2] == -200 and wrench[199, 2] == 0 and wrench[500, 3] == 5
     reference = run_sampled(setup, 1.0, 1000.0, loop='python', wrench=wrench)

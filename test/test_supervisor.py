@@ -50,7 +50,7 @@ def test_each_cause_has_one_of_the_three_safe_actions():
     # a reading that stops coming: stale after stale_lengths_ms (20 ms)
     (['sensor_dropout:leg_2@0.5'], {}, ('lengths_stale',), 0.5),
 ])
-def test_faults_trip_on_their_cause_with_zero_latency_the_same_every_run(setup, 
+def test_faults_trip_on_their_cause_with_zero_latency_the_same_every_run(setup,
         mech, params, faults, overrides, causes, first_bad):
     runs = [supervised(setup, params, 3.0, faults, **overrides)[0] for _ in range(2)]
     trip = runs[0].trip
@@ -61,7 +61,7 @@ def test_faults_trip_on_their_cause_with_zero_latency_the_same_every_run(setup,
     assert (runs[1].trip.cause, runs[1].trip.sample_ns) == (trip.cause, trip.sample_ns)
 
 
-def test_dropout_trips_exactly_when_the_reading_has_been_missing_for_stale_lengths_ms(setup, 
+def test_dropout_trips_exactly_when_the_reading_has_been_missing_for_stale_lengths_ms(setup,
         mech, params):
     sup, out = supervised(setup, params, 1.0, ['sensor_dropout:leg_2@0.5'],
                           stale_lengths_ms=20.0)

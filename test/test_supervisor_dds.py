@@ -41,14 +41,14 @@ def level_of(status) -> int:
 
 def core_run(faults, duration, law=None, homing=False):
     from stewart63_ros.core.laws import Controller
-    from stewart63_ros.core.params import mechanism_from_params
+    from stewart63_ros.core.params import load_setup, setup_from_params
     from stewart63_ros.core.sensor import SensorModel
-    params = dict(load_mechanism(PARAMS).to_params())
+    params = load_setup(PARAMS).to_params()
     sensor = offset = None
     if homing:
         params.update(HOMING['supervisor'])
         sensor, offset = SensorModel(HOMING['plant']), HOMING['plant']['homing_offset']
-    mech = mechanism_from_params(params)
+    setup = setup_from_params(params)
     sup = supervisor_from_params(setup, params, RATE)
     return sup, run_supervised(setup, sup, duration, RATE, faults,
                                controller=Controller(setup, params, law=law), sensor=sensor,

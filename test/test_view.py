@@ -344,8 +344,6 @@ def test_dragging_the_ghost_publishes_a_pose_setpoint(setup, ros, tmp_path):
     from ros_harness import wait_matched
 
     from stewart63_ros import topics
-    from stewart63_ros.core.params import load_mechanism
-    mech = load_mechanism()
     got = []
     node = ros.node('probe')
     sub = node.create_subscription(PoseStamped, 'pose_setpoint', got.append,

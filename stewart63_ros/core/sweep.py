@@ -46,14 +46,15 @@ from stewart63_ros.core._jit import njit
 from stewart63_ros.core.dynamics import Dynamics, lengths_rates
 from stewart63_ros.core.faults import FaultError, FaultModel, parse_faults
 from stewart63_ros.core.laws import Controller, LawError, holding_gain_problem, law_class
+from stewart63_ros.core.mechanism import MECHANISM_KEYS
 from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.params import (
-    Mechanism,
     ParameterError,
     known_keys,
     read_parameter_file,
     setup_from_params,
 )
+from stewart63_ros.core.setup import GAIN_KEYS, TASK_KEYS
 from stewart63_ros.core.simulate import run_continuous, run_sampled
 
 METRICS = ('final_error_percent', 'max_force', 'settling_time_s', 'endstop_samples',
@@ -304,11 +305,11 @@ def readable_keys(law: str, control: str = 'continuous', rate: float | None = No
         faults: whether the runs have faults (``sensor_seed``: their noise).
 
     Returns:
-        The model's keys (``params.Mechanism``), the end stop's, the law's, and
-        ``sensor_rate`` / ``sensor_seed`` where they take effect.
+        The machine's keys (``Mechanism``; its sensors' zero offsets aside:
+        a run simulates true readings), the gains and the task (``Setup``),
+        the law's, and ``sensor_rate`` / ``sensor_seed`` where they take effect.
     """
-    keys = {f.name for f in dataclasses.fields(Mechanism)} - {'extra'}
-    keys |= {'endstop_stiffness', 'endstop_damping'}
+    keys = (MECHANISM_KEYS - {'leg_length_offset'}) | GAIN_KEYS | TASK_KEYS
     if law != 'pd':
         keys |= set(getattr(law_class(law), 'parameters', ()) or ())
     if control == 'sampled' and rate is None:
