@@ -75,8 +75,8 @@ def nonlinear_step(dyn, model, du, times, setup):
     if model.closed_loop:
         gains = np.vstack([model.u0 + du, setup.gains.kp, setup.gains.kv])
         states, _ = dopri.solve_pd(dyn, eq.state13(), times, gains=gains,
-                                   max_force=setup.mechanism.max_force, endstops=False, rtol=1e-12,
-                                   atol=1e-14)
+                                   max_force=setup.mechanism.max_force, endstops=False,
+                                   rtol=1e-12, atol=1e-14)
     else:
         states, _ = dopri.solve_pd(dyn, eq.state13(), times, forces=model.u0 + du,
                                    endstops=False, rtol=1e-12, atol=1e-14)
@@ -85,7 +85,7 @@ def nonlinear_step(dyn, model, du, times, setup):
 
 @pytest.mark.parametrize('loop, size, duration', [('open', 2.0, 0.4), ('closed', 2e-3, 1.0)])
 def test_linear_model_agrees_with_the_nonlinear_one_to_first_order(
-        default_mech, dyn, open_model, pd_model, loop, size, duration):
+        default_setup, dyn, open_model, pd_model, loop, size, duration):
     """A step of 2 N per leg (open loop: the platform starts to fall away, the
     model is unstable) or 2 mm of reference (closed loop), then half, then a
     quarter: the gap to the nonlinear response shrinks as the square."""
@@ -95,7 +95,7 @@ def test_linear_model_agrees_with_the_nonlinear_one_to_first_order(
     for eps in (size, size / 2, size / 4):
         du = eps * DIRECTION
         linear = linear_step(model, du, times)
-        exact = nonlinear_step(dyn, model, du, times, default_mech)
+        exact = nonlinear_step(dyn, model, du, times, default_setup)
         gaps.append(np.abs(exact - linear).max())
         sizes.append(np.abs(linear).max())
         # First order: the gap is a small part of the response itself.

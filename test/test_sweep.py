@@ -36,12 +36,13 @@ class FlakyLaw:
 
     def __init__(self, mech, params):
         self.mech = mech
+        self.kp = np.array(params['kp'], float)
+        self.kv = np.array(params['kv'], float)
 
     def __call__(self, t, lengths, rates, ref):
         if self.mech.platform_mass > 17.0 and t > 0.2:
             raise ValueError('too heavy for this law')
-        m = self.mech
-        return pd_law(lengths, rates, ref.lengths, m.kp, m.kv, m.max_force)
+        return pd_law(lengths, rates, ref.lengths, self.kp, self.kv, self.mech.max_force)
 
 
 def read_rows(path):
