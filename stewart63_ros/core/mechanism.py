@@ -168,13 +168,7 @@ class Mechanism:
         unknown = sorted(set(changes) - MECHANISM_KEYS)
         if unknown:
             raise ParameterError(unknown[0], 'not a field of the mechanism')
-        params = self.to_params()
-        params.update({k: (np.asarray(v).ravel().tolist() if np.ndim(v) else v)
-                       for k, v in changes.items()})
-        if 'platform_inertia' in changes and np.shape(changes['platform_inertia']) == (3, 3):
-            m = np.asarray(changes['platform_inertia'])
-            params['platform_inertia'] = [m[0, 0], m[1, 1], m[2, 2], m[0, 1], m[0, 2], m[1, 2]]
-        return validated(params)
+        return validated(changed_params(self.to_params(), changes))
 
     def to_params(self) -> dict:
         """The flat parameter dictionary this mechanism was built from.
@@ -190,6 +184,26 @@ class Mechanism:
                          value[0, 1], value[0, 2], value[1, 2]]
             out[field.name] = np.asarray(value).ravel().tolist() if np.ndim(value) else value
         return out
+
+def changed_params(params: Mapping[str, Any], changes: Mapping[str, Any]) -> dict:
+    """``params`` with ``changes`` over it, as a parameter file holds them: lists
+    for arrays, ``platform_inertia`` as six numbers when given as the matrix.
+
+    Args:
+        params: the flat parameter dictionary.
+        changes: keys and new values.
+
+    Returns:
+        A new flat dictionary (not yet checked).
+    """
+    out = dict(params)
+    out.update({k: (np.asarray(v).ravel().tolist() if np.ndim(v) else v)
+                for k, v in changes.items()})
+    if 'platform_inertia' in changes and np.shape(changes['platform_inertia']) == (3, 3):
+        m = np.asarray(changes['platform_inertia'])
+        out['platform_inertia'] = [m[0, 0], m[1, 1], m[2, 2], m[0, 1], m[0, 2], m[1, 2]]
+    return out
+
 
 #: The keys the mechanism holds (the others of a parameter file are the run's:
 #: ``setup.Setup``).

@@ -229,9 +229,7 @@ def load_mechanism(path: str | os.PathLike | None = None, node_name: str | None 
     """The machine of a parameter file, the whole file checked (``load_setup``).
 
     Args:
-        path: the parameter file; None: the packaged ``config/stewart63.yaml``.
-        node_name: the node whose section applies, as in ``read_parameter_file``.
-        overrides: values that replace the file's.
+        path, node_name, overrides: as ``load_setup``.
 
     Returns:
         The validated mechanism.

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from stewart63_ros.core.errors import ParameterError
-from stewart63_ros.core.mechanism import MECHANISM_KEYS, Mechanism, validated
+from stewart63_ros.core.mechanism import MECHANISM_KEYS, Mechanism, changed_params, validated
 from stewart63_ros.core.node_parameters import gain_vector
 from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.rotation import rotation_from_euler
@@ -144,13 +144,7 @@ class Setup:
         Raises:
             ParameterError: the changed setup is not valid.
         """
-        params = self.to_params()
-        params.update({k: (np.asarray(v).ravel().tolist() if np.ndim(v) else v)
-                       for k, v in changes.items()})
-        if 'platform_inertia' in changes and np.shape(changes['platform_inertia']) == (3, 3):
-            m = np.asarray(changes['platform_inertia'])
-            params['platform_inertia'] = [m[0, 0], m[1, 1], m[2, 2], m[0, 1], m[0, 2], m[1, 2]]
-        return validated_setup(params)
+        return validated_setup(changed_params(self.to_params(), changes))
 
     def with_mechanism(self, mechanism: Mechanism) -> Setup:
         """This setup on another machine (the task checked against it again).
