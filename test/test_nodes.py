@@ -251,10 +251,10 @@ class Rig:
         return stamp, self.forces[ns][stamp], self.poses.get(stamp), self.twists.get(stamp)
 
     def expected_force(self, lengths, rates, setpoint=None):
-        m = self.mech
+        gains = load_setup(PARAMS).gains            # the /a controller's
         return pd_forces(np.asarray(lengths), np.asarray(rates),
                          self.setpoint if setpoint is None else setpoint,
-                         m.kp, m.kv, m.max_force)
+                         gains.kp, gains.kv, self.mech.max_force)
 
 
 NAMES = {'fk': 'stewart63/a/fk', 'ctl': 'stewart63/a/controller',
