@@ -545,3 +545,67 @@ def test_handshake_recorder_word_hears_matched_and_confirms_at_the_right_time():
     # once started, what recorders matched no longer changes
     word.on_status(diagnostics('/a/other', matched_publishers='/a/fk'))
     assert list(word.matched) == ['/a/record']
+
+
+# -- a publish the middleware refuses -------------------------------------------------------
+class StatusNode:
+    """What ``diagnostics.Health`` uses of a node: a logger, a name, publishers."""
+
+    def __init__(self):
+        self.log = Log()
+        self.statuses = []
+
+    def get_logger(self):
+        log = self.log
+
+        class Throttled:
+            def warning(self, text, throttle_duration_sec=None):
+                log.warning(text)
+        return Throttled()
+
+    def get_fully_qualified_name(self):
+        return '/plant'
+
+    def resolve_topic_name(self, topic):
+        return topic if topic.startswith('/') else '/' + topic
+
+    def create_publisher(self, _type, _topic, _qos):
+        return SimpleNamespace(publish=self.statuses.append)
+
+
+def test_a_refused_publish_is_counted_warned_of_and_not_among_the_final_counts():
+    """A cut link makes Fast DDS refuse a sample (rclpy's RCLError, a
+    RuntimeError): the node goes on, says so on /diagnostics, and its final
+    counts hold only what went out, so a recorder does not wait for the rest."""
+    from builtin_interfaces.msg import Time
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from stewart63_ros.runtime.diagnostics import Health as RealHealth
+    node = StatusNode()
+    health = RealHealth(node, 'plant')
+    refuse = [False]
+
+    def publish_raw(_data):
+        if refuse[0]:
+            raise RuntimeError('Failed to publish: cannot publish data, at rmw_publish.cpp:120')
+    send = health.sender(topics.LEG_LENGTHS, SimpleNamespace(handle=SimpleNamespace(
+        publish_raw=publish_raw)))
+    assert send(b'1') is True
+    refuse[0] = True
+    assert send(b'2') is False and send(b'3') is False
+    refuse[0] = False
+    assert send(b'4') is True
+    assert health.published[topics.LEG_LENGTHS] == 2
+    assert health.publish_failed[topics.LEG_LENGTHS] == 2
+    assert any('could not publish on %s (2 so far)' % topics.LEG_LENGTHS in text
+               for _, text in node.log.lines)
+    health.report(Time(), final=True)
+    status = node.statuses[-1].status[0]
+    values = {kv.key: kv.value for kv in status.values}
+    assert status.level == DiagnosticStatus.WARN
+    assert 'could not publish 2 samples' in status.message
+    assert values['publish_failed/' + topics.LEG_LENGTHS] == '2'
+    assert values[handshake.FINAL_PREFIX + '/' + topics.LEG_LENGTHS.lstrip('/')] == '2'
+    # The next period with no refusal is OK again.
+    health.report(Time())
+    assert node.statuses[-1].status[0].level == DiagnosticStatus.OK

@@ -43,7 +43,6 @@ from stewart63_ros.runtime.checks import (
     ros_time,
 )
 from stewart63_ros.runtime.launcher import STOP, run
-from stewart63_ros.runtime.rclpy_internals import raw_publisher
 from stewart63_ros.runtime.startup import PlantStartup
 
 #: s: realtime: after a drive's TPDO has come, the others of the cycle must follow
@@ -96,7 +95,7 @@ class BridgeNode(RigNode):
                                     self.period_ns, self.param('lockstep_peer_timeout'))
         pub = self.publisher(JointState, topics.LEG_LENGTHS, topics.STREAM_PUB)
         self.outputs = types.SimpleNamespace(pub_lengths=pub)
-        self.send_lengths = raw_publisher(pub)
+        self.send_lengths = self.health.sender(topics.LEG_LENGTHS, pub)
         self.lengths_out = wire.JointStateTemplates(('position', 'velocity')).get('base')
         wire.warm_up(('effort',))
         self.force_gate = StampGate(RESTART_PAUSE)
@@ -189,7 +188,6 @@ class BridgeNode(RigNode):
         if len(self.sent_wall) > 1000:
             self.sent_wall.pop(next(iter(self.sent_wall)))
         self.send_lengths(self.lengths_out.fill(sec, nanosec, position=lengths, velocity=rates))
-        self.health.published[topics.LEG_LENGTHS] += 1
         self.cycles += 1
         return all(math.isfinite(v) for v in lengths + rates)
 

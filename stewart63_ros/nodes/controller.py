@@ -60,7 +60,7 @@ from stewart63_ros.runtime.checks import (
 )
 from stewart63_ros.runtime.commands import CommandInput
 from stewart63_ros.runtime.launcher import run
-from stewart63_ros.runtime.rclpy_internals import raw_publisher, take, take_with_info
+from stewart63_ros.runtime.rclpy_internals import take, take_with_info
 
 #: The one joint of a pose_trajectory.
 PLATFORM_JOINT = 'platform'
@@ -173,7 +173,7 @@ class ControllerNode(RigNode):
         self.pub_forces = self.publisher(JointState, topics.LEG_FORCES, topics.STREAM_PUB)
         self.forces_out = wire.JointStateTemplates(('effort',))
         self.forces_out.get('base')             # made now, not on the first sample
-        self.send_forces = raw_publisher(self.pub_forces)
+        self.send_forces = self.health.sender(topics.LEG_FORCES, self.pub_forces)
         wire.warm_up(('position', 'velocity'))
         # Serialized samples in, serialized forces out: see runtime/wire.py.
         self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
@@ -282,7 +282,6 @@ class ControllerNode(RigNode):
             self.on_law_error(exc)
             return
         self.send_forces(self.forces_out.get(frame_id).fill(sec, nanosec, effort=force))
-        self.health.published[topics.LEG_FORCES] += 1
         estimate = self.control.estimate
         if estimate is None:
             accumulate_tracking(self.tracking, lengths, self.control.sample.array, lengths,

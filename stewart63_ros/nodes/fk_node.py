@@ -28,7 +28,6 @@ from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode
 from stewart63_ros.runtime.checks import RESTART_PAUSE, Rejected, StampGate, source_of
 from stewart63_ros.runtime.launcher import run
-from stewart63_ros.runtime.rclpy_internals import raw_publisher
 
 
 class FKNode(RigNode):
@@ -50,8 +49,8 @@ class FKNode(RigNode):
         self.twist_out = wire.FrameTemplates(wire.twist_template)
         for out in (self.pose_out, self.twist_out):     # made now, not on sample 1
             out.get('base')
-        self.send_pose = raw_publisher(self.pub_pose)
-        self.send_twist = raw_publisher(self.pub_twist)
+        self.send_pose = self.health.sender(topics.PLATFORM_POSE, self.pub_pose)
+        self.send_twist = self.health.sender(topics.PLATFORM_TWIST, self.pub_twist)
         wire.warm_up(('position',), ('velocity',))
         self.markers = None
         rate = self.param('marker_rate')
@@ -119,14 +118,12 @@ class FKNode(RigNode):
             return
         self.send_pose(self.pose_out.get(frame_id).fill(
             sec, nanosec, position=result.position, orientation=result.quaternion))
-        self.health.published[topics.PLATFORM_POSE] += 1
         if self.markers is not None:       # references only: drawn by its timer
             self.markers.sample = (sec, nanosec, lengths, result.position,
                                    result.rotation)
         if rates is not None:
             self.send_twist(self.twist_out.get(frame_id).fill(
                 sec, nanosec, linear=result.velocity, angular=result.omega))
-            self.health.published[topics.PLATFORM_TWIST] += 1
 
     #: s: in lockstep (``clock_mode``), how long fk lets samples gather
     #: between two batches (see RigNode.run_on): nothing waits for its poses

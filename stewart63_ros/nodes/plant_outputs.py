@@ -18,7 +18,6 @@ from sensor_msgs.msg import JointState
 from stewart63_ros import topics
 from stewart63_ros.core.dynamics import OMEGA, POS, QUAT, VEL
 from stewart63_ros.runtime import wire
-from stewart63_ros.runtime.rclpy_internals import raw_publisher
 
 
 class SampleOutputs:
@@ -46,8 +45,9 @@ class SampleOutputs:
         self.tracker = tracker if tracker is not None and tracker.every else None
         if self.tracker is not None:
             self.tracker_out = wire.pose_template('base')
-            self.send_tracker = raw_publisher(node.publisher(PoseStamped, topics.TRACKER_POSE,
-                                                             topics.STREAM_PUB))
+            self.send_tracker = self.health.sender(
+                topics.TRACKER_POSE,
+                node.publisher(PoseStamped, topics.TRACKER_POSE, topics.STREAM_PUB))
         self.pub_lengths = (node.publisher(JointState, topics.LEG_LENGTHS, topics.STREAM_PUB)
                             if lengths else None)
         self.pub_pose = node.publisher(PoseStamped, topics.TRUE_POSE, topics.STREAM_PUB)
@@ -60,10 +60,12 @@ class SampleOutputs:
         self.twist_out = wire.twist_template('base')
         self.clock_out = wire.clock_template()
         wire.warm_up(('effort',))
-        self.send_lengths = raw_publisher(self.pub_lengths) if lengths else None
-        self.send_pose = raw_publisher(self.pub_pose)
-        self.send_twist = raw_publisher(self.pub_twist)
-        self.send_clock = raw_publisher(self.pub_clock) if self.pub_clock is not None else None
+        sender = self.health.sender
+        self.send_lengths = sender(topics.LEG_LENGTHS, self.pub_lengths) if lengths else None
+        self.send_pose = sender(topics.TRUE_POSE, self.pub_pose)
+        self.send_twist = sender(topics.TRUE_TWIST, self.pub_twist)
+        self.send_clock = (sender(topics.CLOCK, self.pub_clock)
+                           if self.pub_clock is not None else None)
         # Who listens to /clock and ground_truth, looked up every
         # LISTENERS_PERIOD rather than on every sample (see listeners).
         self.to_clock = self.to_pose = self.to_twist = False
@@ -81,7 +83,6 @@ class SampleOutputs:
         """One sample stamped ``ns`` (= ``sec``, ``nanosec``): the measured
         ``lengths`` and ``rates`` first, then the rest, from the state ``y``,
         while the controller works on the sample."""
-        published = self.health.published
         if self.send_lengths is not None:
             data = self.lengths_out.fill(sec, nanosec, position=lengths, velocity=rates)
             sent_wall = self.sent_wall
@@ -89,19 +90,15 @@ class SampleOutputs:
             if len(sent_wall) > self.SENT_KEPT:   # answers that never came
                 sent_wall.pop(next(iter(sent_wall)))
             self.send_lengths(data)
-            published[topics.LEG_LENGTHS] += 1
         if self.to_clock:
             self.send_clock(self.clock_out.fill(sec, nanosec))
-            published[topics.CLOCK] += 1
         # ground_truth, to whoever listens (with no subscriber matched on a
         # VOLATILE topic there is nobody to send it to).
         if self.to_pose:
             quat = y[QUAT] / np.sqrt(y[QUAT] @ y[QUAT])
             self.send_pose(self.pose_out.fill(sec, nanosec, position=y[POS], orientation=quat))
-            published[topics.TRUE_POSE] += 1
         if self.to_twist:
             self.send_twist(self.twist_out.fill(sec, nanosec, linear=y[VEL], angular=y[OMEGA]))
-            published[topics.TRUE_TWIST] += 1
 
     def send_tracked(self, sample: int, sec: int, nanosec: int, y) -> None:
         """``tracker/pose`` for sample number ``sample`` if the tracker measures
@@ -112,4 +109,3 @@ class SampleOutputs:
         position, quat = self.tracker.measure(y[POS], quat)
         self.send_tracker(self.tracker_out.fill(sec, nanosec, position=position,
                                                 orientation=quat))
-        self.health.published[topics.TRACKER_POSE] += 1

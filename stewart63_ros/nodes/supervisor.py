@@ -40,7 +40,7 @@ from stewart63_ros.runtime.checks import (
     stamp_ns,
 )
 from stewart63_ros.runtime.launcher import STOP, run
-from stewart63_ros.runtime.rclpy_internals import WaitAny, raw_publisher, take_with_info
+from stewart63_ros.runtime.rclpy_internals import WaitAny, take_with_info
 
 #: The controller's forces, remapped here when the supervisor is in the rig.
 REQUEST_TOPIC = 'leg_forces_request'
@@ -76,7 +76,7 @@ class SupervisorNode(RigNode):
         self.late_requests = 0
         self.timeouts = 0
         self.pub_forces = self.publisher(JointState, topics.LEG_FORCES, topics.STREAM_PUB)
-        self.send_forces = raw_publisher(self.pub_forces)
+        self.send_forces = self.health.sender(topics.LEG_FORCES, self.pub_forces)
         self.forces_out = wire.JointStateTemplates(('effort',))
         self.forces_out.get('base')
         wire.warm_up(('position', 'velocity'))
@@ -289,7 +289,6 @@ class SupervisorNode(RigNode):
         self.pending = None
         self.answered_ns = ns
         self.send_forces(self.forces_out.get(frame_id).fill(sec, nanosec, effort=forces))
-        self.health.published[topics.LEG_FORCES] += 1
         trip = self.core.trip
         if trip is not None and self.health.values.get('tripped') == 'false':
             self.announce(trip)

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from stewart63_ros.runtime import handshake
+from stewart63_ros.runtime.rclpy_internals import raw_publisher
 
 if TYPE_CHECKING:
     # Only a hint: checks imports core.params (scipy, a fifth of a second),
@@ -88,6 +89,9 @@ class Health:
         self.rejected = collections.Counter()
         #: messages that never reached the node, per topic (see checks.SkipCounter)
         self.skipped = collections.Counter()
+        #: samples the middleware refused to publish, per topic (see ``sender``)
+        self.publish_failed = collections.Counter()
+        self._failed_at_report = 0
         #: topics on which every message must reach the node (fk's samples;
         #: any input in lockstep): a skip there is a loss, and a warning
         self.every_message = set()
@@ -111,6 +115,37 @@ class Health:
         self.last_rejection = '%s: %s' % (topic, exc)
         self.node.get_logger().warning('rejected %s' % self.last_rejection,
                                     throttle_duration_sec=1.0)
+
+    def sender(self, topic: str, publisher):
+        """A function that publishes serialized bytes on ``publisher`` (see
+        ``raw_publisher``) and counts them under ``topic``: in ``published``
+        when the middleware took the sample, in ``publish_failed`` when it
+        refused it. It returns whether the sample went out.
+
+        A refusal is not the node's end: with a link cut (test_hosts), Fast
+        DDS's reliable writer fills its history and ``publish`` raises rclpy's
+        RCLError ("cannot publish data"). The sample is lost like any other
+        lost message, counted and warned of, and the loop goes on. Only
+        successful publishes count towards the final counts a recorder
+        waits for (``report(final=True)``).
+        """
+        publish = raw_publisher(publisher)
+        published = self.published
+        failed = self.publish_failed
+        logger = self.node.get_logger()
+
+        def send(data) -> bool:
+            try:
+                publish(data)
+            except RuntimeError as exc:     # rclpy's RCLError
+                failed[topic] += 1
+                logger.warning('could not publish on %s (%d so far): %s'
+                               % (topic, failed[topic], str(exc).split(',')[0]),
+                               throttle_duration_sec=1.0)
+                return False
+            published[topic] += 1
+            return True
+        return send
 
     def skip(self, topic: str, n: int) -> None:
         """``n`` messages on ``topic`` never reached the node."""
@@ -138,6 +173,8 @@ class Health:
         fresh_rejections = rejected_total - self._rejected_at_report
         lost = self.lost()
         fresh_losses = lost - self._skipped_at_report
+        failed = sum(self.publish_failed.values())
+        fresh_failures = failed - self._failed_at_report
         if self.fault or self.collision:
             level = DiagnosticStatus.ERROR
             message = '; '.join(m for m in (self.collision, self.fault) if m)
@@ -145,6 +182,10 @@ class Health:
             level = DiagnosticStatus.WARN
             message = 'lost %d messages that must all arrive (%s)' % (fresh_losses, ', '.join(
                 sorted(t for t in self.every_message if self.skipped[t])))
+        elif fresh_failures:
+            level = DiagnosticStatus.WARN
+            message = 'could not publish %d samples (%s)' % (fresh_failures, ', '.join(
+                sorted(t for t, n in self.publish_failed.items() if n)))
         elif fresh_rejections or self.warning or self.source_warning:
             level = DiagnosticStatus.WARN
             message = self.warning or self.source_warning or 'rejected %d inputs (last: %s)' % (
@@ -160,6 +201,8 @@ class Health:
             values.append(KeyValue(key='published/' + topic, value=str(n)))
         for topic, n in sorted(self.skipped.items()):
             values.append(KeyValue(key='skipped/' + topic, value=str(n)))
+        for topic, n in sorted(self.publish_failed.items()):
+            values.append(KeyValue(key='publish_failed/' + topic, value=str(n)))
         values.append(KeyValue(key='rejected_total', value=str(rejected_total)))
         for key, n in sorted(self.rejected.items()):
             values.append(KeyValue(key='rejected/' + key, value=str(n)))
@@ -180,3 +223,4 @@ class Health:
         self._received_at_report = collections.Counter(self.received)
         self._rejected_at_report = rejected_total
         self._skipped_at_report = lost
+        self._failed_at_report = failed
