@@ -201,7 +201,7 @@ def mechanism_with(mech: Mechanism, theta: ArrayLike) -> Mechanism:
 
     Raises:
         ParameterError: the parameters describe an impossible mechanism
-            (params.mechanism_from_params names the key).
+            (``mechanism.validated`` names the key).
     """
     theta = np.asarray(theta, dtype=float)
     return mech.replace(base_points=theta[BASE], platform_points=theta[PLATFORM],
