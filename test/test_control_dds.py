@@ -312,7 +312,7 @@ def test_lockstep_rig_with_a_reference_equals_sim(setup, ros, monkeypatch, tmp_p
     from stewart63_ros.tools.rig import Rig, control_params
     from stewart63_ros.tools.sim import make_controller
     ref_csv = tmp_path / 'reference.csv'
-    write_reference_csv(ref_csv, *six_axis_reference(mech, duration=3.0))
+    write_reference_csv(ref_csv, *six_axis_reference(setup, duration=3.0))
     controller, reference = make_controller(PARAMS, law, ref_csv)
     offline = run_sampled(setup, LOCKSTEP_DURATION, 1000.0, controller=controller)
     from stewart63_ros.core.dynamics import Dynamics
