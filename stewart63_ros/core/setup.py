@@ -85,8 +85,6 @@ class Task:
 #: The keys each part holds; every other key is a setting.
 GAIN_KEYS = frozenset(f.name for f in dataclasses.fields(Gains))
 TASK_KEYS = frozenset(f.name for f in dataclasses.fields(Task))
-PART_KEYS: dict[str, frozenset[str]] = {
-    'mechanism': MECHANISM_KEYS, 'gains': GAIN_KEYS, 'task': TASK_KEYS}
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
