@@ -389,10 +389,9 @@ def test_the_example_fault_detector_trips_on_the_rig(setup, ros, monkeypatch, tm
     assert plant['force_timeouts'] > 0 and plant['faults'][0]['active_from_s'] == 0.1
     # It tripped where sim's run with the same law and fault trips.
     from stewart63_ros.core.laws import Controller, LawError
-    mech = load_mechanism(PARAMS)
     with pytest.raises(LawError) as info:
         run_sampled(setup, 0.3, RATE, controller=Controller(
-            mech, {}, law='stewart63_ros.examples.fault_detector:CheckedPD'),
+            setup, {}, law='stewart63_ros.examples.fault_detector:CheckedPD'),
             faults=['sensor_stuck:leg_2@0.1'])
     # (the same leg and sample; the millimetres printed may round differently)
     assert str(info.value).split('SensorFault: ')[1].split(':')[0] in controller['status']
