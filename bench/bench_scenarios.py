@@ -5,7 +5,8 @@ The sim figure: the paper's scenario as a matrix of 100 values of
 expectations each, on local worker processes after the kernels are loaded
 (``tools.scenario.run_all``, as ``scenario run --jobs N``); target < 10 s
 wall. Also the CPU time of one such scenario, run serially (a loaded
-machine stretches the wall time, not this). The rig figure: 10 lockstep
+machine stretches the wall time, not this), and with the supervisor in the
+loop (a ``no_trip`` expectation: ``core.supervisor.run_supervised``). The rig figure: 10 lockstep
 scenarios (the paper's, ``--rig-duration`` s each), each starting `rig` on
 its own leased ROS domain, ``--rig-jobs`` at a time (``--domain``: one
 after the other on that id). Prints wall times and scenarios per second; never asserts.
@@ -13,6 +14,7 @@ Run: .venv/bin/python bench/bench_scenarios.py [--runs 100] [--jobs 2]
      [--rig-runs 10] [--rig-duration 2] [--rig-jobs 2] [--no-rig] [--domain ID]
 """
 import argparse
+import dataclasses
 import os
 import tempfile
 import time
@@ -20,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart63_ros.core.scenario import load_scenarios
+from stewart63_ros.core.scenario import Expectation, load_scenarios
 from stewart63_ros.tools.scenario import run_all
 
 EXPECT = """    expect:
@@ -42,7 +44,8 @@ def scenario_file(folder: Path, runs: int, run: str, duration: float) -> Path:
 
 
 def measure(runs=100, jobs=2, rig_runs=10, rig_duration=2.0, rig_jobs=2, domain=None):
-    """{'scenario_sim_100_s': wall, 'scenario_lockstep_10_s': wall (None: skipped)}."""
+    """{'scenario_sim_100_s': wall, 'scenario_sim_cpu_ms', 'scenario_sim_supervised_cpu_ms',
+    'scenario_lockstep_10_s': wall (only with rig_runs)}."""
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
         sims = load_scenarios(scenario_file(Path(tmp), runs, 'sim', 10.0))
@@ -63,6 +66,16 @@ def measure(runs=100, jobs=2, rig_runs=10, rig_duration=2.0, rig_jobs=2, domain=
         print('CPU per scenario (serial, 10 of them): %.1f ms; %d of them on %d idle cores: '
               '%.2f s' % (1e3 * cpu, len(sims), jobs, cpu * len(sims) / jobs))
         out['scenario_sim_cpu_ms'] = 1e3 * cpu
+        # With the supervisor in the loop (a trip expectation): run_supervised,
+        # a Python loop per sample, not the compiled one
+        no_trip = Expectation('no_trip', 'max', 0.0)
+        supervised = [dataclasses.replace(s, expect=s.expect + (no_trip,)) for s in sims[:3]]
+        cpu = time.process_time()
+        run_all(supervised, jobs=1, keep_traces=False)
+        cpu = (time.process_time() - cpu) / len(supervised)
+        print('CPU per scenario with the supervisor in the loop (serial, %d of them): %.0f ms'
+              % (len(supervised), 1e3 * cpu))
+        out['scenario_sim_supervised_cpu_ms'] = 1e3 * cpu
         if rig_runs:
             rigs = load_scenarios(scenario_file(Path(tmp), rig_runs, 'lockstep', rig_duration))
             start = time.perf_counter()

@@ -465,6 +465,126 @@ def trajectory_from_bag(bag_dir, *, relative_time: bool = True,
     return cols
 
 
+#: The topics a reference topic file holds, and their types (docs/scenarios.md).
+REFERENCE_TOPICS = {'pose_trajectory': 'trajectory_msgs/msg/MultiDOFJointTrajectory',
+                    'pose_setpoint': 'geometry_msgs/msg/PoseStamped'}
+
+
+def _unit(q, where: str) -> np.ndarray:
+    quat = np.array([q.x, q.y, q.z, q.w], float)
+    norm = float(np.linalg.norm(quat))
+    if not np.all(np.isfinite(quat)) or not 0.9 < norm < 1.1:
+        raise BagError(f'{where}: not a unit quaternion ({quat.tolist()})')
+    return quat / norm
+
+
+def reference_points_from_bag(bag_dir) -> dict[str, np.ndarray | None]:
+    """A reference motion's points from a topic file (a rosbag2 directory).
+
+    The bag holds either one ``pose_trajectory``
+    (``trajectory_msgs/msg/MultiDOFJointTrajectory`` of the one joint
+    ``platform``, as the controller follows it: its points at their
+    ``time_from_start``, with velocities and accelerations where every point
+    has them), or ``pose_setpoint`` messages (``geometry_msgs/msg/PoseStamped``:
+    one point per message, at its header stamp from the first one's). Both, or
+    several trajectories, are refused: which one would the run follow?
+
+    Returns:
+        {'times' (N,) [s], 'poses' (N, 6) [m, rad] (theta unwrapped),
+        'rates' (N, 6) or None, 'accelerations' (N, 6) or None, 'topic'}.
+
+    Raises:
+        BagError: not a bag, none of the topics, both, a bad message.
+    """
+    from stewart63_ros.core.reference import trajectory_poses
+    reader = open_reader(bag_dir)
+    try:
+        found = {}
+        for name in REFERENCE_TOPICS:
+            try:
+                found[name] = resolve_bag_topics(reader, [name])[0]
+            except BagError:
+                pass
+        available = sorted({c.topic for c in reader.connections})
+        if not found:
+            raise BagError(f'{bag_dir}: no pose_trajectory or pose_setpoint in the bag '
+                           f'(it has: {", ".join(available) or "no topics"})')
+        if len(found) == 2:
+            raise BagError(f'{bag_dir}: holds both pose_trajectory and pose_setpoint: a '
+                           f'reference is one of them')
+        name, topic = next(iter(found.items()))
+        conns = [c for c in reader.connections if c.topic == topic]
+        try:
+            msgs = [reader.deserialize(raw, conn.msgtype)
+                    for conn, _, raw in reader.messages(connections=conns)]
+        except Exception as exc:
+            raise BagError(f'{bag_dir}: damaged bag: {_describe(exc)}') from exc
+    finally:
+        reader.close()
+    if not msgs:
+        raise BagError(f'{bag_dir}: {topic} holds no message')
+    twists = accels = None
+    if name == 'pose_trajectory':
+        if len(msgs) > 1:
+            raise BagError(f'{bag_dir}: {topic} holds {len(msgs)} trajectories: a reference '
+                           f'is one')
+        msg = msgs[0]
+        if list(msg.joint_names) != ['platform']:
+            raise BagError(f"{bag_dir}: {topic}: joint_names must be ['platform'], got "
+                           f'{list(msg.joint_names)}')
+        points = msg.points
+        if not points or any(len(p.transforms) != 1 for p in points):
+            raise BagError(f'{bag_dir}: {topic}: every point needs one transform')
+        times = np.array([p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec
+                          for p in points])
+        translations = [[p.transforms[0].translation.x, p.transforms[0].translation.y,
+                         p.transforms[0].translation.z] for p in points]
+        quats = [_unit(p.transforms[0].rotation, f'{topic} point {k}')
+                 for k, p in enumerate(points)]
+
+        def six(items):
+            return [items[0].linear.x, items[0].linear.y, items[0].linear.z,
+                    items[0].angular.x, items[0].angular.y, items[0].angular.z]
+        if all(len(p.velocities) == 1 for p in points):
+            twists = np.array([six(p.velocities) for p in points])
+            if all(len(p.accelerations) == 1 for p in points):
+                accels = np.array([six(p.accelerations) for p in points])
+    else:
+        stamps = np.array([header_stamp_ns(m) for m in msgs], dtype=np.int64)
+        times = (stamps - stamps[0]) * 1e-9
+        translations = [[m.pose.position.x, m.pose.position.y, m.pose.position.z] for m in msgs]
+        quats = [_unit(m.pose.orientation, f'{topic} message {k}') for k, m in enumerate(msgs)]
+    if not np.all(np.isfinite(translations)):
+        raise BagError(f'{bag_dir}: {topic}: a position holds NaN or Inf')
+    poses, rates, accs = trajectory_poses(translations, quats, twists, accels)
+    return {'times': times, 'poses': poses, 'rates': rates, 'accelerations': accs,
+            'topic': topic}
+
+
+def reference_from_bag(mech, bag_dir, max_leg_speed: float = 0.0,
+                       max_leg_acceleration: float = 0.0):
+    """A checked ``core.reference.Reference`` from a topic file
+    (:func:`reference_points_from_bag`), interpolated as a reference CSV is
+    (clamped cubic through the poses; Hermite where velocities are given).
+
+    Raises:
+        ReferenceError: the bag cannot be read, or its motion is refused
+            (``Reference.check``), naming the bag.
+    """
+    from stewart63_ros.core.reference import Reference, ReferenceError
+    try:
+        points = reference_points_from_bag(bag_dir)
+    except BagError as exc:
+        raise ReferenceError(str(exc)) from None
+    try:
+        ref = Reference.from_poses(mech, points['times'], points['poses'], points['rates'],
+                                   points['accelerations'])
+        ref.check(max_leg_speed, max_leg_acceleration)
+    except ReferenceError as exc:
+        raise ReferenceError('%s: %s' % (bag_dir, exc)) from None
+    return ref
+
+
 def _six(values) -> np.ndarray:
     out = np.full(6, np.nan)
     arr = np.asarray(values, dtype=float).ravel()[:6]

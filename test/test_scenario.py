@@ -263,7 +263,25 @@ def test_a_law_that_raises_has_every_sample_withheld(tmp_path, capsys):
      'params.platfrom_mass: unknown parameter (did you mean platform_mass?)'),
     ('  - name: a\n    run: lockstpe\n    expect: {max_force: {max: 1}}\n',
      "run: 'lockstpe' is not one of sim, lockstep, realtime (did you mean lockstep?)"),
-    ('  - name: a\n    expect: {trip: {max: 0}}\n', 'expect.trip: not yet available'),
+    ('  - name: a\n    faults: [sensor_stuck:leg_1@1]\n'
+     '    expect: {trip: {cause: tracking_eror, within: 9}}\n',
+     "expect.trip.cause: unknown trip cause 'tracking_eror' (did you mean tracking_error?)"),
+    ('  - name: a\n    faults: [sensor_stuck:leg_1@1]\n'
+     '    expect: {trip: {cause: stroke, whithin: 9}}\n',
+     'expect.trip.whithin: unknown key (did you mean within?)'),
+    ('  - name: a\n    expect: {trip: {cause: stroke, within: 9}}\n',
+     'expect.trip.after: the scenario has no fault to count from'),
+    ('  - name: a\n    expect: {trip: {cause: stroke, within: 2.5, after: 1}}\n',
+     'expect.trip.within: a whole number of samples'),
+    ('  - name: a\n    expect: {no_trip: {max: 0}}\n', 'expect.no_trip: expected true'),
+    ('  - name: a\n    expect: {no_trpi: true}\n', 'unknown metric (did you mean no_trip?)'),
+    ('  - name: a\n    params: {trip_force: 100}\n    expect: {max_force: {max: 1}}\n',
+     'params.trip_force: read by the supervisor, which runs only in a scenario that '
+     'expects a trip'),
+    ('  - name: a\n    params: {request_timeout: 1}\n    expect: {no_trip: true}\n',
+     'params.request_timeout: the supervisor node\'s only, not sim\'s'),
+    ('  - name: a\n    params: {descent_speed: 0.9}\n    expect: {no_trip: true}\n',
+     'descent_speed: 0.9 m/s is not below trip_leg_speed'),
     ('  - name: a\n    expect: {max_force: {max: 1}, max_force: {max: 2}}\n',
      'max_force: given twice in one mapping'),
     ('  - name: a\n    params: {sensor_noise: 0.001}\n    expect: {max_force: {max: 1}}\n',
@@ -386,6 +404,10 @@ def test_the_package_suite_passes_and_gives_a_report(tmp_path):
     names = [c.name for s in xml for c in s]
     assert 'paper' in names and 'track-computed_torque' in names
     assert sum(n.startswith('detect[') for n in names) == 4
+    # the supervisor's trips: each provoked cause, and the paper's run without one
+    assert {'paper-supervised', 'trip-sensor_stuck', 'trip-sensor_dropout', 'trip-actuator_dead',
+            'trip-stroke', 'trip-pose_box'} <= set(names)
+    assert sum(n.startswith('trip-detector[') for n in names) == 4
     assert (tmp_path / 'report' / 'report.md').read_text().count('![') == len(names)
 
 
@@ -434,3 +456,248 @@ def test_a_run_that_diverges_is_an_error_in_junit_and_exit_1(tmp_path, capsys):
     case, = [c for s in validate_junit(junit) for c in s]
     error, = case.result
     assert error.type == 'RunFailed' and 'diverged' in error.message
+
+
+# -- the supervisor's trips ------------------------------------------------------------------
+SIX_AXIS = REPO / 'scenarios' / 'references' / 'six_axis.csv'
+
+
+def test_trip_expectations_give_cause_sample_and_latency_beside_the_bound(tmp_path, capsys):
+    """The trip's sample against the supervisor's rule (a dropout trips once no
+    reading came for stale_lengths_ms) and against the trace (the first sample
+    with a leg outside the soft stroke); each way a trip expectation fails."""
+    path = write(tmp_path, """
+    scenarios:
+      - name: dropout
+        duration: 1.0
+        faults: [sensor_dropout:leg_2@0.5-0.6]
+        params: {stale_lengths_ms: 30.0}
+        expect:
+          trip: {cause: lengths_stale, within: 29}
+          no_trip: true
+      - name: wrong-cause
+        duration: 1.0
+        faults: [sensor_dropout:leg_2@0.5-0.6]
+        expect:
+          trip: {cause: tracking_error, within: 100}
+      - name: late
+        duration: 1.0
+        faults: [sensor_dropout:leg_2@0.5-0.6]
+        expect:
+          trip: {cause: lengths_stale, within: 10}
+      - name: early
+        duration: 1.0
+        params: {stale_lengths_ms: 5.0}
+        faults: [sensor_dropout:leg_2@0.2-0.3]
+        expect:
+          trip: {cause: lengths_stale, within: 10, after: 0.5}
+      - name: none
+        duration: 1.0
+        expect:
+          trip: {cause: stroke, within: 100, after: 0.5}
+      - name: stroke
+        duration: 3.0
+        control_law: pd_gravity
+        reference: %s
+        params: {stroke_margin: 0.27}
+        expect:
+          trip: {cause: stroke, within: 1000, after: 2.0}
+    """ % SIX_AXIS)
+    junit = tmp_path / 'j.xml'
+    assert tool.main(['run', str(path), '--junit', str(junit), '--out', str(tmp_path / 'o')]) == 1
+    out = capsys.readouterr().out
+    outcomes = {o.scenario.name: o for o in tool.run_all(load_scenarios(path))}
+    # 30 ms without a reading: sample 500 + 29 (0.5 s at 1 kHz), safe force at once
+    trip, none = outcomes['dropout'].verdicts
+    assert (trip.value, trip.passed, trip.at_s) == (29.0, True, None)
+    assert trip.measured == 'lengths_stale at sample 529 (t = 0.5290 s; safe force after 0 samples)'
+    assert outcomes['dropout'].trace.trips[0].latency_samples == 0
+    assert (none.value, none.passed, none.at_s) == (1.0, False, 0.529)
+    assert 'no_trip = 1 trip: lengths_stale at sample 529' in none.text()
+    assert 'none expected): FAIL at t = 0.5290 s' in none.text()
+    wrong, = outcomes['wrong-cause'].verdicts
+    assert (wrong.value, wrong.passed, wrong.at_s) == (19.0, False, 0.519)
+    assert wrong.why == 'the cause is lengths_stale, not tracking_error'
+    late, = outcomes['late'].verdicts
+    assert (late.value, late.passed, late.why) == (19.0, False, 'late by 9 samples')
+    assert late.text().startswith('trip = lengths_stale at sample 519 (t = 0.5190 s; safe force '
+                                  'after 0 samples), +19 samples (lengths_stale within 10 samples '
+                                  'of the fault sensor_dropout:leg_2@0.5-0.6): FAIL (late by 9 '
+                                  'samples) at t = 0.5190 s')
+    early, = outcomes['early'].verdicts
+    assert (early.value, early.passed) == (-296.0, False)
+    assert early.why == 'it tripped 296 samples before t = 0.5 s'
+    nothing, = outcomes['none'].verdicts
+    assert np.isnan(nothing.value) and not nothing.passed and nothing.at_s == 0.6
+    assert nothing.text() == ('trip = no trip (stroke within 100 samples of t = 0.5 s): '
+                              'FAIL (no trip) at t = 0.6000 s')
+    # the stroke trip: the first sample with a leg outside the soft stroke
+    stroke = outcomes['stroke']
+    soft_min = load_setup().mechanism.leg_length_min + 0.27
+    first = int(np.flatnonzero(stroke.trace.lengths.min(axis=1) < soft_min)[0])
+    assert stroke.trace.trips[0].sample == first
+    assert stroke.verdicts[0].value == first - 2000 and stroke.verdicts[0].passed
+    # the same lines in the output, JUnit and the report
+    assert 'trip = lengths_stale at sample 519' in out
+    cases = {c.name: c for s in validate_junit(junit) for c in s}
+    assert 'FAIL (late by 9 samples) at t = 0.5190 s' in cases['late'].result[0].message
+    assert cases['stroke'].is_passed
+    report = (tmp_path / 'o' / 'report.md').read_text()
+    assert ('| trip | lengths_stale within 10 samples of the fault sensor_dropout:leg_2@0.5-0.6 | '
+            'lengths_stale at sample 519 (t = 0.5190 s; safe force after 0 samples), +19 samples '
+            '| 0.5-0.51 | **FAIL** at 0.5190 s: late by 9 samples |') in report
+
+
+def test_sim_runs_the_supervisor_as_run_supervised_does(tmp_path):
+    """A scenario's supervised run is core.supervisor.run_supervised with the
+    limits of its params, sample for sample; the limits take effect."""
+    from stewart63_ros.core.faults import FaultModel, parse_faults
+    from stewart63_ros.core.laws import Controller
+    from stewart63_ros.core.reference import Reference
+    from stewart63_ros.core.supervisor import Supervisor, limits_from_params, run_supervised
+    scenario, = scenarios_from_dict({
+        'name': 'push', 'duration': 2.5, 'faults': ['actuator_weak:leg_1:0.5@1.0'],
+        'wrench': [{'from': 1.5, 'force': [200.0, 0, 0]}],
+        'params': {'pose_box': [-0.02, -0.3, 0.8, 0.02, 0.3, 1.6]},
+        'expect': {'trip': {'cause': 'pose_box', 'within': 1000, 'after': 1.5}}})
+    trace = run_sim(scenario)
+    setup = load_setup()
+    mech, start = setup.mechanism, (setup.task.initial_position, setup.task.initial_rotation)
+    params = {'pose_box': [-0.02, -0.3, 0.8, 0.02, 0.3, 1.6]}
+    from stewart63_ros.core.fk import FKTracker
+    tracker = FKTracker(mech, *start)
+
+    def pose(lengths):
+        result = tracker.solve(lengths)
+        return result.position, result.rotation
+    supervisor = Supervisor(setup, limits_from_params(mech, params), 1000.0,
+                            Reference.constant_lengths(mech, setup.task.setpoint_lengths,
+                                                       near=start), pose)
+    out = run_supervised(setup, supervisor, 2.5, 1000.0, FaultModel(
+        parse_faults(['actuator_weak:leg_1:0.5@1.0']), 1000.0), Controller(setup),
+        wrench=wrench_samples(scenario.wrench, trace.times))
+    np.testing.assert_array_equal(trace.forces, out['forces'])
+    np.testing.assert_array_equal(trace.lengths, out['lengths'])
+    assert [(t.cause, t.sample) for t in trace.trips] == [
+        (t.cause, round(t.sample_ns * 1e-6)) for t in supervisor.trips]
+    assert trace.trips[0].cause == 'pose_box' and trace.trips[0].sample > 1500
+    # without the push the box holds: the wrench acts in the supervised loop
+    calm = run_sim(dataclasses.replace(scenario, wrench=()))
+    assert calm.trips == ()
+
+
+# -- a reference from a topic file ---------------------------------------------------------
+def write_reference_bag(path, times, poses, *topics):
+    """A bag holding the motion as one pose_trajectory, and/or as pose_setpoint messages."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from scipy.spatial.transform import Rotation
+
+    from stewart63_ros import bagio
+    store = bagio.typestore()
+    t = store.types
+    quats = Rotation.from_euler('ZYX', poses[:, :2:-1]).as_quat()     # R = Rz Ry Rx
+
+    def header(ns):
+        return t['std_msgs/msg/Header'](stamp=t['builtin_interfaces/msg/Time'](
+            sec=ns // 10**9, nanosec=ns % 10**9), frame_id='base')
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        if 'pose_trajectory' in topics:
+            msg_t = t['trajectory_msgs/msg/MultiDOFJointTrajectory']
+            points = [t['trajectory_msgs/msg/MultiDOFJointTrajectoryPoint'](
+                transforms=[t['geometry_msgs/msg/Transform'](
+                    translation=t['geometry_msgs/msg/Vector3'](*p[:3]),
+                    rotation=t['geometry_msgs/msg/Quaternion'](*q))],
+                velocities=[], accelerations=[],
+                time_from_start=t['builtin_interfaces/msg/Duration'](
+                    sec=int(round(s * 1e9)) // 10**9, nanosec=int(round(s * 1e9)) % 10**9))
+                for s, p, q in zip(times, poses, quats)]
+            conn = writer.add_connection('/pose_trajectory', msg_t.__msgtype__, typestore=store)
+            msg = msg_t(header=header(5 * 10**9), joint_names=['platform'], points=points)
+            writer.write(conn, 5 * 10**9, store.serialize_cdr(msg, msg.__msgtype__))
+        if 'pose_setpoint' in topics:
+            msg_t = t['geometry_msgs/msg/PoseStamped']
+            conn = writer.add_connection('/pose_setpoint', msg_t.__msgtype__, typestore=store)
+            for s, p, q in zip(times, poses, quats):
+                ns = 7 * 10**9 + int(round(s * 1e9))
+                msg = msg_t(header=header(ns), pose=t['geometry_msgs/msg/Pose'](
+                    position=t['geometry_msgs/msg/Point'](*p[:3]),
+                    orientation=t['geometry_msgs/msg/Quaternion'](*q)))
+                writer.write(conn, ns, store.serialize_cdr(msg, msg.__msgtype__))
+
+
+@pytest.mark.parametrize('topic', ['pose_trajectory', 'pose_setpoint'])
+def test_a_topic_file_reference_gives_the_csvs_verdicts_and_values(tmp_path, topic):
+    from stewart63_ros.core.reference import read_reference_csv
+    times, poses = read_reference_csv(SIX_AXIS)
+    write_reference_bag(tmp_path / 'motion', times, poses, topic)
+    doc = {'name': 'track', 'duration': 4.0, 'control_law': 'pd_gravity',
+           'faults': ['sensor_stuck:leg_2@3.0'],
+           'params': {'trip_tracking_error': 0.01, 'trip_tracking_time': 0.05},
+           'expect': {'tracking_error_max_m': {'max': 0.007, 'from': 2.0, 'to': 2.99},
+                      'tracking_error_rms_m': {'max': 0.003, 'from': 2.0, 'to': 2.99},
+                      'trip': {'cause': 'tracking_error', 'within': 300}}}
+    from_csv, = scenarios_from_dict(dict(doc, reference=str(SIX_AXIS)))
+    from_bag, = scenarios_from_dict(dict(doc, reference='motion'), tmp_path)
+    csv_trace, bag_trace = run_sim(from_csv), run_sim(from_bag)
+    np.testing.assert_allclose(bag_trace.reference, csv_trace.reference, rtol=0, atol=1e-12)
+    csv_verdicts = evaluate(csv_trace, from_csv.expect)
+    bag_verdicts = evaluate(bag_trace, from_bag.expect)
+    assert [v.passed for v in bag_verdicts] == [v.passed for v in csv_verdicts] == [
+        True, True, True]
+    for a, b in zip(bag_verdicts, csv_verdicts):
+        assert a.value == pytest.approx(b.value, rel=1e-9, abs=1e-12)
+        assert a.measured == b.measured and a.at_s == b.at_s
+    assert bag_trace.trips == csv_trace.trips
+
+
+@pytest.mark.parametrize('folder, expected', [
+    ('empty', 'empty: not a bag (no metadata.yaml)'),
+    ('both', 'both: holds both pose_trajectory and pose_setpoint: a reference is one of them'),
+])
+def test_a_topic_file_it_cannot_follow_is_one_line_and_exit_2(tmp_path, capsys, folder,
+                                                              expected):
+    from stewart63_ros.core.reference import read_reference_csv
+    times, poses = read_reference_csv(SIX_AXIS)
+    write_reference_bag(tmp_path / 'both', times, poses, 'pose_setpoint', 'pose_trajectory')
+    (tmp_path / 'empty').mkdir()
+    path = write(tmp_path, """
+    scenarios:
+      - name: a
+        reference: %s
+        expect: {max_force: {max: 1}}
+    """ % folder)
+    assert tool.main(['run', str(path), '--out', str(tmp_path / 'o')]) == 2
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and 'reference: ' in err and expected in err, err
+
+
+def test_trajectory_poses_turn_twists_into_euler_rates():
+    """core.reference.trajectory_poses (the controller's and the topic file's
+    conversion) against finite differences of scipy's rotations: omega from
+    R(t + h) R(t)^T, theta's rates from theta(t +- h), 2 pi jumps unwrapped."""
+    from scipy.spatial.transform import Rotation
+
+    from stewart63_ros.core.reference import trajectory_poses
+
+    def theta(t):       # R = Rz Ry Rx; theta_z passes pi (a jump in the quaternion's Euler angles)
+        return np.array([0.2 * np.sin(t), 0.1 * t - 0.05 * t ** 2, 2.8 + 0.4 * t])
+
+    def rot(t):
+        return Rotation.from_euler('ZYX', theta(t)[::-1])
+
+    times = np.linspace(0.0, 2.0, 9)
+    h = 1e-5
+
+    def omega(t):       # base frame: R(t + h) R(t)^T = exp([omega] h)
+        return ((rot(t + h) * rot(t - h).inv()).as_rotvec()) / (2 * h)
+    quats = np.array([rot(t).as_quat() for t in times])
+    twists = np.array([np.r_[0.1, 0.0, -0.2, omega(t)] for t in times])
+    accels = np.array([np.r_[0.0, 0.0, 0.0, (omega(t + 1e-3) - omega(t - 1e-3)) / 2e-3]
+                       for t in times])
+    poses, rates, accs = trajectory_poses(np.zeros((9, 3)), quats, twists, accels)
+    np.testing.assert_allclose(poses[:, 3:], [theta(t) for t in times], atol=1e-12)
+    want = [(theta(t + h) - theta(t - h)) / (2 * h) for t in times]
+    np.testing.assert_allclose(rates[:, 3:], want, atol=1e-6)
+    np.testing.assert_allclose(rates[:, :3], twists[:, :3])
+    want = [(theta(t + 1e-3) - 2 * theta(t) + theta(t - 1e-3)) / 1e-6 for t in times]
+    np.testing.assert_allclose(accs[:, 3:], want, atol=1e-4)

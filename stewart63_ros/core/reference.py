@@ -457,6 +457,45 @@ def load_reference(mech: Mechanism, path: str | os.PathLike, max_leg_speed: floa
     return ref
 
 
+def trajectory_poses(translations: ArrayLike, quaternions: ArrayLike,
+                     twists: ArrayLike | None = None, accelerations: ArrayLike | None = None
+                     ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """The pose coordinates of a trajectory's points (a ``pose_trajectory``
+    message's, a topic file's), for ``Reference.from_poses``.
+
+    theta is continuous from point to point (unwrapped: no 2 pi jumps); with
+    twists, dtheta/dt = E(theta)^-1 omega; with accelerations too,
+    d2theta/dt2 = E^-1 (alpha - dE/dt dtheta/dt) (dE/dt by a forward difference).
+
+    Args:
+        translations: (N, 3) [m], base frame.
+        quaternions: (N, 4) unit quaternions x, y, z, w.
+        twists: (N, 6) linear [m/s] and angular [rad/s] velocities, base frame, or None.
+        accelerations: (N, 6) their derivatives (with ``twists``), or None.
+
+    Returns:
+        (poses (N, 6), their rates (N, 6) or None, their second derivatives or None).
+    """
+    from stewart63_ros.core.rotation import euler_from_quaternion, euler_rate_matrix
+    translations = np.asarray(translations, float).reshape(-1, 3)
+    poses = np.empty((len(translations), 6))
+    poses[:, :3] = translations
+    poses[:, 3:] = np.unwrap(euler_from_quaternion(np.asarray(quaternions, float)), axis=0)
+    if twists is None:
+        return poses, None, None
+    rates = np.array(twists, float)
+    accs = None if accelerations is None else np.array(accelerations, float)
+    for k in range(len(poses)):
+        e = euler_rate_matrix(poses[k, 3:])
+        rates[k, 3:] = np.linalg.solve(e, np.asarray(twists, float)[k, 3:])
+        if accs is not None:
+            h = 1e-7
+            de = (euler_rate_matrix(poses[k, 3:] + h * rates[k, 3:]) - e) / h
+            accs[k, 3:] = np.linalg.solve(e, np.asarray(accelerations, float)[k, 3:]
+                                          - de @ rates[k, 3:])
+    return poses, rates, accs
+
+
 def write_reference_csv(path: str | os.PathLike, times: ArrayLike, poses: ArrayLike) -> None:
     """Write times (N,) [s] and poses (N, 6) [m, rad] as a reference CSV (full precision)."""
     with open(path, 'w', newline='') as stream:

@@ -36,7 +36,16 @@ reference's (the setpoint (L_i)_0 without a reference):
   mean something on the rig: in ``sim`` nothing is sent, so they are 0 by
   construction.
 
-Supervisor trips (``PENDING_METRICS``) are refused as not yet available.
+Supervisor trips (``TRIP_METRICS``): a scenario with one runs with the
+supervisor between controller and plant (``sim``: ``supervisor.run_supervised``,
+the core the ``supervisor`` node runs; on the rig: ``rig --supervisor``), its
+limits from ``params``:
+
+- ``trip``: the first trip has ``cause`` and comes within ``within`` samples
+  of ``after`` (a time [s], default the start of the scenario's earliest
+  fault); the value is its sample minus ``after``'s (negative: it tripped
+  before), with the cause and the sample beside it;
+- ``no_trip``: the number of trips is 0.
 """
 from __future__ import annotations
 
@@ -76,9 +85,14 @@ METRICS: dict[str, tuple[str, bool, str]] = {
     'withheld_samples': ('', True, 'samples the controller did not answer (law raised)'),
     'missed_cycles': ('', False, 'missed cycles and force timeouts (rig; 0 in sim)'),
     'lost_messages': ('', False, 'skipped or unrecorded samples (rig; 0 in sim)'),
+    'trip': ('samples', False, 'the supervisor trips with this cause within N samples of '
+             'the fault\'s start or a time'),
+    'no_trip': ('trips', False, 'the supervisor does not trip'),
 }
-#: Metrics named in the issue that wait for the supervisor node.
-PENDING_METRICS = ('trip', 'no_trip', 'supervisor_trip', 'trip_within_samples')
+#: The supervisor's expectations: a scenario with one runs with the supervisor.
+TRIP_METRICS = ('trip', 'no_trip')
+#: The keys of a ``trip`` expectation.
+TRIP_KEYS = ('cause', 'within', 'after')
 #: The tracking errors count from this time by default [s], as ``sim`` and the
 #: rig's summary print them.
 TRACKING_FROM = 1.0
@@ -101,6 +115,9 @@ class Expectation:
     limit: float
     t_from: float | None = None
     t_to: float | None = None
+    #: ``trip``: the cause expected, and what ``t_from`` is (``the fault X at T s``)
+    cause: str | None = None
+    after_what: str = ''
 
 
 @dataclasses.dataclass(frozen=True)
@@ -129,6 +146,21 @@ class Scenario:
     source: str = ''
     description: str = ''
 
+    @property
+    def supervised(self) -> bool:
+        """It runs with the supervisor: it expects a trip or none."""
+        return any(e.metric in TRIP_METRICS for e in self.expect)
+
+
+@dataclasses.dataclass(frozen=True)
+class TripRecord:
+    """A supervisor's trip: its cause, the sample (index from 0) on which the
+    limit was crossed, the samples until the first safe force, its words."""
+    cause: str
+    sample: int
+    latency_samples: int | None
+    detail: str = ''
+
 
 @dataclasses.dataclass
 class Trace:
@@ -142,6 +174,8 @@ class Trace:
         withheld: (N,) bool, a complete sample the controller did not answer.
         stroke: (leg_length_min, leg_length_max) [m].
         missed_cycles, lost_messages: whole-run counts (0 in sim).
+        rate: the sample rate [Hz].
+        trips: the supervisor's trips, in order (a run without it: none).
     """
     times: np.ndarray
     lengths: np.ndarray
@@ -151,6 +185,8 @@ class Trace:
     stroke: tuple[float, float]
     missed_cycles: int = 0
     lost_messages: int = 0
+    rate: float = 1000.0
+    trips: tuple[TripRecord, ...] = ()
 
 
 @dataclasses.dataclass
@@ -162,10 +198,44 @@ class Verdict:
     passed: bool
     at_s: float | None
     window: tuple[float, float]
+    #: the trip expectations' measured trip: ``tracking_error at sample 3162 (t = 3.162 s)``
+    measured: str = ''
+    #: why a trip expectation failed, beside its value
+    why: str = ''
+
+    def bound_text(self) -> str:
+        """The bound: ``<= 3000 N``, ``tracking_error within 200 samples of t = 3 s``."""
+        exp = self.expectation
+        if exp.metric == 'trip':
+            return '%s within %d samples of %s' % (exp.cause, exp.limit, exp.after_what)
+        if exp.metric == 'no_trip':
+            return 'none expected'
+        unit = METRICS[exp.metric][0]
+        return '%s %s%s' % ('<=' if exp.kind == 'max' else '>=', _num(exp.limit),
+                            ' ' + unit if unit else '')
+
+    def measured_text(self) -> str:
+        """The measured value: ``3120.5``, ``tracking_error at sample 3162 (t = 3.162 s),
+        +162 samples``."""
+        exp = self.expectation
+        if exp.metric == 'trip':
+            if not self.measured:
+                return 'no trip'
+            return '%s, %+d samples' % (self.measured, self.value)
+        if exp.metric == 'no_trip':
+            trips = '%d trip%s' % (self.value, '' if self.value == 1 else 's')
+            return trips + (': ' + self.measured if self.measured else '')
+        return _num(self.value)
 
     def text(self) -> str:
         """One line: ``max_force = 3120.5 N <= 3000 N: FAIL by 120.5 N at t = 0.012 s``."""
         exp = self.expectation
+        if exp.metric in TRIP_METRICS:
+            line = '%s = %s (%s)' % (exp.metric, self.measured_text(), self.bound_text())
+            if self.passed:
+                return line + ': pass'
+            line += ': FAIL' + (' (%s)' % self.why if self.why else '')
+            return line + (' at t = %.4f s' % self.at_s if self.at_s is not None else '')
         unit = METRICS[exp.metric][0]
         unit = ' ' + unit if unit else ''
         op = '<=' if exp.kind == 'max' else '>='
@@ -241,28 +311,32 @@ def _unknown(where: str, doc: Mapping, known: Sequence[str]) -> None:
             raise ScenarioError('%s.%s: unknown key%s' % (where, key, _hint(key, known)))
 
 
-def parse_expectations(where: str, doc: Any, duration: float) -> tuple[Expectation, ...]:
+def parse_expectations(where: str, doc: Any, duration: float,
+                       faults: Sequence[str] = ()) -> tuple[Expectation, ...]:
     """The ``expect:`` mapping of a scenario, checked.
 
     Args:
         where: the scenario's place in its file, for messages.
         doc: {metric: {max|min: B, from: T0, to: T1}}, or {metric: [such
-            a mapping, ...]} for several windows of one metric.
+            a mapping, ...]} for several windows of one metric; ``trip:
+            {cause: C, within: N, after: T}``; ``no_trip: true``.
         duration: the run's duration [s] (a window must lie inside it).
+        faults: the scenario's fault strings (a trip counts from the earliest
+            start by default).
 
     Returns:
         One ``Expectation`` per bound (a metric may have both max and min).
 
     Raises:
-        ScenarioError: an unknown metric or key, a bad number, a window outside
-            the run, a window on a whole-run metric, a pending (supervisor) metric.
+        ScenarioError: an unknown metric, key or trip cause, a bad number, a
+            window outside the run, a window on a whole-run metric.
     """
     out = []
     for metric, spec in _mapping(where + '.expect', doc or {}).items():
         at = '%s.expect.%s' % (where, metric)
-        if metric in PENDING_METRICS:
-            raise ScenarioError('%s: not yet available: supervisor trips come with the '
-                                'supervisor node, not yet in this package' % at)
+        if metric in TRIP_METRICS:
+            out.append(_trip_expectation(metric, spec, at, duration, faults))
+            continue
         if metric not in METRICS:
             raise ScenarioError('%s: unknown metric%s' % (at, _hint(metric, METRICS)))
         specs = spec if isinstance(spec, list) else [spec]
@@ -270,6 +344,44 @@ def parse_expectations(where: str, doc: Any, duration: float) -> tuple[Expectati
             out.extend(_expectations(metric, one, '%s[%d]' % (at, k) if len(specs) > 1 else at,
                                      duration))
     return tuple(out)
+
+
+def _trip_expectation(metric: str, spec: Any, at: str, duration: float,
+                      faults: Sequence[str]) -> Expectation:
+    if metric == 'no_trip':
+        if spec is not True:
+            raise ScenarioError('%s: expected true (no trip over the whole run), got %r'
+                                % (at, spec))
+        return Expectation('no_trip', 'max', 0.0)
+    from stewart63_ros.core.supervisor import CAUSES
+    spec = _mapping(at, spec)
+    _unknown(at, spec, TRIP_KEYS)
+    cause = spec.get('cause')
+    if cause is None:
+        raise ScenarioError('%s.cause: a trip expectation names its cause (%s)'
+                            % (at, ', '.join(CAUSES)))
+    if cause not in CAUSES:
+        raise ScenarioError('%s.cause: unknown trip cause %r%s' % (at, cause, _hint(cause, CAUSES)))
+    if 'within' not in spec:
+        raise ScenarioError('%s.within: a trip expectation needs within: N (samples)' % at)
+    within = _number(at + '.within', spec['within'], nonnegative=True)
+    if within != int(within):
+        raise ScenarioError('%s.within: a whole number of samples, got %g' % (at, within))
+    after = spec.get('after', 'fault')
+    if after == 'fault':
+        from stewart63_ros.core.faults import parse_faults
+        started = sorted(parse_faults(list(faults)), key=lambda f: f.start)
+        if not started:
+            raise ScenarioError('%s.after: the scenario has no fault to count from: give '
+                                'after: T (a time [s])' % at)
+        t_after, what = started[0].start, 'the fault %s' % started[0].text
+    else:
+        t_after = _number(at + '.after', after, nonnegative=True)
+        what = 't = %g s' % t_after
+    if t_after >= duration:
+        raise ScenarioError('%s.after: %g s is at or after the end of the run (%g s)'
+                            % (at, t_after, duration))
+    return Expectation('trip', 'max', within, t_after, None, str(cause), what)
 
 
 def _expectations(metric: str, spec: Any, at: str, duration: float) -> list[Expectation]:
@@ -345,7 +457,14 @@ def parse_wrench(where: str, doc: Any, duration: float) -> tuple[WrenchInterval,
     return tuple(out)
 
 
-def _check_params(where: str, params: Mapping, law: str | None, run: str) -> dict:
+#: Supervisor keys ``sim`` runs with (``run_supervised``) besides its limits
+#: (``supervisor.LIMIT_KEYS``); ``request_timeout`` (wall clock) and
+#: ``trip_on_diagnostics`` act on the rig only.
+SIM_HOMING_KEYS = ('homing', 'homing_direction', 'homing_speed', 'homing_force')
+
+
+def _check_params(where: str, params: Mapping, law: str | None, run: str,
+                  supervised: bool = False) -> dict:
     from stewart63_ros.core.node_parameters import BY_NAME
     from stewart63_ros.core.params import known_keys
     known = sorted(known_keys({'control_law': law} if law else None))
@@ -359,7 +478,15 @@ def _check_params(where: str, params: Mapping, law: str | None, run: str) -> dic
         if key not in known:
             raise ScenarioError('%s: unknown parameter%s' % (at, _hint(key, known)))
         declared = BY_NAME.get(key)
-        if run == 'sim' and declared is not None and 'sim' not in declared.nodes:
+        if declared is not None and declared.nodes == ('supervisor',):
+            if not supervised:
+                raise ScenarioError('%s: read by the supervisor, which runs only in a scenario '
+                                    'that expects a trip or no_trip' % at)
+            from stewart63_ros.core.supervisor import LIMIT_KEYS
+            if run == 'sim' and key not in LIMIT_KEYS + SIM_HOMING_KEYS:
+                raise ScenarioError('%s: the supervisor node\'s only, not sim\'s: it takes '
+                                    'effect in run: lockstep or realtime' % at)
+        elif run == 'sim' and declared is not None and 'sim' not in declared.nodes:
             raise ScenarioError('%s: read by the %s node only, not by sim: it takes effect '
                                 'in run: lockstep or realtime' % (at, '/'.join(declared.nodes)))
         out[str(key)] = value
@@ -401,7 +528,10 @@ def parse_scenario(doc: Any, where: str, base: Path, source: str = '') -> Scenar
     law = doc.get('control_law')
     if law is not None and not isinstance(law, str):
         raise ScenarioError('%s.control_law: expected a name, got %r' % (where, law))
-    params = _check_params(where, _mapping(where + '.params', doc.get('params') or {}), law, run)
+    supervised = isinstance(doc.get('expect'), Mapping) and any(
+        k in TRIP_METRICS for k in doc['expect'])
+    params = _check_params(where, _mapping(where + '.params', doc.get('params') or {}), law, run,
+                           supervised)
     from stewart63_ros.core.params import default_params_path
     params_file = (_resolve(base, doc['params_file']) if doc.get('params_file')
                    else str(default_params_path()))
@@ -422,15 +552,26 @@ def parse_scenario(doc: Any, where: str, base: Path, source: str = '') -> Scenar
                             'external_wrench from its topic, not on a schedule)' % where)
     if 'expect' not in doc:
         raise ScenarioError('%s.expect: a scenario needs at least one expectation' % where)
-    expect = parse_expectations(where, doc.get('expect'), duration)
+    expect = parse_expectations(where, doc.get('expect'), duration, faults)
     if not expect:
         raise ScenarioError('%s.expect: a scenario needs at least one expectation' % where)
+    if reference is not None and run != 'sim' and os.path.isdir(reference):
+        from stewart63_ros.bagio import BagError, reference_points_from_bag
+        try:
+            with_rates = reference_points_from_bag(reference)['rates'] is not None
+        except BagError as exc:
+            raise ScenarioError('%s.reference: %s' % (where, exc)) from None
+        if with_rates:
+            raise ScenarioError('%s.reference: a trajectory with velocities runs in sim only '
+                                '(the rig takes its reference as a CSV of poses)' % where)
     description = doc.get('description') or ''
     scenario = Scenario(name.strip(), run, duration, params_file, params, law, reference,
                         tuple(faults), wrench, expect, source, str(description))
     try:
         build_plant(scenario)
         build_controller(scenario)
+        if scenario.supervised:
+            build_supervisor(scenario)
     except ScenarioError as exc:
         raise ScenarioError('%s: %s' % (where, exc)) from None
     return scenario
@@ -619,9 +760,14 @@ def build_controller(scenario: Scenario) -> tuple[Any, Any]:
         setup = setup_from_params(params)
         reference = None
         if scenario.reference is not None:
-            reference = load_reference(setup.mechanism, scenario.reference,
-                                       read_declared(params, 'max_leg_speed'),
-                                       read_declared(params, 'max_leg_acceleration'))
+            limits = (read_declared(params, 'max_leg_speed'),
+                      read_declared(params, 'max_leg_acceleration'))
+            if os.path.isdir(scenario.reference):
+                # a topic file: read with the package's bag I/O (rosbags, no ROS)
+                from stewart63_ros.bagio import reference_from_bag
+                reference = reference_from_bag(setup.mechanism, scenario.reference, *limits)
+            else:
+                reference = load_reference(setup.mechanism, scenario.reference, *limits)
         return Controller(setup, params, reference=reference), reference
     except ParameterError as exc:
         raise ScenarioError('params: %s' % exc) from None
@@ -706,6 +852,8 @@ def run_sim(scenario: Scenario) -> Trace:
     if plant_faults:
         faults = FaultModel(parse_faults(plant_faults), rate, plant.setting('sensor_seed'))
     dyn = Dynamics(mech)
+    if scenario.supervised:
+        return _run_supervised(scenario, plant, dyn, controller, reference, rate, faults, wrenches)
     if reference is None and type(controller.law) is PDLaw and faults is None:
         # eq. (40) towards the setpoint: the compiled loop (controller.pd_gains())
         law: Any = controller
@@ -721,7 +869,82 @@ def run_sim(scenario: Scenario) -> Trace:
     if isinstance(law, _Withholding):
         withheld[[k for k in law.withheld if k < len(times)]] = True
     return Trace(times, lengths, reference_lengths(scenario, reference, times),
-                 result.forces, withheld, (mech.leg_length_min, mech.leg_length_max))
+                 result.forces, withheld, (mech.leg_length_min, mech.leg_length_max), rate=rate)
+
+
+class _LawCalls:
+    """The controller, noting the samples on which its law raised (the
+    supervisor trips on them: ``run_supervised``)."""
+
+    def __init__(self, controller: Any, rate: float) -> None:
+        self.controller = controller
+        self.rate = rate
+        self.raised: list[int] = []
+
+    def forces(self, t: float, lengths: np.ndarray, rates: np.ndarray) -> np.ndarray:
+        """The law's forces; a LawError noted, then passed on."""
+        from stewart63_ros.core.laws import LawError
+        try:
+            return self.controller.forces(t, lengths, rates)
+        except LawError:
+            self.raised.append(int(round(t * self.rate)))
+            raise
+
+
+def build_supervisor(scenario: Scenario, reference: Any = None) -> Any:
+    """The supervisor of a scenario that expects a trip (or none): the
+    ``supervisor`` node's parameters (the file's, then the overrides), the
+    reference the controller follows (None: its setpoint).
+
+    Args:
+        scenario: the scenario.
+        reference: the controller's ``Reference`` (a CSV's or a topic file's), or None.
+
+    Returns:
+        A fresh ``core.supervisor.Supervisor`` at the plant's ``sensor_rate``.
+
+    Raises:
+        ScenarioError: a limit out of range or contradicting another (its key named).
+    """
+    from stewart63_ros.core.node_parameters import read as read_declared
+    from stewart63_ros.core.params import setup_from_params
+    from stewart63_ros.core.supervisor import supervisor_from_params
+    params = node_parameters(scenario, 'supervisor')
+    params['reference_file'] = ''       # the scenario's reference is handed over below
+    rate = float(read_declared(node_parameters(scenario, 'plant'), 'sensor_rate'))
+    try:
+        supervisor = supervisor_from_params(setup_from_params(params), params, rate)
+    except ParameterError as exc:
+        raise ScenarioError('params: %s' % exc) from None
+    if reference is not None:
+        supervisor.reference = reference
+    return supervisor
+
+
+def _run_supervised(scenario: Scenario, plant: Any, dyn: Any, controller: Any, reference: Any,
+                    rate: float, faults: Any, wrenches: np.ndarray | None) -> Trace:
+    """``run_sim`` with the supervisor between controller and plant:
+    ``core.supervisor.run_supervised``, the loop ``rig --supervisor`` runs."""
+    from stewart63_ros.core.supervisor import run_supervised
+    supervisor = build_supervisor(scenario, reference)
+    law = _LawCalls(controller, rate)
+    mech = plant.mechanism
+    out = run_supervised(plant, supervisor, scenario.duration, rate, faults=faults,
+                         controller=law, wrench=wrenches)
+    if not np.all(np.isfinite(out['states'])):
+        raise RuntimeError('the simulation diverged (non-finite state)')
+    times = np.arange(len(out['lengths'])) / rate
+    withheld = np.zeros(len(times), bool)
+    withheld[[k for k in law.raised if k < len(times)]] = True
+
+    def index(ns: int) -> int:
+        return int(round(ns * 1e-9 * rate))
+    trips = tuple(TripRecord(t.cause, index(t.sample_ns),
+                             None if t.safe_ns is None else index(t.safe_ns) - index(t.sample_ns),
+                             t.detail) for t in supervisor.trips)
+    return Trace(times, out['lengths'], reference_lengths(scenario, reference, times),
+                 out['forces'], withheld, (mech.leg_length_min, mech.leg_length_max),
+                 rate=rate, trips=trips)
 
 
 def build_controller_setup(scenario: Scenario) -> Any:
@@ -798,6 +1021,9 @@ def measure(trace: Trace, exp: Expectation) -> tuple[float, float | None, tuple[
         None, the window (from, to) [s] actually used).
     """
     metric = exp.metric
+    if metric in TRIP_METRICS:
+        verdict = trip_verdict(trace, exp)
+        return verdict.value, verdict.at_s, verdict.window
     default_from = TRACKING_FROM if metric.startswith('tracking_') else 0.0
     inside = _window(trace, exp, default_from)
     if not inside.any():
@@ -845,6 +1071,49 @@ def measure(trace: Trace, exp: Expectation) -> tuple[float, float | None, tuple[
     raise ScenarioError('unknown metric %s' % metric)
 
 
+def trip_verdict(trace: Trace, exp: Expectation) -> Verdict:
+    """A ``trip`` or ``no_trip`` expectation's verdict: the run's first trip
+    (its cause, sample, the samples until the safe force) beside the bound.
+
+    Args:
+        trace: the run's samples and trips.
+        exp: a ``trip`` or ``no_trip`` expectation.
+
+    Returns:
+        The ``Verdict``: for ``trip``, the value is the trip's sample minus
+        ``after``'s (NaN: no trip), failing on another cause, a trip before
+        ``after`` or later than ``within``, or none, at the trip's time (none:
+        the deadline); for ``no_trip``, the number of trips, failing at the first.
+    """
+    rate = trace.rate
+    end = float(trace.times[-1])
+    first = trace.trips[0] if trace.trips else None
+    measured = ''
+    if first is not None:
+        measured = '%s at sample %d (t = %.4f s%s)' % (
+            first.cause, first.sample, first.sample / rate,
+            '' if first.latency_samples is None else
+            '; safe force after %d samples' % first.latency_samples)
+    if exp.metric == 'no_trip':
+        count = len(trace.trips)
+        return Verdict(exp, float(count), count == 0,
+                       None if first is None else first.sample / rate, (0.0, end), measured)
+    start = int(round((exp.t_from or 0.0) * rate))
+    window = (start / rate, min((start + exp.limit) / rate, end))
+    if first is None:
+        return Verdict(exp, math.nan, False, window[1], window, '', 'no trip')
+    value = float(first.sample - start)
+    why = ''
+    if first.cause != exp.cause:
+        why = 'the cause is %s, not %s' % (first.cause, exp.cause)
+    elif value < 0:
+        why = 'it tripped %d samples before %s' % (-value, exp.after_what)
+    elif value > exp.limit:
+        why = 'late by %d samples' % (value - exp.limit)
+    return Verdict(exp, value, not why, first.sample / rate if why else None, window,
+                   measured, why)
+
+
 def _passes(value: float, exp: Expectation) -> bool:
     if math.isnan(value):
         return False
@@ -863,6 +1132,9 @@ def evaluate(trace: Trace, expectations: Iterable[Expectation]) -> list[Verdict]
     """
     out = []
     for exp in expectations:
+        if exp.metric in TRIP_METRICS:
+            out.append(trip_verdict(trace, exp))
+            continue
         value, at, window = measure(trace, exp)
         passed = _passes(value, exp)
         out.append(Verdict(exp, value, passed, None if passed else at, window))

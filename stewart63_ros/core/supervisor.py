@@ -665,7 +665,8 @@ def _legs(mask) -> str:
 def run_supervised(setup: Setup, supervisor: Supervisor, duration: float, rate: float,
                    faults: Any = None, controller: Any = None,
                    y0: ArrayLike | None = None, sensor: Any = None,
-                   homing_offset: ArrayLike | None = None) -> dict[str, np.ndarray]:
+                   homing_offset: ArrayLike | None = None,
+                   wrench: ArrayLike | None = None) -> dict[str, np.ndarray]:
     """The closed loop with the supervisor between controller and plant, as a
     lockstep rig with ``rig --supervisor`` runs it, sample for sample.
 
@@ -689,6 +690,8 @@ def run_supervised(setup: Setup, supervisor: Supervisor, duration: float, rate: 
         homing_offset: (6,) the sensors' hidden zero [m] (the plant's key of
             that name), added to the readings until the supervisor's homing
             sets its offsets (from the sample after it found them).
+        wrench: (N, 6) the external wrench [N, N m] (platform frame) held over
+            each sample's period (``scenario.wrench_samples``), or None.
 
     Returns:
         {'states' (N, 13), 'lengths' (N, 6) the true lengths [m], 'measured'
@@ -702,10 +705,15 @@ def run_supervised(setup: Setup, supervisor: Supervisor, duration: float, rate: 
     if not isinstance(faults, FaultModel):
         faults = FaultModel(parse_faults(faults or []), rate)
     controller = controller or Controller(setup)
+    n = int(round(duration * rate))
+    if wrench is not None:
+        wrench = np.asarray(wrench, float)
+        if wrench.shape != (n + 1, 6):
+            raise ValueError('wrench must be (%d, 6), one row per sample, got %s'
+                             % (n + 1, wrench.shape))
     dyn = Dynamics(setup.mechanism)
     period = 1.0 / rate
     steps = substeps_for(period)
-    n = int(round(duration * rate))
     y = initial_state(setup.task) if y0 is None else np.array(y0, float)
     out = {key: np.full((n + 1, size), np.nan) for key, size in (
         ('states', 13), ('lengths', 6), ('measured', 6), ('forces', 6), ('requests', 6))}
@@ -743,7 +751,8 @@ def run_supervised(setup: Setup, supervisor: Supervisor, duration: float, rate: 
             forces = supervisor.no_request(ns)
         out['forces'][k] = forces
         if k < n:
-            y = dyn.step(y, faults.actuate(forces), period, steps)
+            push = None if wrench is None else (wrench[k, :3], wrench[k, 3:])
+            y = dyn.step(y, faults.actuate(forces), period, steps, wrench=push)
     return out
 
 

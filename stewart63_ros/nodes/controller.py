@@ -44,8 +44,8 @@ from stewart63_ros.core.reference import (
     accumulate_tracking,
     load_reference,
     tracking_summary,
+    trajectory_poses,
 )
-from stewart63_ros.core.rotation import euler_rate_matrix
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode
@@ -83,7 +83,6 @@ def reference_from_trajectory(mech, msg, max_leg_speed=0.0, max_leg_acceleration
     (twist, base frame) and accelerations used when every point has them
     (quintic Hermite pieces with both, cubic Hermite with velocities only),
     otherwise the poses are splined as a reference CSV is (clamped cubic)."""
-    from stewart63_ros.core.rotation import euler_from_quaternion
     if list(msg.joint_names) != [PLATFORM_JOINT]:
         raise Rejected('unknown_joint_names', 'joint_names must be [%r], got %s'
                        % (PLATFORM_JOINT, list(msg.joint_names)))
@@ -111,20 +110,7 @@ def reference_from_trajectory(mech, msg, max_leg_speed=0.0, max_leg_acceleration
                 lin, ang = items[0].linear, items[0].angular
                 arr[k] = finite_vector([lin.x, lin.y, lin.z, ang.x, ang.y, ang.z], 6,
                                        'point %d twist' % k)
-    # theta continuous from point to point (no 2 pi jumps)
-    poses[:, 3:] = np.unwrap(euler_from_quaternion(quats), axis=0)
-    rates = accs = None
-    if twists is not None:
-        # dtheta/dt = E^-1 omega; ddtheta = E^-1 (alpha - dE/dt dtheta), per point
-        rates = twists.copy()
-        accs = accels.copy() if accels is not None else None
-        for k in range(n):
-            e = euler_rate_matrix(poses[k, 3:])
-            rates[k, 3:] = np.linalg.solve(e, twists[k, 3:])
-            if accs is not None:
-                h = 1e-7
-                de = (euler_rate_matrix(poses[k, 3:] + h * rates[k, 3:]) - e) / h
-                accs[k, 3:] = np.linalg.solve(e, accels[k, 3:] - de @ rates[k, 3:])
+    poses, rates, accs = trajectory_poses(poses[:, :3], quats, twists, accels)
     try:
         ref = Reference.from_poses(mech, times, poses, rates, accs)
         ref.check(max_leg_speed, max_leg_acceleration)

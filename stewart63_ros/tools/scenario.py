@@ -117,14 +117,21 @@ def write_parameter_file(scenario, path: Path) -> None:
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
 
 
-def trace_from_rig(scenario, bag: Path, summary: dict):
+def trace_from_rig(scenario, bag: Path, summary: dict, trips: list | None = None):
     """The ``Trace`` of a rig run from its bag (ground truth, leg_lengths,
-    leg_forces) and the plant's summary."""
+    leg_forces), the plant's summary and the supervisor's trips (its summary's
+    ``trips``: cause, sample, latency_samples, detail)."""
     import numpy as np
 
     from stewart63_ros.bagio import header_stamp_ns, read_messages
     from stewart63_ros.core.dynamics import Dynamics
-    from stewart63_ros.core.scenario import Trace, build_controller, build_plant, reference_lengths
+    from stewart63_ros.core.scenario import (
+        Trace,
+        TripRecord,
+        build_controller,
+        build_plant,
+        reference_lengths,
+    )
     from stewart63_ros.core.sweep import leg_lengths_of_states
     lengths_msgs, poses, forces = {}, {}, {}
     for topic, _, msg in read_messages(bag, ['leg_lengths', 'leg_forces', 'ground_truth/pose']):
@@ -140,7 +147,8 @@ def trace_from_rig(scenario, bag: Path, summary: dict):
     if not stamps:
         raise RuntimeError('the bag %s has no sample with both leg_lengths and '
                            'ground_truth/pose' % bag)
-    mech = build_plant(scenario).mechanism
+    plant = build_plant(scenario)
+    mech = plant.mechanism
     dyn = Dynamics(mech)
     states = np.zeros((len(stamps), 13))
     states[:, :7] = [poses[s] for s in stamps]
@@ -164,8 +172,13 @@ def trace_from_rig(scenario, bag: Path, summary: dict):
     lost = sum(int(v) for v in (summary.get('skipped') or {}).values())
     lost += max(0, expected - len(lengths_msgs))
     missed = int(summary.get('missed_cycles', 0)) + int(summary.get('force_timeouts', 0))
+    if rate <= 0:
+        rate = float(plant.setting('sensor_rate'))
+    records = tuple(TripRecord(t['cause'], int(t['sample']), t.get('latency_samples'),
+                               t.get('detail', '')) for t in trips or ())
     return Trace(times, lengths, reference_lengths(scenario, reference, times), rows, withheld,
-                 (mech.leg_length_min, mech.leg_length_max), missed, lost)
+                 (mech.leg_length_min, mech.leg_length_max), missed, lost,
+                 rate, records)
 
 
 def _stop_group(proc: subprocess.Popen) -> None:
@@ -179,6 +192,20 @@ def _stop_group(proc: subprocess.Popen) -> None:
             proc.wait(wait)
 
 
+def rig_reference(reference: str, workdir: Path) -> str:
+    """The reference CSV ``rig --reference`` takes: the scenario's, or a topic
+    file's poses written as one (a trajectory with velocities is refused when
+    the scenario is read)."""
+    if not os.path.isdir(reference):
+        return reference
+    from stewart63_ros.bagio import reference_points_from_bag
+    from stewart63_ros.core.reference import write_reference_csv
+    points = reference_points_from_bag(reference)
+    path = workdir / 'reference.csv'
+    write_reference_csv(path, points['times'], points['poses'])
+    return str(path)
+
+
 def run_rig(scenario, workdir: Path, domain: int | None = None):
     """Run a scenario with ``rig --mode lockstep|realtime`` on a leased ROS domain.
 
@@ -189,13 +216,17 @@ def run_rig(scenario, workdir: Path, domain: int | None = None):
     bag, logs = workdir / 'bag', workdir / 'logs'
     cmd = [sys.executable, '-m', 'stewart63_ros.tools.rig', '--params', str(params),
            '--mode', scenario.run, '--duration', repr(scenario.duration),
-           '--record', str(bag), '--log-dir', str(logs)]
+           '--record', str(bag), '--log-dir', str(logs),
+           # no fk: the verdicts read the plant's ground truth, not its pose
+           '--nodes', 'plant,controller']
     if scenario.control_law:
         cmd += ['--control-law', scenario.control_law]
     if scenario.reference:
-        cmd += ['--reference', scenario.reference]
+        cmd += ['--reference', rig_reference(scenario.reference, workdir)]
     for fault in scenario.faults:
         cmd += ['--fault', fault]
+    if scenario.supervised:
+        cmd += ['--supervisor']
     bound = RIG_START_BOUND + 60.0 * scenario.duration
     with leased_domain(domain) as domain:
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED='1',
@@ -216,7 +247,13 @@ def run_rig(scenario, workdir: Path, domain: int | None = None):
     summary_path = logs / 'plant_summary.json'
     if code != 0 or not summary_path.exists():
         raise RuntimeError('the rig failed (exit %s): %s' % (code, tail))
-    return trace_from_rig(scenario, bag, json.loads(summary_path.read_text()))
+    trips = None
+    if scenario.supervised:
+        supervisor = logs / 'supervisor_summary.json'
+        if not supervisor.exists():
+            raise RuntimeError('the rig wrote no supervisor summary: %s' % tail)
+        trips = json.loads(supervisor.read_text()).get('trips') or []
+    return trace_from_rig(scenario, bag, json.loads(summary_path.read_text()), trips)
 
 
 # -- running --------------------------------------------------------------------
@@ -400,6 +437,10 @@ def draw_outcome(outcome: Outcome, path: Path) -> Path:
             if v.at_s is not None:
                 ax.axvline(v.at_s, color=color, lw=1,
                            label='%s fails at %.3f s' % (exp.metric, v.at_s))
+    for trip in trace.trips[:1]:        # the latched trip (later ones are not drawn)
+        for ax in (ax_e, ax_f):
+            ax.axvline(trip.sample / trace.rate, color='#8e44ad', ls=':', lw=1.2,
+                       label='supervisor trip: %s' % trip.cause if ax is ax_e else None)
     for ax in (ax_e, ax_f):
         ax.grid(True, alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
@@ -435,8 +476,10 @@ def write_report(outcomes: Sequence[Outcome], out: Path, figures: bool = True) -
             exp = v.expectation
             verdict = 'pass' if v.passed else '**FAIL**' + (
                 ' at %.4f s' % v.at_s if v.at_s is not None else '')
-            lines.append('| %s | %s %g | %.6g | %g-%g | %s |' % (
-                exp.metric, exp.kind, exp.limit, v.value, *v.window, verdict))
+            if v.why:
+                verdict += ': ' + v.why
+            lines.append('| %s | %s | %s | %g-%g | %s |' % (
+                exp.metric, v.bound_text(), v.measured_text(), *v.window, verdict))
         if figures and o.trace is not None:
             fig_dir = out / 'figures'
             fig_dir.mkdir(exist_ok=True)
