@@ -5,9 +5,11 @@
   the pose box, the tracking check), and the safe action's forces once
   tripped (the descent: forward kinematics and the gravity model);
 - the lockstep rig's throughput with the supervisor out and in
-  (``rig --supervisor``), plant + controller, alternating runs in one sitting.
+  (``rig --supervisor``), plant + controller, alternating runs in one sitting;
+  with ``--bus``, the same over the field bus (``rig --bus canopen``: the
+  bridge between the bus and the supervisor).
 
-    bench_supervisor.py [--duration S] [--repeat N] [--json]
+    bench_supervisor.py [--duration S] [--repeat N] [--bus] [--json]
 """
 from __future__ import annotations
 
@@ -50,27 +52,28 @@ def per_sample_us(samples: int = 5000) -> dict:
     return timings
 
 
-def rig_throughput(duration: float, repeat: int) -> dict:
-    """Lockstep samples per second, plant + controller, supervisor out and in."""
+def rig_throughput(duration: float, repeat: int, bus: str | None = None) -> dict:
+    """Lockstep samples per second, plant + controller, supervisor out and in
+    (``bus``: 'canopen', over the field bus)."""
     from bench_loop import PAIR, private_domain
     results = {'out': [], 'in': []}
     with private_domain():
         for _ in range(repeat):
             for key in ('out', 'in'):
-                summary = run_rig(duration, PAIR, key == 'in')
+                summary = run_rig(duration, PAIR, key == 'in', bus)
                 if summary:
                     results[key].append(summary['samples'] / summary['wall_time_s'])
     return {key: statistics.median(v) if v else None for key, v in results.items()} | {
         'runs': {key: [round(x) for x in v] for key, v in results.items()}}
 
 
-def run_rig(duration, nodes, supervisor):
+def run_rig(duration, nodes, supervisor, bus=None):
     import tempfile
 
     from stewart63_ros.tools.rig import Rig
     log_dir = tempfile.mkdtemp(prefix='bench_supervisor_')
     rig = Rig(default_params_path(), 'lockstep', duration, nodes=nodes, log_dir=log_dir,
-              supervisor=supervisor)
+              supervisor=supervisor, bus=bus)
     try:
         rig.start()
         ok = rig.wait(timeout=60 + 50 * duration)
@@ -87,14 +90,17 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--duration', type=float, default=5.0)
     parser.add_argument('--repeat', type=int, default=3)
+    parser.add_argument('--bus', action='store_true',
+                        help='the rigs over the field bus (rig --bus canopen)')
     parser.add_argument('--json', action='store_true')
     args = parser.parse_args(argv)
     figures = per_sample_us()
     print('supervisor core per sample: checks %.1f us, descent %.1f us'
           % (figures['checks_us'], figures['descent_us']), flush=True)
-    figures.update(rig_throughput(args.duration, args.repeat))
-    print('lockstep plant+controller: %s samples/s without the supervisor, %s with it '
-          '(runs: %s)' % (_round(figures['out']), _round(figures['in']), figures['runs']))
+    figures.update(rig_throughput(args.duration, args.repeat, 'canopen' if args.bus else None))
+    print('lockstep plant+controller%s: %s samples/s without the supervisor, %s with it '
+          '(runs: %s)' % (' over the bus' if args.bus else '', _round(figures['out']),
+                          _round(figures['in']), figures['runs']))
     if args.json:
         print(json.dumps(figures))
     return 0

@@ -85,3 +85,22 @@ def test_no_fault_holds_or_drops_a_lockstep_peer(ros, monkeypatch, tmp_path, kin
         assert fk['rejected'] == {'leg_lengths/non_finite': dropped}, fk
         assert list(controller['rejected']) == ['leg_lengths/non_finite'], controller
         assert controller['published']['leg_forces'] == n - dropped, controller
+
+
+def test_a_plant_does_not_drop_an_fk_that_starts_its_loop_late(ros, monkeypatch, tmp_path):
+    """fk's start-up wait outlasting the plant's (a loaded machine starts its
+    processes seconds apart; here fk's discovery_settle is longer): its
+    executor turns there serve the samples the plant sends meanwhile, a
+    window's worth, and fk must report them; the plant then held its next
+    sample until lockstep_peer_timeout and dropped fk."""
+    rig_env(ros, monkeypatch)
+    rig = Rig(PARAMS, mode='lockstep', duration=DURATION, log_dir=tmp_path / 'rig',
+              extra_params={'plant': {'lockstep_peer_timeout': PEER_TIMEOUT},
+                            'fk': {'discovery_settle': 8.0}})
+    ok, codes, logs = run_to_end(rig, RUN_TIMEOUT)
+    assert ok and codes == {'controller': 0, 'fk': 0, 'plant': 0}, logs
+    peers = rig.summary()['lockstep_peers']
+    assert peers['dropped'] == {} and peers['held_s'] < PEER_TIMEOUT, peers
+    assert '[ERROR]' not in logs, logs
+    n = int(round(DURATION * RATE)) + 1
+    assert rig.summary('fk')['published']['platform_pose'] == n

@@ -113,6 +113,8 @@ class Node:
         self.spins = 0
         self.on_spin = None
         self.executor_ = SimpleNamespace(spin_once=self._spin_once)
+        self.after_batch = None
+        self.publishers = []
 
     def _spin_once(self, timeout_sec=0.0):
         self.spins += 1
@@ -132,6 +134,13 @@ class Node:
 
     def create_timer(self, period, callback):
         self.timers.append((period, callback))
+
+    def create_publisher(self, _type, topic, _qos):
+        pub = Pub(topic)
+        pub.sent = []
+        pub.publish = lambda msg: pub.sent.append((msg.sec, msg.nanosec))
+        self.publishers.append(pub)
+        return pub
 
     def get_subscriptions_info_by_topic(self, _topic):
         return []
@@ -227,6 +236,78 @@ def test_peer_window_stops_waiting_on_a_stop(stop_flag):
     def stop(_timeout):
         stop_flag.requested = True
     assert peers.hold(10 * MS, stop) is False
+
+
+def fk_progress(clock=time.monotonic):
+    """An fk as far as lockstep goes: its progress publisher, and ``serve(k)``,
+    sample k handled whichever path took it (on_sample's ``note``)."""
+    fk = Node()
+    fk.progress = lockstep.ProgressPublisher(fk)
+    fk.progress.clock = clock
+    fk.after_batch = fk.progress.publish
+    fk.serve = lambda k: fk.progress.note(k * MS)
+    return fk, fk.progress.pub.sent
+
+
+def test_fk_reports_the_samples_its_start_up_wait_served():
+    """The stall of a loaded rig (fk dropped after lockstep_peer_timeout, the
+    plant holding one sample): fk's executor turns in its start-up wait
+    served all the plant may send (a window's worth) and said nothing; its
+    hot loop then waits for a next sample the plant holds until it does."""
+    fk, sent = fk_progress()
+    fk.discovery_timeout = 5.0
+    fk.data_publishers = [Pub('/a/platform_pose', 0)]
+    fk.health.pub = Pub('/diagnostics', 1)
+    gate = startup.StartupBarrier(fk, SimpleNamespace(matched={}))
+    gate.MATCH_SETTLE = 0.0
+    size = 3
+
+    def turn():     # each turn serves one sample; fk's subscribers match at the last
+        fk.serve(fk.spins - 1)
+        if fk.spins == size:
+            fk.data_publishers[0].matched = 1
+    fk.on_spin = turn
+    assert gate.wait() is True
+    assert sent and sent[-1] == (0, (size - 1) * MS)     # samples 0..2 handled, and said
+    plant, peers = window(peers=['/a/fk'], size=size - 1)
+    for sec, nanosec in sent:           # the plant's progress subscription takes them
+        peers.subs['/a/fk'].callback(SimpleNamespace(sec=sec, nanosec=nanosec))
+    assert peers.hold(size * MS, pytest.fail)           # sample 3 goes out at once
+
+
+def test_fk_hot_loop_reports_a_sample_an_executor_turn_served(loop_node, monkeypatch):
+    node, hot, _ = loop_node
+    fk, sent = fk_progress()
+    node.after_batch = fk.after_batch
+    node.wait_for_matches = lambda: True
+    monkeypatch.setattr('rclpy.ok', lambda: True)
+    polls = []
+
+    def poll(_timeout):     # no sample comes: the plant holds for this one's report
+        polls.append(_timeout)
+        if len(polls) == 3:
+            STOP.requested = True
+        return False
+    monkeypatch.setattr(hotloop, 'DirectTake', lambda _node, sub: SimpleNamespace(poll=poll))
+    node.on_spin = lambda: node.spins == 1 and fk.serve(7)     # the turn takes sample 7
+    node.run_on(hot, batch_period=0.005)
+    assert node.spins == 1 and sent == [(0, 7 * MS)]
+
+
+def test_progress_unchanged_is_said_again_every_resend_period():
+    """A progress message lost, or sent before fk's writer had matched the
+    plant's reader, is not the last word: the plant would hold for it."""
+    now = [0.0]
+    fk, sent = fk_progress(clock=lambda: now[0])
+    fk.after_batch()
+    assert sent == []                   # nothing handled: nothing to say
+    fk.serve(4)
+    fk.after_batch()
+    fk.after_batch()
+    assert sent == [(0, 4 * MS)]        # said once per change ...
+    now[0] += 1.0                       # (RESEND_PERIOD: 0.1 s)
+    fk.after_batch()
+    assert sent == [(0, 4 * MS)] * 2    # ... and again while unchanged
 
 
 # -- the flush at stop --------------------------------------------------------------------
@@ -609,3 +690,37 @@ def test_a_refused_publish_is_counted_warned_of_and_not_among_the_final_counts()
     # The next period with no refusal is OK again.
     health.report(Time())
     assert node.statuses[-1].status[0].level == DiagnosticStatus.OK
+
+
+@pytest.mark.parametrize('fast_path', [True, False], ids=['waitset', 'executor'])
+def test_the_recorder_says_its_progress_on_either_path_and_while_nothing_comes(fast_path):
+    """A lockstep plant waits for the recorder's word on how far the recorded
+    leg_lengths got: the executor path (rclpy versions without the fast wait
+    set) must say it too, and a turn with no message repeats it."""
+    from stewart63_ros.recording.recorder import Recorder
+    from stewart63_ros.recording.recorder_intake import Intake
+    from stewart63_ros.runtime.lockstep import ProgressPublisher
+    sent = []
+    progress = ProgressPublisher.__new__(ProgressPublisher)
+    progress.handled_ns, progress._sent_ns, progress._sent_at = -1, -1, -1e9
+    progress.clock = time.monotonic
+    progress._msg = SimpleNamespace(sec=0, nanosec=0)
+    progress.pub = SimpleNamespace(publish=lambda msg: sent.append((msg.sec, msg.nanosec)))
+    intake = Intake.__new__(Intake)
+    intake.progress = progress
+    intake.take_all = lambda: 0
+    rec = Recorder.__new__(Recorder)
+    rec.fast_path, rec.intake, rec.batch_period = fast_path, intake, 0.0
+    rec.subs = SimpleNamespace(wait=lambda _timeout: None)
+    rec._housekeeping = lambda: None
+
+    def executor_turn(timeout_sec):     # a leg_lengths sample written meanwhile
+        progress.note(7 * MS)
+    rec._executor = SimpleNamespace(spin_once=executor_turn)
+    if fast_path:
+        rec.subs.wait = lambda _timeout: progress.note(7 * MS)
+    rec.spin_once(0.0)
+    assert sent == [(0, 7 * MS)]
+    progress._sent_at -= ProgressPublisher.RESEND_PERIOD    # as if that long passed
+    rec.spin_once(0.0)
+    assert sent == [(0, 7 * MS)] * 2

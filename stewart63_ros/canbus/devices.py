@@ -8,7 +8,9 @@ following the mapping the master wrote by SDO (RPDO1 applied on arrival;
 TPDO1 at each SYNC, a synchronous transmission type; TPDO2 when its values
 change, types 254/255), a heartbeat producer (0x1017), EMCY, and the CiA 402
 state machine (core/bus.py, ``Cia402Drive``): a drive not in OPERATION
-ENABLED with mode 10 applies no torque.
+ENABLED with mode 10 applies no torque. Its position actual value is its
+encoder's count less the home offset 0x607C a homing wrote (the supervisor's
+homing, through the bridge's ``homed_offset``); power-on resets it to 0.
 
 Why not ``canopen.LocalNode``: its SDO server, PDOs and heartbeat run in the
 notifier's thread and on the wall clock; the plant must answer SYNC *k* with
@@ -37,6 +39,7 @@ import can
 
 from stewart63_ros.core.bus import (
     FAULT,
+    HOME_OFFSET,
     MODE_CST,
     BusConfig,
     Cia402Drive,
@@ -54,6 +57,7 @@ SDO_ABORT_SIZE = 0x06070010
 SDO_ABORT_COMMAND = 0x05040001
 SDO_ABORT_STATE = 0x08000022
 EMCY_DRIVE_FAULT = 0x5000
+HOME_KEY = (HOME_OFFSET, 0)
 
 
 def open_bus(interface: str, channel: str, bitrate: int) -> can.BusABC:
@@ -251,10 +255,11 @@ class Drive:
 
     # -- each sample ----------------------------------------------------------------------
     def answer_sync(self, length: float, rate: float) -> None:
-        """SYNC: the sample's position and velocity into 0x6064 / 0x606C, and
-        TPDO1 out (unless a fault keeps it)."""
+        """SYNC: the sample's position (less the home offset 0x607C) and
+        velocity into 0x6064 / 0x606C, and TPDO1 out (unless a fault keeps it)."""
         values = self.values
-        values[(0x6064, 0)] = self.leg.counts(length)
+        # (the home offset a homing wrote, 0x607C: the zero moved by it)
+        values[(0x6064, 0)] = self.leg.counts(length) - values.get(HOME_KEY, 0)
         values[(0x606C, 0)] = self.leg.counts_s(rate)
         mapping = self._tpdo1
         if (self.nmt == 'OPERATIONAL' and mapping is not None and 1 <= mapping[3] <= 240

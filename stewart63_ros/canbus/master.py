@@ -23,6 +23,7 @@ import time
 
 from stewart63_ros.canbus.devices import PDO_CODES, open_bus
 from stewart63_ros.core.bus import (
+    HOME_OFFSET,
     MODE_CST,
     OPERATION_ENABLED,
     REQUIRED_OBJECTS,
@@ -45,6 +46,9 @@ EMCY_NO_ERROR = 0x0000
 SDO_TIMEOUT = 1.0
 #: bring-ups of one drive that fail in a row before the master stops resetting it
 BRING_UP_TRIES = 3
+#: s: the notifier's wait per turn (the library's 1 s, one per bus, made a
+#: stopping bridge miss the launcher's 3.5 s deadline)
+NOTIFIER_CYCLE = 0.1
 
 
 def check_eds(leg: LegDrive, od) -> None:
@@ -138,6 +142,9 @@ class Master:
         try:
             for bus in config.buses:
                 network = canopen.Network(open_bus(bus.interface, bus.channel, bus.bitrate))
+                # (its reader thread looks at its stop flag this often: a stop
+                # signal must end the bridge within the launcher's deadline)
+                network.NOTIFIER_CYCLE = NOTIFIER_CYCLE
                 network.connect()
                 self.networks[bus.name] = network
             for leg in config.legs:
@@ -276,6 +283,26 @@ class Master:
         link.tpdo_cycle = -1
         self.log('%s: up (PDOs mapped, mode 10, OPERATION ENABLED, NMT started)' % link.name)
         return True
+
+    def write_home_offset(self, link: Link, metres: float) -> int:
+        """A homing's offset [m] for ``link``'s leg into its drive's home offset
+        0x607C (SDO): its position actual value is homed from its next TPDO.
+        A drive that boots again has lost it (power-on value 0): home again.
+        Returns the counts written.
+
+        Raises:
+            BusConfigError: the EDS has no 0x607C, or the drive is not up.
+            canopen.SdoCommunicationError, canopen.SdoAbortedError: the drive
+                did not take it.
+        """
+        if HOME_OFFSET not in link.node.object_dictionary:
+            raise BusConfigError('%s: its EDS %s has no 0x%04X (home offset)'
+                                 % (link.name, link.leg.eds, HOME_OFFSET))
+        if not link.up:
+            raise BusConfigError('%s is not up' % link.name)
+        counts = link.leg.home_offset_counts(metres)
+        link.node.sdo[HOME_OFFSET].raw = counts
+        return counts
 
     def bring_up_rebooted(self) -> list[str]:
         """Bring up the drives that sent a boot-up since; their names."""

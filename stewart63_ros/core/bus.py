@@ -206,6 +206,20 @@ class LegDrive:
         """Velocity actual value [counts/s] for a leg rate [m/s]."""
         return int(round(self.direction * metres_s / self.metres_per_count))
 
+    def home_offset_counts(self, metres: float) -> int:
+        """Home offset 0x607C [counts] that takes ``metres`` (a homing's
+        offset: reading minus true length) off the position actual value: the
+        drive reports its position minus this (CiA 402: the zero is the home
+        position moved by the home offset).
+
+        Args:
+            metres: the offset found for this leg [m].
+
+        Returns:
+            The counts to write, rounded to the encoder's resolution.
+        """
+        return int(round(self.direction * metres / self.metres_per_count))
+
     @property
     def newtons_per_nm(self) -> float:
         """Piston force [N] per motor torque [N m]: 2 pi gear efficiency / lead."""
@@ -355,6 +369,8 @@ REQUIRED_OBJECTS = {0x6040: 'controlword', 0x6041: 'statusword', 0x6060: 'modes 
 RPDO1 = ((0x6040, 16), (0x6071, 16))
 TPDO1 = ((0x6064, 32), (0x606C, 32))
 TPDO2 = ((0x6041, 16),)
+#: Home offset (CiA 402): a homing's zero, written by SDO (``homed_offset``).
+HOME_OFFSET = 0x607C
 
 
 @dataclasses.dataclass(frozen=True)

@@ -433,11 +433,11 @@ DECLARED: tuple[Declared, ...] = (
     Declared('trip_on_diagnostics', ('supervisor',), True, '', '', 'an ERROR on '
              '`/diagnostics` from a node of the rig\'s namespace trips (descent)', boolean,
              runtime=True),
-    Declared('force_stale_ms', ('plant',), 0.0, 'ms (samples)', '≥ 0', 'fail safe: a held '
+    Declared('force_stale_ms', SAMPLERS, 0.0, 'ms (samples)', '≥ 0', 'fail safe: a held '
              'force older than this (in sample time: the stamp it answers) is not applied, '
-             'zero instead; 0: held for ever (`rig --supervisor` sets the supervisor\'s '
-             '`stale_forces_ms`)', nonnegative),
-    Declared('answer_every_sample', ('plant',), False, '', '', 'lockstep: wait for the answer '
+             'zero instead (the bridge: zero torque to the drives); 0: held for ever (`rig '
+             '--supervisor` sets the supervisor\'s `stale_forces_ms`)', nonnegative),
+    Declared('answer_every_sample', SAMPLERS, False, '', '', 'lockstep: wait for the answer '
              'to a sample with a missing reading too (the supervisor answers every sample; '
              '`rig --supervisor` sets it)', boolean),
     Declared('homing', ('supervisor',), False, '', '', 'home the legs\' incremental sensors '
@@ -454,9 +454,14 @@ DECLARED: tuple[Declared, ...] = (
              'each leg\'s incremental sensor: added to its reading until a homing sets '
              '`homed_offset` (the simulated encoder has no absolute zero)', six_lengths,
              default_text='0 ×6'),
-    Declared('homed_offset', ('plant',), [0.0] * 6, 'm', '6 numbers', 'the zero a homing '
+    Declared('homed_offset', SAMPLERS, [0.0] * 6, 'm', '6 numbers', 'the zero a homing '
              'found and set on the drives: subtracted from each reading (the supervisor '
-             'sets it)', six_lengths, runtime=True, default_text='0 ×6'),
+             'sets it; the bridge writes it to each drive\'s home offset 0x607C by SDO)',
+             six_lengths, runtime=True, default_text='0 ×6'),
+    Declared('homed_offset_node', ('supervisor',), 'plant', '', '', 'the node whose '
+             '`homed_offset` a homing sets: `plant` (its sensors) or `canopen_bridge` (the '
+             'drives on the bus; `rig --bus canopen` sets it)',
+             one_of('plant', 'canopen_bridge')),
     # -- the field bus (docs/bus.md) --
     Declared('io', ('plant',), 'dds', '', '', '`dds`: the plant publishes `leg_lengths` and '
              'takes `leg_forces` itself; `canopen`: it stands on the field bus as the six '

@@ -15,6 +15,12 @@ deterministic; stamps are the simulated time k / sensor_rate. ``realtime``:
 SYNC on the wall clock, forces written as they arrive; an answer that has
 not arrived by the next SYNC is a missed cycle, counted.
 
+With ``rig --supervisor`` the supervisor answers every sample
+(``answer_every_sample``); a force that answers a sample more than
+``force_stale_ms`` old is not sent, zero torque is (a supervisor that died
+leaves the drives without torque); ``homed_offset`` (set by the
+supervisor's homing) is written to each drive's home offset 0x607C by SDO.
+
 A drive that does not boot, goes silent (no TPDO, no heartbeat), sends an
 EMCY, or falls into FAULT is named on ``/diagnostics`` (ERROR) at the cycle
 it is seen, and torque is withheld from all drives (zero torque to those
@@ -39,6 +45,7 @@ from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode
 from stewart63_ros.runtime.checks import (
     RESTART_PAUSE,
+    StaleForce,
     StampGate,
     ros_time,
 )
@@ -67,6 +74,13 @@ class BridgeNode(RigNode):
         self.force_timeout = self.param('force_timeout')
         self.bus_timeout = self.param('bus_timeout')
         self.boot_timeout = self.param('boot_timeout')
+        # With the supervisor in the rig (rig --supervisor): it answers every
+        # sample, and a force it no longer sends goes stale: zero torque.
+        self.answer_every_sample = self.param('answer_every_sample')
+        self.force_is_stale = StaleForce(self.param('force_stale_ms'), self.health.values,
+                                         self.get_logger().error)
+        self.homed_offset = self.param('homed_offset')
+        self.tunable('homed_offset', self.set_homed_offset)
         try:
             config = load_bus_config(self.param('bus_config'), self.param('bus_channels'),
                                      self.param('bus_interface'), self.param('bus_bitrate'))
@@ -148,6 +162,23 @@ class BridgeNode(RigNode):
                 self.new_run = True
             self.plant_run_number = number
 
+    def set_homed_offset(self, value) -> None:
+        """``homed_offset`` (a homing's result, set by the supervisor): each
+        drive's home offset 0x607C by SDO, so its next TPDO reads homed;
+        ParameterError naming the drive that did not take it."""
+        import canopen
+        counts = []
+        for link in self.master.links:
+            try:
+                counts.append(self.master.write_home_offset(link, float(value[link.leg.leg])))
+            except (BusConfigError, canopen.SdoCommunicationError, canopen.SdoAbortedError,
+                    OSError) as exc:
+                raise ParameterError('homed_offset', '%s: home offset 0x607C not written: %s'
+                                     % (link.name, exc)) from None
+        self.homed_offset = value
+        self.health.values['home_offset_counts'] = counts
+        self.get_logger().info('home offsets 0x607C written: %s counts' % counts)
+
     # -- the bus ----------------------------------------------------------------------------
     def bring_up(self) -> None:
         """Reset every drive and bring up those that boot within ``boot_timeout``."""
@@ -161,6 +192,11 @@ class BridgeNode(RigNode):
             link.boot_error = ('%s: no boot-up within %g s (boot_timeout): node id, wiring, '
                                'power?' % (link.name, self.boot_timeout))
             self.get_logger().error(link.boot_error)
+        if self.homed_offset.any():         # a zero known from before (the file's)
+            try:
+                self.set_homed_offset(self.homed_offset)
+            except ParameterError as exc:
+                self.get_logger().error(str(exc))
         self.judge()
 
     def judge(self) -> None:
@@ -288,14 +324,16 @@ class BridgeNode(RigNode):
             timeout = self.force_timeout if k else max(self.force_timeout,
                                                        self.discovery_timeout)
             started = time.perf_counter()
-            if complete and not self.wait_for_answer(ns, timeout):
+            if (complete or self.answer_every_sample) and \
+                    not self.wait_for_answer(ns, timeout):
                 if STOP.requested:
                     return
                 self.timeouts += 1
                 self.health.warning = 'no force for sample %d within %.3f s' % (k, timeout)
                 self.get_logger().warning(self.health.warning)
             self.answer_wait_s += time.perf_counter() - started
-            master.command(self.force, withhold=bool(self.errors))
+            stale = self.force_is_stale(k, ns, self.force_ns)
+            master.command(None if stale else self.force, withhold=bool(self.errors))
             if n_samples is not None and k >= n_samples:
                 return
             k += 1
@@ -356,7 +394,7 @@ class BridgeNode(RigNode):
             self.judge()
             ns = int(round((t0_wall + k * self.period) * 1e9))
             answered_ns = ns if self.publish(ns) else self.force_ns
-            if self.errors:
+            if self.errors or self.force_is_stale(k, ns, self.force_ns):
                 master.command(None, withhold=True)
             if n_samples is not None and k >= n_samples:
                 return

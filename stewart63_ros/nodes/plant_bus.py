@@ -161,6 +161,8 @@ class PlantBus:
         values['bus_frames_in'] = devices.frames_in
         values['bus_frames_out'] = devices.frames_out
         values['bus_syncs_skipped'] = self.syncs_skipped
+        # what the drives apply now (zero once the bridge withholds torque)
+        values['bus_forces'] = [round(f, 1) for f in devices.forces()]
         values['bus_drives'] = ', '.join(
             '%s: %s%s' % (d.leg.name, 'off' if d.off else d.nmt.lower(),
                           '' if d.off else ' ' + d.drive.state.lower())

@@ -30,7 +30,7 @@ from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.core.faults import FaultError, FaultModel
 from stewart63_ros.core.sensor import SensorModel
 from stewart63_ros.core.simulate import initial_state
-from stewart63_ros.runtime.checks import RESTART_PAUSE
+from stewart63_ros.runtime.checks import RESTART_PAUSE, StaleForce
 from stewart63_ros.runtime.launcher import STOP
 
 #: s: the quiet before the first sample of a new run (``~/reset``): longer
@@ -53,8 +53,8 @@ class PlantControl:
                                           self.param('sensor_seed'), bus=self.on_bus)
         except FaultError as exc:       # a bus fault without the bus
             raise ParameterError('faults', str(exc)) from None
-        self.force_stale_ns = int(round(self.param('force_stale_ms') * 1e6))
-        self.stale_force_from = None    # (sample, stamp of the force gone stale)
+        self.force_is_stale = StaleForce(self.param('force_stale_ms'), self.health.values,
+                                         self.get_logger().error)
         self.answer_every_sample = self.param('answer_every_sample')
         # The sensors' hidden zero and the one a homing set (supervisor).
         self.homing_offset = self.param('homing_offset')
@@ -118,25 +118,10 @@ class PlantControl:
         """The held force as the pistons apply it (actuator faults); zero once
         it answers a sample more than ``force_stale_ms`` before this one (fail
         safe: a supervisor or controller that died leaves no force acting)."""
-        if self.force_stale_ns and self.force_is_stale():
+        if self.force_is_stale.stale_ns and self.force_is_stale(
+                self.k, int(round(self.sample_time(self.k) * 1e9)), self.force_ns):
             return self.fault_model.actuate(_NO_FORCE)
         return self.fault_model.actuate(self.force)
-
-    def force_is_stale(self) -> bool:
-        """The held force answers a sample older than ``force_stale_ms``
-        (none held yet: not stale, it is zero anyway); counted, the first such
-        sample on /diagnostics (``stale_force_from_sample``)."""
-        if self.force_ns is None:
-            return False
-        now = int(round(self.sample_time(self.k) * 1e9))
-        if now - self.force_ns <= self.force_stale_ns:
-            return False
-        if self.stale_force_from is None or self.stale_force_from[1] != self.force_ns:
-            self.stale_force_from = (self.k, self.force_ns)
-            self.health.values['stale_force_from_sample'] = self.k
-            self.get_logger().error('no force newer than %.1f ms: zero force from sample %d '
-                                    '(force_stale_ms)' % (self.force_stale_ns * 1e-6, self.k))
-        return True
 
     def report_faults(self) -> None:
         """The faults into the next status: ``fault: <fault>`` values, and the

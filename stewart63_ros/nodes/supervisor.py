@@ -97,9 +97,12 @@ class SupervisorNode(RigNode):
         own = topics.node_full_name(self.get_namespace(), 'x')
         self.rig_prefix = topics.status_name(own[:-1])
         if self.core.homing is not None:
+            # The node that owns the sensors' zero: the plant, or on the bus
+            # the bridge (it writes the drives' home offset 0x607C).
             from rcl_interfaces.srv import SetParameters
-            self.plant_parameters = self.create_client(SetParameters, '%s/set_parameters' % (
-                topics.node_full_name(self.get_namespace(), 'plant')))
+            self.zero_node = self.param('homed_offset_node')
+            self.zero_parameters = self.create_client(SetParameters, '%s/set_parameters' % (
+                topics.node_full_name(self.get_namespace(), self.zero_node)))
             self.health.values['homed'] = 'false'
         self.health.values.update({'tripped': 'false', 'trips': 0,
                                    'rest_lengths': np.round(self.core.rest, 4).tolist()})
@@ -239,28 +242,30 @@ class SupervisorNode(RigNode):
     # -- homing ------------------------------------------------------------------------
     def home(self, ns: int):
         """The homing's forces for sample ``ns``; once every leg is found, the
-        offsets are set on the plant (its ``homed_offset``) before this sample
-        is answered, so its next sample reads true."""
+        offsets are set (the ``homed_offset`` of the plant, or of the bridge:
+        the drives' home offsets) before this sample is answered, so its next
+        sample reads true."""
         forces = self.core.homing_forces(ns)
         zero = self.core.take_zero_to_set()
         if zero is not None:
             self.health.values['homing/offsets'] = np.round(zero, 6).tolist()
-            why = self.set_plant_zero(zero)
+            why = self.set_zero(zero)
             if why:
                 self.core.trip_now('homing', why, ns)
                 return self.core.safe_forces(ns)
-            self.get_logger().info('homed: offsets %s m set on the plant'
-                                   % np.round(zero, 6).tolist())
+            self.get_logger().info('homed: offsets %s m set on the %s'
+                                   % (np.round(zero, 6).tolist(), self.zero_node))
         if self.core.homed:
             self.health.values['homed'] = 'true'
             self.report()
         return forces
 
-    def set_plant_zero(self, zero) -> str:
-        """``homed_offset`` of the plant of this namespace; '' or why it failed."""
+    def set_zero(self, zero) -> str:
+        """``homed_offset`` of the plant (or bridge) of this namespace; '' or
+        why it failed."""
         from rcl_interfaces.srv import SetParameters
         from rclpy.parameter import Parameter
-        client = self.plant_parameters
+        client = self.zero_parameters
         if not client.wait_for_service(timeout_sec=5.0):
             return '%s: no such service' % client.srv_name
         future = client.call_async(SetParameters.Request(parameters=[Parameter(
@@ -269,7 +274,8 @@ class SupervisorNode(RigNode):
         if not future.done():
             return '%s: no answer within 10 s' % client.srv_name
         result = future.result().results[0]
-        return '' if result.successful else 'the plant refused: %s' % result.reason
+        return '' if result.successful else 'the %s refused: %s' % (self.zero_node,
+                                                                    result.reason)
 
     # -- trips and answers -------------------------------------------------------------
     def request_trip(self, cause: str, detail: str) -> None:

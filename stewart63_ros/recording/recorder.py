@@ -156,6 +156,10 @@ class Recorder:
                 time.sleep(min(self.batch_period, timeout))
         else:
             self._executor.spin_once(timeout_sec=timeout)
+        # Said after either path (the executor's messages note their progress
+        # in Intake.write but do not say it), and repeated while nothing
+        # changes, so a lost word cannot hold a lockstep plant.
+        self.intake.say_progress()
         self._housekeeping()
 
     def take_available(self) -> int:

@@ -142,6 +142,12 @@ class Intake:
                 n += 1
         if self.status.finals:
             self.status.confirm()
-        if n and self.progress is not None:
-            self.progress.publish()
+        if n:
+            self.say_progress()
         return n
+
+    def say_progress(self) -> None:
+        """Tell a lockstep plant how far the recorded ``leg_lengths`` got
+        (``ProgressPublisher.publish``: only when it changed, or to repeat it)."""
+        if self.progress is not None:
+            self.progress.publish()

@@ -75,7 +75,9 @@ class RigNode(HotLoop, Node):
                                                      self.discovery_settle))
         self.health = Health(self, name)
         self._skip_counters = {}
-        #: called by run_on after each batch of messages (fk's lockstep progress)
+        #: called after each batch of messages, and after each executor turn
+        #: that may have served some (run_on, the start-up wait): fk's
+        #: lockstep progress
         self.after_batch = None
         #: where close() writes the node's summary as JSON ('' : nowhere)
         self.summary_file = self.param('summary_file')

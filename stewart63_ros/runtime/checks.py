@@ -197,3 +197,36 @@ class SkipCounter:
         gap = seq - last - 1
         self.skipped += gap
         return gap
+
+
+class StaleForce:
+    """Fail safe of a node that applies the held force (the plant, or the bus
+    bridge for its drives): a force that answers a sample more than
+    ``force_stale_ms`` before the current one is not applied, zero is (a
+    supervisor or controller that died leaves no force acting). The first
+    sample of each such stretch goes on /diagnostics
+    (``stale_force_from_sample``) and into the log.
+
+    Args:
+        stale_ms: ``force_stale_ms`` (0: never stale).
+        values: the node's status values (``health.values``).
+        log_error: ``log_error(text)``, the node's logger.
+    """
+
+    def __init__(self, stale_ms: float, values: dict, log_error) -> None:
+        self.stale_ns = int(round(stale_ms * 1e6))
+        self.values = values
+        self.log_error = log_error
+        self.since = None       # (sample, stamp of the force gone stale)
+
+    def __call__(self, k: int, now_ns: int, force_ns: int | None) -> bool:
+        """True if the force stamped ``force_ns`` is stale at sample ``k``
+        (stamp ``now_ns``); none held yet is not stale (it is zero anyway)."""
+        if not self.stale_ns or force_ns is None or now_ns - force_ns <= self.stale_ns:
+            return False
+        if self.since is None or self.since[1] != force_ns:
+            self.since = (k, force_ns)
+            self.values['stale_force_from_sample'] = k
+            self.log_error('no force newer than %.1f ms: zero force from sample %d '
+                           '(force_stale_ms)' % (self.stale_ns * 1e-6, k))
+        return True

@@ -128,12 +128,20 @@ class HotLoop:
         then let the next ones gather that long (or until housekeeping is
         due) before waiting again: one wake-up per batch instead of one per
         message, for a node nothing waits on (every message is still
-        served, in order)."""
+        served, in order).
+
+        ``after_batch`` runs after each batch and after each housekeeping:
+        the executor's turn there serves ``subscription`` too (as it did all
+        through the start-up wait), and a message served that way must be
+        reported now, not after the next one, which may never come: the
+        plant holds that next one until fk reports (runtime/lockstep.py)."""
         import rclpy
         self.wait_for_matches()
         direct = self.start_hot_loop(subscription)
         while rclpy.ok() and not STOP.requested:
             wake = self.housekeeping(time.monotonic())
+            if self.after_batch is not None:
+                self.after_batch()
             if direct.poll(wake - time.monotonic()) and batch_period > 0:
                 n = 1
                 while n < self.BATCH_MAX and not STOP.requested and direct.poll(0.0):

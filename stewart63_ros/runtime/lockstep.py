@@ -14,7 +14,9 @@ The protocol (docs/interface.md, "Lockstep flow control"):
   reliable, depth 1) the stamp of the newest ``leg_lengths`` sample it has
   handled (fk: posed and published, or refused, as a dropout's NaN sample
   is; the recorder: written), at most once
-  per batch of samples;
+  per batch of samples, and again every ``ProgressPublisher.RESEND_PERIOD``
+  while it is unchanged (fk: from its start-up wait on, whichever path
+  served the sample; see HotLoop.run_on);
 - the plant's parameter ``lockstep_peers`` names the peers (``rig`` sets fk
   and its recorder); before its first sample the plant waits until each
   one's progress publisher is matched;
@@ -42,14 +44,23 @@ def progress_qos():
 
 
 class ProgressPublisher:
-    """A peer's side: ``note(ns)`` per sample handled, ``publish()`` per batch."""
+    """A peer's side: ``note(ns)`` per sample handled, ``publish()`` per batch
+    and between batches (it sends only what is new, or due again)."""
+
+    #: s: an unchanged progress is sent again this often (while ``publish``
+    #: is called): the plant holds for the one message that says a sample was
+    #: handled, and a message lost, or sent before this writer had matched
+    #: the plant's reader, must not hold it until ``lockstep_peer_timeout``.
+    RESEND_PERIOD = 0.1
 
     def __init__(self, node):
         from builtin_interfaces.msg import Time
         self._msg = Time()
         self.pub = node.create_publisher(Time, '~/' + PROGRESS_TOPIC, progress_qos())
+        self.clock = time.monotonic      # (a test's fake clock)
         self.handled_ns = -1
         self._sent_ns = -1
+        self._sent_at = 0.0
 
     def note(self, ns: int) -> None:
         """The sample stamped ``ns`` [ns] has been handled (samples come in
@@ -59,10 +70,14 @@ class ProgressPublisher:
             self.handled_ns = ns
 
     def publish(self) -> None:
-        """Say how far this node has got, if that changed since it last said."""
-        if self.handled_ns == self._sent_ns:
+        """Say how far this node has got, if that changed since it last said
+        or it said so ``RESEND_PERIOD`` ago."""
+        if self.handled_ns < 0:
             return
-        self._sent_ns = self.handled_ns
+        now = self.clock()
+        if self.handled_ns == self._sent_ns and now - self._sent_at < self.RESEND_PERIOD:
+            return
+        self._sent_ns, self._sent_at = self.handled_ns, now
         self._msg.sec, self._msg.nanosec = divmod(self.handled_ns, 1_000_000_000)
         try:
             self.pub.publish(self._msg)

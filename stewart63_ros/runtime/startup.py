@@ -104,6 +104,11 @@ class StartupBarrier:
                          % (deadline - now, '; '.join(waiting)))
                 next_report = now + self.WAIT_REPORT_PERIOD
             node.executor_.spin_once(timeout_sec=min(0.05, max(0.0, deadline - now)))
+            if node.after_batch is not None:
+                # The turn may have served the node's 1 kHz input (it is in
+                # the executor too): report it now (fk's lockstep progress;
+                # the plant runs on only once fk says it has handled a sample).
+                node.after_batch()
             waiting = missing()
         node.started = True
         if not waiting:

@@ -19,7 +19,8 @@ controller (``reference_file``, time 0 = the first sample) and to the plant,
 which reports the true tracking error in its summary. --fault (repeatable)
 adds a fault to the plant's ``faults`` (docs/faults.md); the summary names
 each fault and when it acted. --supervisor puts the supervisor between the
-controller and the plant (docs/supervisor.md); the summary lists its trips.
+controller and the plant, or the bridge with --bus canopen
+(docs/supervisor.md); the summary lists its trips.
 --plant-params gives the plant a file of its
 own, read after --params (its keys win, for the plant only): the plant then
 plays a machine built off the drawing that controller and fk run on
@@ -140,13 +141,18 @@ class Rig:
 
     def bus_overlay(self, doc, shared) -> None:
         """--bus canopen: the plant on the bus; the bridge publishes the samples,
-        so the plant's start-up waits (handshake.py) become the bridge's. The
-        buses of the local hub get channels of this rig's own."""
+        so the plant's start-up waits (handshake.py) become the bridge's, and
+        with --supervisor its answer to every sample, the stale forces' fail
+        safe, and the homing's zero (the drives' home offsets). The buses of
+        the local hub get channels of this rig's own."""
         plant = doc['/**/plant']['ros__parameters']
         bridge = dict(shared, summary_file=str(self.log_dir / 'canopen_bridge_summary.json'))
-        for key in ('lengths_subscribers', 'lengths_peers', 'lockstep_peers', 'duration'):
+        for key in ('lengths_subscribers', 'lengths_peers', 'lockstep_peers', 'duration',
+                    'answer_every_sample', 'force_stale_ms'):
             if key in plant:
                 bridge[key] = plant[key] if key == 'duration' else plant.pop(key)
+        if self.supervisor:
+            doc['/**/supervisor']['ros__parameters']['homed_offset_node'] = 'canopen_bridge'
         plant['io'] = 'canopen'
         from stewart63_ros.core.bus import load_bus_config
         from stewart63_ros.core.params import file_parameters
@@ -527,10 +533,6 @@ def main(argv=None) -> int:
                      'process: it needs both in --nodes, and no --compose')
     if args.supervisor and reference_file_extra(extra):
         extra.setdefault('supervisor', {})['reference_file'] = reference_file_extra(extra)
-    if args.bus and args.supervisor:
-        parser.error('--supervisor and --bus canopen together are not supported yet: the '
-                     'supervisor does not home or fail safe through the bridge '
-                     '(docs/supervisor.md)')
     if args.bus and (args.compose or 'plant' not in nodes):
         parser.error('--bus canopen starts the bridge beside the plant: it needs plant in '
                      '--nodes, and separate processes (not --compose)')
