@@ -17,6 +17,10 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
+from stewart63_ros.tools.rig import control_params
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
@@ -73,7 +77,6 @@ OPTIONAL = {'scenario_lockstep_10_s'}
 
 def computed_torque_loop(duration, repeat) -> dict:
     """bench_loop.measure with the controller running computed_torque ('ct_' keys)."""
-    from stewart63_ros.tools.rig import control_params
     bench_loop.EXTRA_PARAMS.update(control_params('computed_torque'))
     try:
         return {'ct_' + k: v for k, v in bench_loop.measure(duration=duration,
@@ -101,7 +104,6 @@ def wake_jitter(seconds: float = 5.0, late_us: float = 500.0) -> dict:
     to each millisecond deadline (a cyclictest in Python). A rig cycle needs
     three such wake-ups (plant, controller, plant), so the rig's missed
     fraction cannot go below what this shows."""
-    import numpy as np
     n, period = int(seconds * 1000), 1e-3
     late = np.empty(n)
     start = time.monotonic()

@@ -21,6 +21,9 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from sensor_msgs.msg import JointState
+
+from stewart63_ros import topics as T
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / 'test'))
@@ -70,9 +73,6 @@ def record_run(rt: RosTest, tmp: Path, rate: float, seconds: float, topics: list
 
 
 def play_timing(rt: RosTest, bag: Path, seconds_max: float) -> dict:
-    from sensor_msgs.msg import JointState
-
-    from stewart63_ros import topics as T
     want = [s for _, _, s, _ in bagio.read_raw(bag, ['leg_lengths'])]
     node = rt.node('bench_probe')
     got = []

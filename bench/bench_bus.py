@@ -17,11 +17,18 @@ from __future__ import annotations
 import argparse
 import subprocess
 import sys
+import tempfile
 import textwrap
 import time
 import uuid
 
 import numpy as np
+from bench_loop import private_domain
+
+from stewart63_ros.canbus.master import Master
+from stewart63_ros.core.bus import load_bus_config
+from stewart63_ros.paths import default_params_path
+from stewart63_ros.tools.rig import Rig
 
 DEVICES = textwrap.dedent('''
     import sys, time
@@ -51,8 +58,6 @@ DEVICES = textwrap.dedent('''
 
 
 def bridge_cost(cycles: int) -> None:
-    from stewart63_ros.canbus.master import Master
-    from stewart63_ros.core.bus import load_bus_config
     tag = uuid.uuid4().hex[:8]
     channels = ['bench%s-a' % tag, 'bench%s-b' % tag]
     devices = subprocess.Popen([sys.executable, '-c', DEVICES, *channels, str(cycles)],
@@ -97,12 +102,6 @@ def bridge_cost(cycles: int) -> None:
 
 def rig_runs(duration: float, rate: float) -> None:
     sys.path.insert(0, str(__import__('pathlib').Path(__file__).parent))
-    import tempfile
-
-    from bench_loop import private_domain
-
-    from stewart63_ros.paths import default_params_path
-    from stewart63_ros.tools.rig import Rig
 
     def one(mode, bus, hz):
         log_dir = tempfile.mkdtemp(prefix='bench_bus_')

@@ -36,6 +36,20 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PoseStamped, TwistStamped
+from sensor_msgs.msg import JointState
+
+from stewart63_ros import topics
+from stewart63_ros.core.dynamics import Dynamics
+from stewart63_ros.core.fk import FKTracker
+from stewart63_ros.core.laws import Controller
+from stewart63_ros.core.params import load_setup
+from stewart63_ros.core.simulate import initial_state, substeps_for
+from stewart63_ros.runtime import wire
+from stewart63_ros.runtime.rclpy_internals import WaitAny, raw_publisher, take, take_with_info
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
@@ -49,19 +63,6 @@ class ComposedFloor:
     """Three nodes in this process with the composed rig's topics."""
 
     def __init__(self):
-        import numpy as np
-        import rclpy
-        from geometry_msgs.msg import PoseStamped, TwistStamped
-        from sensor_msgs.msg import JointState
-
-        from stewart63_ros import topics
-        from stewart63_ros.core.dynamics import Dynamics
-        from stewart63_ros.core.fk import FKTracker
-        from stewart63_ros.core.laws import Controller
-        from stewart63_ros.core.params import load_setup
-        from stewart63_ros.core.simulate import initial_state, substeps_for
-        from stewart63_ros.runtime import wire
-        from stewart63_ros.runtime.rclpy_internals import raw_publisher, take_with_info
         self.take_with_info = take_with_info
         self.nodes = [rclpy.create_node(n) for n in ('floor_plant', 'floor_controller', 'floor_fk')]
         plant, ctl, fk = self.nodes
@@ -169,11 +170,6 @@ _TOPIC = 'floor/xproc'
 
 def _subscriber(n: int) -> None:
     """Child: take ``n`` messages, each after waiting for it; print its CPU per message."""
-    import rclpy
-    from sensor_msgs.msg import JointState
-
-    from stewart63_ros import topics
-    from stewart63_ros.runtime.rclpy_internals import WaitAny, take
     rclpy.init()
     node = rclpy.create_node('floor_sub_%d' % os.getpid())
     sub = node.create_subscription(JointState, _TOPIC, lambda _: None, topics.EVERY_SUB,
@@ -195,13 +191,6 @@ def _subscriber(n: int) -> None:
 
 def cross_process(n: int, readers: int = 2) -> dict:
     """Publisher here, ``readers`` subscriber processes; CPU per publish and per take."""
-    import numpy as np
-    import rclpy
-    from sensor_msgs.msg import JointState
-
-    from stewart63_ros import topics
-    from stewart63_ros.runtime import wire
-    from stewart63_ros.runtime.rclpy_internals import raw_publisher
     procs = [subprocess.Popen([sys.executable, __file__, '--subscriber', str(n)],
                               stdout=subprocess.PIPE, text=True) for _ in range(readers)]
     node = rclpy.create_node('floor_pub')
@@ -250,7 +239,6 @@ def sleep_wake_cpu(n: int) -> float:
 
 
 def measure(samples: int = 20000, repeat: int = 3, quiet: bool = False) -> dict:
-    import rclpy
     rounds = {k: [] for k in ('composed_dds_us', 'composed_dds_kernels_us',
                               'composed_dds_kernels_read_us', 'kernels_alone_us',
                               'xproc_publish_cpu_us', 'xproc_take_cpu_us', 'sleep_wake_cpu_us')}

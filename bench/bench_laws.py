@@ -14,9 +14,11 @@ import time
 
 import numpy as np
 
+from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.laws import Controller
 from stewart63_ros.core.params import load_setup
 from stewart63_ros.core.reference import Reference
+from stewart63_ros.core.simulate import run_sampled
 
 CASES = (('pd_setpoint', 'pd', False), ('pd_reference', 'pd', True),
          ('pd_gravity', 'pd_gravity', True), ('computed_torque', 'computed_torque', True),
@@ -27,7 +29,6 @@ TARGETS = {'computed_torque': 50.0}
 def path(setup, n):
     mech = setup.mechanism
     """(times, lengths, rates, reference) along a smooth motion about the start pose."""
-    from stewart63_ros.core.simulate import run_sampled
     t = np.arange(0.0, n / 1000.0 + 2.0, 0.01)
     centre = np.concatenate([setup.task.initial_position, setup.task.initial_orientation])
     poses = centre + np.outer(np.minimum(t, 1.0), [0.02, 0.01, 0.03, 0.02, 0.01, 0.03]) \
@@ -35,7 +36,6 @@ def path(setup, n):
     reference = Reference.from_poses(mech, t, poses)
     run = run_sampled(setup, n / 1000.0, 1000.0,
                       controller=Controller(setup, law='computed_torque', reference=reference))
-    from stewart63_ros.core.dynamics import Dynamics
     dyn = Dynamics(mech)
     samples = [dyn.lengths_and_rates(y) for y in run.states[:n]]
     return run.times[:n], [s[0] for s in samples], [s[1] for s in samples], reference

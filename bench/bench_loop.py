@@ -19,13 +19,14 @@ import argparse
 import contextlib
 import json
 import os
+import shutil
 import statistics
 import tempfile
 import time
 
 from stewart63_ros.core.params import default_params_path
 from stewart63_ros.paths import try_lock_domain
-from stewart63_ros.tools.rig import Rig
+from stewart63_ros.tools.rig import Rig, control_params
 
 FULL = ('plant', 'controller', 'fk')
 PAIR = ('plant', 'controller')
@@ -91,7 +92,6 @@ def run(mode, duration, nodes, realtime_priority=0, compose=False, record=False)
         return None
     summary['total_wall_s'] = time.monotonic() - start
     if bag:
-        import shutil
         shutil.rmtree(bag, ignore_errors=True)
     return summary
 
@@ -246,7 +246,6 @@ def main():
                         help='end with one line: JSON of the medians per node set')
     args = parser.parse_args()
     if args.control_law:
-        from stewart63_ros.tools.rig import control_params
         EXTRA_PARAMS.update(control_params(args.control_law))
     if args.variants:
         result = measure_variants(args.duration, args.repeat)

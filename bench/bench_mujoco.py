@@ -64,7 +64,7 @@ def measure(repeat: int = 5, verbose: bool = True) -> dict:
         print('paper scenario, %g s simulated, continuous PD; error = max |L - L_ref| [m]'
               % DURATION)
         print('%-30s %10s %12s %10s %9s' % ('engine', 'step', 'error', 'wall s', 'x realtime'))
-        import mujoco
+        import mujoco  # lazy: optional (the bench extra): mujoco costs 240 ms
         print('%-30s %10s %12.2e %10.4f %9.0f' % ('ours (RK45, rtol 1e-8)', 'adaptive',
                                                  ours_error, ours_wall, DURATION / ours_wall))
         for dt, error, _violation, wall in rows:

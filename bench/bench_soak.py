@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stewart63_ros import bagio
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_loop import lease_domain  # noqa: E402
 
@@ -84,7 +86,6 @@ def growth_per_hour(samples) -> float:
 
 def from_bag(bag) -> dict:
     """Missed cycles per minute (plant) and published-vs-bag counts per topic."""
-    from stewart63_ros import bagio
     missed = []         # (sim time s, missed cycles so far)
     last = {}
     for _, _, msg in bagio.read_messages(bag, ['/diagnostics']):

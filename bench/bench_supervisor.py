@@ -16,12 +16,15 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import tempfile
 import time
 
 import numpy as np
+from bench_loop import PAIR, private_domain
 
 from stewart63_ros.core.params import default_params_path, load_setup
 from stewart63_ros.core.supervisor import run_supervised, supervisor_from_params
+from stewart63_ros.tools.rig import Rig
 
 
 def per_sample_us(samples: int = 5000) -> dict:
@@ -55,7 +58,6 @@ def per_sample_us(samples: int = 5000) -> dict:
 def rig_throughput(duration: float, repeat: int, bus: str | None = None) -> dict:
     """Lockstep samples per second, plant + controller, supervisor out and in
     (``bus``: 'canopen', over the field bus)."""
-    from bench_loop import PAIR, private_domain
     results = {'out': [], 'in': []}
     with private_domain():
         for _ in range(repeat):
@@ -68,9 +70,6 @@ def rig_throughput(duration: float, repeat: int, bus: str | None = None) -> dict
 
 
 def run_rig(duration, nodes, supervisor, bus=None):
-    import tempfile
-
-    from stewart63_ros.tools.rig import Rig
     log_dir = tempfile.mkdtemp(prefix='bench_supervisor_')
     rig = Rig(default_params_path(), 'lockstep', duration, nodes=nodes, log_dir=log_dir,
               supervisor=supervisor, bus=bus)

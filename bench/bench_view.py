@@ -25,8 +25,12 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
+
+import viser
+from websockets.sync.client import connect
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -84,6 +88,7 @@ class Client:
         self.draw = draw
         self.received = 0
         if draw:
+            # lazy: optional (a test dependency): playwright costs 78 ms
             from playwright.sync_api import sync_playwright
             self._pw = sync_playwright().start()
             self.ctx = self._pw.chromium.launch_persistent_context(
@@ -93,9 +98,6 @@ class Client:
             self.page.goto(url, timeout=150_000)
             self.page.wait_for_selector('canvas', timeout=150_000)
         else:
-            import threading
-
-            from websockets.sync.client import connect
             self.ws = connect(url.replace('http://', 'ws://'),
                               subprotocols=[_viser_subprotocol()])
             self._reader = threading.Thread(target=self._read, daemon=True)
@@ -118,7 +120,6 @@ class Client:
 
 def _viser_subprotocol() -> str:
     """The websocket subprotocol viser's server requires (its version tag)."""
-    import viser
     return 'viser-v' + viser.__version__
 
 

@@ -45,6 +45,7 @@ class BagError(Exception):
 @functools.lru_cache(maxsize=1)
 def typestore():
     """rosbags' type store for ROS 2 Kilted (the distro of the wheels)."""
+    # lazy: rosbags.typesys costs 74 ms; plot of a CSV needs no bag
     from rosbags.typesys import Stores, get_typestore
     store = getattr(Stores, 'ROS2_KILTED', None) or Stores.LATEST
     return get_typestore(store)
@@ -75,6 +76,7 @@ def check_bag_dir(bag_dir) -> Path:
 
 def open_reader(bag_dir):
     """An opened rosbags ``AnyReader`` on ``bag_dir``; close it (or use ``with``)."""
+    # lazy: rosbags.highlevel costs 181 ms; plot of a CSV needs no bag
     from rosbags.highlevel import AnyReader
     path = check_bag_dir(bag_dir)
     reader = AnyReader([path], default_typestore=typestore())
@@ -94,6 +96,7 @@ def bag_namespace(reader) -> str:
     """The namespace the bag was recorded in (``/`` if not recorded by ``record``)."""
     for path in getattr(reader, 'paths', []):
         try:
+            # lazy: ruamel.yaml costs 54 ms; only a bag's metadata needs it
             from ruamel.yaml import YAML, YAMLError
             meta = YAML(typ='safe').load((Path(path) / 'metadata.yaml').read_text())
             custom = meta['rosbag2_bagfile_information'].get('custom_data') or {}
@@ -366,6 +369,7 @@ def trajectory_from_bag(bag_dir, *, relative_time: bool = True,
     θ = ``core.rotation.euler_from_quaternion(q)`` (R = Rz·Ry·Rx). ``t`` is the
     stamp in seconds, from the first row's stamp when ``relative_time``.
     """
+    # lazy: core.rotation costs 649 ms (numba, scipy); plot needs no core
     from stewart63_ros.core.rotation import euler_from_quaternion
 
     if run is None:
@@ -496,6 +500,7 @@ def reference_points_from_bag(bag_dir) -> dict[str, np.ndarray | None]:
     Raises:
         BagError: not a bag, none of the topics, both, a bad message.
     """
+    # lazy: core.reference costs 570 ms (numba); plot needs no core
     from stewart63_ros.core.reference import trajectory_poses
     reader = open_reader(bag_dir)
     try:
@@ -571,6 +576,7 @@ def reference_from_bag(mech, bag_dir, max_leg_speed: float = 0.0,
         ReferenceError: the bag cannot be read, or its motion is refused
             (``Reference.check``), naming the bag.
     """
+    # lazy: core.reference costs 570 ms (numba); plot needs no core
     from stewart63_ros.core.reference import Reference, ReferenceError
     try:
         points = reference_points_from_bag(bag_dir)
@@ -610,6 +616,7 @@ def recover_bag(bag_dir) -> dict[str, int]:
     Returns the number of messages recovered per topic. Raises :class:`BagError`
     if ``bag_dir`` holds no MCAP file or nothing readable.
     """
+    # lazy: mcap and rosbags.rosbag2 cost 182 ms; only record --recover needs them
     from mcap.records import Channel, Message, Schema
     from mcap.stream_reader import StreamReader
     from rosbags.rosbag2 import ReaderError, StoragePlugin, Writer
@@ -655,6 +662,7 @@ def recover_bag(bag_dir) -> dict[str, int]:
     meta_path = path / 'metadata.yaml'
     if meta_path.is_file():
         try:
+            # lazy: ruamel.yaml costs 54 ms; only a bag's metadata needs it
             from ruamel.yaml import YAML, YAMLError
             meta = YAML(typ='safe').load(meta_path.read_text())
             custom = dict(meta['rosbag2_bagfile_information'].get('custom_data') or {})

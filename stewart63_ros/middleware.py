@@ -8,13 +8,14 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from stewart63_ros.paths import default_params_path
+
 #: Fast DDS reads its default profiles from the file this names.
 PROFILES_VARIABLE = 'FASTDDS_DEFAULT_PROFILES_FILE'
 
 
 def rig_profile_path() -> Path:
     """Where the packaged ``config/fastdds.xml`` is (beside the parameter file)."""
-    from stewart63_ros.paths import default_params_path
     return default_params_path().parent / 'fastdds.xml'
 
 

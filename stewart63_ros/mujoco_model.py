@@ -168,7 +168,7 @@ class MujocoPlatform:
     """The MuJoCo model with the scenario's initial state and eq. (40) set up."""
 
     def __init__(self, setup: Setup, settings: Settings | None = None):
-        import mujoco
+        import mujoco  # lazy: optional (the bench extra): mujoco costs 240 ms
         self.mujoco = mujoco
         self.setup = setup
         self.mech = setup.mechanism

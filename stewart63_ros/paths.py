@@ -3,6 +3,9 @@ library only: the launch files import it in a Python that may have ``launch``
 but not numpy or scipy (and ``rig`` before its stop handlers are in place)."""
 from __future__ import annotations
 
+import fcntl
+import os
+import sys
 from pathlib import Path
 
 #: The clock mode a rig runs in unless told otherwise (``rig --mode``, ``demo
@@ -18,12 +21,12 @@ def default_params_path() -> Path:
     """Where the packaged ``config/stewart63.yaml`` is, installed or in a checkout."""
     candidates = []
     try:  # a colcon / ROS install
+        # lazy: optional, a ROS install only: ament_index_python costs 3 ms
         from ament_index_python.packages import get_package_share_directory
         candidates.append(Path(get_package_share_directory('stewart63_ros')) / 'config')
     except Exception:  # noqa: BLE001 - not a ROS install, or package not indexed
         pass
     candidates.append(Path(__file__).resolve().parents[1] / 'config')  # checkout / editable
-    import sys
     candidates.append(Path(sys.prefix) / 'share' / 'stewart63_ros' / 'config')  # pip install
     for folder in candidates:
         if (folder / 'stewart63.yaml').is_file():
@@ -34,15 +37,13 @@ def default_params_path() -> Path:
 def domain_lock_dir() -> Path:
     """The lock files by which processes on this machine lease ROS domain ids
     (test/ros_harness.py, the benchmarks, ``scenario``)."""
-    import tempfile
+    import tempfile  # lazy: tempfile costs 4 ms alone, 15 ms in rig's and record's start-up
     return Path(tempfile.gettempdir()) / 'stewart63_ros_domains'
 
 
 def try_lock_domain(domain: int) -> int | None:
     """The open, exclusively locked lock file of ``domain`` (close it to
     release the id), or None when another process holds it."""
-    import fcntl
-    import os
     folder = domain_lock_dir()
     folder.mkdir(parents=True, exist_ok=True)
     fd = os.open(folder / ('%d.lock' % domain), os.O_CREAT | os.O_RDWR, 0o666)

@@ -51,6 +51,7 @@ def load(source: Any, base: str | os.PathLike) -> list:
     Raises:
         ScenarioError: a bad scenario (its key named).
     """
+    # lazy: core.scenario costs 129 ms; pytest loads this plugin always
     from stewart63_ros.core.scenario import load_scenarios, scenarios_from_dict
     items = source if isinstance(source, (list, tuple)) else [source]
     out = []
@@ -69,6 +70,7 @@ _SESSION_OUTCOMES: list = []
 @pytest.fixture
 def run_scenarios(request: Any) -> Callable[..., list]:
     """A function that runs scenarios and, by default, fails the test on a failed verdict."""
+    # lazy: tools.scenario costs 139 ms; pytest loads this plugin always
     from stewart63_ros.core.scenario import ScenarioError
     from stewart63_ros.tools.scenario import failure_message, run_all
     base = Path(str(request.node.fspath)).parent
@@ -92,5 +94,6 @@ def pytest_sessionfinish(session: Any) -> None:
     """Write ``--scenario-junit`` when asked."""
     path = session.config.getoption('--scenario-junit', default=None)
     if path and _SESSION_OUTCOMES:
+        # lazy: tools.scenario costs 139 ms; pytest loads this plugin always
         from stewart63_ros.tools.scenario import write_junit
         write_junit(_SESSION_OUTCOMES, Path(path))

@@ -23,6 +23,8 @@ Why these profiles:
 """
 from __future__ import annotations
 
+import time
+
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 LEG_LENGTHS = 'leg_lengths'
@@ -168,7 +170,6 @@ def wait_for_subscribers(publishers, min_count: int = 1, timeout: float = 10.0,
     Publishers of a rig call this before their first sample, so that a
     recorder started first misses nothing (docs/bags.md, readiness handshake).
     """
-    import time
     deadline = time.monotonic() + timeout
     while True:
         if all(p.get_subscription_count() >= min_count for p in publishers):

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import ast
 import importlib
+import re
 from pathlib import Path
 
 import pytest
@@ -206,7 +207,6 @@ def test_rotations_go_through_core_rotation():
 def test_package_xml_lists_every_ros_package_imported():
     """A ROS install (rosdep, colcon) learns the runtime dependencies from
     package.xml: every ROS package the code imports is an exec_depend there."""
-    import re
     declared = set(re.findall(r'<exec_depend>([\w-]+)</exec_depend>',
                               (REPO / 'package.xml').read_text()))
     used = set()
@@ -231,3 +231,95 @@ def test_one_list_of_the_rigs_nodes():
     assert rig.NODES is composed.NODE_NAMES is node_names.NODES
     assert tuple(node_parameters.NODES) == node_names.ALL_NODES
 
+
+
+#: The mark of an import left inside a function on purpose, with its measured
+#: cost: ``# lazy: matplotlib costs 1450 ms at start-up; only --plot draws``.
+LAZY_MARK = '# lazy:'
+#: A figure the reason must carry: a measured cost in ms (docs/design.md, the
+#: table), or the words "cycle" or "floor" for an import that would close a
+#: circle or go up a floor, or "optional" for a dependency that may be absent.
+LAZY_FIGURE = re.compile(r'\d+(\.\d+)?\s*ms\b|\b(cycle|floor|optional)\b')
+
+
+def function_level_imports(source: str) -> list[tuple[int, str]]:
+    """Every import inside a function of ``source`` without a lazy mark with a
+    figure, as (line, problem). The mark sits on one of the import's lines or
+    on the comment lines directly above a run of imports the import is in."""
+    lines = source.splitlines()
+    found = []
+
+    def marked(start: int, end: int) -> str | None:
+        for line in lines[start - 1:end]:
+            if LAZY_MARK in line:
+                return line
+        return None
+
+    def check_block(block: list[ast.stmt]) -> None:
+        above = None          # the lazy comment over the current run of imports
+        for stmt in block:
+            if not isinstance(stmt, (ast.Import, ast.ImportFrom)):
+                above = None
+                continue
+            comment = marked(stmt.lineno, stmt.end_lineno)
+            if comment is None and above is None:
+                # comment lines directly above this import
+                row = stmt.lineno - 2
+                while row >= 0 and lines[row].strip().startswith('#'):
+                    if LAZY_MARK in lines[row]:
+                        comment = lines[row]
+                        break
+                    row -= 1
+            comment = comment or above
+            if comment is None:
+                found.append((stmt.lineno, 'no %r comment' % LAZY_MARK))
+            elif not LAZY_FIGURE.search(comment.split(LAZY_MARK, 1)[1]):
+                found.append((stmt.lineno, 'lazy comment without a cost in ms'))
+            above = comment
+
+    def walk(node: ast.AST, in_function: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            inside = in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef))
+            if inside:
+                for field in ('body', 'orelse', 'finalbody'):
+                    block = getattr(child, field, None)
+                    if isinstance(block, list) and block and isinstance(block[0], ast.stmt):
+                        check_block(block)
+            walk(child, inside)
+
+    walk(ast.parse(source), False)
+    return sorted(set(found))
+
+
+def test_the_lazy_rule_sees_an_unexplained_function_level_import():
+    source = ('import os\n\n'
+              'def f():\n    import json\n    return json\n\n'
+              'def g():\n    import yaml  # lazy: yaml is slow\n\n'
+              'def h():\n    # lazy: matplotlib costs 1450 ms at start-up; only --plot draws\n'
+              '    import matplotlib\n    import matplotlib.pyplot as plt\n'
+              '    plt.figure()\n    import scipy\n\n'
+              'def k():\n    if True:\n        from a import b  # lazy: cycle (a imports us)\n'
+              '    try:\n        import mujoco\n    except ImportError:\n        pass\n'
+              '    try:\n        import tf2_msgs  # lazy: optional: a ROS install only\n'
+              '    except ImportError:\n        pass\n'
+              '    import yaml  # lazy: yaml costs 10ms; rig --help answers without it\n')
+    assert function_level_imports(source) == [
+        (4, "no '# lazy:' comment"), (8, 'lazy comment without a cost in ms'),
+        (15, "no '# lazy:' comment"), (21, "no '# lazy:' comment")]
+
+
+#: Directories whose modules' function-level imports are checked.
+LAZY_CHECKED = (PACKAGE, REPO / 'bench')
+
+
+def test_every_function_level_import_says_why_with_its_cost():
+    """Imports sit at module level, where a reader sees the module's
+    dependencies; one inside a function says why on a `# lazy:` line with the
+    cost it saves at start-up (docs/design.md, the table of measured costs)."""
+    offenders = []
+    for directory in LAZY_CHECKED:
+        for path in sorted(directory.rglob('*.py')):
+            for line, problem in function_level_imports(path.read_text()):
+                offenders.append('%s:%d: %s' % (path.relative_to(REPO), line, problem))
+    assert offenders == [], '%d function-level imports without a reason:\n%s' % (
+        len(offenders), '\n'.join(offenders))

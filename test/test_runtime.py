@@ -724,3 +724,35 @@ def test_the_recorder_says_its_progress_on_either_path_and_while_nothing_comes(f
     progress._sent_at -= ProgressPublisher.RESEND_PERIOD    # as if that long passed
     rec.spin_once(0.0)
     assert sent == [(0, 7 * MS)] * 2
+
+
+def test_a_silent_force_source_is_dropped_after_the_peer_timeout_and_comes_back():
+    """A controller hung without leaving the graph would pace a lockstep run
+    at one sample per force_timeout (50 min for 3000 samples): after
+    lockstep_peer_timeout of unanswered samples the plant stops waiting the
+    full force_timeout, with an ERROR, until an answer comes again."""
+    from stewart63_ros.runtime.lockstep import AnswerWatch
+    clock = Clock()
+    health = Health()
+    log = Log()
+    watch = AnswerWatch(health, log, timeout=10.0, clock=clock)
+    assert watch.wait(1.0) == 1.0
+    for _ in range(9):              # nine samples of 1 s without an answer
+        clock.t += 1.0
+        watch.missed(1.0)
+        assert watch.wait(1.0) == 1.0 and health.fault == ''
+    clock.t += 1.0
+    watch.missed(1.0)               # the tenth: 10 s of silence
+    assert watch.dropped and watch.wait(1.0) == AnswerWatch.DROPPED_WAIT
+    assert health.fault.startswith('no force answer for 10.0 s (lockstep_peer_timeout)')
+    assert health.values['force_source_drops'] == 1
+    assert log.lines[-1][0] == 'error'
+    watch.answered()
+    assert not watch.dropped and watch.wait(1.0) == 1.0 and health.fault == ''
+    # An answer in between starts the count again.
+    for _ in range(2):
+        for _ in range(5):
+            clock.t += 1.0
+            watch.missed(1.0)
+        watch.answered()
+    assert not watch.dropped and health.values['force_source_drops'] == 1

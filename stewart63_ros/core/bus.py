@@ -22,7 +22,11 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import yaml
+
 from stewart63_ros.core.legs import LEG_NAMES
+from stewart63_ros.paths import default_params_path
 
 # -- bus load ------------------------------------------------------------------------
 #: bits of a standard (11-bit id) data frame outside the data field that are
@@ -435,7 +439,6 @@ def _field(where: str, entry: dict, key: str, kind, check=None, why: str = '',
 
 def default_bus_config_path() -> Path:
     """The packaged config/canopen.yaml (beside the parameter file)."""
-    from stewart63_ros.paths import default_params_path
     return default_params_path().with_name('canopen.yaml')
 
 
@@ -459,7 +462,6 @@ def load_bus_config(path: str | os.PathLike | None = None,
             outside 1..127 or used twice on a bus, a leg missing or given
             twice, an unknown bus, a missing EDS file); the message names it.
     """
-    import yaml
     path = Path(path) if path else default_bus_config_path()
     try:
         doc = yaml.safe_load(path.read_text())
@@ -551,7 +553,6 @@ class OverTheBus:
     def forces(self, t: float, lengths: Any, rates: Any) -> Any:
         """The forces [N] the drives apply for readings ``lengths`` [m],
         ``rates`` [m/s] at time ``t`` [s]."""
-        import numpy as np
         read_l = [leg.metres(leg.counts(v)) for leg, v in zip(self.legs, lengths)]
         read_r = [leg.metres_per_second(leg.counts_s(v)) for leg, v in zip(self.legs, rates)]
         forces = self.controller.forces(t, np.array(read_l), np.array(read_r))

@@ -54,8 +54,14 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
+from stewart63_ros.core.fk import ForwardKinematics
 from stewart63_ros.core.legs import LEG_VERTEX
 from stewart63_ros.core.params import Mechanism, ParameterError
+from stewart63_ros.core.rotation import (
+    rotation_angle_between,
+    rotation_from_quaternion,
+    rotvec_from_rotation,
+)
 
 #: The parameter file's key of the sensors' zero offsets (6 numbers, metres).
 OFFSET_KEY = 'leg_length_offset'
@@ -153,7 +159,6 @@ def measurements(positions: ArrayLike, quaternions: ArrayLike,
         CalibrationError: wrong shapes, a NaN or Inf (naming the first row,
             1-based), a quaternion that is not of unit length.
     """
-    from stewart63_ros.core.rotation import rotation_from_quaternion
     positions = np.asarray(positions, dtype=float)
     quaternions = np.asarray(quaternions, dtype=float)
     readings = np.asarray(readings, dtype=float)
@@ -351,7 +356,6 @@ def parameter_groups(directions: np.ndarray, share: float = 0.05) -> list[dict]:
 
 def _pose_cause(meas: Measurements) -> str:
     """Why poses may leave parameters unseen, in words ('' if nothing obvious)."""
-    from stewart63_ros.core.rotation import rotvec_from_rotation
     rotvec = rotvec_from_rotation(meas.rotations)
     tilt = np.linalg.norm(rotvec[:, :2], axis=1)
     heights = np.ptp(meas.positions[:, 2])
@@ -514,6 +518,7 @@ def fit(mech: Mechanism, meas: Measurements, noise: NoiseModel | None = None,
         CalibrationError: too few poses, poses that leave a combination
             unidentifiable (named), a fit that does not converge.
     """
+    # lazy: scipy.optimize costs 968 ms; only a fit needs it
     from scipy.optimize import least_squares
     noise = noise or NoiseModel()
     if meas.count < MIN_POSES:
@@ -580,8 +585,6 @@ def pose_errors(mech: Mechanism, meas: Measurements) -> dict:
         'reading_rms_m', 'poses'}: the fk pose's distance from the tracked
         one, and the RMS of the readings' prediction error.
     """
-    from stewart63_ros.core.fk import ForwardKinematics
-    from stewart63_ros.core.rotation import rotation_angle_between
     fk = ForwardKinematics(mech)
     offsets = mech.leg_length_offset
     dpos, dang = [], []

@@ -27,7 +27,18 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from stewart63_ros.core import calibration as cal
+from stewart63_ros.core.analysis import AnalysisError, holding_forces, setpoint_pose
+from stewart63_ros.core.dynamics import Dynamics
+from stewart63_ros.core.fk import ForwardKinematics
 from stewart63_ros.core.mechanism import Mechanism
+from stewart63_ros.core.rotation import (
+    euler_from_matrix,
+    quaternion_from_rotation,
+    quaternion_of_rotvec_times,
+    rotation_from_euler,
+    rotation_from_quaternion,
+    rotvec_between,
+)
 from stewart63_ros.core.setup import Setup
 
 #: Default half-ranges of the candidates around the setpoint's pose: x, y, z
@@ -81,10 +92,6 @@ def candidate_poses(setup: Setup, count: int, rng: np.random.Generator,
     Raises:
         PlanError: fewer than ``count`` feasible poses in 50 x ``count`` draws.
     """
-    from stewart63_ros.core.analysis import AnalysisError, holding_forces, setpoint_pose
-    from stewart63_ros.core.dynamics import Dynamics
-    from stewart63_ros.core.fk import ForwardKinematics
-    from stewart63_ros.core.rotation import quaternion_of_rotvec_times, rotation_from_quaternion
     mech = setup.mechanism
     try:
         centre, centre_rot = setpoint_pose(setup)
@@ -213,7 +220,6 @@ def tour(mech: Mechanism, positions: np.ndarray, rotations: np.ndarray,
     Returns:
         The order, a permutation of range(N).
     """
-    from stewart63_ros.core.rotation import quaternion_from_rotation, rotvec_between
     size = float(np.max(np.linalg.norm(mech.platform_points - mech.platform_points.mean(0),
                                        axis=1)))
     left = list(range(len(positions)))
@@ -292,7 +298,6 @@ def reference_rows(setup: Setup, positions: np.ndarray, rotations: np.ndarray,
     Raises:
         PlanError: a non-positive time or speed.
     """
-    from stewart63_ros.core.rotation import euler_from_matrix
     if not (hold > 0 and move > 0 and leg_speed > 0 and row_step > 0):
         raise PlanError('hold, move, leg speed and row step must be > 0')
     task = setup.task
@@ -324,7 +329,6 @@ def reference_rows(setup: Setup, positions: np.ndarray, rotations: np.ndarray,
 
 
 def _rot(theta):
-    from stewart63_ros.core.rotation import rotation_from_euler
     return rotation_from_euler(theta)
 
 

@@ -310,7 +310,9 @@ DECLARED: tuple[Declared, ...] = (
              integer(1, 900, 'number of samples')),
     Declared('lockstep_peer_timeout', SAMPLERS, 10.0, 's (wall clock)', '', 'a lockstep '
              'peer that has not advanced for this long while the plant waits for it is '
-             'dropped (ERROR on `/diagnostics`)', positive),
+             'dropped (ERROR on `/diagnostics`); so is the source of the forces (the '
+             'controller or a supervisor) after this long of samples without an answer: '
+             'the plant then waits 0.05 s a sample, until an answer comes again', positive),
     Declared('sensor_noise', ('plant',), 0.0, 'm', '', 'Gaussian standard deviation '
              'added to L', nonnegative),
     Declared('sensor_rate_noise', ('plant',), 0.0, 'm/s', '', 'Gaussian standard '

@@ -98,7 +98,7 @@ def known_keys(params: Mapping[str, Any] | None = None) -> set[str]:
     law = (params or {}).get('control_law')
     if isinstance(law, str) and ':' in law:
         try:
-            # Here, not at the top: laws loads the numba kernels (0.15 s), which
+            # lazy: laws loads the numba kernels (926 ms), which
             # a program that only reads a parameter file does not need.
             from stewart63_ros.core.laws import law_class
             keys |= set(getattr(law_class(law), 'parameters', ()) or ())

@@ -65,6 +65,7 @@ def main() -> None:
     """
     start = time.perf_counter()
     clear_cache()
+    # lazy: the kernels cost 692 ms; cli imports this for the notice
     from stewart63_ros.core.dynamics import Dynamics
     from stewart63_ros.core.fk import FKTracker
     from stewart63_ros.core.laws import PDController
@@ -88,6 +89,7 @@ def main() -> None:
     run_continuous(setup, 0.02, dyn=dyn)
     run_sampled(setup, 0.002, 1000.0, dyn=dyn)
     # The control laws and the reference motions.
+    # lazy: the kernels cost 692 ms; cli imports this for the notice
     from stewart63_ros.core.laws import LAWS, Controller
     from stewart63_ros.core.reference import Reference
     ref = Reference.from_poses(mech, [0.0, 0.5, 1.0], np.zeros((3, 6)) + np.concatenate(
@@ -96,6 +98,7 @@ def main() -> None:
     for name in LAWS:
         Controller(setup, law=name, reference=ref)(lengths, rates, 0.25)
     # The analysis: holding forces, the workspace grid, a sweep run's leg lengths.
+    # lazy: the kernels cost 692 ms; cli imports this for the notice
     from stewart63_ros.core.analysis import holding_forces
     from stewart63_ros.core.sweep import leg_lengths_of_states
     from stewart63_ros.core.workspace import workspace_map

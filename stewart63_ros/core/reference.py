@@ -36,7 +36,12 @@ from stewart63_ros.core._jit import njit
 from stewart63_ros.core.dynamics import POS, QUAT, lengths_rates
 from stewart63_ros.core.fk import ForwardKinematics
 from stewart63_ros.core.kinematics import leg_kernel
-from stewart63_ros.core.rotation import euler_from_matrix, rotation_angle_between
+from stewart63_ros.core.rotation import (
+    euler_from_matrix,
+    euler_from_quaternion,
+    euler_rate_matrix,
+    rotation_angle_between,
+)
 
 if TYPE_CHECKING:
     from stewart63_ros.core.mechanism import Mechanism
@@ -315,6 +320,7 @@ class Reference:
         """
         # Here, not at the top: scipy.interpolate costs every controller's start
         # 0.16-0.3 s (measured after laws), and most runs follow no trajectory.
+        # lazy: scipy.interpolate costs 825 ms; only from_poses needs it
         from scipy.interpolate import BPoly, CubicSpline, PPoly
         times = np.asarray(times, dtype=float)
         poses = np.asarray(poses, dtype=float)
@@ -476,7 +482,6 @@ def trajectory_poses(translations: ArrayLike, quaternions: ArrayLike,
     Returns:
         (poses (N, 6), their rates (N, 6) or None, their second derivatives or None).
     """
-    from stewart63_ros.core.rotation import euler_from_quaternion, euler_rate_matrix
     translations = np.asarray(translations, float).reshape(-1, 3)
     poses = np.empty((len(translations), 6))
     poses[:, :3] = translations

@@ -63,6 +63,9 @@ import numpy as np
 import yaml
 
 from stewart63_ros.core.errors import ParameterError
+from stewart63_ros.core.faults import FaultError, FaultModel, parse_faults
+from stewart63_ros.core.node_parameters import BY_NAME
+from stewart63_ros.core.node_parameters import read as read_declared
 
 #: Where a scenario runs.
 RUN_MODES = ('sim', 'lockstep', 'realtime')
@@ -353,6 +356,7 @@ def _trip_expectation(metric: str, spec: Any, at: str, duration: float,
             raise ScenarioError('%s: expected true (no trip over the whole run), got %r'
                                 % (at, spec))
         return Expectation('no_trip', 'max', 0.0)
+    # lazy: core.supervisor costs 1050 ms (numba); scenario --help, pytest
     from stewart63_ros.core.supervisor import CAUSES
     spec = _mapping(at, spec)
     _unknown(at, spec, TRIP_KEYS)
@@ -369,7 +373,6 @@ def _trip_expectation(metric: str, spec: Any, at: str, duration: float,
         raise ScenarioError('%s.within: a whole number of samples, got %g' % (at, within))
     after = spec.get('after', 'fault')
     if after == 'fault':
-        from stewart63_ros.core.faults import parse_faults
         started = sorted(parse_faults(list(faults)), key=lambda f: f.start)
         if not started:
             raise ScenarioError('%s.after: the scenario has no fault to count from: give '
@@ -465,7 +468,7 @@ SIM_HOMING_KEYS = ('homing', 'homing_direction', 'homing_speed', 'homing_force')
 
 def _check_params(where: str, params: Mapping, law: str | None, run: str,
                   supervised: bool = False) -> dict:
-    from stewart63_ros.core.node_parameters import BY_NAME
+    # lazy: core.params costs 715 ms (numba); scenario --help, pytest
     from stewart63_ros.core.params import known_keys
     known = sorted(known_keys({'control_law': law} if law else None))
     out = {}
@@ -482,6 +485,7 @@ def _check_params(where: str, params: Mapping, law: str | None, run: str,
             if not supervised:
                 raise ScenarioError('%s: read by the supervisor, which runs only in a scenario '
                                     'that expects a trip or no_trip' % at)
+            # lazy: core.supervisor costs 1050 ms (numba); scenario --help, pytest
             from stewart63_ros.core.supervisor import LIMIT_KEYS
             if run == 'sim' and key not in LIMIT_KEYS + SIM_HOMING_KEYS:
                 raise ScenarioError('%s: the supervisor node\'s only, not sim\'s: it takes '
@@ -532,6 +536,7 @@ def parse_scenario(doc: Any, where: str, base: Path, source: str = '') -> Scenar
         k in TRIP_METRICS for k in doc['expect'])
     params = _check_params(where, _mapping(where + '.params', doc.get('params') or {}), law, run,
                            supervised)
+    # lazy: core.params costs 715 ms (numba); scenario --help, pytest
     from stewart63_ros.core.params import default_params_path
     params_file = (_resolve(base, doc['params_file']) if doc.get('params_file')
                    else str(default_params_path()))
@@ -541,7 +546,6 @@ def parse_scenario(doc: Any, where: str, base: Path, source: str = '') -> Scenar
         faults = [faults]
     if not isinstance(faults, list) or not all(isinstance(f, str) for f in faults):
         raise ScenarioError('%s.faults: expected a list of fault strings' % where)
-    from stewart63_ros.core.faults import FaultError, parse_faults
     try:
         parse_faults(faults)
     except FaultError as exc:
@@ -556,6 +560,7 @@ def parse_scenario(doc: Any, where: str, base: Path, source: str = '') -> Scenar
     if not expect:
         raise ScenarioError('%s.expect: a scenario needs at least one expectation' % where)
     if reference is not None and run != 'sim' and os.path.isdir(reference):
+        # lazy: bagio costs 197 ms; only a reference from a bag needs it
         from stewart63_ros.bagio import BagError, reference_points_from_bag
         try:
             with_rates = reference_points_from_bag(reference)['rates'] is not None
@@ -688,6 +693,7 @@ def load_scenarios(path: str | os.PathLike) -> list[Scenario]:
 def _file_section(path: str, node: str, mtime_ns: int) -> Mapping[str, Any]:
     """A node's parameters of a file, read once per version of the file (YAML
     parsing would otherwise cost more than a 10 s run)."""
+    # lazy: core.params costs 715 ms (numba); scenario --help, pytest
     from stewart63_ros.core.params import read_parameter_file
     return read_parameter_file(path, node)
 
@@ -731,6 +737,7 @@ def build_plant(scenario: Scenario) -> Any:
     Raises:
         ScenarioError: a parameter value the validation refuses (its key named).
     """
+    # lazy: core.params costs 715 ms (numba); scenario --help, pytest
     from stewart63_ros.core.params import setup_from_params
     try:
         return setup_from_params(node_parameters(scenario, 'plant'))
@@ -751,8 +758,8 @@ def build_controller(scenario: Scenario) -> tuple[Any, Any]:
     Raises:
         ScenarioError: the law cannot be built, the reference is refused.
     """
+    # lazy: core.laws costs 926 ms (numba); scenario --help, pytest
     from stewart63_ros.core.laws import Controller
-    from stewart63_ros.core.node_parameters import read as read_declared
     from stewart63_ros.core.params import setup_from_params
     from stewart63_ros.core.reference import ReferenceError, load_reference
     params = node_parameters(scenario, 'controller')
@@ -764,6 +771,7 @@ def build_controller(scenario: Scenario) -> tuple[Any, Any]:
                       read_declared(params, 'max_leg_acceleration'))
             if os.path.isdir(scenario.reference):
                 # a topic file: read with the package's bag I/O (rosbags, no ROS)
+                # lazy: bagio costs 197 ms; only a reference from a bag needs it
                 from stewart63_ros.bagio import reference_from_bag
                 reference = reference_from_bag(setup.mechanism, scenario.reference, *limits)
             else:
@@ -811,6 +819,7 @@ class _Withholding:
 
     def forces(self, t: float, lengths: np.ndarray, rates: np.ndarray) -> np.ndarray:
         """The law's forces, or the previous ones when the law raises."""
+        # lazy: core.laws costs 926 ms (numba); scenario --help, pytest
         from stewart63_ros.core.laws import LawError
         try:
             self.held = self.controller.forces(t, lengths, rates)
@@ -836,8 +845,8 @@ def run_sim(scenario: Scenario) -> Trace:
         ScenarioError: the parameters, law or reference are refused.
         RuntimeError: the simulation diverged (non-finite state).
     """
+    # lazy: the core's kernels cost 692 ms (numba); scenario --help, pytest
     from stewart63_ros.core.dynamics import Dynamics
-    from stewart63_ros.core.faults import FaultModel, parse_faults
     from stewart63_ros.core.laws import PDLaw
     from stewart63_ros.core.simulate import run_sampled
     plant = build_plant(scenario)
@@ -863,6 +872,7 @@ def run_sim(scenario: Scenario) -> Trace:
                          faults=faults, wrench=wrenches)
     if not np.all(np.isfinite(result.states)):
         raise RuntimeError('the simulation diverged (non-finite state)')
+    # lazy: core.sweep costs 692 ms (numba, scipy.optimize)
     from stewart63_ros.core.sweep import leg_lengths_of_states
     lengths = leg_lengths_of_states(dyn.base_points, dyn.leg_points, result.states)
     withheld = np.zeros(len(times), bool)
@@ -883,6 +893,7 @@ class _LawCalls:
 
     def forces(self, t: float, lengths: np.ndarray, rates: np.ndarray) -> np.ndarray:
         """The law's forces; a LawError noted, then passed on."""
+        # lazy: core.laws costs 926 ms (numba); scenario --help, pytest
         from stewart63_ros.core.laws import LawError
         try:
             return self.controller.forces(t, lengths, rates)
@@ -906,7 +917,7 @@ def build_supervisor(scenario: Scenario, reference: Any = None) -> Any:
     Raises:
         ScenarioError: a limit out of range or contradicting another (its key named).
     """
-    from stewart63_ros.core.node_parameters import read as read_declared
+    # lazy: core.params costs 715 ms (numba); scenario --help, pytest
     from stewart63_ros.core.params import setup_from_params
     from stewart63_ros.core.supervisor import supervisor_from_params
     params = node_parameters(scenario, 'supervisor')
@@ -925,6 +936,7 @@ def _run_supervised(scenario: Scenario, plant: Any, dyn: Any, controller: Any, r
                     rate: float, faults: Any, wrenches: np.ndarray | None) -> Trace:
     """``run_sim`` with the supervisor between controller and plant:
     ``core.supervisor.run_supervised``, the loop ``rig --supervisor`` runs."""
+    # lazy: core.supervisor costs 1050 ms (numba); scenario --help, pytest
     from stewart63_ros.core.supervisor import run_supervised
     supervisor = build_supervisor(scenario, reference)
     law = _LawCalls(controller, rate)
@@ -959,6 +971,7 @@ def build_controller_setup(scenario: Scenario) -> Any:
     Raises:
         ScenarioError: a parameter value the validation refuses.
     """
+    # lazy: core.params costs 715 ms (numba); scenario --help, pytest
     from stewart63_ros.core.params import setup_from_params
     try:
         return setup_from_params(node_parameters(scenario, 'controller'))
@@ -980,7 +993,7 @@ def reference_lengths(scenario: Scenario, reference: Any, times: np.ndarray) -> 
     if reference is None:
         setup = build_controller_setup(scenario)
         return np.tile(np.asarray(setup.task.setpoint_lengths, float), (len(times), 1))
-    from stewart63_ros.core.reference import R_LEN
+    from stewart63_ros.core.reference import R_LEN  # lazy: core.reference costs 570 ms (numba)
     return reference.sample_many(times)[:, R_LEN]
 
 
@@ -1042,6 +1055,7 @@ def measure(trace: Trace, exp: Expectation) -> tuple[float, float | None, tuple[
     if metric == 'tracking_error_max_m':
         return float(per_sample.max()), _first_over(t, per_sample, exp), window
     if metric == 'settling_time_s':
+        # lazy: core.sweep costs 692 ms (numba, scipy.optimize)
         from stewart63_ros.core.sweep import settling_time
         value = settling_time(t, lengths)
         return value, (None if _passes(value, exp) else

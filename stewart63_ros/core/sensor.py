@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 
+from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.core.node_parameters import read as read_declared
 
 
@@ -79,7 +80,6 @@ class TrackerModel:
     """
 
     def __init__(self, params: Mapping[str, Any]) -> None:
-        from stewart63_ros.core.errors import ParameterError
         self.rate = read_declared(params, 'tracker_rate')
         self.position_noise = read_declared(params, 'tracker_position_noise')
         self.orientation_noise = read_declared(params, 'tracker_orientation_noise')
@@ -114,6 +114,7 @@ class TrackerModel:
         Returns:
             (position (3,), unit quaternion (4,)) with the noise added.
         """
+        # lazy: core.rotation costs 649 ms (numba, scipy)
         from stewart63_ros.core.rotation import (
             quaternion_of_rotvec_times,
             rotation_from_quaternion,

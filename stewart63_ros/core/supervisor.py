@@ -36,9 +36,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.errors import ParameterError
+from stewart63_ros.core.faults import FaultModel, parse_faults
+from stewart63_ros.core.fk import FKTracker, ForwardKinematics, NoAssemblyError
 from stewart63_ros.core.kinematics import leg_lengths
+from stewart63_ros.core.laws import Controller, LawError, PDGravityLaw
 from stewart63_ros.core.node_parameters import read as read_declared
+from stewart63_ros.core.reference import R_LEN, Reference, ReferenceError, load_reference
 from stewart63_ros.core.rotation import rotation_from_euler
 
 if TYPE_CHECKING:
@@ -292,7 +297,6 @@ def check_homing(mech: Mechanism, direction: str) -> None:
     Raises:
         ParameterError: with the forward kinematics' reason.
     """
-    from stewart63_ros.core.fk import ForwardKinematics, NoAssemblyError
     stop = mech.leg_length_max if direction == 'extend' else mech.leg_length_min
     try:
         ForwardKinematics(mech).all_modes(np.full(6, stop))
@@ -411,7 +415,6 @@ class Supervisor:
             return cause
         if self.reference is not None and lim.tracking_error:
             ref = self._ref = self.reference.sample((ns - self.start_ns) * 1e-9, self._ref)
-            from stewart63_ros.core.reference import R_LEN
             error = np.abs(lengths - ref[R_LEN])
             if error.max() > lim.tracking_error:
                 if self.tracking_since is None:
@@ -581,7 +584,6 @@ class Supervisor:
         """The forces that hold the mechanism against gravity at the pose the
         readings give (``PDGravityLaw.holding_forces``)."""
         if self._gravity is None:
-            from stewart63_ros.core.laws import PDGravityLaw
             self._gravity = PDGravityLaw(self.mech, self.setup.to_params())
         position, rotation, _ = self._gravity.estimator(lengths, rates)
         return self._gravity.holding_forces(position, rotation)
@@ -698,9 +700,7 @@ def run_supervised(setup: Setup, supervisor: Supervisor, duration: float, rate: 
         (N, 6), 'forces' (N, 6) sent [N], 'requests' (N, 6) the controller's
         (NaN: none)}, N = duration * rate + 1.
     """
-    from stewart63_ros.core.dynamics import Dynamics
-    from stewart63_ros.core.faults import FaultModel, parse_faults
-    from stewart63_ros.core.laws import Controller, LawError
+    # lazy: core.simulate costs 990 ms (scipy.optimize); the node never runs it
     from stewart63_ros.core.simulate import initial_state, sensor_reading, substeps_for
     if not isinstance(faults, FaultModel):
         faults = FaultModel(parse_faults(faults or []), rate)
@@ -774,8 +774,6 @@ def supervisor_from_params(setup: Setup, params: Mapping[str, Any],
         ParameterError: a limit out of range or contradicting another, the
             reference file unreadable (key ``reference_file``).
     """
-    from stewart63_ros.core.fk import FKTracker
-    from stewart63_ros.core.reference import Reference, ReferenceError, load_reference
     mech = setup.mechanism
     limits = limits_from_params(mech, params)
     start = (setup.task.initial_position, setup.task.initial_rotation)

@@ -38,9 +38,11 @@ import os
 import re
 import time
 from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from stewart63_ros.core._jit import njit
 from stewart63_ros.core.dynamics import Dynamics, lengths_rates
@@ -755,6 +757,7 @@ def check_scheduler_address(address: str) -> str:
         SweepError: not an address with a host and a port (the reason).
         ImportError: ``distributed`` is not installed.
     """
+    # lazy: optional: distributed costs 543 ms; only --scheduler
     from distributed.comm import parse_address
     from distributed.comm.addressing import parse_host_port
     try:
@@ -769,6 +772,7 @@ def check_scheduler_address(address: str) -> str:
 
 def _run_chunk_on_worker(plan: SweepPlan, chunk) -> tuple[str, list[dict[str, Any]]]:
     """``run_chunk`` on a Dask worker, with the worker's address (who ran it)."""
+    # lazy: optional: distributed costs 543 ms; only --scheduler
     from distributed import get_worker
     return get_worker().address, run_chunk(plan, chunk)
 
@@ -819,6 +823,7 @@ def run_dask_report(plan: SweepPlan, values: np.ndarray, scheduler: str | None =
         SweepError: the cluster lost runs it could not do again (every
             worker gone, or a run's worker killed too often).
     """
+    # lazy: optional: distributed costs 543 ms; only --scheduler
     from distributed import Client, LocalCluster
     cluster = None
     if scheduler is None:
@@ -970,9 +975,6 @@ def write_run_parameters(params_path: str | os.PathLike, out_path: str | os.Path
         variations: the varied parameters; values: (K,) the run's values.
         faults: the run's resolved fault strings (``fault<n>`` of runs.csv).
     """
-    from pathlib import Path
-
-    import yaml
     doc = yaml.safe_load(Path(params_path).read_text())
     sections = [s['ros__parameters'] for s in doc.values()
                 if isinstance(s, dict) and isinstance(s.get('ros__parameters'), dict)]

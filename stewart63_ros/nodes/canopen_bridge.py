@@ -35,9 +35,11 @@ import sys
 import time
 import types
 
+from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import JointState
 
 from stewart63_ros import topics
+from stewart63_ros.canbus.master import Master
 from stewart63_ros.core.bus import BusConfigError, BusLoadError, load_bus_config
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.exits import quiet_on_closed_pipe
@@ -49,7 +51,9 @@ from stewart63_ros.runtime.checks import (
     StampGate,
     ros_time,
 )
+from stewart63_ros.runtime.handshake import plant_run
 from stewart63_ros.runtime.launcher import STOP, run
+from stewart63_ros.runtime.lockstep import PeerWindow
 from stewart63_ros.runtime.startup import PlantStartup
 
 #: s: realtime: after a drive's TPDO has come, the others of the cycle must follow
@@ -87,7 +91,6 @@ class BridgeNode(RigNode):
         except BusConfigError as exc:
             raise ParameterError('bus_config', str(exc)) from None
         self.config = config
-        from stewart63_ros.canbus.master import Master
         try:
             self.master = Master(config, self.rate, log=self.get_logger().info)
         except BusLoadError as exc:
@@ -104,7 +107,6 @@ class BridgeNode(RigNode):
         self.peers = None
         lockstep_peers = self.peer_names('lockstep_peers')
         if lockstep_peers and self.mode == 'lockstep':
-            from stewart63_ros.runtime.lockstep import PeerWindow
             self.peers = PeerWindow(self, lockstep_peers, self.param('lockstep_window'),
                                     self.period_ns, self.param('lockstep_peer_timeout'))
         pub = self.publisher(JointState, topics.LEG_LENGTHS, topics.STREAM_PUB)
@@ -118,7 +120,6 @@ class BridgeNode(RigNode):
         self.watch_source(self.sub_forces, topics.LEG_FORCES, self.force_gate)
         self.plant_startup = PlantStartup(self)
         # The plant's run on /diagnostics: paused or reset, its drives hold the SYNC.
-        from diagnostic_msgs.msg import DiagnosticArray
         self.plant_status = topics.status_name(topics.node_full_name(self.get_namespace(),
                                                                      'plant'))
         self.plant_run = 'running'
@@ -153,7 +154,6 @@ class BridgeNode(RigNode):
             self.master.command(self.force, withhold=bool(self.errors))
 
     def on_diagnostics(self, msg):
-        from stewart63_ros.runtime.handshake import plant_run
         said = plant_run(msg, self.plant_status)
         self.plant_run = said.get('run', self.plant_run)
         number = said.get('run_number')
@@ -166,7 +166,7 @@ class BridgeNode(RigNode):
         """``homed_offset`` (a homing's result, set by the supervisor): each
         drive's home offset 0x607C by SDO, so its next TPDO reads homed;
         ParameterError naming the drive that did not take it."""
-        import canopen
+        import canopen  # lazy: optional: canopen costs 273 ms; the simulated bus runs without it
         counts = []
         for link in self.master.links:
             try:

@@ -24,6 +24,7 @@ import time
 
 from stewart63_ros.core.node_names import NODES as NODE_NAMES
 from stewart63_ros.exits import quiet_on_closed_pipe
+from stewart63_ros.runtime.launcher import STOP, run
 
 
 class Peers:
@@ -56,6 +57,7 @@ class Peers:
         """The loop begins; ``own``: the plant's DirectTake on ``leg_forces``
         (None: no plant in this process). Returns the loop, for the plant to
         poll (see ``HotLoop.start_hot_loop``)."""
+        # lazy: rclpy costs 302 ms: --help answers without it
         from stewart63_ros.runtime.rclpy_internals import WaitAny
         self.own = own
         subs = [d.sub for _, d in self.answer_first + self.then] + ([own.sub] if own else [])
@@ -144,8 +146,9 @@ class Composed:
     """
 
     def __init__(self, options):
-        import rclpy
+        import rclpy  # lazy: rclpy costs 302 ms: --help answers without it
 
+        # lazy: the three nodes cost 938 ms: --help answers without them
         from stewart63_ros.nodes.controller import ControllerNode
         from stewart63_ros.nodes.fk_node import FKNode
         from stewart63_ros.nodes.plant import PlantNode
@@ -160,6 +163,7 @@ class Composed:
         self.closed = False
         if options.record:
             # First, so that its subscriptions exist before any node publishes.
+            # lazy: the recorder costs 973 ms; only --record needs it
             from stewart63_ros.bagio import BagError
             from stewart63_ros.recording.recorder import Recorder
             self.recorder = Recorder(options.record, context=rclpy.get_default_context())
@@ -198,9 +202,8 @@ class Composed:
                      self.recorder, plant.period if plant is not None else 1e-3,
                      side_period, batch_then=lockstep)
         if plant is None:
-            import rclpy
+            import rclpy  # lazy: rclpy costs 302 ms: --help answers without it
 
-            from stewart63_ros.runtime.launcher import STOP
             self.loop = loop.start()
             while rclpy.ok() and not STOP.requested:
                 loop.poll(0.1)
@@ -220,8 +223,8 @@ class Composed:
         errors = []
         if self.loop is not None and self.loop.waiter is not None:     # it has started
             self.loop.drain()
+        # lazy: runtime.base costs 824 ms: --help answers without it
         from stewart63_ros.runtime.base import RigNode
-        from stewart63_ros.runtime.launcher import STOP
         # One flush bound for all the nodes, not one each: three nodes waiting
         # in turn for a subscriber that never acknowledges would outlast the
         # stop deadline (launcher.STOP_DEADLINE).
@@ -255,7 +258,6 @@ def _options(parser):
 
 @quiet_on_closed_pipe
 def main(argv=None):
-    from stewart63_ros.runtime.launcher import run
     sys.exit(run('composed', __doc__.split('\n\n')[0], Composed, argv, extra_args=_options))
 
 

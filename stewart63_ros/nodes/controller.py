@@ -30,6 +30,7 @@ import sys
 import time
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
@@ -46,6 +47,7 @@ from stewart63_ros.core.reference import (
     tracking_summary,
     trajectory_poses,
 )
+from stewart63_ros.core.rotation import rotation_from_quaternion
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode
@@ -59,6 +61,7 @@ from stewart63_ros.runtime.checks import (
     stamp_ns,
 )
 from stewart63_ros.runtime.commands import CommandInput
+from stewart63_ros.runtime.handshake import plant_run
 from stewart63_ros.runtime.launcher import run
 from stewart63_ros.runtime.rclpy_internals import take, take_with_info
 
@@ -174,7 +177,6 @@ class ControllerNode(RigNode):
         # ("run: ended", "run: paused", "run: reset"): the silence that
         # follows is then not a lost sensor. Its "run_number" goes up on a
         # reset: a new run, whose reference starts again at its first sample.
-        from diagnostic_msgs.msg import DiagnosticArray
         self.plant_status = topics.status_name(topics.node_full_name(self.get_namespace(),
                                                                      'plant'))
         self.source_ended = False       # or why the plant is silent: 'ended', 'paused', ...
@@ -338,7 +340,6 @@ class ControllerNode(RigNode):
         self.setpoint_gate.accept(ns)
 
     def on_pose_setpoint(self, msg: PoseStamped):
-        from stewart63_ros.core.rotation import rotation_from_quaternion
         self.health.received[topics.POSE_SETPOINT] += 1
         p = msg.pose.position
         try:
@@ -373,7 +374,6 @@ class ControllerNode(RigNode):
     SILENT_RUN = ('ended', 'paused', 'reset')
 
     def on_diagnostics(self, msg):
-        from stewart63_ros.runtime.handshake import plant_run
         said = plant_run(msg, self.plant_status)
         run = said.get('run')
         if run in self.SILENT_RUN:

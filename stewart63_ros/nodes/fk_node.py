@@ -24,10 +24,12 @@ from sensor_msgs.msg import JointState
 from stewart63_ros import topics
 from stewart63_ros.core.fk import FKTracker, NoAssemblyError
 from stewart63_ros.core.kinematics import leg_lengths
+from stewart63_ros.nodes.markers import MarkerPublisher
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode
 from stewart63_ros.runtime.checks import RESTART_PAUSE, Rejected, StampGate, source_of
 from stewart63_ros.runtime.launcher import run
+from stewart63_ros.runtime.lockstep import ProgressPublisher
 
 
 class FKNode(RigNode):
@@ -55,7 +57,6 @@ class FKNode(RigNode):
         self.markers = None
         rate = self.param('marker_rate')
         if rate:
-            from stewart63_ros.nodes.markers import MarkerPublisher
             self.markers = MarkerPublisher(self, self.setup, float(rate), self.tracker.fk)
         # Every sample gets a pose: a short queue rather than newest-only.
         # Serialized samples in, serialized poses out: see runtime/wire.py.
@@ -69,7 +70,6 @@ class FKNode(RigNode):
         self.lockstep = self.param('clock_mode') == 'lockstep'
         self.progress = None
         if self.lockstep:
-            from stewart63_ros.runtime.lockstep import ProgressPublisher
             self.progress = ProgressPublisher(self)
             self.after_batch = self.progress.publish
 

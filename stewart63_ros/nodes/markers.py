@@ -18,12 +18,23 @@ same timer broadcasts the ``base`` -> ``platform`` transform on ``/tf``.
 """
 from __future__ import annotations
 
+import copy
+
 import numpy as np
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Point, PoseStamped, TransformStamped
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import JointState
+from std_msgs.msg import ColorRGBA
+from visualization_msgs.msg import Marker, MarkerArray
 
 from stewart63_ros import topics
 from stewart63_ros.core import markers as shapes_mod
+from stewart63_ros.core.fk import NoAssemblyError
 from stewart63_ros.core.kinematics import leg_lengths
+from stewart63_ros.core.rotation import quaternion_from_rotation, rotation_from_quaternion
 from stewart63_ros.runtime import wire
+from stewart63_ros.runtime.commands import CommandInput
 
 FRAME = 'base'
 PLATFORM_FRAME = 'platform'
@@ -33,7 +44,6 @@ _KIND = {}
 
 def _kinds():
     if not _KIND:
-        from visualization_msgs.msg import Marker
         _KIND.update({shapes_mod.CYLINDER: Marker.CYLINDER, shapes_mod.SPHERE: Marker.SPHERE,
                       shapes_mod.SPHERE_LIST: Marker.SPHERE_LIST,
                       shapes_mod.TRIANGLE_LIST: Marker.TRIANGLE_LIST,
@@ -49,10 +59,6 @@ class MarkerArrayBuilder:
         self.msg = None
 
     def build(self, shape_list, sec: int, nanosec: int):
-        from builtin_interfaces.msg import Time
-        from geometry_msgs.msg import Point
-        from std_msgs.msg import ColorRGBA
-        from visualization_msgs.msg import Marker, MarkerArray
         kinds = _kinds()
         if self.msg is None or len(self.msg.markers) != len(shape_list):
             self.msg = MarkerArray(markers=[Marker() for _ in shape_list])
@@ -103,8 +109,6 @@ class MarkerTemplate:
     """
 
     def __init__(self, shape_list, frame_id: str = FRAME):
-        from builtin_interfaces.msg import Time
-        from rclpy.serialization import serialize_message
         n8, n4 = (len(v) for v in shapes_mod.flatten(shape_list))
         s8 = 1.0e9 + 0.123456789 + np.arange(n8) * 0.5           # exact, distinct
         s4 = (1000.0 + np.arange(n4) * 0.25).astype(np.float32)
@@ -160,7 +164,6 @@ def _with_numbers(shape_list, f8, f4):
     the mask of the f8 entries a marker holds (a list kind's pose is the
     identity, fixed: not in the mask); and the index arrays of the f8 fields
     that lie contiguous in the serialized message (pose, scale, points)."""
-    import copy
     out, groups, a, b = [], [], 0, 0
     used = np.ones(len(f8), dtype=bool)
     for shape in shape_list:
@@ -189,9 +192,6 @@ class MarkerPublisher:
     """The ``markers`` timer of a node that sees every sample (see module doc)."""
 
     def __init__(self, node, setup, rate: float, fk=None):
-        from geometry_msgs.msg import PoseStamped
-        from sensor_msgs.msg import JointState
-        from visualization_msgs.msg import MarkerArray
         self.node = node
         self.mech = mech = setup.mechanism
         self.fk = fk
@@ -213,7 +213,6 @@ class MarkerPublisher:
         node.create_subscription(JointState, topics.LEG_FORCES, self.on_forces,
                                  topics.LATEST_SUB, raw=True)
         # The setpoints as the controller takes them: volatile and latched publishers.
-        from stewart63_ros.runtime.commands import CommandInput
         self.commands = [
             CommandInput(node, PoseStamped, topics.POSE_SETPOINT, self.on_pose_setpoint),
             CommandInput(node, JointState, topics.LEG_SETPOINT, self.on_leg_setpoint)]
@@ -222,6 +221,7 @@ class MarkerPublisher:
     @staticmethod
     def _tf_publisher(node):
         try:
+            # lazy: optional: tf2_msgs comes with a ROS install, not the wheels
             from tf2_msgs.msg import TFMessage
         except ImportError:        # the Python wheels have no tf2_msgs: markers only
             return None
@@ -241,7 +241,6 @@ class MarkerPublisher:
     def set_ghost_lengths(self, lengths):
         if lengths is None or self.fk is None or not self.in_stroke(lengths):
             return
-        from stewart63_ros.core.fk import NoAssemblyError
         ref = (self.ghost if self.ghost is not None else
                (self.sample[3], self.sample[4]) if self.sample is not None else
                self.fk.reference)
@@ -252,7 +251,6 @@ class MarkerPublisher:
         self.ghost = (np.asarray(result.position), np.asarray(result.rotation))
 
     def on_pose_setpoint(self, msg):
-        from stewart63_ros.core.rotation import rotation_from_quaternion
         p, q = msg.pose.position, msg.pose.orientation
         position = np.array([p.x, p.y, p.z])
         quat = np.array([q.x, q.y, q.z, q.w])
@@ -276,7 +274,6 @@ class MarkerPublisher:
         fast = wire.read_joint_state(data, ('effort',))
         if fast is not None:
             return fast[3]['effort']
-        from sensor_msgs.msg import JointState
         msg = wire.deserialize(data, JointState)    # None if malformed: drawn grey
         if msg is None or len(msg.effort) != 6:
             return None
@@ -295,10 +292,9 @@ class MarkerPublisher:
             self.tf_pub.publish(self._transform(sec, nanosec, position, rotation))
 
     def _transform(self, sec, nanosec, position, rotation):
-        from geometry_msgs.msg import TransformStamped
+        # lazy: optional: tf2_msgs comes with a ROS install, not the wheels
         from tf2_msgs.msg import TFMessage
 
-        from stewart63_ros.core.rotation import quaternion_from_rotation
         tf = TransformStamped()
         tf.header.frame_id = FRAME
         tf.header.stamp.sec, tf.header.stamp.nanosec = int(sec), int(nanosec)

@@ -51,6 +51,7 @@ from stewart63_ros.runtime.checks import (
 )
 from stewart63_ros.runtime.commands import CommandInput
 from stewart63_ros.runtime.launcher import STOP, run
+from stewart63_ros.runtime.lockstep import AnswerWatch, PeerWindow
 from stewart63_ros.runtime.startup import PlantStartup
 
 
@@ -79,10 +80,10 @@ class PlantNode(PlantBus, PlantControl, RigNode):
         window = self.param('lockstep_window')
         peer_timeout = self.param('lockstep_peer_timeout')
         if lockstep_peers and self.mode == 'lockstep':
-            from stewart63_ros.runtime.lockstep import PeerWindow
             self.peers = PeerWindow(self, lockstep_peers, window,
                                     int(round(1e9 / self.rate)), peer_timeout)
-        elif lockstep_peers:
+        self.answers = AnswerWatch(self.health, self.get_logger(), peer_timeout)
+        if lockstep_peers and self.mode != 'lockstep':
             self.get_logger().info('lockstep_peers apply in lockstep only: in realtime a '
                                    'reader that falls behind skips samples (counted)')
         self.sensor = SensorModel(self.params)
@@ -298,18 +299,21 @@ class PlantNode(PlantBus, PlantControl, RigNode):
             # a peer's side may not be yet, and reliable delivery repairs the
             # sample only at the next heartbeat (about 1 s later). Give it the
             # discovery bound rather than step without its force.
-            timeout = self.force_timeout if self.k else max(self.force_timeout,
-                                                              self.discovery_timeout)
+            timeout = self.answers.wait(self.force_timeout) if self.k else max(
+                self.force_timeout, self.discovery_timeout)
             # A sample with a dropped-out leg (NaN) gets no answer: the
             # controller refuses it, the held force goes on (as in sim). A
             # supervisor answers every sample (answer_every_sample).
-            if (self.sample_complete or self.answer_every_sample) \
-                    and not self.wait_for_answer(ns, timeout):
-                if STOP.requested:
-                    return
-                self.timeouts += 1
-                self.health.warning = 'no force for sample %d within %.3f s' % (
-                    self.k, timeout)
+            if self.sample_complete or self.answer_every_sample:
+                if self.wait_for_answer(ns, timeout):
+                    self.answers.answered()
+                else:
+                    if STOP.requested:
+                        return
+                    self.timeouts += 1
+                    self.health.warning = 'no force for sample %d within %.3f s' % (
+                        self.k, timeout)
+                    self.answers.missed(timeout)
             if n_samples is not None and self.k >= n_samples:
                 return
             self.step()

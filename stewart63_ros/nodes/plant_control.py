@@ -25,6 +25,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from std_srvs.srv import SetBool, Trigger
 
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.core.faults import FaultError, FaultModel
@@ -47,7 +48,6 @@ class PlantControl:
 
     def init_control(self) -> None:
         """Called by the plant's constructor once its model and loop state exist."""
-        from std_srvs.srv import SetBool, Trigger
         try:
             self.fault_model = FaultModel(self.param('faults'), self.rate,
                                           self.param('sensor_seed'), bus=self.on_bus)

@@ -12,6 +12,13 @@ import numpy as np
 
 from stewart63_ros.core.dynamics import POS, QUAT
 from stewart63_ros.core.params import ParameterError
+from stewart63_ros.core.reference import (
+    ReferenceError,
+    accumulate_tracking,
+    load_reference,
+    tracking_summary,
+)
+from stewart63_ros.core.rotation import matrix_from_quaternion
 
 #: The tracking error in the summary counts samples from this time [s] on.
 TRACKING_FROM = 1.0
@@ -21,12 +28,6 @@ class TrackingError:
     """The true tracking error of a run against the reference in ``reference_file``."""
 
     def __init__(self, mech, reference_file: str):
-        from stewart63_ros.core.reference import (
-            ReferenceError,
-            accumulate_tracking,
-            load_reference,
-        )
-        from stewart63_ros.core.rotation import matrix_from_quaternion
         try:
             self.reference = load_reference(mech, reference_file)
         except ReferenceError as exc:
@@ -48,7 +49,6 @@ class TrackingError:
         self.totals[:] = 0.0
 
     def summary(self) -> dict:
-        from stewart63_ros.core.reference import tracking_summary
         return dict(from_s=TRACKING_FROM, **tracking_summary(self.totals))
 
 

@@ -24,7 +24,12 @@ import sys
 import time
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rcl_interfaces.srv import SetParameters
+from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
 
 from stewart63_ros import topics
 from stewart63_ros.core.supervisor import LIMIT_KEYS, limits_from_params, supervisor_from_params
@@ -84,9 +89,6 @@ class SupervisorNode(RigNode):
                                                     self.on_sample, topics.LATEST_SUB, raw=True)
         self.sub_requests = self.create_subscription(JointState, REQUEST_TOPIC,
                                                      self.on_request, topics.EVERY_SUB, raw=True)
-        from diagnostic_msgs.msg import DiagnosticArray
-        from std_msgs.msg import String
-        from std_srvs.srv import Trigger
         self.sub_diagnostics = self.create_subscription(
             DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics, topics.DIAGNOSTICS_QOS)
         self.sub_trip = self.create_subscription(String, TRIP_TOPIC, self.on_trip_request,
@@ -99,7 +101,6 @@ class SupervisorNode(RigNode):
         if self.core.homing is not None:
             # The node that owns the sensors' zero: the plant, or on the bus
             # the bridge (it writes the drives' home offset 0x607C).
-            from rcl_interfaces.srv import SetParameters
             self.zero_node = self.param('homed_offset_node')
             self.zero_parameters = self.create_client(SetParameters, '%s/set_parameters' % (
                 topics.node_full_name(self.get_namespace(), self.zero_node)))
@@ -193,7 +194,6 @@ class SupervisorNode(RigNode):
         """A node of this rig whose status turns ERROR (or names a new error)
         trips; one that stays in the same ERROR does not trip again, and a
         reset after such a trip is refused until no node of the rig is in ERROR."""
-        from diagnostic_msgs.msg import DiagnosticStatus
         for status in msg.status:
             name = status.name
             if name == self.health.status_name or not name.startswith(self.rig_prefix) \
@@ -263,8 +263,6 @@ class SupervisorNode(RigNode):
     def set_zero(self, zero) -> str:
         """``homed_offset`` of the plant (or bridge) of this namespace; '' or
         why it failed."""
-        from rcl_interfaces.srv import SetParameters
-        from rclpy.parameter import Parameter
         client = self.zero_parameters
         if not client.wait_for_service(timeout_sec=5.0):
             return '%s: no such service' % client.srv_name

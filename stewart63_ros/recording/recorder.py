@@ -17,7 +17,12 @@ import threading
 import time
 from pathlib import Path
 
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+
 from stewart63_ros import topics as T
+from stewart63_ros.middleware import use_rig_profile
 from stewart63_ros.recording.recorder_bag import (
     BagOut,
     BatchWriter,
@@ -27,6 +32,7 @@ from stewart63_ros.recording.recorder_bag import (
 from stewart63_ros.recording.recorder_intake import Intake
 from stewart63_ros.recording.recorder_status import LossCount, RecorderStatus
 from stewart63_ros.recording.recorder_topics import RecordedTopics, message_class
+from stewart63_ros.runtime.lockstep import ProgressPublisher
 
 # BatchWriter, qos_to_rosbags and message_class are imported from here too.
 __all__ = ['BatchWriter', 'Recorder', 'header_stamp_ns',
@@ -92,10 +98,7 @@ class Recorder:
     def open(self):
         """Create the bag and the subscriptions; returns self with ``ready`` set."""
         self.bag.check_new()
-        import rclpy
-        from rclpy.node import Node
         if self._context is None:
-            from stewart63_ros.middleware import use_rig_profile
             use_rig_profile()
             self._context = rclpy.Context()
             rclpy.init(args=self._ros_args, context=self._context, domain_id=self._domain_id)
@@ -110,7 +113,6 @@ class Recorder:
             # recorded: starting nodes wait for what it says.
             self.status = RecorderStatus(node, self.path, self.counts, self.losses,
                                          self.subs.subs)
-            from stewart63_ros.runtime.lockstep import ProgressPublisher
             diag, lengths = (node.resolve_topic_name(t) for t in (T.DIAGNOSTICS, T.LEG_LENGTHS))
             self.intake = Intake(self.bag, self.subs, self.status, self.losses,
                                  ProgressPublisher(node),
@@ -122,7 +124,6 @@ class Recorder:
                 except Exception:  # noqa: BLE001 - other rclpy versions: the executor path
                     self.fast_path = False
             if not self.fast_path:
-                from rclpy.executors import SingleThreadedExecutor
                 self._executor = SingleThreadedExecutor(context=self._context)
                 self._executor.add_node(node)
             now = time.monotonic()

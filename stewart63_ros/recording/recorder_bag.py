@@ -7,20 +7,24 @@ import os
 import struct
 from pathlib import Path
 
-from stewart63_ros.bagio import NAMESPACE_KEY, BagError
+from rosbags.interfaces import (
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2.errors import WriterError
+from rosbags.rosbag2.writer import CompressionMode
+
+from stewart63_ros.bagio import NAMESPACE_KEY, BagError, typestore
 from stewart63_ros.core.stamps import ns_of
 
 
 def qos_to_rosbags(profile):
     """An rclpy QoSProfile (e.g. a discovered publisher's) as a rosbags ``Qos``."""
-    from rosbags.interfaces import (
-        Qos,
-        QosDurability,
-        QosHistory,
-        QosLiveliness,
-        QosReliability,
-        QosTime,
-    )
 
     def enum(cls, value):
         name = getattr(value, 'name', None)
@@ -69,7 +73,6 @@ class BatchWriter:
         self.writer = writer
         self.direct = False
         try:
-            from rosbags.rosbag2.writer import CompressionMode
             storage = writer.storage
             chunk = storage.chunk
             self.direct = (type(storage).__name__ == 'McapWriter'
@@ -92,7 +95,6 @@ class BatchWriter:
                 writer.write(conn, stamp, data)
             return
         if writer.storage is None or conn not in writer.connections:
-            from rosbags.rosbag2.errors import WriterError
             raise WriterError('not an open connection of the bag: %r' % (conn,))
         storage = writer.storage
         cid = conn.id
@@ -164,8 +166,6 @@ class BagOut:
 
     def open(self, namespace: str) -> None:
         """Create the bag (MCAP storage), saying the recorded rig's ``namespace``."""
-        from rosbags.rosbag2 import StoragePlugin, Writer
-        from rosbags.rosbag2.errors import WriterError
         writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
         writer.set_custom_data(NAMESPACE_KEY, namespace)
         try:
@@ -183,7 +183,6 @@ class BagOut:
         """The connection of ``topic``, with the QoS its publishers offer (rclpy
         profiles). The QoS is fixed here, in the MCAP channel and in
         metadata.yaml alike: a reader pairs the two by it."""
-        from stewart63_ros.bagio import typestore
         conn = self.writer.add_connection(topic, type_name, typestore=typestore(),
                                           offered_qos_profiles=[qos_to_rosbags(q)
                                                                 for q in offered_qos])

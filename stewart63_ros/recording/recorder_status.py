@@ -8,6 +8,9 @@ import collections
 import sys
 import time
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.serialization import deserialize_message
+
 from stewart63_ros.recording.recorder_topics import own_endpoint
 from stewart63_ros.runtime import handshake
 from stewart63_ros.runtime.diagnostics import StatusPublisher
@@ -30,6 +33,7 @@ class LossCount:
         """The checks.SkipCounter of ``topic``: gaps in each publisher's numbers."""
         counter = self._skips.get(topic)
         if counter is None:
+            # lazy: runtime.checks costs 1462 ms (numba); record starts without
             from stewart63_ros.runtime.checks import SkipCounter
             counter = self._skips[topic] = SkipCounter()
         return counter
@@ -107,8 +111,6 @@ class RecorderStatus:
         """A /diagnostics message (``data``, serialized) from the participant
         ``source``: a node's last status (``final: true``) says how many
         messages it published per topic: confirm once the bag holds them."""
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.serialization import deserialize_message
         try:
             msg = deserialize_message(bytes(data), DiagnosticArray)
         except Exception:   # noqa: BLE001 - written as received; not ours to judge
@@ -141,7 +143,6 @@ class RecorderStatus:
     def publish(self, message, **keys) -> None:
         """One status of the recorder: ``keys``, the count recorded and lost
         per topic; WARN once messages were lost."""
-        from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
         lost = self.losses.lost
         values = [KeyValue(key=k, value=v) for k, v in keys.items()]
         values += [KeyValue(key='recorded/' + topic, value=str(n))

@@ -7,6 +7,8 @@ from __future__ import annotations
 import importlib
 import sys
 
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
 from stewart63_ros import topics as T
 from stewart63_ros.runtime.commands import LatchedCopies
 from stewart63_ros.runtime.rclpy_internals import WaitAny
@@ -69,7 +71,6 @@ class RecordedTopics:
         volatile publisher (``ros2 topic pub`` by default); the VOLATILE one
         matches both, and a latched sample that comes through both is
         written once (``copies``, used by Intake.on_message)."""
-        from rclpy.qos import DurabilityPolicy, QoSProfile
         cls = message_class(type_name)
         qos = qos or T.recorder_qos(full)
         on_message = self.on_message
@@ -165,7 +166,6 @@ class RecordedTopics:
     def _follow_best_effort(self, topic, sub, infos) -> None:
         """A best-effort publisher (a sensor driver) does not match a reliable
         subscription: follow rosbag2 and subscribe best effort then."""
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
         if (sub.qos_profile.reliability == ReliabilityPolicy.RELIABLE and
                 any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
                     for i in infos)):

@@ -1,8 +1,10 @@
 """RigNode: the rclpy Node every stewart63 node derives from."""
 from __future__ import annotations
 
+import json
 import time
 
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
@@ -12,13 +14,15 @@ from stewart63_ros.core.node_parameters import NODE_KEYS, describe, node_keys
 from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.params import ParameterError, setup_from_params, unknown_keys
 from stewart63_ros.core.precompile import COMPILE_NOTICE, kernel_cache_cold
-from stewart63_ros.runtime.checks import SkipCounter
+from stewart63_ros.runtime import wire
+from stewart63_ros.runtime.checks import Rejected, SkipCounter, source_of
 from stewart63_ros.runtime.diagnostics import Health
 from stewart63_ros.runtime.handshake import RecorderWord
 from stewart63_ros.runtime.hotloop import HotLoop
 from stewart63_ros.runtime.launcher import STOP
 from stewart63_ros.runtime.parameters import declare_parameters, load_parameters, ros_parameters
 from stewart63_ros.runtime.realtime import realtime_scheduling
+from stewart63_ros.runtime.sources import SourceWatch
 from stewart63_ros.runtime.startup import StartupBarrier
 from stewart63_ros.runtime.stopping import Flush
 
@@ -123,7 +127,6 @@ class RigNode(HotLoop, Node):
         self._tunable[name] = apply
 
     def _on_set_parameters(self, parameters):
-        from rcl_interfaces.msg import SetParametersResult
         for param in parameters:
             if param.name == 'use_sim_time':      # rclpy's own, applied by rclpy
                 continue
@@ -215,7 +218,6 @@ class RigNode(HotLoop, Node):
     def watch_source(self, subscription, topic: str, gate) -> None:
         """Watch the sources of the 1 kHz input ``subscription`` (its StampGate:
         ``gate``) for collisions and restarts: see ``sources.SourceWatch``."""
-        from stewart63_ros.runtime.sources import SourceWatch
         self.source_watch = SourceWatch(self, subscription, topic, gate)
 
     def count_skips(self, topic: str, source, info) -> None:
@@ -234,8 +236,6 @@ class RigNode(HotLoop, Node):
         hot input): counted, its sender's skips counted, checked against
         ``gate`` and accepted. Returns (stamp ns, the six forces), or None
         for a rejected one (counted on /diagnostics)."""
-        from stewart63_ros.runtime import wire
-        from stewart63_ros.runtime.checks import Rejected, source_of
         self.health.received[topics.LEG_FORCES] += 1
         source = source_of(info)
         self.count_skips(topics.LEG_FORCES, source, info)
@@ -274,7 +274,6 @@ class RigNode(HotLoop, Node):
     def write_summary_file(self, summary: dict) -> None:
         self.summary_written = True
         if self.summary_file:
-            import json
             with open(self.summary_file, 'w') as stream:
                 json.dump(summary, stream, indent=1)
 

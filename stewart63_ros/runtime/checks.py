@@ -9,6 +9,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from builtin_interfaces.msg import Time
 
 from stewart63_ros.core.params import LEG_NAMES
 from stewart63_ros.core.stamps import stamp_ns
@@ -32,7 +33,6 @@ class Rejected(ValueError):
 
 def ros_time(seconds: float):
     """builtin_interfaces/Time from seconds (exact to the nanosecond)."""
-    from builtin_interfaces.msg import Time
     ns = int(round(seconds * 1e9))
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 

@@ -6,7 +6,9 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
+from stewart63_ros import topics
 from stewart63_ros.runtime import handshake
 from stewart63_ros.runtime.rclpy_internals import raw_publisher
 
@@ -25,9 +27,6 @@ class StatusPublisher:
     what ``Health`` and the recorder (recording/recorder_status.py) publish through."""
 
     def __init__(self, node):
-        from diagnostic_msgs.msg import DiagnosticArray
-
-        from stewart63_ros import topics
         self.node = node
         # 'stewart63/controller' in the root namespace, 'stewart63/rig2/controller'
         # in /rig2: /diagnostics is absolute, so two rigs must not share a name.
@@ -40,7 +39,6 @@ class StatusPublisher:
         ``values`` (diagnostic_msgs KeyValue: the keys written out where they
         are made, for test/test_interface_doc.py to find); stamped ``stamp``,
         or now."""
-        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
         status = DiagnosticStatus(level=level, name=self.name, message=message,
                                   hardware_id=HARDWARE_ID, values=values)
         msg = DiagnosticArray(status=[status])
@@ -164,9 +162,6 @@ class Health:
         also says how many messages the node published on each topic
         (``final/<full topic name>``), so that a recorder can confirm it holds
         them all (see RigNode.flush)."""
-        from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-
-        from stewart63_ros import topics
         now = time.monotonic()
         period = max(now - self._last_report, 1e-9)
         rejected_total = sum(self.rejected.values())

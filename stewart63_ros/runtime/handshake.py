@@ -57,7 +57,11 @@ read only while the node starts and while it stops.
 """
 from __future__ import annotations
 
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.serialization import deserialize_message
+
 from stewart63_ros import topics
+from stewart63_ros.runtime.rclpy_internals import take
 
 MATCHED = 'matched_publishers'
 CONFIRMS = 'confirms'
@@ -141,7 +145,6 @@ class RecorderWord:
     """
 
     def __init__(self, node):
-        from diagnostic_msgs.msg import DiagnosticArray
         self.node = node
         self.matched: dict[str, set] = {}
         self.confirmed = False
@@ -153,8 +156,6 @@ class RecorderWord:
         node = self.node
         if node.started and (not node.closing or self.confirmed):
             return
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.serialization import deserialize_message
         try:
             msg = deserialize_message(bytes(data), DiagnosticArray)
         except Exception:   # noqa: BLE001 - not a status we can read: not a confirmation
@@ -170,7 +171,6 @@ class RecorderWord:
 
     def take_waiting(self) -> None:
         """Read what has come, without the executor (the node is stopping)."""
-        from stewart63_ros.runtime.rclpy_internals import take
         while True:
             data = take(self.sub)
             if data is None:

@@ -15,6 +15,8 @@ import gc
 import time
 from typing import Protocol
 
+import rclpy
+
 from stewart63_ros.runtime.launcher import STOP
 from stewart63_ros.runtime.rclpy_internals import DirectTake, run_timer_if_ready, take
 
@@ -135,7 +137,6 @@ class HotLoop:
         through the start-up wait), and a message served that way must be
         reported now, not after the next one, which may never come: the
         plant holds that next one until fk reports (runtime/lockstep.py)."""
-        import rclpy
         self.wait_for_matches()
         direct = self.start_hot_loop(subscription)
         while rclpy.ok() and not STOP.requested:

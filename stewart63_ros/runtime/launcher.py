@@ -8,6 +8,8 @@ import signal
 import sys
 import time
 
+from stewart63_ros.core.errors import ParameterError
+from stewart63_ros.middleware import use_rig_profile
 from stewart63_ros.runtime.realtime import reduce_timer_slack
 
 
@@ -106,11 +108,11 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
     Exits 2 with a one-line message on a parameter error; SIGTERM and Ctrl-C
     stop the node cleanly.
     """
-    from stewart63_ros.core.params import ParameterError
     argv = list(sys.argv if argv is None else argv)
     parser = make_parser(prog, description)
     if extra_args:
         extra_args(parser)
+    # lazy: runtime.parameters costs 2102 ms (numba); record, rig import this
     from stewart63_ros.runtime.parameters import check_params_files, ros_arguments, set_arguments
     set_arguments(argv)
     try:
@@ -120,9 +122,8 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
     except ParameterError as exc:
         print('%s: parameter error: %s' % (prog, exc), file=sys.stderr)
         return 2
-    from stewart63_ros.middleware import use_rig_profile
     use_rig_profile()       # before rclpy makes the participant
-    import rclpy
+    import rclpy  # lazy: rclpy costs 302 ms: --help and bad options answer without it
     from rclpy.utilities import remove_ros_args
     try:
         own_args = remove_ros_args(argv)[1:]
@@ -130,6 +131,7 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
         print('%s: error: bad ROS arguments: %s' % (prog, _first_line(exc)), file=sys.stderr)
         return 2
     options = parser.parse_args(own_args)
+    # lazy: rclpy costs 302 ms: --help and bad options answer without it
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
     reduce_timer_slack()

@@ -29,7 +29,11 @@ from __future__ import annotations
 
 import time
 
+from builtin_interfaces.msg import Time
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
 from stewart63_ros.core.stamps import stamp_ns
+from stewart63_ros.runtime.launcher import STOP
 
 #: A peer's progress topic, private to the peer's node: ``/<ns>/<node>/lockstep_progress``.
 PROGRESS_TOPIC = 'lockstep_progress'
@@ -37,7 +41,6 @@ PROGRESS_TOPIC = 'lockstep_progress'
 
 def progress_qos():
     """Reliable, volatile, depth 1: only the newest progress matters."""
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                       reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
@@ -54,7 +57,6 @@ class ProgressPublisher:
     RESEND_PERIOD = 0.1
 
     def __init__(self, node):
-        from builtin_interfaces.msg import Time
         self._msg = Time()
         self.pub = node.create_publisher(Time, '~/' + PROGRESS_TOPIC, progress_qos())
         self.clock = time.monotonic      # (a test's fake clock)
@@ -99,7 +101,6 @@ class PeerWindow:
     """
 
     def __init__(self, node, peers: list[str], window: int, period_ns: int, timeout: float):
-        from builtin_interfaces.msg import Time
         self.node = node
         self.window = int(window)
         self.period_ns = int(period_ns)
@@ -162,7 +163,6 @@ class PeerWindow:
         ``timeout`` s. Returns False if a stop was requested meanwhile."""
         if ns - self.window_ns <= self.slowest:     # the usual case, per sample
             return True
-        from stewart63_ros.runtime.launcher import STOP
         late = self.behind(ns)
         if not late:
             return True
@@ -188,3 +188,57 @@ class PeerWindow:
         health.values['lockstep_held_s'] = '%.3f' % self.held_s
         health.values['lockstep_held_samples'] = self.holds
         return True
+
+
+class AnswerWatch:
+    """The plant's watch on the source of its forces (the controller, or a
+    supervisor) in lockstep.
+
+    Each sample waits up to ``force_timeout`` for its answer, so a source
+    that went silent without leaving (a hung process) would pace the run at
+    one sample per ``force_timeout``: 50 minutes for a 3000-sample run.
+    After ``timeout`` s (``lockstep_peer_timeout``) of samples with no answer
+    the source is dropped, as a silent lockstep peer is: ERROR on
+    /diagnostics, and each sample then waits only ``DROPPED_WAIT`` s. The
+    first answer brings it back, and the fault clears.
+    """
+
+    #: how long a sample waits for an answer while the source is dropped [s]
+    DROPPED_WAIT = 0.05
+
+    def __init__(self, health, logger, timeout: float, clock=time.monotonic):
+        self.health = health
+        self.logger = logger
+        self.timeout = float(timeout)
+        self.clock = clock
+        self.silent_since = None    # when the first unanswered wait began
+        self.dropped = False
+        self.drops = 0
+
+    def wait(self, force_timeout: float) -> float:
+        """How long the next sample waits for its answer [s]."""
+        return min(force_timeout, self.DROPPED_WAIT) if self.dropped else force_timeout
+
+    def answered(self) -> None:
+        """The sample's answer came."""
+        self.silent_since = None
+        if self.dropped:
+            self.dropped = False
+            if self.health.fault.startswith('no force answer'):
+                self.health.fault = ''
+            self.logger.warning('forces answer again: waiting for them again')
+
+    def missed(self, waited: float) -> None:
+        """The sample's answer did not come within ``waited`` s."""
+        now = self.clock()
+        if self.silent_since is None:
+            self.silent_since = now - waited
+        silent = now - self.silent_since
+        if not self.dropped and silent >= self.timeout:
+            self.dropped = True
+            self.drops += 1
+            self.health.values['force_source_drops'] = self.drops
+            self.health.fault = ('no force answer for %.1f s (lockstep_peer_timeout): '
+                                 'stepping on with the held force, waiting %.2f s a sample'
+                                 % (silent, self.DROPPED_WAIT))
+            self.logger.error(self.health.fault)

@@ -25,6 +25,8 @@ import os
 import sys
 
 import yaml
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.parameter import Parameter
 
 from stewart63_ros.core.node_parameters import NODE_KEYS, default, describe, node_keys, ros_value
 from stewart63_ros.core.params import ParameterError, default_params_path, read_parameter_file
@@ -109,7 +111,6 @@ def load_parameters(node_name: str, argv=None) -> tuple[str, dict]:
 def ros_parameters(params: dict) -> list:
     """rclpy Parameters for ``params`` (values ROS cannot hold are left out:
     the node still uses them, but ``ros2 param`` does not show them)."""
-    from rclpy.parameter import Parameter
     out = []
     for key, value in params.items():
         if isinstance(value, list) and any(isinstance(v, float) for v in value) and all(
@@ -131,8 +132,6 @@ def descriptor(name: str, node: str, writable: bool = False):
     """The rcl_interfaces ParameterDescriptor of key ``name`` on ``node``
     (core/node_parameters.describe: description with unit, range, read-only;
     ``writable``: not read-only whatever the declaration says)."""
-    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-    from rclpy.parameter import Parameter
     d = describe(name, node)
     out = ParameterDescriptor(name=name, description=d.description,
                               additional_constraints=d.constraints,
@@ -161,7 +160,6 @@ def declare_parameters(node, kind: str, params: dict) -> None:
     alone, then set to its value, then given its descriptor (read-only too).
     This runs before the node's own set-parameters callback exists.
     """
-    from rclpy.parameter import Parameter
     keys = node_keys(kind)
     values, fixed = [], []
     for name in keys:
@@ -198,5 +196,4 @@ def declare_parameters(node, kind: str, params: dict) -> None:
 
 
 def _dynamic():
-    from rcl_interfaces.msg import ParameterDescriptor
     return ParameterDescriptor(dynamic_typing=True)

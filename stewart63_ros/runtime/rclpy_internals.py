@@ -13,6 +13,10 @@ failing quietly.
 """
 from __future__ import annotations
 
+import inspect
+
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+
 
 def take(subscription):
     """The next message of ``subscription`` (bytes for a raw one), or None.
@@ -73,9 +77,6 @@ class DirectTake:
     """
 
     def __init__(self, node, subscription):
-        import inspect
-
-        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
         self.sub = subscription
         # A callback of two arguments gets the message info too (the
         # publisher's GID, the timestamps), as the executor gives it.
@@ -118,7 +119,6 @@ class WaitAny:
     """
 
     def __init__(self, context, subscriptions, guard_conditions=()):
-        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
         self.handles = [s.handle for s in subscriptions]
         self.guards = [g.handle for g in guard_conditions]
         self.wait_set = _rclpy.WaitSet(len(self.handles), len(self.guards), 0, 0, 0, 0,

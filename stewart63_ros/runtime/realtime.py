@@ -1,6 +1,9 @@
 """Operating-system knobs for a 1 kHz loop: real-time scheduling and timer slack."""
 from __future__ import annotations
 
+import ctypes
+import os
+
 
 def realtime_scheduling(priority: int) -> str:
     """SCHED_FIFO at ``priority`` (1-99) for every thread of this process,
@@ -9,7 +12,6 @@ def realtime_scheduling(priority: int) -> str:
     nothing is changed then. Linux keeps 5 % of each second for other tasks
     (sched_rt_runtime_us), so a loop that never blocks cannot freeze the host.
     """
-    import os
     try:
         param = os.sched_param(int(priority))
         main = os.getpid()
@@ -37,7 +39,6 @@ def reduce_timer_slack(slack_ns: int = 1000) -> bool:
     (returns False).
     """
     try:
-        import ctypes
         libc = ctypes.CDLL(None, use_errno=True)
         return libc.prctl(29, int(slack_ns), 0, 0, 0) == 0   # PR_SET_TIMERSLACK
     except (OSError, AttributeError, TypeError):

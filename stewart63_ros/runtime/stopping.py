@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import time
 
+from rclpy.duration import Duration
+
 
 class Flush:
     """``flush(timeout)`` for a RigNode (see its ``close``)."""
@@ -32,7 +34,6 @@ class Flush:
         Returns:
             How it ended: ``recorder``, ``acknowledged`` or ``timeout``.
         """
-        from rclpy.duration import Duration
         deadline = time.monotonic() + timeout
         now_ = Duration(seconds=0)
 

@@ -24,10 +24,14 @@ import re
 import struct
 
 import numpy as np
+from geometry_msgs.msg import PoseStamped, TwistStamped
+from rclpy.serialization import deserialize_message, serialize_message
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
 
 from stewart63_ros.core.params import LEG_NAMES
 from stewart63_ros.core.stamps import ns_of
-from stewart63_ros.runtime.checks import Rejected, leg_vector
+from stewart63_ros.runtime.checks import Rejected, StampGate, leg_vector
 
 #: Plain CDR, little endian (the 4-byte encapsulation header).
 CDR_LE = b'\x00\x01\x00\x00'
@@ -49,7 +53,6 @@ class Template:
     """
 
     def __init__(self, msg, fields: dict, sizes: dict, end=None):
-        from rclpy.serialization import serialize_message
         self.msg_type = type(msg)
         offsets = {}
         for i, (name, setter) in enumerate(fields.items()):
@@ -109,7 +112,6 @@ class FrameTemplates:
 
 def joint_state_template(frame_id: str = 'base', fields=('position', 'velocity')) -> Template:
     """JointState with names leg_1..leg_6 and the six-number ``fields``."""
-    from sensor_msgs.msg import JointState
     msg = JointState(name=list(LEG_NAMES))
     msg.header.frame_id = frame_id
     return Template(msg, {f: _setter(f) for f in fields}, {f: 6 for f in fields},
@@ -132,7 +134,6 @@ def _setter(field):
 
 def pose_template(frame_id: str = 'base') -> Template:
     """PoseStamped: fields 'position' (x, y, z) and 'orientation' (x, y, z, w)."""
-    from geometry_msgs.msg import PoseStamped
     msg = PoseStamped()
     msg.header.frame_id = frame_id
 
@@ -148,7 +149,6 @@ def pose_template(frame_id: str = 'base') -> Template:
 
 def twist_template(frame_id: str = 'base') -> Template:
     """TwistStamped: fields 'linear' and 'angular' (x, y, z each)."""
-    from geometry_msgs.msg import TwistStamped
     msg = TwistStamped()
     msg.header.frame_id = frame_id
 
@@ -161,7 +161,6 @@ def twist_template(frame_id: str = 'base') -> Template:
 
 
 def clock_template() -> Template:
-    from rosgraph_msgs.msg import Clock
     return Template(Clock(), {}, {})
 
 
@@ -336,7 +335,6 @@ def joint_state_end(data: bytes) -> int:
 
 def deserialize(data: bytes, msg_type):
     """The message object, or None if the bytes are not one."""
-    from rclpy.serialization import deserialize_message
     try:
         return deserialize_message(data, msg_type)
     except Exception:  # noqa: BLE001 - any undecodable input is rejected by the caller
@@ -356,7 +354,6 @@ def joint_state_sample(data: bytes, gate, want: tuple, optional: tuple = (), sou
         ns = gate.check_ns(ns_of(sec, nanosec), source)
         gate.check_source(source)
         return ns, sec, nanosec, frame_id, values
-    from sensor_msgs.msg import JointState
     msg = deserialize(data, JointState)
     if msg is None:
         raise Rejected('undecodable', 'not a serialized sensor_msgs/JointState')
@@ -380,7 +377,6 @@ def joint_state_sample(data: bytes, gate, want: tuple, optional: tuple = (), sou
 def warm_up(want: tuple, optional: tuple = (), frame_id: str = 'base') -> None:
     """Run the reading path once on a sample (its first call costs about a
     millisecond: the first sample of a realtime run would be late)."""
-    from stewart63_ros.runtime.checks import StampGate
     sample = JointStateTemplates(want + optional).get(frame_id).fill(
         0, 0, **{field: np.ones(6) for field in want + optional})
     joint_state_sample(sample, StampGate(), want, optional)

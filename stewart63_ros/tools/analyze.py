@@ -23,13 +23,39 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart63_ros.core.params import ParameterError, default_params_path
+from stewart63_ros.core import analysis
+from stewart63_ros.core.analysis import (
+    DEFAULT_MAX_CONDITION,
+    AnalysisError,
+    frequency_table,
+    linearize,
+    strongest_couplings,
+)
+from stewart63_ros.core.laws import law_class
+from stewart63_ros.core.node_parameters import read as read_declared
+from stewart63_ros.core.params import (
+    ParameterError,
+    default_params_path,
+    load_setup,
+    read_parameter_file,
+)
+from stewart63_ros.core.rotation import euler_from_matrix, rotation_from_euler
+from stewart63_ros.core.workspace import (
+    DEFAULT_STEP,
+    REASONS,
+    GridTooLarge,
+    check_grid_fits,
+    grid_axes,
+    human_bytes,
+    workspace_map,
+)
 from stewart63_ros.tools.cli import (
     STRICT_HELP,
     announce_compile,
     load_checked,
     quiet_on_closed_pipe,
 )
+from stewart63_ros.tools.plot import LEG_STYLES
 
 PROG = 'analyze'
 
@@ -92,9 +118,6 @@ def build_parser() -> argparse.ArgumentParser:
 # -- linear model -----------------------------------------------------------------------------
 def law_of(args, params_path):
     """(law name or None, controller params, controller setup)."""
-    from stewart63_ros.core.laws import law_class
-    from stewart63_ros.core.node_parameters import read as read_declared
-    from stewart63_ros.core.params import load_setup, read_parameter_file
     params = read_parameter_file(params_path, 'controller')
     law = args.control_law or read_declared(params, 'control_law')
     if law == 'none':
@@ -104,7 +127,6 @@ def law_of(args, params_path):
 
 
 def linear_model(setup, args, params_path):
-    from stewart63_ros.core.analysis import DEFAULT_MAX_CONDITION, linearize
     law, params, controller = law_of(args, params_path)
     return linearize(setup, law, args.pose, params,
                      args.max_condition or DEFAULT_MAX_CONDITION, controller)
@@ -168,7 +190,6 @@ def print_modes(model, found) -> None:
 
 # -- frequency response -----------------------------------------------------------------------
 def write_freqresp(model, freqs, response, out: Path) -> Path:
-    from stewart63_ros.core.analysis import frequency_table
     out.mkdir(parents=True, exist_ok=True)
     path = out / 'freqresp.csv'
     with open(path, 'w', newline='') as fh:
@@ -182,12 +203,10 @@ def write_freqresp(model, freqs, response, out: Path) -> Path:
 def draw_bode(model, freqs, response, path: Path, couplings: int = 3) -> Path:
     """Magnitude and phase of the six diagonal responses (leg_i to leg_i) and of the
     ``couplings`` largest cross couplings (dashed)."""
-    import matplotlib
+    import matplotlib  # lazy: matplotlib costs 425 ms; only a figure needs it
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: pyplot costs 794 ms; only a figure needs it
 
-    from stewart63_ros.core.analysis import strongest_couplings
-    from stewart63_ros.tools.plot import LEG_STYLES
     fig, (mag_ax, ph_ax) = plt.subplots(2, 1, figsize=(9, 7.5), sharex=True)
     colors = plt.rcParams['axes.prop_cycle'].by_key()['color']
     unit = 'm/m' if model.closed_loop else 'm/N'
@@ -248,13 +267,14 @@ def draw_workspace(setup, result, setpoint, path: Path, title: str) -> Path:
     row coloured by reason, the bottom row the largest holding force where the
     legs are within the stroke; the paper's start position (o) and the
     setpoint (*) marked. The axes span the points within the stroke."""
-    import matplotlib
+    import matplotlib  # lazy: matplotlib costs 425 ms; only a figure needs it
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: pyplot costs 794 ms; only a figure needs it
+
+    # lazy: matplotlib costs 794 ms; only a figure needs it
     from matplotlib.colors import ListedColormap
     from matplotlib.patches import Patch
 
-    from stewart63_ros.core.workspace import REASONS
     xs, ys, zs = result.axes
     shape = (len(xs), len(ys), len(zs))
     codes = np.array([REASONS.index(r) for r in result.reason]).reshape(shape)
@@ -322,19 +342,9 @@ def draw_workspace(setup, result, setpoint, path: Path, title: str) -> Path:
 
 # -- main -------------------------------------------------------------------------------------
 def _run(args, setup, params_path) -> int:
-    from stewart63_ros.core import analysis
     mech = setup.mechanism
     out = Path(args.out) if getattr(args, 'out', None) else None
     if args.command == 'workspace':
-        from stewart63_ros.core.rotation import rotation_from_euler
-        from stewart63_ros.core.workspace import (
-            DEFAULT_STEP,
-            GridTooLarge,
-            check_grid_fits,
-            grid_axes,
-            human_bytes,
-            workspace_map,
-        )
         step = DEFAULT_STEP if args.step is None else args.step
         if not (np.isfinite(step) and step > 0):
             return _fail('--step must be a positive length [m], got %g' % step)
@@ -360,7 +370,6 @@ def _run(args, setup, params_path) -> int:
             points, step, human_bytes(csv_size)), flush=True)
         result = workspace_map(mech, rotation, step, limit, through=position)
         csv_path = write_workspace(result, out)
-        from stewart63_ros.core.rotation import euler_from_matrix
         theta = euler_from_matrix(rotation)
         png = draw_workspace(setup, result, position, out / 'workspace.png',
                              'workspace at theta = (%.3f, %.3f, %.3f) rad, step %g m: within '
@@ -429,7 +438,6 @@ def main(argv=None) -> int:
     if setup is None:
         return 2
     announce_compile(PROG)
-    from stewart63_ros.core.analysis import AnalysisError
     try:
         return _run(args, setup, params_path)
     except (AnalysisError, ParameterError) as exc:

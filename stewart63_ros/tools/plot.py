@@ -21,12 +21,16 @@ to --out (figure.png), each earlier run N beside it (figure_runN.png);
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from stewart63_ros.tools.cli import quiet_on_closed_pipe
+from stewart63_ros.core.faults import interval_from_status
+from stewart63_ros.core.trajectory import read_csv
+from stewart63_ros.tools.animate import Animator
+from stewart63_ros.tools.cli import load_checked, quiet_on_closed_pipe
 
 #: Line styles of the six legs: legs with equal lengths (1 and 2, 3 to 6 in
 #: the paper's scenario) stay told apart where their curves lie on each other.
@@ -42,9 +46,9 @@ def draw_figure(columns: dict, out_path, title: str = '', reference: dict | None
     sag of the legs below or above them shows. ``faults``: dicts with
     ``fault``, ``active_from_s`` and ``active_until_s`` (None: to the end;
     times from the first sample), shaded on every panel."""
-    import matplotlib
+    import matplotlib  # lazy: matplotlib costs 425 ms; only a figure needs it
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: pyplot costs 794 ms; only a figure needs it
 
     t = columns['t']
     panels = 3 if reference is None else 4
@@ -75,6 +79,7 @@ def draw_figure(columns: dict, out_path, title: str = '', reference: dict | None
         axes[2].plot(t, columns[name], label=label)
     axes[2].set_ylabel('orientation [rad]')
     if reference is not None:
+        # lazy: scipy.interpolate costs 825 ms; only a figure needs it
         from scipy.interpolate import CubicSpline
         names = ('x', 'y', 'z', 'theta_x', 'theta_y', 'theta_z')
         rt = np.asarray(reference['t'], float)
@@ -131,13 +136,12 @@ def load_faults(source, run=None) -> list | None:
     the last state of each ``fault: <fault>`` value of the plant's statuses in
     a bag's /diagnostics during ``run`` (a ``bagio.BagRun``; default the bag's
     last run). None when the source has none."""
-    import json
     source = Path(source)
     if not is_bag(source):
         path = (source if source.is_dir() else source.parent) / 'faults.json'
         return json.loads(path.read_text()) if path.is_file() else None
+    # lazy: bagio costs 197 ms (tempfile, csv); plot --help needs no bag
     from stewart63_ros import bagio
-    from stewart63_ros.core.faults import interval_from_status
     if run is None:
         runs = bagio.bag_runs(source)
         run = runs[-1] if runs else None
@@ -174,9 +178,9 @@ def load_columns(source, run=None) -> dict:
         if (source / 'trajectory.csv').is_file() and not (source / 'metadata.yaml').exists():
             source = source / 'trajectory.csv'
         else:
+            # lazy: bagio costs 197 ms (tempfile, csv); plot --help needs no bag
             from stewart63_ros.bagio import trajectory_from_bag
             return trajectory_from_bag(source, run=run)
-    from stewart63_ros.core.trajectory import read_csv
     return read_csv(source)
 
 
@@ -186,9 +190,11 @@ def source_runs(source, number=None) -> list:
     ``number`` (``--run``). Raises BagError for a run the bag does not hold."""
     if not is_bag(source):
         if number is not None:
+            # lazy: bagio costs 197 ms (tempfile, csv); plot --help needs no bag
             from stewart63_ros.bagio import BagError
             raise BagError('--run is for a bag; %s is a trajectory of one run' % source)
         return [None]
+    # lazy: bagio costs 197 ms (tempfile, csv); plot --help needs no bag
     from stewart63_ros import bagio
     runs = bagio.bag_runs(source)
     if number is not None or not runs:
@@ -248,6 +254,7 @@ def main(argv=None) -> int:
         return animate_main(parser, args, source)
     if args.fps != 15.0:
         parser.exit(2, 'plot: error: --fps goes with --animate\n')
+    # lazy: bagio costs 197 ms (tempfile, csv); plot --help needs no bag
     from stewart63_ros.bagio import BagError
     reference = None
     ref_path = Path(args.reference) if args.reference else (
@@ -256,6 +263,7 @@ def main(argv=None) -> int:
         runs = source_runs(source, args.run)
         drawn = [(run, load_columns(source, run), load_faults(source, run)) for run in runs]
         if args.reference or ref_path.is_file():
+            # lazy: core.reference costs 570 ms (numba); only --reference
             from stewart63_ros.core.reference import CSV_COLUMNS, read_reference_csv
             times, poses = read_reference_csv(ref_path)
             reference = dict(zip(CSV_COLUMNS, np.column_stack([times, poses]).T))
@@ -265,7 +273,6 @@ def main(argv=None) -> int:
     for _, columns, _ in drawn:
         if len(columns['t']) == 0 or not np.all(np.isfinite(columns['t'])):
             parser.exit(2, 'plot: error: %s holds no samples\n' % source)
-    from stewart63_ros.tools.cli import load_checked
     setup = load_checked('plot', args.params, node_name='controller')
     if setup is None:
         return 2
@@ -287,9 +294,8 @@ def main(argv=None) -> int:
 
 
 def animate_main(parser, args, source) -> int:
+    # lazy: bagio costs 197 ms (tempfile, csv); plot --help needs no bag
     from stewart63_ros.bagio import BagError
-    from stewart63_ros.tools.animate import Animator
-    from stewart63_ros.tools.cli import load_checked
     if not 0 < args.fps <= 60:
         parser.exit(2, 'plot: error: --fps must be in (0, 60]\n')
     out = Path(args.out) if args.out else (

@@ -45,7 +45,19 @@ from pathlib import Path
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.core.node_names import NODES
 from stewart63_ros.paths import RIG_CLOCK_MODE, default_params_path
-from stewart63_ros.tools.cli import quiet_on_closed_pipe
+from stewart63_ros.runtime.launcher import (
+    StopSignals,
+    dump_stacks_on_sigusr1,
+    ignore_stop_signals,
+    signals_deferred,
+)
+from stewart63_ros.tools.cli import (
+    STRICT_HELP,
+    announce_compile,
+    load_checked,
+    quiet_on_closed_pipe,
+    ros_namespace,
+)
 
 #: Bound on the nodes' start-up until the recorder has matched them [s]. It
 #: includes loading the numba kernels, which a fresh install (or a changed
@@ -82,7 +94,6 @@ class Rig:
         self.mode = mode
         self.duration = duration
         self.record = record
-        from stewart63_ros.tools.cli import ros_namespace
         self.namespace = ros_namespace(namespace or '')     # ValueError: not a ROS namespace
         self.log_dir = Path(log_dir or default_log_dir(record, namespace))
         self.log_dir.mkdir(parents=True, exist_ok=True)
@@ -104,6 +115,7 @@ class Rig:
     def overlay(self) -> Path:
         """A second parameter file with what the rig decides; it comes after the
         user's file, so it wins over the user's node sections (a ``-p`` does not)."""
+        # lazy: rclpy costs 302 ms; --help answers without it
         from stewart63_ros.runtime.handshake import plant_startup_parameters
         # Who waits for whom before the first sample: runtime/handshake.py.
         shared = {'clock_mode': self.mode, 'wait_for_subscribers': 1 if self.record else 0}
@@ -135,7 +147,7 @@ class Rig:
             section = doc.setdefault('/**/%s' % node, {'ros__parameters': dict(shared)})
             section['ros__parameters'].update(values)
         path = self.log_dir / 'rig_params.yaml'
-        import yaml
+        import yaml  # lazy: yaml costs 76 ms; --help answers without it
         path.write_text(yaml.safe_dump(doc, sort_keys=False))
         return path
 
@@ -154,6 +166,7 @@ class Rig:
         if self.supervisor:
             doc['/**/supervisor']['ros__parameters']['homed_offset_node'] = 'canopen_bridge'
         plant['io'] = 'canopen'
+        # lazy: core.params costs 715 ms (numba); --help answers without it
         from stewart63_ros.core.bus import load_bus_config
         from stewart63_ros.core.params import file_parameters
         config_file = file_parameters(self.params).get('bus_config') or None
@@ -169,6 +182,7 @@ class Rig:
         args = ['--ros-args', '--params-file', self.params] + own + [
             '--params-file', str(self.overlay())]
         if self.supervisor and name == 'controller':
+            # lazy: the node costs 1050 ms; --help answers without it
             from stewart63_ros.nodes.supervisor import REQUEST_TOPIC
             args += ['-r', '%s:=%s' % ('leg_forces', REQUEST_TOPIC)]
         if self.namespace:
@@ -176,7 +190,6 @@ class Rig:
         return args
 
     def spawn(self, name, argv):
-        from stewart63_ros.runtime.launcher import signals_deferred
         log = open(self.log_dir / ('%s.log' % name), 'w')
         # Own process group: a Ctrl-C in the terminal reaches only the rig,
         # which then stops each child itself, in order. A stop signal during
@@ -197,6 +210,7 @@ class Rig:
                 argv += ['--record', str(self.record)]
             self.spawn('composed', argv + self.ros_args('composed'))
             return
+        # lazy: rclpy costs 302 ms; --help answers without it
         from stewart63_ros.runtime.handshake import MATCHED_LINE, READY_LINE, recorder_waits_for
         downstream = [n for n in self.nodes if n != 'plant']
         wanted = recorder_waits_for(self.nodes)
@@ -352,6 +366,7 @@ def supervised(doc: dict, plant: dict, shared: dict, log_dir: Path) -> None:
     to every sample (a sample with a missing reading too), and applies zero
     force once its newest answers a sample older than ``stale_forces_ms``
     (the supervisor's default: the plant fails safe when the supervisor dies)."""
+    # lazy: numpy costs 50 ms; --help answers without it
     from stewart63_ros.core.node_parameters import default
     plant['lengths_subscribers'] += 1
     plant['lengths_peers'] = plant['lengths_peers'] + ['supervisor']
@@ -387,7 +402,6 @@ class _DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 @quiet_on_closed_pipe
 def main(argv=None) -> int:
-    from stewart63_ros.runtime.launcher import StopSignals, dump_stacks_on_sigusr1
     # The first SIGINT or SIGTERM stops the rig (KeyboardInterrupt wherever it
     # waits, also in start()); later ones, and any once the rig is stopping
     # its nodes anyway, are only noted: a terminal's Ctrl-C under a launcher
@@ -399,7 +413,6 @@ def main(argv=None) -> int:
     # deadline: stopping the children (Rig.stop) may take longer.
     signals = StopSignals(deadline=False, interrupt=False).install()
     dump_stacks_on_sigusr1()
-    from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked, ros_namespace
     parser = argparse.ArgumentParser(prog='rig', description=__doc__.split('\n\n')[0],
                                      formatter_class=_DefaultsFormatter)
     parser.add_argument('--params', metavar='FILE',
@@ -468,6 +481,7 @@ def main(argv=None) -> int:
         return 2
     params = args.params or str(default_params_path())
     if args.view:
+        # lazy: tools.view costs 2255 ms; only --view needs it
         from stewart63_ros.tools.view import port_free
         problem = port_free('127.0.0.1', args.view_port) if 0 <= args.view_port <= 65535 \
             else '--view-port must be from 0 to 65535'
@@ -485,6 +499,7 @@ def main(argv=None) -> int:
     if args.fault and 'plant' not in nodes_arg(args.nodes):
         parser.error('--fault acts in the plant: it needs plant in --nodes')
     if 'plant' in nodes_arg(args.nodes):
+        # lazy: tools.sim costs 1092 ms (numba); only --fault needs it
         from stewart63_ros.core.faults import FaultError
         from stewart63_ros.tools.sim import fault_list
         try:     # the file's faults and --fault's: fail here, with the reason, not in the plant
@@ -503,6 +518,7 @@ def main(argv=None) -> int:
         parser.error('--duration must be positive')
     extra = {}
     if args.control_law or args.reference:
+        # lazy: tools.sim costs 1092 ms (numba); only --reference
         from stewart63_ros.core.reference import ReferenceError
         from stewart63_ros.tools.sim import make_controller
         try:     # fail here, with the reason, not in the controller
@@ -537,6 +553,7 @@ def main(argv=None) -> int:
         parser.error('--bus canopen starts the bridge beside the plant: it needs plant in '
                      '--nodes, and separate processes (not --compose)')
     if args.bus:
+        # lazy: core.params costs 715 ms (numba); --help answers without it
         from stewart63_ros.core.bus import BusConfigError, load_bus_config
         from stewart63_ros.core.params import file_parameters
         try:     # fail here, with the reason, not in two processes
@@ -571,7 +588,6 @@ def main(argv=None) -> int:
         # starting (importing, compiling) ends with whatever code that gives.
         failed_before = set(rig.failed())
         codes = rig.stop()
-        from stewart63_ros.runtime.launcher import ignore_stop_signals
         ignore_stop_signals()      # the rig has stopped: nothing left to interrupt
     wall = time.monotonic() - start
     died = {n: c for n, c in codes.items() if c not in (0, None)}
@@ -599,6 +615,7 @@ def plant_params_problem(args, params) -> str:
         return 'the composed nodes share one process and its files: not with --compose'
     if 'plant' not in nodes_arg(args.nodes):
         return 'it is the plant\'s file: it needs plant in --nodes'
+    # lazy: core.params costs 715 ms (numba); --help answers
     from stewart63_ros.core.params import read_parameter_file, setup_from_params
     try:
         merged = read_parameter_file(params, 'plant')
@@ -659,11 +676,13 @@ def print_summary(rig, wall, started_unix=None):
         if summary.get('skipped'):
             print('  plant skipped (never received): %s' % _counts(summary['skipped']))
         if 'tracking_error' in summary:
+            # lazy: tools.sim costs 1092 ms (numba); --help answers
             from stewart63_ros.tools.sim import format_tracking
             print('  ' + format_tracking(summary['tracking_error']))
         if summary.get('resets'):
             print('  resets %d (this summary is of run %d)' % (summary['resets'],
                                                               summary['run_number']))
+        # lazy: tools.sim costs 1092 ms (numba); --help answers
         from stewart63_ros.tools.sim import format_fault
         for fault in summary.get('faults', ()):
             print('  ' + format_fault(fault))

