@@ -558,12 +558,12 @@ def test_sim_runs_the_supervisor_as_run_supervised_does(tmp_path):
     scenario, = scenarios_from_dict({
         'name': 'push', 'duration': 2.5, 'faults': ['actuator_weak:leg_1:0.5@1.0'],
         'wrench': [{'from': 1.5, 'force': [200.0, 0, 0]}],
-        'params': {'pose_box': [-0.02, -0.3, 0.8, 0.02, 0.3, 1.6]},
+        'params': {'pose_box': [-0.02, -0.3, 0.5, 0.02, 0.3, 1.6]},
         'expect': {'trip': {'cause': 'pose_box', 'within': 1000, 'after': 1.5}}})
     trace = run_sim(scenario)
     setup = load_setup()
     mech, start = setup.mechanism, (setup.task.initial_position, setup.task.initial_rotation)
-    params = {'pose_box': [-0.02, -0.3, 0.8, 0.02, 0.3, 1.6]}
+    params = {'pose_box': [-0.02, -0.3, 0.5, 0.02, 0.3, 1.6]}
     from stewart63_ros.core.fk import FKTracker
     tracker = FKTracker(mech, *start)
 

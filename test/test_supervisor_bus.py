@@ -91,7 +91,7 @@ def test_homing_over_the_bus_sets_the_drives_and_a_killed_supervisor_leaves_no_t
     extra = {'plant': dict(homing_start(), homing_offset=HIDDEN, sensor_resolution=RESOLUTION),
              'controller': homing_start(),       # (one per section: rcl refuses YAML aliases)
              'supervisor': dict(homing_start(), homing=True, homing_speed=0.2, trip_tilt=0.6,
-                                pose_box=[-0.3, -0.3, 0.8, 0.3, 0.3, 1.8],
+                                pose_box=[-0.3, -0.3, 0.5, 0.3, 0.3, 1.8],
                                 request_timeout=0.02),
              # the supervisor is killed: each sample then waits this for its answer
              'canopen_bridge': {'force_timeout': 0.02}}

@@ -411,9 +411,10 @@ DECLARED: tuple[Declared, ...] = (
              '`trip_tracking_time` trips (descent); 0: off', nonnegative, runtime=True),
     Declared('trip_tracking_time', ('supervisor',), 1.0, 's (samples)', '', 'how long the '
              'tracking error must stay over `trip_tracking_error`', nonnegative, runtime=True),
-    Declared('pose_box', ('supervisor',), [-0.3, -0.3, 0.8, 0.3, 0.3, 1.6], 'm', '[] or 6 '
-             'numbers, min < max', 'x, y, z minimum then maximum of the platform\'s position '
-             '(its forward kinematics from the readings); outside trips (descent); []: off',
+    Declared('pose_box', ('supervisor',), [-0.3, -0.3, 0.5, 0.3, 0.3, 1.6], 'm', '[] or 6 '
+             'numbers, min < max, the rest pose inside', 'x, y, z minimum then maximum of the '
+             'platform\'s position (its forward kinematics from the readings); outside trips '
+             '(descent); []: off',
              pose_box, runtime=True),
     Declared('trip_tilt', ('supervisor',), 0.35, 'rad', '', 'the platform\'s z axis tilted '
              'more than this from the base\'s trips (descent); 0: off', nonnegative,
@@ -423,9 +424,11 @@ DECLARED: tuple[Declared, ...] = (
              runtime=True),
     Declared('stale_forces_ms', ('supervisor',), 50.0, 'ms (samples)', '> 0', 'no request '
              'from the controller for longer trips (hold)', positive, runtime=True),
-    Declared('request_timeout', ('supervisor',), 0.25, 's (wall clock)', '> 0, below the '
+    Declared('request_timeout', ('supervisor',), 0.8, 's (wall clock)', '> 0, below the '
              'plant\'s `force_timeout`', 'lockstep: the longest the supervisor waits for the '
-             'controller\'s request answering a sample before it answers without one',
+             'controller\'s request answering a sample before it answers without one (a '
+             'first compute on a loaded machine has taken over 0.25 s; 0.2 s below the '
+             'plant\'s 1 s leaves the hop to the plant its time)',
              positive),
     Declared('descent_speed', ('supervisor',), 0.05, 'm/s', '> 0, < `trip_leg_speed`', 'peak '
              'leg speed of the descent to the rest pose', positive, runtime=True),

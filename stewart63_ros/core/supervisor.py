@@ -166,7 +166,8 @@ def rest_lengths(setup: Setup, limits: Limits) -> np.ndarray:
         (6,) lengths [m], inside the soft stroke.
 
     Raises:
-        ParameterError: (``rest_clearance``) no such level pose inside the soft stroke.
+        ParameterError: (``rest_clearance``) no such level pose inside the soft
+            stroke; (``pose_box``) the rest pose outside ``pose_box``.
     """
     mech = setup.mechanism
     rot = rotation_from_euler(np.zeros(3))
@@ -188,6 +189,13 @@ def rest_lengths(setup: Setup, limits: Limits) -> np.ndarray:
         raise ParameterError('rest_clearance', 'the level rest pose (z = %.4f m) puts a leg at '
                              '%.4f m, past the soft upper limit %.4f m'
                              % (high, np.max(lengths), limits.soft_max))
+    box = limits.box
+    rest = np.array([x, y, high])
+    if box is not None and ((rest < box[:3]) | (rest > box[3:])).any():
+        # a platform at rest would trip on the box, and no reset would clear it
+        raise ParameterError('pose_box', 'the rest pose (%.4f, %.4f, %.4f) m is outside the '
+                             'box %s m: a platform at rest could never be reset'
+                             % (x, y, high, np.round(box, 4).tolist()))
     return lengths
 
 
@@ -355,6 +363,7 @@ class Supervisor:
         self.last_forwarded = np.zeros(6)
         self.last_request = self.previous_request = None
         self.start_ns: int | None = None             # the reference's time 0
+        self.first_ns: int | None = None             # the run's sample 0
         self.tracking_since: int | None = None       # first sample of the current excess
         self.descent: Descent | None = None
         self.sample_ns = -1
@@ -376,7 +385,7 @@ class Supervisor:
     def new_run(self) -> None:
         """The samples' source started a new run (stamps from 0 again): the
         clocks of the checks start over; a latched trip stays."""
-        self.start_ns = self.last_request_ns = self.last_good_ns = None
+        self.start_ns = self.last_request_ns = self.last_good_ns = self.first_ns = None
         self.tracking_since = None
 
     # -- the checks -------------------------------------------------------------------
@@ -387,6 +396,8 @@ class Supervisor:
         self.lengths, self.rates = lengths, rates
         if self.start_ns is None:
             self.start_ns = ns
+        if self.first_ns is None:
+            self.first_ns = ns
         if self.last_request_ns is None:
             self.last_request_ns = ns       # the controller's silence counts from here
         cause = self._sample_cause(ns, lengths, rates)
@@ -521,6 +532,22 @@ class Supervisor:
         return self.last_forwarded
 
     # -- the latch --------------------------------------------------------------------
+    def sample_index(self, ns: int) -> int:
+        """The index of the sample stamped ``ns`` in this run, counted from its
+        first sample (realtime stamps are wall-clock times; a homing does not
+        restart the count)."""
+        return int(round((ns - (self.first_ns or 0)) * 1e-9 / self.period))
+
+    def trip_report(self, trip: Trip) -> dict[str, Any]:
+        """What a trip says (/diagnostics, the summary): cause, detail, safe
+        action, the sample that crossed the limit, its stamp, and the latency
+        in samples from it to the first safe force (None: not yet answered)."""
+        sample = self.sample_index(trip.sample_ns)
+        return {'cause': trip.cause, 'detail': trip.detail, 'action': trip.action,
+                'sample': sample, 'stamp_ns': trip.sample_ns,
+                'latency_samples': None if trip.safe_ns is None else
+                self.sample_index(trip.safe_ns) - sample}
+
     def trip_now(self, cause: str, detail: str, ns: int | None = None) -> Trip | None:
         """Trip for ``cause`` (a key of CAUSES) on sample ``ns`` (default: the
         current one). An existing trip stays (the first cause is the one named).
@@ -582,11 +609,18 @@ class Supervisor:
 
     def _holding(self, lengths, rates):
         """The forces that hold the mechanism against gravity at the pose the
-        readings give (``PDGravityLaw.holding_forces``)."""
+        readings give (``PDGravityLaw.holding_forces``); readings that no pose
+        has (a lying sensor, the ``pose_box`` trip's) keep those of the last
+        pose they gave (none yet: zero), so the safe action still acts."""
         if self._gravity is None:
             self._gravity = PDGravityLaw(self.mech, self.setup.to_params())
-        position, rotation, _ = self._gravity.estimator(lengths, rates)
-        return self._gravity.holding_forces(position, rotation)
+            self._last_holding = np.zeros(6)
+        try:
+            position, rotation, _ = self._gravity.estimator(lengths, rates)
+        except ValueError:                  # NoAssemblyError
+            return self._last_holding
+        self._last_holding = self._gravity.holding_forces(position, rotation)
+        return self._last_holding
 
     def _pd_gravity(self, lengths, rates, setpoint, setpoint_rate):
         """Eq. (40) towards ``setpoint`` (its rate as feed-forward) plus the
@@ -656,8 +690,8 @@ class Supervisor:
         # from the force forwarded before the trip.
         self.last_forwarded = np.zeros(6)
         self.last_request_ns = self.sample_ns
-        return True, 'reset: %s trip of sample %d cleared' % (cleared.cause,
-                                                               cleared.sample_ns)
+        return True, 'reset: %s trip of sample %d cleared' % (
+            cleared.cause, self.sample_index(cleared.sample_ns))
 
 
 def _legs(mask) -> str:

@@ -215,8 +215,9 @@ class SupervisorNode(RigNode):
     def on_estop(self, request, response):
         response.success = True
         if self.core.trip is not None:
+            trip = self.core.trip
             response.message = 'already tripped (%s at sample %d): %s' % (
-                self.core.trip.cause, self.core.trip.sample_ns, self.core.trip.action)
+                trip.cause, self.core.sample_index(trip.sample_ns), trip.action)
         else:
             self.request_trip('estop', '~/estop')
             response.message = 'tripped: the next answer is the descent to rest'
@@ -297,21 +298,13 @@ class SupervisorNode(RigNode):
         if trip is not None and self.health.values.get('tripped') == 'false':
             self.announce(trip)
 
-    def sample_index(self, ns: int) -> int:
-        """The index of the sample stamped ``ns`` in this run (from its first
-        sample: realtime stamps are wall-clock times)."""
-        return int(round((ns - (self.core.start_ns or 0)) * self.rate * 1e-9))
-
     def announce(self, trip) -> None:
-        latency = self.sample_index(trip.safe_ns) - self.sample_index(trip.sample_ns)
-        sample = self.sample_index(trip.sample_ns)
-        self.health.fault = 'tripped: %s at sample %d (%s); safe action: %s' % (
-            trip.cause, sample, trip.detail, trip.action)
-        self.health.values.update({
-            'tripped': 'true', 'trips': len(self.core.trips), 'trip/cause': trip.cause,
-            'trip/detail': trip.detail, 'trip/sample': sample,
-            'trip/stamp_ns': trip.sample_ns, 'trip/action': trip.action,
-            'trip/latency_samples': latency})
+        report = self.core.trip_report(trip)
+        self.health.fault = 'tripped: %s at sample %d (%s); safe action: %s; latency %s ' \
+            'samples' % (trip.cause, report['sample'], trip.detail, trip.action,
+                         report['latency_samples'])
+        self.health.values.update({'tripped': 'true', 'trips': len(self.core.trips)})
+        self.health.values.update({'trip/%s' % key: value for key, value in report.items()})
         self.get_logger().error(self.health.fault)
         self.health.report(ros_time(trip.sample_ns * 1e-9) if self.lockstep else None)
 
@@ -360,11 +353,7 @@ class SupervisorNode(RigNode):
 
     def summary(self) -> dict:
         out = super().summary()
-        out['trips'] = [{'cause': t.cause, 'detail': t.detail, 'action': t.action,
-                         'sample': self.sample_index(t.sample_ns),
-                         'latency_samples': None if t.safe_ns is None else
-                         self.sample_index(t.safe_ns) - self.sample_index(t.sample_ns)}
-                        for t in self.core.trips]
+        out['trips'] = [self.core.trip_report(t) for t in self.core.trips]
         return out
 
 
