@@ -196,7 +196,7 @@ def test_every_cause_reports_its_sample_and_its_latency_in_samples(setup, mech, 
     else:                               # the node's: estop, /diagnostics, trip_request, homing
         kwargs['event'] = lambda k: k == 100 and sup.trip_now(cause, 'test', k * 1_000_000)
     sup = supervisor_from_params(setup, dict(params, **overrides), RATE)
-    answered = drive(sup, mech, **kwargs)
+    answered = drive(sup, setup, **kwargs)
     # (stale: the last good reading or request on 99, 20 or 50 ms before)
     expected = {'lengths_stale': 119, 'forces_stale': 149, 'tracking_error': 100}.get(cause, 100)
     report = sup.trip_report(sup.trip)
