@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 from stewart63_ros.core import analysis, sweep
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.params import load_setup
 from stewart63_ros.paths import default_params_path
 
 
@@ -39,12 +39,12 @@ def measure(repeat: int = 3, runs: int = 1000) -> dict:
         print('sweep: %d runs of the 10 s scenario in %.3f s wall (%d workers, %.0f runs/s, '
               '%d diverged)' % (runs, walls[-1], outcome['workers'], runs / walls[-1],
                                 sum(r['diverged'] for r in outcome['rows'])), flush=True)
-    mech = load_mechanism()
-    analysis.modes(analysis.linearize(mech, 'pd'))            # load the kernels
+    setup = load_setup()
+    analysis.modes(analysis.linearize(setup, 'pd'))            # load the kernels
     modes_walls = []
     for _ in range(max(5, repeat)):
         start = time.perf_counter()
-        analysis.modes(analysis.linearize(mech, 'pd'))
+        analysis.modes(analysis.linearize(setup, 'pd'))
         modes_walls.append(time.perf_counter() - start)
     command_walls = []
     for _ in range(repeat):

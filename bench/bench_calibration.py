@@ -19,17 +19,18 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 from stewart63_ros.core import calibration as cal  # noqa: E402
 from stewart63_ros.core import calibration_plan as cp  # noqa: E402
-from stewart63_ros.core.params import load_mechanism  # noqa: E402
+from stewart63_ros.core.params import load_setup  # noqa: E402
 
 
 def measure(poses: int = 100, repeat: int = 5) -> dict:
     """{'calibrate_fit_100_s': median fit time [s], 'calibrate_plan_30_s': ...}."""
-    mech = load_mechanism()
+    setup = load_setup()
+    mech = setup.mechanism
     rng = np.random.default_rng(0)
     theta = cal.parameter_vector(mech)
     theta[:27] += rng.uniform(-0.005, 0.005, 27)
     theta[27:] += rng.uniform(-0.01, 0.01, 6)
-    positions, rotations = cp.candidate_poses(mech, poses, rng)
+    positions, rotations = cp.candidate_poses(setup, poses, rng)
     true = cal.Measurements(positions, rotations, np.zeros((poses, 6)))
     readings = cal.predict_readings(theta, true)
     seen = Rotation.from_rotvec(rng.normal(0, 1e-4, (poses, 3))) * Rotation.from_matrix(rotations)
@@ -42,7 +43,7 @@ def measure(poses: int = 100, repeat: int = 5) -> dict:
         result = cal.fit(mech, meas)
         fits.append(time.perf_counter() - start)
     start = time.perf_counter()
-    cp.plan(mech, 30, seed=0)
+    cp.plan(setup, 30, seed=0)
     plan = time.perf_counter() - start
     return {'calibrate_fit_%d_s' % poses: float(np.median(fits)),
             'calibrate_fit_rms_after_m': result.rms_after,

@@ -12,7 +12,7 @@ import numpy as np
 
 from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.laws import PDController
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.params import load_setup
 from stewart63_ros.core.simulate import initial_state, run_continuous, run_sampled
 
 
@@ -31,10 +31,11 @@ def measure(repeat=7, verbose=True):
     """{'dynamics_eval_us', 'sim_paper_10s_s'}: one dynamics evaluation (Python
     call, best of 5 batches) and the paper's 10 s scenario, continuous control
     (median of ``repeat`` runs); prints the comparison lines too."""
-    mech = load_mechanism()
+    setup = load_setup()
+    mech = setup.mechanism
     dyn = Dynamics(mech)
-    gains = PDController(mech).pd_gains()
-    y = initial_state(mech)
+    gains = PDController(setup).pd_gains()
+    y = initial_state(setup.task)
     forces = np.full(6, 100.0)
     eval_us = per_call(lambda: dyn.derivative(y, forces)) * 1e6
     print('dynamics evaluation (derivative, Python call):  %7.2f us' % eval_us)
@@ -43,17 +44,17 @@ def measure(repeat=7, verbose=True):
     print('one RK4 step of 1 ms (4 evaluations, compiled):  %7.2f us'
           % (per_call(lambda: dyn.step(y, forces, 1e-3), 5000) * 1e6))
     scenarios = (
-        ('continuous (RK45 compiled, rtol 1e-8)', lambda: run_continuous(mech, 10.0, dyn=dyn)),
+        ('continuous (RK45 compiled, rtol 1e-8)', lambda: run_continuous(setup, 10.0, dyn=dyn)),
         ('continuous (scipy solve_ivp RK45)',
-         lambda: run_continuous(mech, 10.0, dyn=dyn, integrator='scipy')),
+         lambda: run_continuous(setup, 10.0, dyn=dyn, integrator='scipy')),
         ('sampled 100 Hz (RK4 1 ms, compiled loop)',
-         lambda: run_sampled(mech, 10.0, 100.0, dyn=dyn)),
+         lambda: run_sampled(setup, 10.0, 100.0, dyn=dyn)),
         ('sampled 100 Hz (Python loop)',
-         lambda: run_sampled(mech, 10.0, 100.0, dyn=dyn, loop='python')),
+         lambda: run_sampled(setup, 10.0, 100.0, dyn=dyn, loop='python')),
         ('sampled 1 kHz (RK4 1 ms, compiled loop)',
-         lambda: run_sampled(mech, 10.0, 1000.0, dyn=dyn)),
+         lambda: run_sampled(setup, 10.0, 1000.0, dyn=dyn)),
         ('sampled 1 kHz (Python loop)',
-         lambda: run_sampled(mech, 10.0, 1000.0, dyn=dyn, loop='python')))
+         lambda: run_sampled(setup, 10.0, 1000.0, dyn=dyn, loop='python')))
     walls_of = {}
     for label, run in scenarios:
         run()

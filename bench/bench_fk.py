@@ -12,7 +12,7 @@ import numpy as np
 
 from stewart63_ros.core.fk import FKTracker, ForwardKinematics
 from stewart63_ros.core.kinematics import leg_lengths
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.params import load_setup
 from stewart63_ros.core.rotation import rotation_from_euler
 
 
@@ -30,11 +30,11 @@ def report(name, us, target):
           % (name, np.median(us), np.percentile(us, 90), target))
 
 
-def smooth_path(mech, n):
+def smooth_path(mech, start, n):
     """Leg lengths and rates along a smooth 1 kHz path around the start pose:
     what the fk node sees, and the start pose."""
     s = np.arange(n) / 1000.0
-    positions = np.asarray(mech.initial_position) + 0.05 * np.c_[
+    positions = np.asarray(start) + 0.05 * np.c_[
         np.sin(2 * s), np.sin(3 * s), 0.5 * np.sin(1.3 * s)]
     thetas = 0.1 * np.c_[np.sin(1.7 * s), np.sin(2.3 * s), np.sin(0.9 * s)]
     rots = [rotation_from_euler(th) for th in thetas]
@@ -46,12 +46,13 @@ def smooth_path(mech, n):
 def measure(params=None, count=5000, verbose=True):
     """{'fk_track_us', 'fk_all_modes_us'}: medians per call, as the fk node calls them
     (pose + twist + quaternion; every assembly mode)."""
-    mech = load_mechanism(params)
-    fk = ForwardKinematics(mech)
-    lengths, rates, pos0, rot0 = smooth_path(mech, count)
+    setup = load_setup(params)
+    mech, task = setup.mechanism, setup.task
+    fk = ForwardKinematics(mech, start=(task.initial_position, task.initial_rotation))
+    lengths, rates, pos0, rot0 = smooth_path(mech, task.initial_position, count)
 
     start = time.perf_counter()
-    fk.all_modes(mech.setpoint_lengths)
+    fk.all_modes(task.setpoint_lengths)
     FKTracker(fk).solve(lengths[0])
     if verbose:
         print('first call (numba cache load or compile): %.2f s' % (time.perf_counter() - start))

@@ -45,7 +45,7 @@ from stewart63_ros import topics
 from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.fk import FKTracker
 from stewart63_ros.core.laws import Controller
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.params import load_setup
 from stewart63_ros.core.simulate import initial_state, substeps_for
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.rclpy_internals import WaitAny, raw_publisher, take, take_with_info
@@ -89,12 +89,13 @@ class ComposedFloor:
         self.templates = (wire.JointStateTemplates().get('base'),
                           wire.JointStateTemplates(('effort',)).get('base'),
                           wire.pose_template(), wire.twist_template())
-        self.mech = mech = load_mechanism()
+        self.setup = setup = load_setup()
+        self.mech = mech = setup.mechanism
         self.dyn = Dynamics(mech)
-        self.y0 = initial_state(mech)
+        self.y0 = initial_state(setup.task)
         self.substeps = substeps_for(1e-3)
-        self.control = Controller(mech)
-        self.tracker = FKTracker(mech)
+        self.control = Controller(setup)
+        self.tracker = FKTracker(mech, setup.task.initial_position, setup.task.initial_rotation)
         self.np = np
         self.read_joint_state = wire.read_joint_state
 
@@ -106,7 +107,7 @@ class ComposedFloor:
         sub_ctl, sub_fk, sub_plant = self.subs
         dyn, control, tracker, substeps = self.dyn, self.control, self.tracker, self.substeps
         y = self.y0.copy()
-        tracker.reset(self.mech.initial_position, np.eye(3))
+        tracker.reset(self.setup.task.initial_position, np.eye(3))
         zero3, zero6, unit_quat = np.zeros(3), np.zeros(6), np.array([0.0, 0.0, 0.0, 1.0])
 
         read_joint_state, take_with_info = self.read_joint_state, self.take_with_info
@@ -148,7 +149,7 @@ class ComposedFloor:
     def kernels_alone(self, n: int) -> float:
         dyn, control, tracker = self.dyn, self.control, self.tracker
         y = self.y0.copy()
-        tracker.reset(self.mech.initial_position, self.np.eye(3))
+        tracker.reset(self.setup.task.initial_position, self.np.eye(3))
         start = time.perf_counter()
         for k in range(n):
             lengths, rates = dyn.lengths_and_rates(y)

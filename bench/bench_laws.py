@@ -16,7 +16,7 @@ import numpy as np
 
 from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.laws import Controller
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.params import load_setup
 from stewart63_ros.core.reference import Reference
 from stewart63_ros.core.simulate import run_sampled
 
@@ -26,26 +26,27 @@ CASES = (('pd_setpoint', 'pd', False), ('pd_reference', 'pd', True),
 TARGETS = {'computed_torque': 50.0}
 
 
-def path(mech, n):
+def path(setup, n):
+    mech = setup.mechanism
     """(times, lengths, rates, reference) along a smooth motion about the start pose."""
     t = np.arange(0.0, n / 1000.0 + 2.0, 0.01)
-    centre = np.concatenate([mech.initial_position, mech.initial_orientation])
+    centre = np.concatenate([setup.task.initial_position, setup.task.initial_orientation])
     poses = centre + np.outer(np.minimum(t, 1.0), [0.02, 0.01, 0.03, 0.02, 0.01, 0.03]) \
         * np.sin(2 * np.pi * 0.5 * t)[:, None]
     reference = Reference.from_poses(mech, t, poses)
-    run = run_sampled(mech, n / 1000.0, 1000.0,
-                      controller=Controller(mech, law='computed_torque', reference=reference))
+    run = run_sampled(setup, n / 1000.0, 1000.0,
+                      controller=Controller(setup, law='computed_torque', reference=reference))
     dyn = Dynamics(mech)
     samples = [dyn.lengths_and_rates(y) for y in run.states[:n]]
     return run.times[:n], [s[0] for s in samples], [s[1] for s in samples], reference
 
 
 def measure(params=None, count=5000, verbose=True):
-    mech = load_mechanism(params)
-    times, lengths, rates, reference = path(mech, count)
+    setup = load_setup(params)
+    times, lengths, rates, reference = path(setup, count)
     out = {}
     for name, law, with_reference in CASES:
-        ctl = Controller(mech, law=law, reference=reference if with_reference else None)
+        ctl = Controller(setup, law=law, reference=reference if with_reference else None)
         ctl.forces(0.0, lengths[0], rates[0])       # load the kernels
         us = np.empty(count)
         for k in range(count):

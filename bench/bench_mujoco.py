@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.params import load_setup
 from stewart63_ros.core.simulate import run_continuous
 from stewart63_ros.mujoco_model import MujocoPlatform, Settings
 
@@ -42,17 +42,18 @@ def _median_wall(func, repeat):
 
 
 def measure(repeat: int = 5, verbose: bool = True) -> dict:
-    mech = load_mechanism()
+    setup = load_setup()
+    mech = setup.mechanism
     dyn = Dynamics(mech)
-    reference = _lengths(dyn, run_continuous(mech, DURATION, dyn=dyn, rtol=1e-11,
+    reference = _lengths(dyn, run_continuous(setup, DURATION, dyn=dyn, rtol=1e-11,
                                              atol=1e-13).states)
-    ours_error = float(np.abs(_lengths(dyn, run_continuous(mech, DURATION, dyn=dyn).states)
+    ours_error = float(np.abs(_lengths(dyn, run_continuous(setup, DURATION, dyn=dyn).states)
                               - reference).max())
-    ours_wall = _median_wall(lambda: run_continuous(mech, DURATION, dyn=dyn), repeat)
+    ours_wall = _median_wall(lambda: run_continuous(setup, DURATION, dyn=dyn), repeat)
     chosen = None
     rows = []
     for dt in TIMESTEPS:
-        platform = MujocoPlatform(mech, Settings(timestep=dt))
+        platform = MujocoPlatform(setup, Settings(timestep=dt))
         _, lengths, _, _, violation = platform.run(DURATION)
         error = float(np.abs(lengths - reference).max())
         wall = _median_wall(lambda p=platform: p.run(DURATION), repeat)

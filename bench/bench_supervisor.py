@@ -22,22 +22,22 @@ import time
 import numpy as np
 from bench_loop import PAIR, private_domain
 
-from stewart63_ros.core.params import default_params_path, load_mechanism
+from stewart63_ros.core.params import default_params_path, load_setup
 from stewart63_ros.core.supervisor import run_supervised, supervisor_from_params
 from stewart63_ros.tools.rig import Rig
 
 
 def per_sample_us(samples: int = 5000) -> dict:
     """Microseconds per sample of the core's checks and of the descent."""
-    mech = load_mechanism(default_params_path())
-    params = dict(mech.to_params())
-    sup = supervisor_from_params(mech, params, 1000.0)
-    out = run_supervised(mech, sup, samples / 1000.0, 1000.0)     # a real trajectory
+    setup = load_setup(default_params_path())
+    params = setup.to_params()
+    sup = supervisor_from_params(setup, params, 1000.0)
+    out = run_supervised(setup, sup, samples / 1000.0, 1000.0)     # a real trajectory
     lengths, forces = out['measured'], out['requests']
     rates = np.gradient(lengths, 1e-3, axis=0)
     timings = {}
     for name in ('checks', 'descent'):
-        sup = supervisor_from_params(mech, params, 1000.0)
+        sup = supervisor_from_params(setup, params, 1000.0)
         sup.limits = sup.limits.__class__(**dict(sup.limits.__dict__, tracking_time=1e9,
                                                   leg_speed=0.0))
         if name == 'descent':

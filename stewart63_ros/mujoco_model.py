@@ -41,13 +41,13 @@ import dataclasses
 import numpy as np
 
 from stewart63_ros.core.legs import LEG_VERTEX
-from stewart63_ros.core.mechanism import Mechanism
 from stewart63_ros.core.rotation import (
     euler_rate_matrix,
     quaternion_from_rotation,
     rotation_from_euler,
     rotation_from_quaternion,
 )
+from stewart63_ros.core.setup import Setup, Task
 
 #: Axial moment of inertia of each leg part in the MuJoCo model [kg m^2].
 AXIAL_INERTIA = 1e-9
@@ -84,18 +84,20 @@ class Settings:
     tolerance: float = 1e-14
 
 
-def initial_pose(mech: Mechanism):
-    """t_0, R_0, v_0 and omega_0 (base frame) of the paper's scenario."""
-    rot = rotation_from_euler(mech.initial_orientation)
-    omega = euler_rate_matrix(mech.initial_orientation) @ mech.initial_orientation_rate
-    return (np.asarray(mech.initial_position, float), rot,
-            np.asarray(mech.initial_velocity, float), omega)
+def initial_pose(task: Task):
+    """t_0, R_0, v_0 and omega_0 (base frame) of the paper's scenario (``Setup.task``)."""
+    rot = rotation_from_euler(task.initial_orientation)
+    omega = euler_rate_matrix(task.initial_orientation) @ task.initial_orientation_rate
+    return (np.asarray(task.initial_position, float), rot,
+            np.asarray(task.initial_velocity, float), omega)
 
 
-def build_xml(mech: Mechanism, settings: Settings | None = None) -> str:
-    """MJCF of the mechanism at its initial pose (see the module docstring)."""
+def build_xml(setup: Setup, settings: Settings | None = None) -> str:
+    """MJCF of the mechanism at its initial pose, eq. (40) with the setup's
+    gains (see the module docstring)."""
     st = settings or Settings()
-    t0, rot0, _, _ = initial_pose(mech)
+    mech, gains = setup.mechanism, setup.gains
+    t0, rot0, _, _ = initial_pose(setup.task)
     vertices = np.asarray(mech.platform_points, float)
     base = np.asarray(mech.base_points, float)
     inertia = np.asarray(mech.platform_inertia, float)
@@ -125,9 +127,9 @@ def build_xml(mech: Mechanism, settings: Settings | None = None) -> str:
     </body>''')
         equalities.append(f'<connect body1="piston_{n}" body2="platform" anchor="0 0 0"/>')
         actuators.append(
-            f'<general name="pd_{n}" joint="slide_{n}" gainprm="{mech.kp[i]:.17g}" '
+            f'<general name="pd_{n}" joint="slide_{n}" gainprm="{gains.kp[i]:.17g}" '
             f'biastype="affine" '
-            f'biasprm="0 {-mech.kp[i]:.17g} {-mech.kv[i]:.17g}" forcelimited="true" '
+            f'biasprm="0 {-gains.kp[i]:.17g} {-gains.kv[i]:.17g}" forcelimited="true" '
             f'forcerange="{-mech.max_force:.17g} {mech.max_force:.17g}"/>')
         for axis, gear in (('a', '0 0 0 0 1 0'), ('b', '0 0 0 0 0 1')):
             actuators.append(
@@ -165,12 +167,13 @@ def build_xml(mech: Mechanism, settings: Settings | None = None) -> str:
 class MujocoPlatform:
     """The MuJoCo model with the scenario's initial state and eq. (40) set up."""
 
-    def __init__(self, mech: Mechanism, settings: Settings | None = None):
+    def __init__(self, setup: Setup, settings: Settings | None = None):
         import mujoco  # lazy: optional (the bench extra): mujoco costs 240 ms
         self.mujoco = mujoco
-        self.mech = mech
+        self.setup = setup
+        self.mech = setup.mechanism
         self.settings = settings or Settings()
-        self.model = mujoco.MjModel.from_xml_string(build_xml(mech, self.settings))
+        self.model = mujoco.MjModel.from_xml_string(build_xml(setup, self.settings))
         self.data = mujoco.MjData(self.model)
         m = self.model
         self._slide_qpos = np.array([m.jnt_qposadr[m.joint(f'slide_{i}').id] for i in range(1, 7)])
@@ -182,7 +185,7 @@ class MujocoPlatform:
         """The paper's initial state: platform pose and twist, legs moving with it."""
         m, d, mj = self.model, self.data, self.mujoco
         mj.mj_resetData(m, d)
-        t0, rot0, v0, omega0 = initial_pose(self.mech)
+        t0, rot0, v0, omega0 = initial_pose(self.setup.task)
         # Free joint: linear velocity in the world frame, angular in the body frame.
         d.qvel[0:3] = v0
         d.qvel[3:6] = rot0.T @ omega0
@@ -202,7 +205,7 @@ class MujocoPlatform:
             d.qvel[dof] = W @ frame[:, 1]
             d.qvel[dof + 1] = W @ frame[:, 2]
             d.qvel[self._slide_dof[i]] = s @ Sdot
-        d.ctrl[self._pd] = self.mech.setpoint_lengths
+        d.ctrl[self._pd] = self.setup.task.setpoint_lengths
         mj.mj_forward(m, d)
 
     def run(self, duration: float, output_rate: float = 100.0):

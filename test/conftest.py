@@ -34,6 +34,19 @@ def default_mech(default_params_file):
     return load_mechanism(default_params_file)
 
 
+@pytest.fixture(scope='session')
+def default_setup(default_params_file):
+    """The default setup (validated): machine, gains, task, settings."""
+    from stewart63_ros.core.params import load_setup
+    return load_setup(default_params_file)
+
+
+@pytest.fixture(scope='module')
+def setup(default_setup):
+    """The default setup by its short name (a test file may define its own)."""
+    return default_setup
+
+
 @pytest.fixture(scope='module')
 def mech(default_mech):
     """The default mechanism by its short name (a test file may define its own)."""

@@ -50,13 +50,13 @@ def dyn(default_mech):
 
 
 @pytest.fixture(scope='module')
-def open_model(default_mech):
-    return analysis.linearize(default_mech, None)
+def open_model(default_setup, default_mech):
+    return analysis.linearize(default_setup, None)
 
 
 @pytest.fixture(scope='module')
-def pd_model(default_mech):
-    return analysis.linearize(default_mech, 'pd')
+def pd_model(default_setup, default_mech):
+    return analysis.linearize(default_setup, 'pd')
 
 
 def linear_step(model, du, times):
@@ -69,14 +69,14 @@ def linear_step(model, du, times):
     return np.array([expm(aug * t)[:n, n] for t in times])
 
 
-def nonlinear_step(dyn, model, du, times, mech):
+def nonlinear_step(dyn, model, du, times, setup):
     """dx(t) of the nonlinear model: compiled RK45, rtol 1e-12, from the equilibrium."""
     eq = model.equilibrium
     if model.closed_loop:
-        gains = np.vstack([model.u0 + du, mech.kp, mech.kv])
+        gains = np.vstack([model.u0 + du, setup.gains.kp, setup.gains.kv])
         states, _ = dopri.solve_pd(dyn, eq.state13(), times, gains=gains,
-                                   max_force=mech.max_force, endstops=False, rtol=1e-12,
-                                   atol=1e-14)
+                                   max_force=setup.mechanism.max_force, endstops=False,
+                                   rtol=1e-12, atol=1e-14)
     else:
         states, _ = dopri.solve_pd(dyn, eq.state13(), times, forces=model.u0 + du,
                                    endstops=False, rtol=1e-12, atol=1e-14)
@@ -85,7 +85,7 @@ def nonlinear_step(dyn, model, du, times, mech):
 
 @pytest.mark.parametrize('loop, size, duration', [('open', 2.0, 0.4), ('closed', 2e-3, 1.0)])
 def test_linear_model_agrees_with_the_nonlinear_one_to_first_order(
-        default_mech, dyn, open_model, pd_model, loop, size, duration):
+        default_setup, dyn, open_model, pd_model, loop, size, duration):
     """A step of 2 N per leg (open loop: the platform starts to fall away, the
     model is unstable) or 2 mm of reference (closed loop), then half, then a
     quarter: the gap to the nonlinear response shrinks as the square."""
@@ -95,7 +95,7 @@ def test_linear_model_agrees_with_the_nonlinear_one_to_first_order(
     for eps in (size, size / 2, size / 4):
         du = eps * DIRECTION
         linear = linear_step(model, du, times)
-        exact = nonlinear_step(dyn, model, du, times, default_mech)
+        exact = nonlinear_step(dyn, model, du, times, default_setup)
         gaps.append(np.abs(exact - linear).max())
         sizes.append(np.abs(linear).max())
         # First order: the gap is a small part of the response itself.
@@ -104,7 +104,8 @@ def test_linear_model_agrees_with_the_nonlinear_one_to_first_order(
         assert 3.5 < big / small < 4.5, gaps          # quadratic in the step
 
 
-def test_frequency_response_agrees_with_a_sine_excited_nonlinear_run(default_mech, dyn,
+def test_frequency_response_agrees_with_a_sine_excited_nonlinear_run(default_setup, default_mech,
+                                                                     dyn,
                                                                      pd_model):
     """Reference L1_ref = u0_1 + 0.1 mm sin(2 pi f t) into the nonlinear closed
     loop (eq. 40 inside scipy's DOP853); after 1.5 s the transient has decayed
@@ -112,7 +113,7 @@ def test_frequency_response_agrees_with_a_sine_excited_nonlinear_run(default_mec
     periods, at 0.5, 3 and 20 Hz (below, at and above the modes)."""
     model, eq = pd_model, pd_model.equilibrium
     args = dyn.kernel_args()
-    kp, kv = np.asarray(default_mech.kp), np.asarray(default_mech.kv)
+    kp, kv = np.asarray(default_setup.gains.kp), np.asarray(default_setup.gains.kv)
     amplitude = 1e-4
     for f in (0.5, 3.0, 20.0):
         omega = 2 * np.pi * f
@@ -142,7 +143,7 @@ def test_frequency_response_agrees_with_a_sine_excited_nonlinear_run(default_mec
         assert abs(np.degrees(np.angle(measured[0] / predicted[0]))) < 1e-3
 
 
-def test_output_matrix_is_the_jacobian_and_the_equilibrium_holds(default_mech, dyn,
+def test_output_matrix_is_the_jacobian_and_the_equilibrium_holds(default_setup, default_mech, dyn,
                                                                   open_model):
     eq = open_model.equilibrium
     jac = jacobian(default_mech, eq.rotation, eq.position)     # rows [s_i, q_i x s_i]
@@ -152,30 +153,30 @@ def test_output_matrix_is_the_jacobian_and_the_equilibrium_holds(default_mech, d
     dy = dyn.derivative(eq.state13(), eq.forces, with_endstops=False)
     assert np.abs(dy).max() < 1e-10
     # The default pose is the setpoint's: its leg lengths are setpoint_lengths.
-    assert np.abs(eq.lengths - default_mech.setpoint_lengths).max() < 1e-9
+    assert np.abs(eq.lengths - default_setup.task.setpoint_lengths).max() < 1e-9
     # Kinematic rows: d(position)/dt = velocity, d(phi)/dt = omega at rest.
     assert np.array_equal(open_model.A[:6, :6], np.zeros((6, 6)))
     assert np.abs(open_model.A[:6, 6:] - np.eye(6)).max() < 1e-9
     assert np.abs(open_model.B[:6]).max() == 0.0
 
 
-def test_pd_loop_folded_in_analytically_equals_the_law_differenced(default_mech, pd_model):
-    numeric = analysis.closed_loop(default_mech, pd_model.equilibrium, 'pd', numeric=True)
+def test_pd_loop_folded_in_analytically_equals_the_law_differenced(default_setup, pd_model):
+    numeric = analysis.closed_loop(default_setup, pd_model.equilibrium, 'pd', numeric=True)
     scale = np.abs(pd_model.A).max()
     assert np.abs(numeric.A - pd_model.A).max() < 1e-6 * scale
     assert np.abs(numeric.B - pd_model.B).max() < 1e-6 * np.abs(pd_model.B).max()
     assert np.abs(numeric.u0 - pd_model.u0).max() < 1e-9
     # The reference that holds the pose is L0 + F_hold / Kp: the gravity sag.
     eq = pd_model.equilibrium
-    assert np.allclose(pd_model.u0, eq.lengths + eq.forces / default_mech.kp, atol=1e-12)
+    assert np.allclose(pd_model.u0, eq.lengths + eq.forces / default_setup.gains.kp, atol=1e-12)
 
 
-def test_computed_torque_shows_its_designed_error_dynamics(default_mech):
+def test_computed_torque_shows_its_designed_error_dynamics(default_setup, default_mech):
     """The law makes every task-space axis e'' + Kd e' + Kp e = 0: six modes at
     sqrt(ct_kp) / 2 pi Hz with damping ct_kd / (2 sqrt(ct_kp)), here with gains
     that differ from the defaults (30 rad/s, zeta 0.5)."""
     params = {'ct_kp': [900.0] * 6, 'ct_kd': [30.0] * 6}
-    found = analysis.modes(analysis.linearize(default_mech, 'computed_torque', params=params))
+    found = analysis.modes(analysis.linearize(default_setup, 'computed_torque', params=params))
     assert np.allclose(found.frequencies_hz, 30.0 / (2 * np.pi), rtol=1e-5)
     assert np.allclose(found.damping_ratios, 0.5, rtol=1e-5)
     assert all(found.stable)
@@ -337,13 +338,13 @@ def test_a_workspace_grid_that_would_not_fit_is_refused_before_it_is_made(tmp_pa
     assert not (tmp_path / 'a').exists() and not (tmp_path / 'b').exists()
 
 
-def test_the_memory_bound_of_a_workspace_grid_holds(default_mech):
+def test_the_memory_bound_of_a_workspace_grid_holds(default_setup, default_mech):
     """``BYTES_PER_POINT`` bounds what workspace_map takes (numpy's allocations,
     traced), and ``check_grid_fits`` refuses what would not fit."""
     import tracemalloc
 
     from stewart63_ros.core import workspace
-    pos, rot = analysis.setpoint_pose(default_mech)
+    pos, rot = analysis.setpoint_pose(default_setup)
     workspace_map(default_mech, rot, 0.3, through=pos)      # compiled outside the trace
     tracemalloc.start()
     try:
@@ -373,8 +374,8 @@ def test_analyze_bad_input_is_one_line_and_exit_2(capsys, argv, words):
     assert len(lines) == 1 and words in lines[0] and 'Traceback' not in err, err
 
 
-def test_a_law_that_cannot_hold_the_pose_is_refused(default_mech):
+def test_a_law_that_cannot_hold_the_pose_is_refused(default_setup):
     with pytest.raises(analysis.AnalysisError, match='kp is zero on leg_3'):
-        analysis.linearize(default_mech.replace(kp=[4000, 4000, 0, 4000, 4000, 4000]), 'pd')
+        analysis.linearize(default_setup.replace(kp=[4000, 4000, 0, 4000, 4000, 4000]), 'pd')
     with pytest.raises(analysis.AnalysisError, match='beyond max_force'):
-        analysis.linearize(default_mech.replace(max_force=50.0), None)
+        analysis.linearize(default_setup.replace(max_force=50.0), None)

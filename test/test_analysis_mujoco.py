@@ -41,7 +41,7 @@ from stewart63_ros.mujoco_model import MujocoPlatform, Settings  # noqa: E402
 TIMESTEPS = (2e-4, 1e-4)
 
 
-def mujoco_eigenvalues(mech, model, timestep):
+def mujoco_eigenvalues(setup, model, timestep):
     """The 12 slowest continuous eigenvalues of MuJoCo's linearization at our
     equilibrium, and the largest |z| of the rest; the platform's acceleration
     there [m/s^2, rad/s^2]."""
@@ -50,7 +50,7 @@ def mujoco_eigenvalues(mech, model, timestep):
                    initial_velocity=[0.0] * 3, initial_orientation_rate=[0.0] * 3)
     if not model.closed_loop:
         at_rest.update(kp=[0.0] * 6, kv=[0.0] * 6)
-    platform = MujocoPlatform(mech.replace(**at_rest),
+    platform = MujocoPlatform(setup.replace(**at_rest),
                               Settings(timestep=timestep, integrator='Euler'))
     m, d = platform.model, platform.data
     if model.closed_loop:
@@ -74,12 +74,12 @@ def matched(ours, theirs):
 
 
 @pytest.mark.parametrize('law', [None, 'pd'])
-def test_modes_agree_with_mujocos_linearization(default_mech, law):
-    model = analysis.linearize(default_mech, law)
+def test_modes_agree_with_mujocos_linearization(default_setup, law):
+    model = analysis.linearize(default_setup, law)
     values, vectors = np.linalg.eig(model.A)
     gaps, estimates = [], []
     for dt in TIMESTEPS:
-        theirs, next_z, platform_acc = mujoco_eigenvalues(default_mech, model, dt)
+        theirs, next_z, platform_acc = mujoco_eigenvalues(default_setup, model, dt)
         assert np.all(np.abs(np.exp(theirs * dt)) > 0.95) and next_z < 0.9, next_z
         # Our holding forces (or references) hold MuJoCo's platform too (measured
         # 7.4e-4 m/s^2, 7.5e-5 g: what its soft constraints give way).

@@ -24,7 +24,7 @@ from stewart63_ros import bagio
 from stewart63_ros.core.bus import OverTheBus, load_bus_config
 from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.laws import PDController
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.params import load_mechanism, load_setup
 from stewart63_ros.core.simulate import run_sampled
 from stewart63_ros.tools.rig import Rig
 
@@ -60,20 +60,20 @@ def run_bus_rig(ros, monkeypatch, tmp_path, mode, duration, faults=(), rate=None
 
 
 def final_error(mech, dyn, state) -> float:
+    setpoint = load_setup(PARAMS).task.setpoint_lengths
     lengths, _ = dyn.lengths_and_rates(state)
-    return float(100 * np.max(np.abs(lengths - mech.setpoint_lengths)
-                              / mech.setpoint_lengths))
+    return float(100 * np.max(np.abs(lengths - setpoint) / setpoint))
 
 
-def test_lockstep_over_the_bus_is_the_direct_loop_through_counts_and_per_mille(
+def test_lockstep_over_the_bus_is_the_direct_loop_through_counts_and_per_mille(setup,
         ros, monkeypatch, tmp_path, mech):
     duration = 0.5
     n = int(round(duration * RATE)) + 1
     legs = load_bus_config(None).legs
     dyn = Dynamics(mech)
-    predicted = run_sampled(mech, duration, RATE, controller=OverTheBus(PDController(mech), legs),
+    predicted = run_sampled(setup, duration, RATE, controller=OverTheBus(PDController(setup), legs),
                             dyn=dyn, loop='python')
-    direct = run_sampled(mech, duration, RATE, dyn=dyn)
+    direct = run_sampled(setup, duration, RATE, dyn=dyn)
     bag, summary, bridge, logs = run_bus_rig(ros, monkeypatch, tmp_path, 'lockstep', duration)
     assert summary['samples'] == n and bridge['cycles'] == n, (summary, bridge)
     assert bridge['force_timeouts'] == 0 and summary['force_timeouts'] == 0, bridge

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from stewart63_ros.core import calibration as cal
 from stewart63_ros.core import calibration_plan as cp
-from stewart63_ros.core.params import ParameterError, load_mechanism
+from stewart63_ros.core.params import ParameterError, load_setup
 from stewart63_ros.core.sensor import SensorModel, TrackerModel
 from stewart63_ros.tools import calibrate
 
@@ -33,9 +33,9 @@ def truth(mech):
 
 
 @pytest.fixture(scope='module')
-def planned(mech):
+def planned(setup, mech):
     """30 planned poses (seeded)."""
-    return cp.plan(mech, 30, seed=5, noise=NOISE)
+    return cp.plan(setup, 30, seed=5, noise=NOISE)
 
 
 def tracked(theta, positions, rotations, rng, noise=NOISE):
@@ -50,13 +50,13 @@ def tracked(theta, positions, rotations, rng, noise=NOISE):
     return cal.measurements(seen_pos, seen_rot.as_quat(), readings)
 
 
-def random_poses(mech, count, seed, half_range=cp.DEFAULT_RANGE):
-    return cp.candidate_poses(mech, count, np.random.default_rng(seed), half_range)
+def random_poses(setup, count, seed, half_range=cp.DEFAULT_RANGE):
+    return cp.candidate_poses(setup, count, np.random.default_rng(seed), half_range)
 
 
 # -- the model -----------------------------------------------------------------
-def test_parameter_and_pose_jacobians_match_finite_differences(mech, truth):
-    positions, rotations = random_poses(mech, 5, 1)
+def test_parameter_and_pose_jacobians_match_finite_differences(setup, mech, truth):
+    positions, rotations = random_poses(setup, 5, 1)
     meas = cal.Measurements(positions, rotations, np.zeros((5, 6)))
     jac = cal.parameter_jacobian(truth, meas)
     step = 1e-6
@@ -82,11 +82,11 @@ def test_parameter_and_pose_jacobians_match_finite_differences(mech, truth):
         assert np.allclose(pose_jac[:, :, a], numeric, atol=1e-7), a
 
 
-def test_readings_of_the_drawing_are_the_inverse_kinematics_plus_offset(mech):
+def test_readings_of_the_drawing_are_the_inverse_kinematics_plus_offset(setup, mech):
     from stewart63_ros.core.kinematics import leg_lengths
     offset = [0.001, -0.002, 0.003, 0.0, 0.004, -0.005]
     drawn = mech.replace(leg_length_offset=offset)
-    positions, rotations = random_poses(mech, 3, 2)
+    positions, rotations = random_poses(setup, 3, 2)
     meas = cal.Measurements(positions, rotations, np.zeros((3, 6)))
     predicted = cal.predict_readings(cal.parameter_vector(drawn), meas)
     for n in range(3):
@@ -131,16 +131,16 @@ def test_reported_sigma_agrees_with_the_spread_over_noise_seeds(mech, truth, pla
     assert np.all(np.abs(np.mean(estimates, axis=0) - truth) < 4 * reported / np.sqrt(40))
 
 
-def test_plan_beats_random_poses_in_its_index(mech, planned):
-    blocks_random = cp._blocks(mech, *random_poses(mech, 30, 9), NOISE)
+def test_plan_beats_random_poses_in_its_index(setup, mech, planned):
+    blocks_random = cp._blocks(mech, *random_poses(setup, 30, 9), NOISE)
     _, o3_random = cp.indices(blocks_random, range(30))
     print('\nO3: planned %.4g /m, random %.4g /m' % (planned.o3, o3_random))
     assert planned.o3 > 1.5 * o3_random
     assert planned.worst_std < 3e-3
 
 
-def test_close_poses_hold_the_leg_against_offset_trade_at_the_drawing(mech, truth):
-    positions, rotations = random_poses(mech, 40, 4, (0.05, 0.05, 0.05, 0.05, 0.05, 0.05))
+def test_close_poses_hold_the_leg_against_offset_trade_at_the_drawing(setup, mech, truth):
+    positions, rotations = random_poses(setup, 40, 4, (0.05, 0.05, 0.05, 0.05, 0.05, 0.05))
     meas = tracked(truth, positions, rotations, np.random.default_rng(4))
     result = cal.fit(mech, meas, NOISE, tolerance=0.005)
     assert result.held.shape[1] >= 1
@@ -152,11 +152,11 @@ def test_close_poses_hold_the_leg_against_offset_trade_at_the_drawing(mech, trut
     assert np.allclose(result.held.T @ (result.estimate - result.nominal), 0, atol=1e-9)
 
 
-def test_held_out_fk_error_drops_with_the_calibrated_file(mech, truth, planned):
+def test_held_out_fk_error_drops_with_the_calibrated_file(setup, mech, truth, planned):
     meas = tracked(truth, planned.positions, planned.rotations, np.random.default_rng(6))
     result = cal.fit(mech, meas, NOISE)
     calibrated = cal.mechanism_with(mech, result.estimate)
-    positions, rotations = random_poses(mech, 10, 12)
+    positions, rotations = random_poses(setup, 10, 12)
     check = tracked(truth, positions, rotations, np.random.default_rng(7))
     before = cal.pose_errors(mech, check)
     after = cal.pose_errors(calibrated, check)
@@ -176,8 +176,8 @@ def test_too_few_poses_are_refused(mech, truth, planned):
         cal.fit(mech, meas, NOISE)
 
 
-def test_level_poses_are_refused_naming_what_they_leave_unseen(mech, truth):
-    positions, _ = random_poses(mech, 30, 2)
+def test_level_poses_are_refused_naming_what_they_leave_unseen(setup, mech, truth):
+    positions, _ = random_poses(setup, 30, 2)
     level = np.repeat(np.eye(3)[None], 30, axis=0)
     meas = tracked(truth, positions, level, np.random.default_rng(2),
                    cal.NoiseModel(1e-4, 1e-12, 1e-5))
@@ -191,10 +191,10 @@ def test_level_poses_are_refused_naming_what_they_leave_unseen(mech, truth):
     assert 'same orientation' in text
 
 
-def test_poses_at_one_height_turning_only_about_z_are_refused(mech, truth):
+def test_poses_at_one_height_turning_only_about_z_are_refused(setup, mech, truth):
     rng = np.random.default_rng(3)
     from stewart63_ros.core.analysis import setpoint_pose
-    centre, _ = setpoint_pose(mech)
+    centre, _ = setpoint_pose(setup)
     positions = centre + np.column_stack([rng.uniform(-0.2, 0.2, (30, 2)), np.zeros(30)])
     rotations = Rotation.from_euler('z', rng.uniform(-0.3, 0.3, (30, 1))).as_matrix()
     readings = cal.predict_readings(truth, cal.Measurements(positions, rotations,
@@ -214,11 +214,11 @@ def test_nan_rows_and_bad_quaternions_are_refused():
         cal.measurements(good[0], np.tile([0, 0, 0, 2.0], (3, 1)), good[2])
 
 
-def test_a_calibration_outside_the_stroke_is_not_a_machine(mech, truth):
-    positions, rotations = random_poses(mech, 20, 5)
+def test_a_calibration_outside_the_stroke_is_not_a_machine(setup, mech, truth):
+    positions, rotations = random_poses(setup, 20, 5)
     meas = tracked(truth, positions, rotations, np.random.default_rng(5))
     lengths = cal.predict_readings(cal.parameter_vector(mech), meas)
-    short = mech.replace(leg_length_max=max(float(mech.setpoint_lengths.max()) + 0.01,
+    short = mech.replace(leg_length_max=max(float(setup.task.setpoint_lengths.max()) + 0.01,
                                             float(np.percentile(lengths, 90))))
     with pytest.raises(ParameterError, match='outside the stroke.*not the machine'):
         cal.check_assembles(short, meas)
@@ -261,15 +261,16 @@ def write_measurements(path, meas):
                 [meas.positions[n], quats[n], meas.readings[n]])])
 
 
-def test_fit_writes_a_calibrated_file_every_node_reads(tmp_path, mech, truth, planned,
+def test_fit_writes_a_calibrated_file_every_node_reads(setup, tmp_path, mech, truth, planned,
                                                        capsys):
     rng = np.random.default_rng(8)
-    positions = np.vstack([planned.positions, random_poses(mech, 8, 21)[0]])
-    rotations = np.concatenate([planned.rotations, random_poses(mech, 8, 21)[1]])
+    positions = np.vstack([planned.positions, random_poses(setup, 8, 21)[0]])
+    rotations = np.concatenate([planned.rotations, random_poses(setup, 8, 21)[1]])
     write_measurements(tmp_path / 'm.csv', tracked(truth, positions, rotations, rng))
     assert calibrate.main(['fit', '--measurements', str(tmp_path / 'm.csv'),
                            '--out', str(tmp_path / 'out')]) == 0
-    calibrated = load_mechanism(tmp_path / 'out' / 'calibrated.yaml')
+    calibrated_setup = load_setup(tmp_path / 'out' / 'calibrated.yaml')
+    calibrated = calibrated_setup.mechanism
     error = cal.parameter_vector(calibrated) - truth
     assert np.abs(error).max() < 5e-3
     report = json.loads((tmp_path / 'out' / 'report.json').read_text())
@@ -280,7 +281,7 @@ def test_fit_writes_a_calibrated_file_every_node_reads(tmp_path, mech, truth, pl
         report['held_out']['before']['position_rms_m'] / 10
     assert isinstance(report['unidentifiable'], list) and len(report['singular_values']) == 33
     # The nodes' own keys of the drawing survive (a full parameter file).
-    assert calibrated.kp.tolist() == mech.kp.tolist()
+    assert calibrated_setup.gains.kp.tolist() == setup.gains.kp.tolist()
 
 
 def test_fit_refuses_bad_input_in_one_line(tmp_path, mech, truth, planned, capsys):
@@ -300,15 +301,15 @@ def test_fit_refuses_bad_input_in_one_line(tmp_path, mech, truth, planned, capsy
         assert not (tmp_path / name / 'out' / 'calibrated.yaml').exists()
 
 
-def test_an_impossible_calibration_is_never_written(tmp_path, mech, truth):
-    positions, rotations = random_poses(mech, 20, 5)
+def test_an_impossible_calibration_is_never_written(setup, tmp_path, mech, truth):
+    positions, rotations = random_poses(setup, 20, 5)
     meas = tracked(truth, positions, rotations, np.random.default_rng(5))
     write_measurements(tmp_path / 'm.csv', meas)
     lengths = cal.predict_readings(cal.parameter_vector(mech), meas)
     import yaml
     doc = yaml.safe_load(open(calibrate.default_params_path()))
     doc['/**']['ros__parameters']['leg_length_max'] = max(
-        float(mech.setpoint_lengths.max()) + 0.01, float(np.percentile(lengths, 90)))
+        float(setup.task.setpoint_lengths.max()) + 0.01, float(np.percentile(lengths, 90)))
     (tmp_path / 'short.yaml').write_text(yaml.safe_dump(doc))
     code = calibrate.main(['fit', '--measurements', str(tmp_path / 'm.csv'), '--params',
                            str(tmp_path / 'short.yaml'), '--out', str(tmp_path / 'out')])

@@ -59,14 +59,14 @@ def run(tmp_path, name, compose, record=True, duration=DURATION, extra_params=No
     return bag, rig.summary(), ok, codes, logs
 
 
-def test_composed_lockstep_equals_offline_run_and_separate_rig_and_records_everything(
+def test_composed_lockstep_equals_offline_run_and_separate_rig_and_records_everything(setup,
         ros, monkeypatch, tmp_path, mech):
     rig_env(ros, monkeypatch)
     n = int(round(DURATION * RATE)) + 1
     bag, summary, ok, codes, logs = run(tmp_path, 'composed', compose=True)
     assert ok and codes == {'composed': 0}, (codes, logs)
     assert summary['samples'] == n and summary['force_timeouts'] == 0, summary
-    ref = run_sampled(mech, DURATION, RATE)
+    ref = run_sampled(setup, DURATION, RATE)
     dyn = Dynamics(mech)
     lengths, n_lengths = by_stamp(bag, 'leg_lengths')
     forces, _ = by_stamp(bag, 'leg_forces')

@@ -25,7 +25,7 @@ from ros_harness import rig_env, run_to_end, wait_matched
 
 from stewart63_ros.core.control import pd_forces
 from stewart63_ros.core.kinematics import LegState, leg_lengths
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.params import load_mechanism, load_setup
 from stewart63_ros.core.rotation import quaternion_from_euler, rotation_from_euler
 
 REPO = Path(__file__).resolve().parents[1]
@@ -129,25 +129,27 @@ class Probe:
 
 
 def steady(mech):
-    legs = LegState(mech, np.array(mech.initial_position),
-                    rotation_from_euler(mech.initial_orientation),
+    task = load_setup(PARAMS).task
+    legs = LegState(mech, np.array(task.initial_position),
+                    rotation_from_euler(task.initial_orientation),
                     np.array([0.01, -0.02, 0.03]), np.array([0.02, 0.01, -0.01]))
     return legs.L.copy(), legs.Ldot.copy()
 
 
-def test_run_time_tuning_changes_the_very_next_force(ros, mech):
+def test_run_time_tuning_changes_the_very_next_force(setup, ros, mech):
     probe = Probe(ros, mech)
     probe.start()
     lengths, rates = steady(mech)
-    sp = mech.setpoint_lengths
+    sp = setup.task.setpoint_lengths
     before = probe.sample(lengths, rates)
-    np.testing.assert_allclose(before, pd_forces(lengths, rates, sp, mech.kp, mech.kv, 3000.0),
+    gains = setup.gains
+    np.testing.assert_allclose(before, pd_forces(lengths, rates, sp, gains.kp, gains.kv, 3000.0),
                                atol=1e-9)
     kp = [1000.0, 1100.0, 1200.0, 1300.0, 1400.0, 1500.0]
     ok, reason = probe.set('kp', kp)
     assert ok, reason
     after = probe.sample(lengths, rates)            # the very next force
-    np.testing.assert_allclose(after, pd_forces(lengths, rates, sp, kp, mech.kv, 3000.0),
+    np.testing.assert_allclose(after, pd_forces(lengths, rates, sp, kp, setup.gains.kv, 3000.0),
                                atol=1e-9)
     refused = [('kp', [float('nan')] * 6), ('kp', [1.0] * 5), ('kv', [-1.0] + [300.0] * 5),
                ('control_law', 'no_such_law'), ('control_law', 'nomodule:Law'),
@@ -165,17 +167,17 @@ def test_run_time_tuning_changes_the_very_next_force(ros, mech):
     ok, reason = probe.set('kv', [0.0] * 6)
     assert ok, reason
     no_kv = probe.sample(lengths, rates)
-    np.testing.assert_allclose(no_kv - gravity, np.asarray(mech.kv) * rates, atol=1e-6)
+    np.testing.assert_allclose(no_kv - gravity, np.asarray(setup.gains.kv) * rates, atol=1e-6)
     assert probe.proc.returncode is None
 
 
-def test_latched_and_volatile_setpoints_both_take_effect(ros, mech):
+def test_latched_and_volatile_setpoints_both_take_effect(setup, ros, mech):
     from rclpy.qos import QoSProfile
 
     from stewart63_ros import topics as T
     node = ros.node('commander')
     latched = node.create_publisher(ros_msg('JointState'), '/c/leg_setpoint', T.SETPOINT_QOS)
-    first = np.array(mech.setpoint_lengths) + [0.02, -0.01, 0.03, 0.0, -0.02, 0.01]
+    first = np.array(setup.task.setpoint_lengths) + [0.02, -0.01, 0.03, 0.0, -0.02, 0.01]
     msg = ros_msg('JointState')(name=LEGS, position=first.tolist())
     msg.header.stamp = to_time(10**9)
     latched.publish(msg)                    # before the controller exists
@@ -184,7 +186,7 @@ def test_latched_and_volatile_setpoints_both_take_effect(ros, mech):
     lengths, rates = steady(mech)
 
     def forces_for(setpoint, timeout=10.0):
-        want = pd_forces(lengths, rates, setpoint, mech.kp, mech.kv, 3000.0)
+        want = pd_forces(lengths, rates, setpoint, setup.gains.kp, setup.gains.kv, 3000.0)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             got = probe.sample(lengths, rates)
@@ -233,13 +235,13 @@ def trajectory_msg(times, poses, stamp_ns=0):
     return msg
 
 
-def test_pose_trajectory_is_followed_and_a_bad_one_refused(ros, mech):
+def test_pose_trajectory_is_followed_and_a_bad_one_refused(setup, ros, mech):
     from stewart63_ros.core.reference import R_LEN, R_RATE, Reference
     probe = Probe(ros, mech)
     probe.start()
     assert wait_matched(probe.pub_trajectory, 1, 20)
     lengths, rates = steady(mech)
-    centre = np.concatenate([mech.initial_position, mech.initial_orientation])
+    centre = np.concatenate([setup.task.initial_position, setup.task.initial_orientation])
     times = np.array([0.0, 0.5, 1.0, 1.5])
     poses = centre + np.outer(np.sin(times), [0.02, -0.01, 0.03, 0.02, 0.01, -0.02])
     start = 5 * 10**9
@@ -251,7 +253,8 @@ def test_pose_trajectory_is_followed_and_a_bad_one_refused(ros, mech):
         probe.stamp = max(probe.stamp, start)
         got = probe.sample(lengths, rates, dt=0.1)
         s = reference.sample((probe.stamp - start) * 1e-9)
-        want = np.clip(mech.kp * (s[R_LEN] - lengths) - mech.kv * (rates - s[R_RATE]), -3000, 3000)
+        want = np.clip(setup.gains.kp * (s[R_LEN] - lengths)
+                       - setup.gains.kv * (rates - s[R_RATE]), -3000, 3000)
         matched = got is not None and np.allclose(got, want, atol=1e-6)
     assert matched, 'the controller did not follow the pose_trajectory'
     # the tracking error on /diagnostics: |L_ref - L| of these samples (about 0.1 m here)
@@ -273,7 +276,8 @@ def test_pose_trajectory_is_followed_and_a_bad_one_refused(ros, mech):
     print('\n' + report[2])
     got = probe.sample(lengths, rates, dt=0.1)
     s = reference.sample((probe.stamp - start) * 1e-9)
-    want = np.clip(mech.kp * (s[R_LEN] - lengths) - mech.kv * (rates - s[R_RATE]), -3000, 3000)
+    want = np.clip(setup.gains.kp * (s[R_LEN] - lengths)
+                   - setup.gains.kv * (rates - s[R_RATE]), -3000, 3000)
     np.testing.assert_allclose(got, want, atol=1e-6)
 
 
@@ -300,7 +304,7 @@ LOCKSTEP_DURATION = 1.5       # s: the tracking error counts from 1 s
 
 @pytest.mark.parametrize('law', ['pd', 'pd_gravity', 'computed_torque',
                                  'stewart63_ros.examples.my_law:LegPD'])
-def test_lockstep_rig_with_a_reference_equals_sim(ros, monkeypatch, tmp_path, mech, law):
+def test_lockstep_rig_with_a_reference_equals_sim(setup, ros, monkeypatch, tmp_path, mech, law):
     from test_laws import six_axis_reference
 
     from stewart63_ros.core.reference import tracking_errors, write_reference_csv
@@ -308,9 +312,9 @@ def test_lockstep_rig_with_a_reference_equals_sim(ros, monkeypatch, tmp_path, me
     from stewart63_ros.tools.rig import Rig, control_params
     from stewart63_ros.tools.sim import make_controller
     ref_csv = tmp_path / 'reference.csv'
-    write_reference_csv(ref_csv, *six_axis_reference(mech, duration=3.0))
+    write_reference_csv(ref_csv, *six_axis_reference(setup, duration=3.0))
     controller, reference = make_controller(PARAMS, law, ref_csv)
-    offline = run_sampled(mech, LOCKSTEP_DURATION, 1000.0, controller=controller)
+    offline = run_sampled(setup, LOCKSTEP_DURATION, 1000.0, controller=controller)
     from stewart63_ros.core.dynamics import Dynamics
     final, _ = sensor_reading(Dynamics(mech), offline.states[-1])
     expected = tracking_errors(mech, reference, offline.times, offline.states)

@@ -42,17 +42,17 @@ K0 = int(START * RATE)       # the first faulted sample
 
 
 @pytest.fixture(scope='module')
-def clean(mech):
+def clean(setup, mech):
     """The fault-free sampled run (the compiled loop)."""
-    return run_sampled(mech, DURATION, RATE)
+    return run_sampled(setup, DURATION, RATE)
 
 
 def true_lengths(dyn, result) -> np.ndarray:
     return np.array([dyn.lengths_and_rates(y)[0] for y in result.states])
 
 
-def faulted(mech, *faults, duration=DURATION):
-    result = run_sampled(mech, duration, RATE, faults=list(faults))
+def faulted(setup, *faults, duration=DURATION):
+    result = run_sampled(setup, duration, RATE, faults=list(faults))
     assert np.all(np.isfinite(result.states))
     return result
 
@@ -185,15 +185,15 @@ def test_faults_and_step_count_are_known_plant_keys():
 
 
 # -- each kind in sim --------------------------------------------------------------------
-def test_no_faults_is_the_fault_free_run(mech, clean):
-    result = run_sampled(mech, DURATION, RATE, faults=[])
+def test_no_faults_is_the_fault_free_run(setup, mech, clean):
+    result = run_sampled(setup, DURATION, RATE, faults=[])
     assert_same_until(clean, result, len(clean.times))
     np.testing.assert_array_equal(result.applied, clean.forces)
 
 
-def test_sensor_stuck_holds_its_value_while_the_leg_moves(mech, dyn, clean):
+def test_sensor_stuck_holds_its_value_while_the_leg_moves(setup, mech, dyn, clean):
     k0 = 100         # 0.1 s: leg 2 still extends towards its setpoint
-    result = faulted(mech, 'sensor_stuck:leg_2@0.1')
+    result = faulted(setup, 'sensor_stuck:leg_2@0.1')
     assert_same_until(clean, result, k0 + 1)
     true = true_lengths(dyn, result)
     held = result.measured[k0:, 1]
@@ -203,9 +203,9 @@ def test_sensor_stuck_holds_its_value_while_the_leg_moves(mech, dyn, clean):
     np.testing.assert_array_equal(result.measured[:, [0, 2, 3, 4, 5]], true[:, [0, 2, 3, 4, 5]])
 
 
-def test_sensor_bias_shifts_the_final_length_by_the_bias(mech, dyn, clean):
+def test_sensor_bias_shifts_the_final_length_by_the_bias(setup, mech, dyn, clean):
     bias = 0.005
-    result = faulted(mech, 'sensor_bias:leg_1:%g@%g' % (bias, START))
+    result = faulted(setup, 'sensor_bias:leg_1:%g@%g' % (bias, START))
     assert_same_until(clean, result, K0)
     assert not np.array_equal(result.states[K0 + 1], clean.states[K0 + 1])
     true = true_lengths(dyn, result)
@@ -216,19 +216,19 @@ def test_sensor_bias_shifts_the_final_length_by_the_bias(mech, dyn, clean):
     assert np.all(np.abs(shift[1:]) < 0.1 * bias), shift
 
 
-def test_sensor_noise_has_the_standard_deviation_given(mech, dyn, clean):
+def test_sensor_noise_has_the_standard_deviation_given(setup, mech, dyn, clean):
     sigma = 0.002
-    result = faulted(mech, 'sensor_noise:leg_3:%g@%g' % (sigma, START))
+    result = faulted(setup, 'sensor_noise:leg_3:%g@%g' % (sigma, START))
     assert_same_until(clean, result, K0)
     noise = result.measured[K0:, 2] - true_lengths(dyn, result)[K0:, 2]
     assert abs(np.std(noise) - sigma) < 0.1 * sigma and abs(np.mean(noise)) < 0.2 * sigma
-    again = faulted(mech, 'sensor_noise:leg_3:%g@%g' % (sigma, START))
+    again = faulted(setup, 'sensor_noise:leg_3:%g@%g' % (sigma, START))
     np.testing.assert_array_equal(again.measured, result.measured)      # seeded
 
 
-def test_sensor_dropout_reports_nan_and_the_last_force_holds(mech, dyn, clean):
+def test_sensor_dropout_reports_nan_and_the_last_force_holds(setup, mech, dyn, clean):
     k0, k1 = 500, 600
-    result = faulted(mech, 'sensor_dropout:leg_5@0.5-0.6')
+    result = faulted(setup, 'sensor_dropout:leg_5@0.5-0.6')
     assert_same_until(clean, result, k0)
     gone = result.measured[k0:k1]
     assert np.all(np.isnan(gone[:, [4, 10]]))
@@ -240,17 +240,17 @@ def test_sensor_dropout_reports_nan_and_the_last_force_holds(mech, dyn, clean):
     assert not np.array_equal(result.forces[k1], result.forces[k1 - 1])
 
 
-def test_sensor_delay_reports_the_readings_of_that_long_ago(mech, dyn, clean):
+def test_sensor_delay_reports_the_readings_of_that_long_ago(setup, mech, dyn, clean):
     k0, d = 50, 5        # 0.05 s, while the legs move; 5 ms = 5 samples
-    result = faulted(mech, 'sensor_delay:all:0.005@0.05')
+    result = faulted(setup, 'sensor_delay:all:0.005@0.05')
     assert_same_until(clean, result, k0)
     true = np.array([np.concatenate(dyn.lengths_and_rates(y)) for y in result.states])
     np.testing.assert_array_equal(result.measured[k0:], true[k0 - d:-d])
     assert not np.array_equal(result.states[-1], clean.states[-1])
 
 
-def test_actuator_dead_applies_no_force_and_the_platform_sags(mech, dyn, clean):
-    result = faulted(mech, 'actuator_dead:leg_4@%g' % START)
+def test_actuator_dead_applies_no_force_and_the_platform_sags(setup, mech, dyn, clean):
+    result = faulted(setup, 'actuator_dead:leg_4@%g' % START)
     assert_same_until(clean, result, K0)
     assert np.all(result.applied[K0:, 3] == 0.0) and np.all(result.forces[K0:, 3] > 0)
     np.testing.assert_array_equal(np.delete(result.applied, 3, axis=1),
@@ -259,32 +259,32 @@ def test_actuator_dead_applies_no_force_and_the_platform_sags(mech, dyn, clean):
     assert result.states[-1, POS][2] < clean.states[-1, POS][2] - 0.05, 'the platform sags'
 
 
-def test_actuator_weak_applies_the_fraction_and_the_leg_sags(mech, dyn, clean):
-    result = faulted(mech, 'actuator_weak:leg_6:0.5@%g' % START)
+def test_actuator_weak_applies_the_fraction_and_the_leg_sags(setup, mech, dyn, clean):
+    result = faulted(setup, 'actuator_weak:leg_6:0.5@%g' % START)
     assert_same_until(clean, result, K0)
     np.testing.assert_allclose(result.applied[K0:, 5], 0.5 * result.forces[K0:, 5], rtol=1e-12)
     assert true_lengths(dyn, result)[-1, 5] < true_lengths(dyn, clean)[-1, 5] - 0.005
 
 
-def test_actuator_stuck_holds_the_last_force(mech, dyn, clean):
+def test_actuator_stuck_holds_the_last_force(setup, mech, dyn, clean):
     k0 = 100             # 0.1 s: the forces still change
-    result = faulted(mech, 'actuator_stuck:leg_1@0.1')
+    result = faulted(setup, 'actuator_stuck:leg_1@0.1')
     assert_same_until(clean, result, k0)
     assert np.all(result.applied[k0:, 0] == clean.forces[k0 - 1, 0])
     assert np.ptp(result.forces[k0:, 0]) > 1.0, 'the controller commanded other forces'
     assert not np.array_equal(result.states[-1], clean.states[-1])
 
 
-def test_actuator_saturation_clips_the_forces_and_the_platform_sags(mech, dyn, clean):
-    result = faulted(mech, 'actuator_saturation:all:50@%g' % START)
+def test_actuator_saturation_clips_the_forces_and_the_platform_sags(setup, mech, dyn, clean):
+    result = faulted(setup, 'actuator_saturation:all:50@%g' % START)
     assert_same_until(clean, result, K0)
     assert np.all(np.abs(result.applied[K0:]) <= 50.0)
     np.testing.assert_array_equal(result.applied[K0:], np.clip(result.forces[K0:], -50, 50))
     assert result.states[-1, POS][2] < clean.states[-1, POS][2] - 0.05
 
 
-def test_a_fault_with_an_end_stops_acting_there(mech, dyn, clean):
-    result = faulted(mech, 'actuator_dead:leg_4@0.5-0.6')
+def test_a_fault_with_an_end_stops_acting_there(setup, mech, dyn, clean):
+    result = faulted(setup, 'actuator_dead:leg_4@0.5-0.6')
     assert np.all(result.applied[500:600, 3] == 0)
     np.testing.assert_array_equal(result.applied[600:, 3], result.forces[600:, 3])
     assert result.faults == [{
@@ -384,17 +384,17 @@ def test_sim_refuses_faults_with_continuous_control(tmp_path):
 DETECTOR = 'stewart63_ros.examples.fault_detector:CheckedPD'
 
 
-def test_the_example_detector_trips_on_a_stuck_sensor_only(mech):
+def test_the_example_detector_trips_on_a_stuck_sensor_only(setup, mech):
     from stewart63_ros.core.laws import Controller, LawError
-    clean = run_sampled(mech, DURATION, RATE, controller=Controller(mech, {}, law=DETECTOR),
+    clean = run_sampled(setup, DURATION, RATE, controller=Controller(setup, {}, law=DETECTOR),
                         faults=[])
-    pd = run_sampled(mech, DURATION, RATE)
+    pd = run_sampled(setup, DURATION, RATE)
     np.testing.assert_allclose(clean.states, pd.states, atol=1e-9)   # eq. (40) when healthy
     with pytest.raises(LawError, match='SensorFault: sensor fault on leg_2 at t = 0.1'):
-        run_sampled(mech, DURATION, RATE, controller=Controller(mech, {}, law=DETECTOR),
+        run_sampled(setup, DURATION, RATE, controller=Controller(setup, {}, law=DETECTOR),
                     faults=['sensor_stuck:leg_2@0.1'])
     # a dropout is refused before the law: the window restarts after the gap
-    run_sampled(mech, DURATION, RATE, controller=Controller(mech, {}, law=DETECTOR),
+    run_sampled(setup, DURATION, RATE, controller=Controller(setup, {}, law=DETECTOR),
                 faults=['sensor_dropout:leg_2@0.1-0.2'])
 
 

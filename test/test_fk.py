@@ -35,8 +35,11 @@ SIDES = [(0, 1), (1, 2), (2, 0)]
 
 
 @pytest.fixture(scope='module')
-def fk(default_mech):
-    return ForwardKinematics(default_mech)
+def fk(default_setup):
+    """The default machine's, its modes ordered by nearness to the task's start."""
+    task = default_setup.task
+    return ForwardKinematics(default_setup.mechanism,
+                             start=(task.initial_position, task.initial_rotation))
 
 
 def angle_between(ra, rb):
@@ -150,15 +153,15 @@ def test_fk_of_ik_returns_the_pose(default_mech, fk):
     assert worst_track < 1e-9
 
 
-def test_nearest_mode_to_the_initial_pose_is_the_setpoint_pose(default_mech, fk):
+def test_nearest_mode_to_the_initial_pose_is_the_setpoint_pose(default_setup, fk):
     """The paper's setpoint is a level pose ~7 cm above the start (config, docs/design.md)."""
-    modes = fk.all_modes(default_mech.setpoint_lengths)
+    modes = fk.all_modes(default_setup.task.setpoint_lengths)
     assert len(modes) == 8                        # 8 real assembly modes here
     best = modes[0]
     assert abs(best.position[2] - 1.0737) < 1e-3 and np.abs(best.position[:2]).max() < 1e-3
     assert angle_between(best.rotation, np.eye(3)) < 1e-3
-    np.testing.assert_allclose(leg_lengths(default_mech, best.position, best.rotation),
-                               default_mech.setpoint_lengths, atol=1e-14)
+    np.testing.assert_allclose(leg_lengths(default_setup.mechanism, best.position, best.rotation),
+                               default_setup.task.setpoint_lengths, atol=1e-14)
 
 
 # -- 2. every assembly mode, against brute force ---------------------------------
@@ -183,9 +186,9 @@ def test_modes_match_brute_force_on_random_mechanisms(default_mech, seed):
                                    atol=1e-12)
 
 
-def test_default_setpoint_modes_match_brute_force(default_mech, fk):
+def test_default_setpoint_modes_match_brute_force(default_setup, default_mech, fk):
     """A symmetric design: several modes share vertex 1 (a triple root in t1)."""
-    lengths = np.asarray(default_mech.setpoint_lengths)
+    lengths = np.asarray(default_setup.task.setpoint_lengths)
     brute, fewest_hits = brute_force_vertices(default_mech.base_points,
                                               default_mech.platform_points, lengths,
                                               np.random.default_rng(7))
@@ -234,10 +237,10 @@ def test_mirror_images_come_in_pairs(default_mech, fk):
 
 @pytest.mark.parametrize('pair', range(3))
 @pytest.mark.parametrize('kind', ['difference', 'sum'])
-def test_a_pair_that_cannot_meet_is_named(default_mech, fk, pair, kind):
+def test_a_pair_that_cannot_meet_is_named(default_setup, default_mech, fk, pair, kind):
     a, b = 2 * pair, 2 * pair + 1
     gap = np.linalg.norm(default_mech.base_points[b] - default_mech.base_points[a])
-    lengths = np.array(default_mech.setpoint_lengths, dtype=float)
+    lengths = np.array(default_setup.task.setpoint_lengths, dtype=float)
     if kind == 'difference':          # |La - Lb| > |ba - bb|
         lengths[a], lengths[b] = 0.1, 0.1 + gap * 1.01
     else:                             # La + Lb < |ba - bb|
@@ -359,28 +362,29 @@ def test_twist_from_leg_rates(default_mech, fk):
         np.testing.assert_allclose(np.r_[v2, w2], np.r_[v, w], atol=1e-12)
 
 
-def paper_trajectory(mech, duration=10.0, rate=1000.0):
+def paper_trajectory(setup, duration=10.0, rate=1000.0):
     """The paper's scenario (PD to the setpoint lengths, eq. 40), integrated by scipy."""
-    dyn = Dynamics(mech)
+    dyn = Dynamics(setup.mechanism)
 
     def rhs(_, y):
         legs = dyn.legs(y)
-        forces = np.clip(mech.kp * (mech.setpoint_lengths - legs.L) - mech.kv * legs.Ldot,
-                         -mech.max_force, mech.max_force)
+        forces = np.clip(setup.gains.kp * (setup.task.setpoint_lengths - legs.L)
+                         - setup.gains.kv * legs.Ldot,
+                         -setup.mechanism.max_force, setup.mechanism.max_force)
         return dyn.derivative(y, forces)
 
-    theta0 = np.asarray(mech.initial_orientation)
-    y0 = np.r_[mech.initial_position, rotation_mod.quaternion_from_euler(theta0),
-               mech.initial_velocity,
-               rotation_mod.euler_rate_matrix(theta0) @ mech.initial_orientation_rate]
+    theta0 = np.asarray(setup.task.initial_orientation)
+    y0 = np.r_[setup.task.initial_position, rotation_mod.quaternion_from_euler(theta0),
+               setup.task.initial_velocity,
+               rotation_mod.euler_rate_matrix(theta0) @ setup.task.initial_orientation_rate]
     sol = solve_ivp(rhs, (0.0, duration), y0, rtol=1e-8, atol=1e-10, dense_output=True)
     assert sol.success
     times = np.arange(int(round(duration * rate)) + 1) / rate
     return times, sol.sol(times).T
 
 
-def test_tracking_follows_the_paper_scenario(default_mech, fk):
-    times, states = paper_trajectory(default_mech)
+def test_tracking_follows_the_paper_scenario(default_setup, default_mech, fk):
+    times, states = paper_trajectory(default_setup)
     t = states[:, 0:3]
     rot = Rotation.from_quat(states[:, 3:7]).as_matrix()     # normalises
     v, w = states[:, 7:10], states[:, 10:13]
@@ -408,13 +412,14 @@ def test_tracking_follows_the_paper_scenario(default_mech, fk):
 
 # -- 6. the command line -------------------------------------------------------
 
-def test_cli_prints_the_nearest_pose(default_mech, capsys):
-    assert fk_solve.main(['--solve'] + ['%.17g' % v for v in default_mech.setpoint_lengths]) == 0
+def test_cli_prints_the_nearest_pose(default_setup, default_mech, capsys):
+    setpoint = default_setup.task.setpoint_lengths
+    assert fk_solve.main(['--solve'] + ['%.17g' % v for v in setpoint]) == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out) >= {'position', 'theta', 'quaternion', 'condition_number'}
     rot = rotation_from_euler(out['theta'])
     np.testing.assert_allclose(leg_lengths(default_mech, out['position'], rot),
-                               default_mech.setpoint_lengths, atol=1e-12)
+                               default_setup.task.setpoint_lengths, atol=1e-12)
     np.testing.assert_allclose(Rotation.from_quat(out['quaternion']).as_matrix(), rot, atol=1e-12)
     assert abs(out['position'][2] - 1.0737) < 1e-3
     assert out['condition_number'] == pytest.approx(

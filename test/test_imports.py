@@ -46,7 +46,7 @@ def modules() -> dict[str, Path]:
 
 #: Floor 0: the core's leaf modules.
 LEAVES = frozenset('stewart63_ros.core.' + m for m in (
-    '_jit', 'errors', 'legs', 'rotation', 'linalg', 'control', 'mechanism', 'faults',
+    '_jit', 'errors', 'legs', 'rotation', 'linalg', 'control', 'mechanism', 'setup', 'faults',
     'node_names', 'node_parameters', 'stamps', 'trajectory'))
 FLOOR_NAMES = ('core leaf', 'core', 'runtime', 'recording', 'nodes', 'tools')
 

@@ -12,7 +12,7 @@ from scipy.integrate import solve_ivp
 
 from stewart63_ros.core.dynamics import QUAT, Dynamics
 from stewart63_ros.core.laws import PDController
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.params import load_mechanism, load_setup
 from stewart63_ros.core.simulate import (
     initial_state,
     run_continuous,
@@ -69,11 +69,11 @@ def blas_agrees_with_numpy():
     return all(np.array_equal(x, y) for x, y in zip(products(K, a, P), expected))
 
 
-def test_compiled_rk45_reproduces_scipy_solve_ivp(mech, dyn):
+def test_compiled_rk45_reproduces_scipy_solve_ivp(setup, mech, dyn):
     t_eval = np.arange(int(DURATION * OUTPUT_RATE) + 1) / OUTPUT_RATE
-    ref, ref_nfev = scipy_reference(dyn, PDController(mech), initial_state(mech), t_eval,
+    ref, ref_nfev = scipy_reference(dyn, PDController(setup), initial_state(setup.task), t_eval,
                                     RTOL, ATOL)
-    result = run_continuous(mech, DURATION, OUTPUT_RATE, dyn=dyn, rtol=RTOL, atol=ATOL)
+    result = run_continuous(setup, DURATION, OUTPUT_RATE, dyn=dyn, rtol=RTOL, atol=ATOL)
     np.testing.assert_array_equal(result.times, t_eval)
     diff = np.abs(result.states - ref).max()
     exact = blas_agrees_with_numpy()
@@ -90,11 +90,11 @@ def test_compiled_rk45_reproduces_scipy_solve_ivp(mech, dyn):
         assert abs(result.rhs_evaluations - ref_nfev) <= 0.1 * ref_nfev
 
 
-def test_compiled_rk45_meets_its_tolerance(mech, dyn):
+def test_compiled_rk45_meets_its_tolerance(setup, mech, dyn):
     t_eval = np.arange(int(DURATION * OUTPUT_RATE) + 1) / OUTPUT_RATE
-    tight, _ = scipy_reference(dyn, PDController(mech), initial_state(mech), t_eval,
+    tight, _ = scipy_reference(dyn, PDController(setup), initial_state(setup.task), t_eval,
                                1e-11, 1e-13)
-    result = run_continuous(mech, DURATION, OUTPUT_RATE, dyn=dyn, rtol=RTOL, atol=ATOL)
+    result = run_continuous(setup, DURATION, OUTPUT_RATE, dyn=dyn, rtol=RTOL, atol=ATOL)
     err = np.abs(result.states - tight)
     peak = np.abs(tight).max(axis=0)
     print('\ncompiled RK45 (rtol %g) vs rtol 1e-11: max error / peak of each state %.3g'
@@ -102,10 +102,10 @@ def test_compiled_rk45_meets_its_tolerance(mech, dyn):
     assert np.all(err <= RTOL * peak + ATOL)
 
 
-def test_continuous_output_forces_and_end_stop_samples(mech, dyn):
+def test_continuous_output_forces_and_end_stop_samples(setup, mech, dyn):
     """Forces are eq. (40) at each output state; end-stop samples are counted."""
-    law = PDController(mech, setpoint=PAST_STROKE)
-    result = run_continuous(mech, 2.0, OUTPUT_RATE, controller=law, dyn=dyn)
+    law = PDController(setup, setpoint=PAST_STROKE)
+    result = run_continuous(setup, 2.0, OUTPUT_RATE, controller=law, dyn=dyn)
     contact = 0
     for y, force in zip(result.states, result.forces):
         lengths, rates = sensor_reading(dyn, y)
@@ -114,21 +114,21 @@ def test_continuous_output_forces_and_end_stop_samples(mech, dyn):
         np.testing.assert_allclose(force, law(lengths, rates), rtol=0, atol=1e-9)
     assert contact > 0
     assert result.endstop_samples == contact
-    reference = run_continuous(mech, 2.0, OUTPUT_RATE, controller=law, dyn=dyn,
+    reference = run_continuous(setup, 2.0, OUTPUT_RATE, controller=law, dyn=dyn,
                                integrator='scipy')
     assert abs(reference.endstop_samples - contact) <= 1
 
 
 @pytest.mark.parametrize('rate, setpoint', [(1000.0, None), (100.0, None),
                                             (1000.0, PAST_STROKE)])
-def test_sampled_loop_is_the_plant_to_the_bit(mech, dyn, rate, setpoint):
+def test_sampled_loop_is_the_plant_to_the_bit(setup, mech, dyn, rate, setpoint):
     """run_sampled computes what the plant node computes: Dynamics.step per sample."""
     duration = 2.0
-    law = PDController(mech, setpoint=setpoint)
-    result = run_sampled(mech, duration, rate, controller=law, dyn=dyn)
+    law = PDController(setup, setpoint=setpoint)
+    result = run_sampled(setup, duration, rate, controller=law, dyn=dyn)
     period = 1.0 / rate
     substeps = substeps_for(period)
-    y = initial_state(mech)
+    y = initial_state(setup.task)
     contact = 0
     for k in range(int(round(duration * rate)) + 1):
         lengths, rates = dyn.lengths_and_rates(y)
@@ -143,27 +143,27 @@ def test_sampled_loop_is_the_plant_to_the_bit(mech, dyn, rate, setpoint):
 
 
 @pytest.mark.parametrize('integrator', ['compiled', 'scipy'])
-def test_non_finite_initial_state_is_refused(mech, integrator):
-    y0 = initial_state(mech)
+def test_non_finite_initial_state_is_refused(setup, mech, integrator):
+    y0 = initial_state(setup.task)
     y0[0] = np.nan
     with pytest.raises(ValueError, match='finite'):
-        run_continuous(mech, 1.0, y0=y0, integrator=integrator)
-    y0 = initial_state(mech)
+        run_continuous(setup, 1.0, y0=y0, integrator=integrator)
+    y0 = initial_state(setup.task)
     y0[7] = 1e200   # finite, but its derivative is not
     with pytest.raises(RuntimeError, match='non-finite'):
-        run_continuous(mech, 1.0, y0=y0, integrator=integrator)
+        run_continuous(setup, 1.0, y0=y0, integrator=integrator)
 
 
 def test_non_finite_derivative_mid_run_and_step_bound_fail_cleanly():
     # An infinitely stiff end stop: the derivative turns infinite when a leg
     # reaches its stroke limit, some way into the run.
-    mech = load_mechanism(overrides={'endstop_stiffness': float('inf')})
-    law = PDController(mech, setpoint=PAST_STROKE)
+    setup = load_setup(overrides={'endstop_stiffness': float('inf')})
+    law = PDController(setup, setpoint=PAST_STROKE)
     with pytest.raises(RuntimeError, match='non-finite|max_steps'):
-        run_continuous(mech, 2.0, controller=law, max_steps=20000)
+        run_continuous(setup, 2.0, controller=law, max_steps=20000)
     # The bound on step attempts holds on a sound problem too.
     with pytest.raises(RuntimeError, match='max_steps = 50 '):
-        run_continuous(load_mechanism(), DURATION, max_steps=50)
+        run_continuous(load_setup(), DURATION, max_steps=50)
 
 
 def test_the_step_control_constants_are_scipys():

@@ -233,7 +233,7 @@ def test_every_topic_is_documented(spans):
                    spans) == [], 'topics not in docs/interface.md'
 
 
-def test_every_executable_is_documented(spans):
+def test_every_executable_is_documented(setup, spans):
     assert missing({name: 'setup.py' for name in console_scripts()}, spans) == [], \
         'console scripts not in docs/interface.md'
 
@@ -252,7 +252,7 @@ def test_every_diagnostics_key_is_documented(spans):
         'diagnostics keys not in docs/interface.md'
 
 
-def test_no_reference_to_documents_a_user_does_not_have():
+def test_no_reference_to_documents_a_user_does_not_have(setup):
     # Built so that this file does not match itself.
     pattern = re.compile('|'.join(['CONTR' + 'ACT', 'FA' + 'CTS', r'[Ii]ssue\s+#?[0-9]']))
     places = [ROOT / 'README.md', ROOT / 'Makefile', ROOT / 'setup.py', ROOT / 'package.xml']

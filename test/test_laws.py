@@ -41,7 +41,7 @@ from stewart63_ros.core.simulate import initial_state, run_continuous, run_sampl
 RATE = 1000.0
 
 
-def six_axis_reference(mech, duration=6.0, step=0.01):
+def six_axis_reference(setup, duration=6.0, step=0.01):
     """Sinusoids of 2-4 cm and 2-4 deg at 0.3-1 Hz about the initial pose,
     ramped in over 1 s (quintic smoothstep)."""
     t = np.arange(0.0, duration + 1e-9, step)
@@ -49,30 +49,30 @@ def six_axis_reference(mech, duration=6.0, step=0.01):
     ramp = ramp ** 3 * (10 - 15 * ramp + 6 * ramp ** 2)
     amp = np.array([0.03, 0.02, 0.04, np.radians(3), np.radians(2), np.radians(4)])
     freq = np.array([0.5, 0.7, 0.3, 0.6, 0.8, 1.0])
-    centre = np.concatenate([mech.initial_position, mech.initial_orientation])
+    centre = np.concatenate([setup.task.initial_position, setup.task.initial_orientation])
     return t, centre + ramp[:, None] * amp * np.sin(2 * np.pi * freq * t[:, None])
 
 
 # -- pd and pd_gravity on the paper's scenario ------------------------------------------------
-def test_pd_through_the_law_interface_is_eq40_to_the_bit(mech, dyn):
-    plain = run_sampled(mech, 0.5, RATE, dyn=dyn)               # the compiled fast path
-    law = run_sampled(mech, 0.5, RATE, dyn=dyn, controller=Controller(mech, law='pd'))
+def test_pd_through_the_law_interface_is_eq40_to_the_bit(setup, mech, dyn):
+    plain = run_sampled(setup, 0.5, RATE, dyn=dyn)               # the compiled fast path
+    law = run_sampled(setup, 0.5, RATE, dyn=dyn, controller=Controller(setup, law='pd'))
     assert np.array_equal(plain.forces, law.forces)
     assert np.array_equal(plain.states, law.states)
 
 
-def test_one_fast_path_for_eq40_gives_the_general_paths_numbers(mech, dyn):
+def test_one_fast_path_for_eq40_gives_the_general_paths_numbers(setup, mech, dyn):
     """The controller node, sim and sweep take one fast path for the built-in pd
     law towards fixed lengths (``pd_gains``); it answers what the law itself
     answers through a reference sample, to the bit, saturated or not, and a
     gain changed at run time reaches it at once."""
-    ctl = Controller(mech, law='pd')
+    ctl = Controller(setup, law='pd')
     gains = ctl.pd_gains()
-    assert gains is not None and np.array_equal(gains.setpoint, mech.setpoint_lengths)
+    assert gains is not None and np.array_equal(gains.setpoint, setup.task.setpoint_lengths)
     rng = np.random.default_rng(3)
     sample = ctl.sample
     for scale in (1e-3, 1.0):           # inside the saturation, and far beyond it
-        lengths = mech.setpoint_lengths + scale * rng.normal(size=6)
+        lengths = setup.task.setpoint_lengths + scale * rng.normal(size=6)
         rates = scale * rng.normal(size=6)
         fast = ctl.forces(0.1, lengths, rates)
         assert np.array_equal(fast, ctl.law(0.1, lengths, rates, sample))
@@ -80,29 +80,29 @@ def test_one_fast_path_for_eq40_gives_the_general_paths_numbers(mech, dyn):
     ctl.set_parameter('kp', [1000.0] * 6)
     assert np.array_equal(ctl.pd_gains().kp, [1000.0] * 6)
     # run_sampled: the compiled loop for it, the python loop its numbers
-    compiled = run_sampled(mech, 0.05, RATE, dyn=dyn, controller=ctl)
-    python = run_sampled(mech, 0.05, RATE, dyn=dyn, controller=ctl, loop='python')
+    compiled = run_sampled(setup, 0.05, RATE, dyn=dyn, controller=ctl)
+    python = run_sampled(setup, 0.05, RATE, dyn=dyn, controller=ctl, loop='python')
     assert np.array_equal(compiled.forces, python.forces)
-    assert not np.array_equal(compiled.forces, run_sampled(mech, 0.05, RATE, dyn=dyn).forces)
+    assert not np.array_equal(compiled.forces, run_sampled(setup, 0.05, RATE, dyn=dyn).forces)
     # any other law, or a moving reference: no fast path
-    t, poses = six_axis_reference(mech, 1.0)
+    t, poses = six_axis_reference(setup, 1.0)
     moving = Reference.from_poses(mech, t, poses)
-    assert Controller(mech, law='pd', reference=moving).pd_gains() is None
-    assert Controller(mech, law='pd_gravity').pd_gains() is None
+    assert Controller(setup, law='pd', reference=moving).pd_gains() is None
+    assert Controller(setup, law='pd_gravity').pd_gains() is None
     ctl.law = lambda t, L, Ld, ref: np.zeros(6)        # a law swapped in by hand
     assert ctl.pd_gains() is None and np.array_equal(ctl.forces(0.2, lengths, rates),
                                                      np.zeros(6))
 
 
 @pytest.mark.parametrize('control', ['continuous', 'sampled'])
-def test_pd_gravity_removes_the_static_sag(mech, dyn, control):
+def test_pd_gravity_removes_the_static_sag(setup, mech, dyn, control):
     errors = {}
     for name in ('pd', 'pd_gravity'):
         if control == 'sampled':
-            result = run_sampled(mech, 10.0, RATE, dyn=dyn, controller=Controller(mech, law=name))
+            result = run_sampled(setup, 10.0, RATE, dyn=dyn, controller=Controller(setup, law=name))
         else:
-            result = run_continuous(mech, 10.0, dyn=dyn, controller=Controller(mech, law=name))
-        errors[name] = result.final_leg_error_percent(dyn, mech.setpoint_lengths).max()
+            result = run_continuous(setup, 10.0, dyn=dyn, controller=Controller(setup, law=name))
+        errors[name] = result.final_leg_error_percent(dyn, setup.task.setpoint_lengths).max()
     print('\n%s: final positioning error pd %.4f %%, pd_gravity %.3g %%'
           % (control, errors['pd'], errors['pd_gravity']))
     assert 0.9 < errors['pd'] < 1.0
@@ -116,16 +116,16 @@ def potential(dyn, position, rotation):
     return dyn.energy(y)[1]
 
 
-def test_holding_forces_equal_the_virtual_work_answer(mech, dyn):
+def test_holding_forces_equal_the_virtual_work_answer(setup, mech, dyn):
     """At a static pose, J^T F = dV/dx (x: position and a base-frame rotation
     vector): the pistons' work balances the change of potential energy of
     platform and legs, which ``Dynamics.energy`` computes independently."""
-    law = PDGravityLaw(mech, {})
+    law = PDGravityLaw(mech, setup.to_params())
     rng = np.random.default_rng(3)
     worst = 0.0
     for _ in range(5):
-        position = mech.initial_position + rng.uniform(-0.05, 0.05, 3)
-        rotation = rotation_from_euler(mech.initial_orientation + rng.uniform(-0.1, 0.1, 3))
+        position = setup.task.initial_position + rng.uniform(-0.05, 0.05, 3)
+        rotation = rotation_from_euler(setup.task.initial_orientation + rng.uniform(-0.1, 0.1, 3))
         forces = law.holding_forces(position, rotation)
         grad = np.empty(6)
         h = 1e-6
@@ -146,13 +146,13 @@ def test_holding_forces_equal_the_virtual_work_answer(mech, dyn):
 
 
 # -- computed torque ----------------------------------------------------------------------------
-def test_computed_torque_tracks_a_six_axis_reference(mech, dyn):
-    ref = Reference.from_poses(mech, *six_axis_reference(mech))
+def test_computed_torque_tracks_a_six_axis_reference(setup, mech, dyn):
+    ref = Reference.from_poses(mech, *six_axis_reference(setup))
     ref.check()
     errors = {}
     for name in ('pd', 'pd_gravity', 'computed_torque'):
-        result = run_sampled(mech, 5.0, RATE, dyn=dyn,
-                             controller=Controller(mech, law=name, reference=ref))
+        result = run_sampled(setup, 5.0, RATE, dyn=dyn,
+                             controller=Controller(setup, law=name, reference=ref))
         errors[name] = tracking_errors(mech, ref, result.times, result.states, after=2.0)
         e = errors[name]
         print('\n%-16s after 2 s: position max %.3e m RMS %.3e m, orientation max %.3e rad '
@@ -178,11 +178,11 @@ def second_order(e0, kp, kd, t):
 
 
 @pytest.mark.parametrize('kp,kd', [(2500.0, 100.0), (400.0, 8.0)])
-def test_computed_torque_error_decays_as_its_second_order_system(mech, dyn, kp, kd):
+def test_computed_torque_error_decays_as_its_second_order_system(setup, mech, dyn, kp, kd):
     """Hold a pose; start 5 mm and 5 mrad away, at rest. With the exact model the
     error of every axis is e'' + Kd e' + Kp e = 0 (natural frequency sqrt(Kp),
     damping Kd / 2 sqrt(Kp)); 1 kHz sampling adds a small phase lag."""
-    target = mech.initial_position, rotation_from_euler(mech.initial_orientation)
+    target = setup.task.initial_position, rotation_from_euler(setup.task.initial_orientation)
     ref = Reference.constant_pose(mech, *target)
     offset = np.array([0.005, -0.004, 0.003, 0.005, -0.003, 0.004])
     y0 = np.zeros(13)
@@ -190,8 +190,8 @@ def test_computed_torque_error_decays_as_its_second_order_system(mech, dyn, kp, 
     y0[QUAT] = (Rotation.from_rotvec(-offset[3:]) * Rotation.from_matrix(target[1])).as_quat()
     params = {'ct_kp': [kp] * 6, 'ct_kd': [kd] * 6}
     duration = 1.0 if kp > 1000 else 2.0
-    result = run_sampled(mech, duration, RATE, dyn=dyn, y0=y0,
-                         controller=Controller(mech, params, law='computed_torque',
+    result = run_sampled(setup, duration, RATE, dyn=dyn, y0=y0,
+                         controller=Controller(setup, params, law='computed_torque',
                                                reference=ref))
     err_pos = target[0] - result.states[:, POS]
     err_rot = (Rotation.from_matrix(target[1])
@@ -215,8 +215,8 @@ def test_computed_torque_error_decays_as_its_second_order_system(mech, dyn, kp, 
 
 
 # -- reference motions --------------------------------------------------------------------------
-def test_reference_derivatives_and_inverse_kinematics(mech):
-    t, poses = six_axis_reference(mech, duration=3.0, step=0.05)
+def test_reference_derivatives_and_inverse_kinematics(setup, mech):
+    t, poses = six_axis_reference(setup, duration=3.0, step=0.05)
     ref = Reference.from_poses(mech, t, poses)
     times = np.linspace(0.3123, 2.7123, 7)     # off the knots (every 0.05 s)
     h = 1e-5
@@ -243,9 +243,9 @@ def test_reference_derivatives_and_inverse_kinematics(mech):
         assert not np.any(s[12:24])
 
 
-def test_reference_outside_the_stroke_is_refused_with_time_and_leg(mech, tmp_path):
+def test_reference_outside_the_stroke_is_refused_with_time_and_leg(setup, mech, tmp_path):
     t = np.array([0.0, 1.0, 2.0, 3.0])
-    centre = np.concatenate([mech.initial_position, mech.initial_orientation])
+    centre = np.concatenate([setup.task.initial_position, setup.task.initial_orientation])
     poses = np.repeat(centre[None], 4, axis=0)
     poses[2, 2] += 0.9                         # 0.9 m up at t = 2 s: legs overstretched
     path = tmp_path / 'ref.csv'
@@ -280,27 +280,27 @@ def test_bad_reference_files_are_refused(mech, tmp_path, text, problem):
 
 
 # -- the interface: user laws, failures, gains --------------------------------------------------
-def test_user_law_example_equals_pd_with_the_same_gains(mech, dyn):
-    ref = Reference.from_poses(mech, *six_axis_reference(mech, duration=1.0))
-    pd = run_sampled(mech, 0.3, RATE, dyn=dyn, controller=Controller(mech, law='pd',
+def test_user_law_example_equals_pd_with_the_same_gains(setup, mech, dyn):
+    ref = Reference.from_poses(mech, *six_axis_reference(setup, duration=1.0))
+    pd = run_sampled(setup, 0.3, RATE, dyn=dyn, controller=Controller(setup, law='pd',
                                                                      reference=ref))
-    user = Controller(mech, {'legpd_kp': mech.kp, 'legpd_kv': mech.kv},
+    user = Controller(setup, {'legpd_kp': setup.gains.kp, 'legpd_kv': setup.gains.kv},
                       law='stewart63_ros.examples.my_law:LegPD', reference=ref)
-    mine = run_sampled(mech, 0.3, RATE, dyn=dyn, controller=user)
+    mine = run_sampled(setup, 0.3, RATE, dyn=dyn, controller=user)
     assert np.allclose(mine.forces, pd.forces, rtol=0, atol=1e-9)
     user.set_parameter('legpd_kp', [1.0] * 6)
     with pytest.raises(ParameterError):
         user.set_parameter('legpd_kp', [1.0] * 5)
 
 
-def test_a_failing_law_raises_law_error(mech, dyn):
-    y = initial_state(mech)
+def test_a_failing_law_raises_law_error(setup, mech, dyn):
+    y = initial_state(setup.task)
     lengths, rates = dyn.lengths_and_rates(y)
-    failing = Controller(mech, {'failing_after': 0.5}, law='stewart63_ros.examples.my_law:Failing')
+    failing = Controller(setup, {'failing_after': 0.5}, law='stewart63_ros.examples.my_law:Failing')
     assert np.all(np.isfinite(failing(lengths, rates, 0.0)))
     with pytest.raises(LawError, match='fails on purpose'):
         failing(lengths, rates, 0.6)
-    nan = Controller(mech, law='pd')
+    nan = Controller(setup, law='pd')
     nan.law = lambda t, L, Ld, ref: np.full(6, np.nan)
     with pytest.raises(LawError, match='six finite'):
         nan(lengths, rates, 0.0)
@@ -309,44 +309,44 @@ def test_a_failing_law_raises_law_error(mech, dyn):
 @pytest.mark.parametrize('name,value', [
     ('kp', [np.nan] * 6), ('kp', [1.0] * 5), ('kv', [-1.0] + [1.0] * 5),
     ('ct_kp', [1.0] * 7), ('ct_kd', [-2.0] * 6)])
-def test_bad_gains_are_refused_and_change_nothing(mech, dyn, name, value):
-    y = initial_state(mech)
+def test_bad_gains_are_refused_and_change_nothing(setup, mech, dyn, name, value):
+    y = initial_state(setup.task)
     lengths, rates = dyn.lengths_and_rates(y)
     for law in ('pd', 'computed_torque'):
-        ctl = Controller(mech, law=law)
+        ctl = Controller(setup, law=law)
         before = ctl(lengths, rates, 0.0)
         with pytest.raises(ParameterError):
             ctl.set_parameter(name, value)
         assert np.array_equal(ctl(lengths, rates, 0.0), before)
 
 
-def test_unknown_law_is_refused(mech):
+def test_unknown_law_is_refused(setup, mech):
     for name in ('nope', 'no_such_module:Law', 'stewart63_ros.examples.my_law:Nope', ''):
         with pytest.raises(ParameterError, match='control_law'):
-            Controller(mech, law=name)
+            Controller(setup, law=name)
 
 
-def test_a_new_gain_takes_effect_at_the_next_force(mech, dyn):
-    y = initial_state(mech)
+def test_a_new_gain_takes_effect_at_the_next_force(setup, mech, dyn):
+    y = initial_state(setup.task)
     lengths, rates = dyn.lengths_and_rates(y)
-    ctl = Controller(mech, law='pd')
+    ctl = Controller(setup, law='pd')
     ctl.set_parameter('kp', [1000.0] * 6)
-    expected = 1000.0 * (mech.setpoint_lengths - lengths) - mech.kv * rates
+    expected = 1000.0 * (setup.task.setpoint_lengths - lengths) - setup.gains.kv * rates
     assert np.allclose(ctl(lengths, rates, 0.0), np.clip(expected, -3000, 3000), atol=1e-9)
 
 
-def test_quaternion_helper_consistency(mech):
-    q = quaternion_from_euler(mech.initial_orientation)
+def test_quaternion_helper_consistency(setup, mech):
+    q = quaternion_from_euler(setup.task.initial_orientation)
     assert np.allclose(Rotation.from_quat(q).as_matrix(),
-                       rotation_from_euler(mech.initial_orientation))
+                       rotation_from_euler(setup.task.initial_orientation))
 
 
 # -- sim and plot ---------------------------------------------------------------------------------
 @pytest.mark.slow      # sim and plot end to end: a run, two CSVs and a figure
-def test_sim_follows_a_reference_and_plot_draws_it(mech, tmp_path, capsys):
+def test_sim_follows_a_reference_and_plot_draws_it(setup, mech, tmp_path, capsys):
     from stewart63_ros.tools import plot, sim
     ref_csv = tmp_path / 'ref.csv'
-    write_reference_csv(ref_csv, *six_axis_reference(mech, duration=3.0))
+    write_reference_csv(ref_csv, *six_axis_reference(setup, duration=3.0))
     out = tmp_path / 'out'
     assert sim.main(['--duration', '2', '--out', str(out), '--control', 'sampled',
                      '--control-law', 'computed_torque', '--reference', str(ref_csv)]) == 0
@@ -359,10 +359,10 @@ def test_sim_follows_a_reference_and_plot_draws_it(mech, tmp_path, capsys):
     assert (tmp_path / 'fig.png').stat().st_size > 10000
 
 
-def test_sim_refuses_a_bad_reference_in_one_line(mech, tmp_path, capsys):
+def test_sim_refuses_a_bad_reference_in_one_line(setup, mech, tmp_path, capsys):
     from stewart63_ros.tools import sim
     ref_csv = tmp_path / 'ref.csv'
-    centre = np.concatenate([mech.initial_position, mech.initial_orientation])
+    centre = np.concatenate([setup.task.initial_position, setup.task.initial_orientation])
     write_reference_csv(ref_csv, [0.0, 1.0], [centre, centre + [0, 0, 2.0, 0, 0, 0]])
     assert sim.main(['--duration', '1', '--out', str(tmp_path / 'o'),
                      '--reference', str(ref_csv)]) == 2

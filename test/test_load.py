@@ -145,7 +145,7 @@ def run_lockstep(ros, monkeypatch, tmp_path, during=None, duration=DURATION):
     return bag, rig.summary(), rig.summary('fk'), logs
 
 
-def assert_whole_and_equal_to_the_offline_run(bag, summary, fk, mech, logs):
+def assert_whole_and_equal_to_the_offline_run(bag, summary, fk, setup, logs):
     duration = summary['sim_time_s']
     n = int(round(duration * RATE)) + 1
     assert summary['samples'] == n, summary
@@ -158,10 +158,10 @@ def assert_whole_and_equal_to_the_offline_run(bag, summary, fk, mech, logs):
     assert not fk.get('skipped'), fk
     counts = assert_every_published_message_is_in_the_bag(bag, summary)
     assert counts['platform_pose'] == n, counts
-    ref = run_sampled(mech, duration, RATE)
+    ref = run_sampled(setup, duration, RATE)
     lengths, n_lengths = by_stamp(bag, 'leg_lengths')
     assert n_lengths == n
-    dyn = Dynamics(mech)
+    dyn = Dynamics(setup.mechanism)
     worst = max(float(np.max(np.abs(np.asarray(lengths[k * 1_000_000].position)
                                     - sensor_reading(dyn, ref.states[k])[0])))
                 for k in range(0, n, 97))

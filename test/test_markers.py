@@ -55,8 +55,8 @@ def test_legs_end_at_the_platform_vertices(mech):
     assert len(shapes) >= 8
 
 
-def test_longer_measured_length_moves_the_tip_along_the_leg(mech):
-    t, rot = np.asarray(mech.initial_position), np.eye(3)
+def test_longer_measured_length_moves_the_tip_along_the_leg(setup, mech):
+    t, rot = np.asarray(setup.task.initial_position), np.eye(3)
     scene = M.Scene(mech)
     base, s, tip = scene.legs(t, rot)
     lengths = np.linalg.norm(tip - base, axis=1)
@@ -65,8 +65,8 @@ def test_longer_measured_length_moves_the_tip_along_the_leg(mech):
     assert np.allclose(shapes[('piston', 2)].points[1], tip[2] + 0.1 * s[2])
 
 
-def test_colours_follow_force_endstop_and_saturation(mech):
-    t, rot = np.asarray(mech.initial_position), np.eye(3)
+def test_colours_follow_force_endstop_and_saturation(setup, mech):
+    t, rot = np.asarray(setup.task.initial_position), np.eye(3)
     scene = M.Scene(mech)
     _, _, tip = scene.legs(t, rot)
     lengths = np.linalg.norm(tip - mech.base_points, axis=1)
@@ -112,7 +112,7 @@ def test_flat_equals_the_shapes(mech):
         assert np.array_equal(a4, b4)
 
 
-def test_serialized_template_equals_the_message_built_field_by_field(mech):
+def test_serialized_template_equals_the_message_built_field_by_field(setup, mech):
     """The bytes the fk node publishes decode to the MarkerArray that rclpy
     builds from the same shapes field by field, however many templates the
     process made before (the serializer's padding holds earlier bytes)."""
@@ -122,7 +122,7 @@ def test_serialized_template_equals_the_message_built_field_by_field(mech):
     from stewart63_ros.nodes.markers import MarkerArrayBuilder, MarkerTemplate
     scene = M.Scene(mech)
     for _ in range(100):      # one in 14 templates failed while lone sentinels were searched
-        template = MarkerTemplate(scene.shapes(mech.initial_position, np.eye(3)))
+        template = MarkerTemplate(scene.shapes(setup.task.initial_position, np.eye(3)))
     rot = Rotation.from_euler('xyz', [0.02, 0.04, -0.1]).as_matrix()
     t = np.array([0.03, 0.0, 1.1])
     shapes = scene.shapes(t, rot, None, np.array([100.0, -200, 3000, 0, 0, 5]), (t, rot))

@@ -36,10 +36,10 @@ from stewart63_ros.mujoco_model import MujocoPlatform, Settings, build_xml  # no
 pytestmark = pytest.mark.slow      # seconds of simulation at tight tolerances, twice
 
 
-def _ours(mech, duration):
+def _ours(setup, duration):
     """Our core, continuous PD (as MuJoCo's actuators are), tight tolerances."""
-    dyn = Dynamics(mech)
-    res = run_continuous(mech, duration, dyn=dyn, rtol=1e-11, atol=1e-13)
+    dyn = Dynamics(setup.mechanism)
+    res = run_continuous(setup, duration, dyn=dyn, rtol=1e-11, atol=1e-13)
     lengths = np.array([dyn.lengths_and_rates(y)[0] for y in res.states])
     return lengths, res.states[:, POS], res.states[:, QUAT]
 
@@ -50,11 +50,11 @@ def _angle(q1, q2):
     return (Rotation.from_quat(q1).inv() * Rotation.from_quat(q2)).magnitude()
 
 
-def _gaps(mech, duration, timesteps):
-    lengths, positions, quats = _ours(mech, duration)
+def _gaps(setup, duration, timesteps):
+    lengths, positions, quats = _ours(setup, duration)
     out = []
     for dt in timesteps:
-        _, L, pos, q, violation = MujocoPlatform(mech, Settings(timestep=dt)).run(duration)
+        _, L, pos, q, violation = MujocoPlatform(setup, Settings(timestep=dt)).run(duration)
         out.append({'L': L, 'pos': pos, 'q': q, 'violation': violation,
                     'gap_L': np.abs(L - lengths).max(),
                     'gap_pos': np.abs(pos - positions).max(),
@@ -74,8 +74,8 @@ def _assert_within_convergence(coarse, fine):
     assert fine['gap_L'] < 0.5 * coarse['gap_L'], (coarse['gap_L'], fine['gap_L'])
 
 
-def test_paper_scenario_agrees_with_mujoco_within_its_convergence(default_mech):
-    coarse, fine = _gaps(default_mech, 10.0, (1e-3, 5e-4))
+def test_paper_scenario_agrees_with_mujoco_within_its_convergence(default_setup):
+    coarse, fine = _gaps(default_setup, 10.0, (1e-3, 5e-4))
     _assert_within_convergence(coarse, fine)
     # The figure docs/design.md states: 1.0e-8 m at 0.5 ms.
     assert fine['gap_L'] < 1e-7 and fine['gap_pos'] < 1e-7 and fine['gap_rot'] < 1e-7
@@ -83,27 +83,27 @@ def test_paper_scenario_agrees_with_mujoco_within_its_convergence(default_mech):
     assert fine['violation'] < 1e-7
 
 
-def test_a_lopsided_mechanism_agrees_too(default_mech):
+def test_a_lopsided_mechanism_agrees_too(setup):
     """Centre of mass off the origin, a full inertia tensor with products of
     inertia, heavier legs, other dampings and gravity off the axis: terms the
     default mechanism leaves at zero."""
-    mech = default_mech.replace(
+    setup = setup.replace(
         platform_com=[0.03, -0.02, 0.05],
         platform_inertia=[1.1, 0.9, 1.7, 0.05, -0.03, 0.02],
         leg_lower_mass=3.0, leg_upper_mass=1.5, leg_lower_com=0.4, leg_upper_com=0.3,
         leg_lower_inertia=[0.002, 0.15], leg_upper_inertia=[0.0005, 0.06],
         piston_damping=80.0, ujoint_damping=2.0, gravity=[0.3, -0.2, -9.81])
-    coarse, fine = _gaps(mech, 3.0, (1e-3, 5e-4))
+    coarse, fine = _gaps(setup, 3.0, (1e-3, 5e-4))
     _assert_within_convergence(coarse, fine)
     assert fine['gap_L'] < 1e-7
 
 
-def test_mujoco_model_is_built_from_the_parameter_file(default_mech):
+def test_mujoco_model_is_built_from_the_parameter_file(setup):
     """The MJCF carries the file's masses, inertia, damping, gains and limits."""
     import mujoco
-    mech = default_mech.replace(platform_mass=17.5, piston_damping=42.0,
-                                kp=[3000.0] * 6, max_force=2500.0)
-    model = mujoco.MjModel.from_xml_string(build_xml(mech))
+    setup = setup.replace(platform_mass=17.5, piston_damping=42.0,
+                          kp=[3000.0] * 6, max_force=2500.0)
+    model = mujoco.MjModel.from_xml_string(build_xml(setup))
     platform = model.body('platform')
     assert platform.mass[0] == pytest.approx(17.5)
     assert model.dof_damping[model.joint('slide_3').dofadr[0]] == pytest.approx(42.0)

@@ -30,7 +30,7 @@ from ros_harness import PYTHON, REPO, RosTest, lease_domain_id, wait_matched, wa
 
 from stewart63_ros.core.control import pd_forces
 from stewart63_ros.core.kinematics import LegState, leg_lengths
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.params import load_mechanism, load_setup
 from stewart63_ros.core.rotation import (
     euler_rate_matrix,
     quaternion_from_euler,
@@ -90,8 +90,9 @@ class Trajectory:
 
     def __init__(self, mech):
         self.mech = mech
-        self.p0 = np.array(mech.initial_position, float)
-        self.th0 = np.array(mech.initial_orientation, float)
+        task = load_setup(PARAMS).task
+        self.p0 = np.array(task.initial_position, float)
+        self.th0 = np.array(task.initial_orientation, float)
 
     def pose(self, t):
         w, g = 2 * np.pi * self.F, 2 * np.pi * self.G
@@ -117,7 +118,7 @@ class Rig:
 
         from stewart63_ros import topics as T
         self.rt, self.mech = rt, mech
-        self.setpoint = np.array(mech.setpoint_lengths, float)   # the /a controller's
+        self.setpoint = np.array(load_setup(PARAMS).task.setpoint_lengths, float)   # /a's
         self.stamp = {'a': 1_000 * 10**9, 'wd': 1_000 * 10**9}    # last leg_lengths stamp
         self.setpoint_stamp = 10**9
         self.node = node = rt.node('probe')
@@ -250,10 +251,10 @@ class Rig:
         return stamp, self.forces[ns][stamp], self.poses.get(stamp), self.twists.get(stamp)
 
     def expected_force(self, lengths, rates, setpoint=None):
-        m = self.mech
+        gains = load_setup(PARAMS).gains            # the /a controller's
         return pd_forces(np.asarray(lengths), np.asarray(rates),
                          self.setpoint if setpoint is None else setpoint,
-                         m.kp, m.kv, m.max_force)
+                         gains.kp, gains.kv, self.mech.max_force)
 
 
 NAMES = {'fk': 'stewart63/a/fk', 'ctl': 'stewart63/a/controller',
@@ -359,8 +360,9 @@ def test_fk_and_controller_follow_a_known_trajectory(rig, mech):
 
 # -- 2. setpoints ----------------------------------------------------------------
 def _steady_sample(mech):
-    legs = LegState(mech, np.array(mech.initial_position), rotation_from_euler(
-        mech.initial_orientation), np.array([0.01, -0.02, 0.03]), np.array([0.02, 0.01, -0.01]))
+    task = load_setup(PARAMS).task
+    legs = LegState(mech, np.array(task.initial_position), rotation_from_euler(
+        task.initial_orientation), np.array([0.01, -0.02, 0.03]), np.array([0.02, 0.01, -0.01]))
     return legs.L.copy(), legs.Ldot.copy()
 
 
@@ -379,7 +381,7 @@ def _forces_until(rig, lengths, rates, setpoint, timeout=6.0):
     return effort, want
 
 
-def test_setpoints(rig, mech):
+def test_setpoints(setup, rig, mech):
     lengths, rates = _steady_sample(mech)
     # the current setpoint first
     _, force, _, _ = rig.exchange(lengths, rates, fk=False)
@@ -393,7 +395,7 @@ def test_setpoints(rig, mech):
     effort, want = _forces_until(rig, lengths, rates, new)
     np.testing.assert_allclose(effort, want, rtol=0, atol=FORCE_TOL)
     # the change is Kp (new - old), as eq. (40) says (no saturation here)
-    np.testing.assert_allclose(effort - before, np.asarray(mech.kp) * (new - rig.setpoint),
+    np.testing.assert_allclose(effort - before, np.asarray(setup.gains.kp) * (new - rig.setpoint),
                                rtol=1e-9, atol=1e-6)
     rig.setpoint = new
 
@@ -610,10 +612,11 @@ def test_bad_plant_inputs_are_rejected_and_do_not_corrupt_the_simulation(rig):
 
 
 # -- 4. the controller's watchdog ---------------------------------------------------
-def test_watchdog(rig, mech):
+def test_watchdog(setup, rig, mech):
     name = NAMES['wd']
     lengths, rates = _steady_sample(mech)
-    want = pd_forces(lengths, rates, mech.setpoint_lengths, mech.kp, mech.kv, mech.max_force)
+    want = pd_forces(lengths, rates, setup.task.setpoint_lengths, setup.gains.kp, setup.gains.kv,
+                     mech.max_force)
 
     def stream(seconds, until=None):
         """leg_lengths at ~50 Hz for up to ``seconds`` (or until ``until()``)."""

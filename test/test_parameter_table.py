@@ -63,11 +63,16 @@ def test_the_interface_pages_model_table_is_the_declared_one():
 
 
 def test_the_model_declarations_are_the_mechanisms_fields():
+    """``MODEL`` declares the machine's fields (but for the end stops and sensor
+    zeros, declared with the nodes' keys), then the gains, then the task, in
+    the order of their dataclasses (core/setup.py)."""
     import dataclasses
 
-    from stewart63_ros.core.params import Mechanism
-    assert [m.name for m in declared.MODEL] == [
-        f.name for f in dataclasses.fields(Mechanism) if f.name != 'extra']
+    from stewart63_ros.core.mechanism import Mechanism
+    from stewart63_ros.core.setup import Gains, Task
+    machine = [f.name for f in dataclasses.fields(Mechanism) if f.name not in declared.BY_NAME]
+    assert [m.name for m in declared.MODEL] == machine + [
+        f.name for part in (Gains, Task) for f in dataclasses.fields(part)]
     params = dict(file_parameters(default_params_path()))
     for m in declared.MODEL:        # the size declared is the one the packaged file has
         value = params[m.name]
@@ -170,17 +175,18 @@ def test_the_keys_declared_changeable_at_run_time_are_the_ones_the_nodes_let_cha
 
 
 def test_the_model_table_lists_exactly_the_mechanisms_keys():
-    """The model's keys are declared by ``params.Mechanism`` (checked together
-    by ``mechanism_from_params``); the page's model table has one row each."""
-    import dataclasses
+    """The model's keys are the machine's (``Mechanism``, but for the end stops
+    and sensor zeros declared with the nodes' keys), the gains and the task
+    (core/setup.py); the page's model table has one row each."""
     import re
 
-    from stewart63_ros.core.params import Mechanism
+    from stewart63_ros.core.mechanism import MECHANISM_KEYS
+    from stewart63_ros.core.setup import GAIN_KEYS, TASK_KEYS
     text = DOC.read_text()
     section = text[text.index('### The model (shared keys)'):text.index('### Node-specific keys')]
     rows = re.findall(r'^\| `([a-z_]+)` \|', section, re.M)
-    assert sorted(rows) == sorted(f.name for f in dataclasses.fields(Mechanism)
-                                  if f.name != 'extra')
+    machine = MECHANISM_KEYS - set(declared.BY_NAME)
+    assert sorted(rows) == sorted(machine | GAIN_KEYS | TASK_KEYS)
     assert len(rows) == len(set(rows))
 
 

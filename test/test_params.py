@@ -219,7 +219,7 @@ def test_missing_file(tmp_path):
 
 
 # -- the default file -----------------------------------------------------------------------------
-def test_default_file_loads(default_params_file, default_doc):
+def test_default_file_loads(setup, default_params_file, default_doc):
     mech = load_mechanism(default_params_file)
     raw = default_doc[SECTION]['ros__parameters']
     np.testing.assert_array_equal(mech.base_points, np.reshape(raw['base_points'], (6, 3)))
@@ -229,7 +229,7 @@ def test_default_file_loads(default_params_file, default_doc):
     np.testing.assert_array_equal(mech.platform_inertia,
                                   [[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
     np.testing.assert_array_equal(mech.gravity, raw['gravity'])
-    np.testing.assert_array_equal(mech.setpoint_lengths, raw['setpoint_lengths'])
+    np.testing.assert_array_equal(setup.task.setpoint_lengths, raw['setpoint_lengths'])
     assert mech.leg_length_min < mech.leg_length_max
     # the packaged default is this file, and arrays are frozen
     assert default_params_path().resolve() == default_params_file.resolve()
@@ -252,11 +252,11 @@ def test_off_diagonal_inertia_convention(default_mech):
                                   [[1.0, -0.1, 0.05], [-0.1, 1.2, 0.02], [0.05, 0.02, 1.5]])
 
 
-def test_replace_validates(default_mech):
+def test_replace_validates(default_setup, default_mech):
     with pytest.raises(ParameterError) as info:
         default_mech.replace(platform_mass=0.0)
     assert info.value.key == 'platform_mass'
-    params = default_mech.to_params()
+    params = default_setup.to_params()
     params['leg_lower_inertia'] = [1.0, 0.1]
     with pytest.raises(ParameterError) as info:
         mechanism_from_params(params)

@@ -30,10 +30,11 @@ import pytest
 
 from stewart63_ros import bagio
 from stewart63_ros.core.kinematics import leg_lengths
-from stewart63_ros.core.params import LEG_NAMES, load_mechanism
+from stewart63_ros.core.params import LEG_NAMES, load_setup
 
 REPO = Path(__file__).resolve().parents[1]
-MECH = load_mechanism(REPO / 'config' / 'stewart63.yaml')
+SETUP = load_setup(REPO / 'config' / 'stewart63.yaml')
+MECH = SETUP.mechanism
 RATE = 100.0
 FAULT = 'actuator_dead:leg_2@0.1-0.2'
 
@@ -169,14 +170,14 @@ def test_plot_writes_one_figure_per_run(reset_bag, tmp_path):
 
 def test_view_replays_one_run_of_a_reset_bag(reset_bag):
     from stewart63_ros.tools.view import BagRun
-    last = BagRun(reset_bag, MECH)
+    last = BagRun(reset_bag, SETUP)
     assert last.t[-1] == pytest.approx(0.3) and np.all(np.diff(last.t) > 0)
     assert last.position[0][2] == pytest.approx(1.0)
     assert 'run 2 of the bag (2 of 2; the others: --run 1)' == last.describe()
-    first = BagRun(reset_bag, MECH, 1)
+    first = BagRun(reset_bag, SETUP, 1)
     assert first.t[-1] == pytest.approx(0.6) and first.position[-1][2] == pytest.approx(1.2)
     with pytest.raises(bagio.BagError, match='no run 5'):
-        BagRun(reset_bag, MECH, 5)
+        BagRun(reset_bag, SETUP, 5)
 
 
 def test_animate_of_a_reset_bag_takes_each_run_apart(tmp_path):

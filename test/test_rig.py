@@ -1,7 +1,7 @@
 """The rig over real DDS, nodes in separate processes.
 
 - lockstep: the distributed loop (plant, controller, fk, record) reproduces
-  the offline ``run_sampled(mech, D, 1000)`` sample for sample;
+  the offline ``run_sampled(setup, D, 1000)`` sample for sample;
 - realtime: the ``fk`` pose agrees with the plant's ground truth;
 - the ``rig`` command: Ctrl-C / SIGTERM stops every child and exits 0; a node
   that dies makes the rig stop the others and exit non-zero.
@@ -49,7 +49,7 @@ def mech():
 
 
 @pytest.fixture(scope='module')
-def warm_kernels(mech):
+def warm_kernels(setup, mech):
     """Compile the numba kernels here, once, into the on-disk cache, so the
     nodes (three processes) load them instead of each compiling for tens of
     seconds (on a fresh checkout or after the core changed)."""
@@ -57,11 +57,11 @@ def warm_kernels(mech):
     from stewart63_ros.core.kinematics import leg_lengths
     from stewart63_ros.core.rotation import rotation_from_euler
     tracker = FKTracker(mech)
-    rot = rotation_from_euler(mech.initial_orientation)
-    lengths = leg_lengths(mech, mech.initial_position, rot)
+    rot = rotation_from_euler(setup.task.initial_orientation)
+    lengths = leg_lengths(mech, setup.task.initial_position, rot)
     tracker.solve(lengths, np.zeros(6))
     tracker.fk.all_modes(lengths)
-    run_sampled(mech, 0.002, RATE)
+    run_sampled(setup, 0.002, RATE)
 
 
 def by_stamp(bag, topic) -> tuple[dict, int]:
@@ -88,9 +88,9 @@ def run_rig(ros, monkeypatch, tmp_path, mode, duration):
     return bag, summary, wall, logs
 
 
-def test_lockstep_rig_reproduces_offline_sampled_run(ros, monkeypatch, tmp_path, mech,
+def test_lockstep_rig_reproduces_offline_sampled_run(setup, ros, monkeypatch, tmp_path, mech,
                                                      warm_kernels):
-    ref = run_sampled(mech, LOCKSTEP_DURATION, RATE)
+    ref = run_sampled(setup, LOCKSTEP_DURATION, RATE)
     n = int(round(LOCKSTEP_DURATION * RATE)) + 1
     assert len(ref.times) == n
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.params import load_setup
 from stewart63_ros.core.scenario import (
     ScenarioError,
     evaluate,
@@ -135,12 +135,12 @@ def test_a_passing_scenario_exits_0_and_writes_valid_junit_and_a_report(tmp_path
 def test_the_measured_values_are_the_simulations(tmp_path):
     """final error, max force, end stops against run_sampled's own Result."""
     scenario, = load_scenarios(write(tmp_path, PASSING))
-    mech = load_mechanism()
-    dyn = Dynamics(mech)
-    result = run_sampled(mech, 3.0, 1000.0, dyn=dyn, loop='python')
+    setup = load_setup()
+    dyn = Dynamics(setup.mechanism)
+    result = run_sampled(setup, 3.0, 1000.0, dyn=dyn, loop='python')
     trace = run_sim(scenario)
     verdicts = evaluate(trace, scenario.expect)
-    final = float(result.final_leg_error_percent(dyn, mech.setpoint_lengths).max())
+    final = float(result.final_leg_error_percent(dyn, setup.task.setpoint_lengths).max())
     assert verdicts[0].value == pytest.approx(final, rel=1e-12)
     assert verdicts[1].value == pytest.approx(np.abs(result.forces).max(), rel=1e-12)
 
@@ -197,9 +197,9 @@ def test_each_kind_of_expectation_fails_with_its_value_bound_and_time(tmp_path):
     assert verdicts['endstop_samples'].value == outside.size > 5
     assert verdicts['endstop_samples'].at_s == pytest.approx(t[outside[5]])
     # the endstop count is the simulation's own (Result.endstop_samples)
-    mech = load_mechanism().replace(leg_length_min=1.5)
+    setup = load_setup().replace(leg_length_min=1.5)
     wrench = wrench_samples(bounds.wrench, t)
-    assert outside.size == run_sampled(mech, 4.0, 1000.0, loop='python',
+    assert outside.size == run_sampled(setup, 4.0, 1000.0, loop='python',
                                        wrench=wrench).endstop_samples
     assert verdicts['missed_cycles'].value == 0 and verdicts['lost_messages'].value == 0
     text = verdicts['max_force'].text()
@@ -341,15 +341,15 @@ def test_the_wrench_schedule_is_the_python_loops_with_the_wrench(tmp_path):
             {'from': 0.5, 'to': 0.7, 'torque': [5, 0, 0]}],
         'expect': {'max_force': {'max': 3000}}})
     trace = run_sim(scenario)
-    mech = load_mechanism()
+    setup = load_setup()
     wrench = wrench_samples(scenario.wrench, trace.times)
     assert wrench[200, 2] == -200 and wrench[199, 2] == 0 and wrench[500, 3] == 5
-    reference = run_sampled(mech, 1.0, 1000.0, loop='python', wrench=wrench)
-    plain = run_sampled(mech, 1.0, 1000.0)
+    reference = run_sampled(setup, 1.0, 1000.0, loop='python', wrench=wrench)
+    plain = run_sampled(setup, 1.0, 1000.0)
     np.testing.assert_array_equal(trace.forces, reference.forces)
     assert np.abs(trace.forces - plain.forces).max() > 1.0      # the push took effect
     with pytest.raises(ValueError, match='wrench must be'):
-        run_sampled(mech, 1.0, 1000.0, wrench=wrench[:-1])
+        run_sampled(setup, 1.0, 1000.0, wrench=wrench[:-1])
 
 
 def test_same_file_same_values_and_parallel_equals_serial():
@@ -533,7 +533,7 @@ def test_trip_expectations_give_cause_sample_and_latency_beside_the_bound(tmp_pa
                               'FAIL (no trip) at t = 0.6000 s')
     # the stroke trip: the first sample with a leg outside the soft stroke
     stroke = outcomes['stroke']
-    soft_min = load_mechanism().leg_length_min + 0.27
+    soft_min = load_setup().mechanism.leg_length_min + 0.27
     first = int(np.flatnonzero(stroke.trace.lengths.min(axis=1) < soft_min)[0])
     assert stroke.trace.trips[0].sample == first
     assert stroke.verdicts[0].value == first - 2000 and stroke.verdicts[0].passed
@@ -561,18 +561,20 @@ def test_sim_runs_the_supervisor_as_run_supervised_does(tmp_path):
         'params': {'pose_box': [-0.02, -0.3, 0.5, 0.02, 0.3, 1.6]},
         'expect': {'trip': {'cause': 'pose_box', 'within': 1000, 'after': 1.5}}})
     trace = run_sim(scenario)
-    mech = load_mechanism()
+    setup = load_setup()
+    mech, start = setup.mechanism, (setup.task.initial_position, setup.task.initial_rotation)
     params = {'pose_box': [-0.02, -0.3, 0.5, 0.02, 0.3, 1.6]}
     from stewart63_ros.core.fk import FKTracker
-    tracker = FKTracker(mech)
+    tracker = FKTracker(mech, *start)
 
     def pose(lengths):
         result = tracker.solve(lengths)
         return result.position, result.rotation
-    supervisor = Supervisor(mech, limits_from_params(mech, params), 1000.0,
-                            Reference.constant_lengths(mech, mech.setpoint_lengths), pose)
-    out = run_supervised(mech, supervisor, 2.5, 1000.0, FaultModel(
-        parse_faults(['actuator_weak:leg_1:0.5@1.0']), 1000.0), Controller(mech),
+    supervisor = Supervisor(setup, limits_from_params(mech, params), 1000.0,
+                            Reference.constant_lengths(mech, setup.task.setpoint_lengths,
+                                                       near=start), pose)
+    out = run_supervised(setup, supervisor, 2.5, 1000.0, FaultModel(
+        parse_faults(['actuator_weak:leg_1:0.5@1.0']), 1000.0), Controller(setup),
         wrench=wrench_samples(scenario.wrench, trace.times))
     np.testing.assert_array_equal(trace.forces, out['forces'])
     np.testing.assert_array_equal(trace.lengths, out['lengths'])

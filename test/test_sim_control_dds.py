@@ -67,7 +67,7 @@ def nan_equal(a, b, atol) -> bool:
 
 
 # -- every kind on the rig ---------------------------------------------------------------
-def test_every_fault_kind_on_the_lockstep_rig_is_sims(ros, monkeypatch, tmp_path, mech):
+def test_every_fault_kind_on_the_lockstep_rig_is_sims(setup, ros, monkeypatch, tmp_path, mech):
     from stewart63_ros.core.dynamics import POS
     rig_env(ros, monkeypatch)
     bag = tmp_path / 'bag'
@@ -79,7 +79,7 @@ def test_every_fault_kind_on_the_lockstep_rig_is_sims(ros, monkeypatch, tmp_path
     n = int(round(RIG_DURATION * RATE)) + 1
     assert summary['samples'] == n and summary['force_timeouts'] == 0, summary
 
-    ref = run_sampled(mech, RIG_DURATION, RATE, faults=RIG_FAULTS)
+    ref = run_sampled(setup, RIG_DURATION, RATE, faults=RIG_FAULTS)
     # the summary's faults are sim's, interval for interval
     assert summary['faults'] == ref.faults
     assert [f['active_from_s'] for f in summary['faults']] == [
@@ -372,7 +372,7 @@ def test_pause_and_reset_of_a_realtime_rig(ros, monkeypatch, tmp_path):
 
 
 # -- the example detector on the rig ----------------------------------------------------------
-def test_the_example_fault_detector_trips_on_the_rig(ros, monkeypatch, tmp_path):
+def test_the_example_fault_detector_trips_on_the_rig(setup, ros, monkeypatch, tmp_path):
     rig_env(ros, monkeypatch)
     rig = Rig(PARAMS, mode='lockstep', duration=0.3, log_dir=tmp_path / 'rig',
               extra_params={'controller': {
@@ -389,10 +389,9 @@ def test_the_example_fault_detector_trips_on_the_rig(ros, monkeypatch, tmp_path)
     assert plant['force_timeouts'] > 0 and plant['faults'][0]['active_from_s'] == 0.1
     # It tripped where sim's run with the same law and fault trips.
     from stewart63_ros.core.laws import Controller, LawError
-    mech = load_mechanism(PARAMS)
     with pytest.raises(LawError) as info:
-        run_sampled(mech, 0.3, RATE, controller=Controller(
-            mech, {}, law='stewart63_ros.examples.fault_detector:CheckedPD'),
+        run_sampled(setup, 0.3, RATE, controller=Controller(
+            setup, {}, law='stewart63_ros.examples.fault_detector:CheckedPD'),
             faults=['sensor_stuck:leg_2@0.1'])
     # (the same leg and sample; the millimetres printed may round differently)
     assert str(info.value).split('SensorFault: ')[1].split(':')[0] in controller['status']

@@ -332,7 +332,7 @@ def test_two_rigs_in_one_namespace_report_the_collision_and_withhold_forces(ros,
     assert delay <= 1.0, delay
 
 
-def test_four_rigs_in_four_namespaces_each_equal_sim_sample_for_sample(ros, tmp_path):
+def test_four_rigs_in_four_namespaces_each_equal_sim_sample_for_sample(setup, ros, tmp_path):
     """Four lockstep rigs in one domain (one process each: --compose, with its
     recorder), under /r1 .. /r4: each bag equals the offline sampled run, no
     cross-talk, no collision reported."""
@@ -348,7 +348,7 @@ def test_four_rigs_in_four_namespaces_each_equal_sim_sample_for_sample(ros, tmp_
     for proc in rigs.values():
         assert proc.wait(300) == 0, proc.describe()
     mech = load_mechanism(PARAMS)
-    ref = run_sampled(mech, duration, 1000.0)
+    ref = run_sampled(setup, duration, 1000.0)
     dyn = Dynamics(mech)
     expected = [sensor_reading(dyn, ref.states[k]) for k in range(len(ref.times))]
     n = len(expected)

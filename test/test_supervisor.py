@@ -22,17 +22,17 @@ RATE = 1000.0
 
 
 @pytest.fixture(scope='module')
-def params(mech):
-    return dict(mech.to_params())
+def params(setup, mech):
+    return dict(setup.to_params())
 
 
-def supervised(mech, params, duration, faults=(), **overrides):
-    sup = supervisor_from_params(mech, dict(params, **overrides), RATE)
-    return sup, run_supervised(mech, sup, duration, RATE, list(faults))
+def supervised(setup, params, duration, faults=(), **overrides):
+    sup = supervisor_from_params(setup, dict(params, **overrides), RATE)
+    return sup, run_supervised(setup, sup, duration, RATE, list(faults))
 
 
-def test_untripped_forwards_every_request_unchanged(mech, params):
-    sup, out = supervised(mech, params, 2.0)
+def test_untripped_forwards_every_request_unchanged(setup, mech, params):
+    sup, out = supervised(setup, params, 2.0)
     assert sup.trips == []
     np.testing.assert_array_equal(out['forces'], out['requests'])
 
@@ -82,7 +82,7 @@ def estop_at(sup, k, controller):
     return EstopAt()
 
 
-def run_case(mech, params, case):
+def run_case(setup, params, case):
     """One closed loop of 1.1 s with the trip ``case``; (supervisor, out)."""
     from stewart63_ros.core.laws import Controller
     faults, overrides, law = {
@@ -92,21 +92,21 @@ def run_case(mech, params, case):
         'sensor_dropout': (['sensor_dropout:leg_2@0.5'], {}, None),
         'fault_detector': (['sensor_stuck:leg_2@0.1'], {}, CHECKED_PD),
         'estop': ([], {}, None)}[case]
-    sup = supervisor_from_params(mech, dict(params, **overrides), RATE)
-    controller = Controller(mech, law=law)
+    sup = supervisor_from_params(setup, dict(params, **overrides), RATE)
+    controller = Controller(setup, law=law)
     if case == 'estop':
         controller = estop_at(sup, 300, controller)
-    return sup, run_supervised(mech, sup, 1.1, RATE, faults, controller=controller)
+    return sup, run_supervised(setup, sup, 1.1, RATE, faults, controller=controller)
 
 
 @pytest.mark.parametrize('case', ['sensor_stuck', 'actuator_dead', 'actuator_dead_lab',
                                   'sensor_dropout', 'fault_detector', 'estop'])
-def test_each_trip_on_its_cause_and_sample_with_zero_latency_the_same_every_run(
+def test_each_trip_on_its_cause_and_sample_with_zero_latency_the_same_every_run(setup,
         mech, params, case):
     """The sample each trip is on, from the plant's truth (not from the
     supervisor's own arithmetic); the answer to it is already the safe
     force; a second run trips on the same cause and sample."""
-    (sup, out), (again, _) = run_case(mech, params, case), run_case(mech, params, case)
+    (sup, out), (again, _) = run_case(setup, params, case), run_case(setup, params, case)
     trip = sup.trip
     k = trip.sample_ns // 1_000_000
     assert trip.safe_ns == trip.sample_ns          # latency 0 samples
@@ -115,7 +115,7 @@ def test_each_trip_on_its_cause_and_sample_with_zero_latency_the_same_every_run(
         trip.cause, trip.sample_ns)
     lim = sup.limits
     if case == 'sensor_stuck':      # the frozen readings 5.8 cm off for 1 s
-        error = np.abs(out['measured'] - np.array(mech.setpoint_lengths)).max(axis=1)
+        error = np.abs(out['measured'] - np.array(setup.task.setpoint_lengths)).max(axis=1)
         assert (trip.cause, k) == ('tracking_error', first(error > lim.tracking_error)
                                    + int(lim.tracking_time * RATE))
     elif case == 'actuator_dead':   # the platform falls: overspeed first, at 0.582 s
@@ -134,12 +134,12 @@ def test_each_trip_on_its_cause_and_sample_with_zero_latency_the_same_every_run(
         assert (trip.cause, k) == ('estop', 300)
 
 
-def drive(sup, mech, samples=200, lengths=None, rates=None, request=None, event=None):
+def drive(sup, setup, samples=200, lengths=None, rates=None, request=None, event=None):
     """Samples 0.. as the node hands them over: the readings, then the
     controller's request (None: none comes) unless tripped; ``event(k)``
     trips from outside before sample k (estop, /diagnostics, trip_request).
     Returns the index of the trip's sample, its first safe answer's."""
-    hold = np.array(mech.setpoint_lengths, float)
+    hold = np.array(setup.task.setpoint_lengths, float)
     answered = None
     for k in range(samples):
         ns = k * 1_000_000
@@ -161,11 +161,11 @@ def drive(sup, mech, samples=200, lengths=None, rates=None, request=None, event=
 
 
 @pytest.mark.parametrize('cause', sorted(CAUSES))
-def test_every_cause_reports_its_sample_and_its_latency_in_samples(mech, params, cause):
+def test_every_cause_reports_its_sample_and_its_latency_in_samples(setup, mech, params, cause):
     """What /diagnostics (``trip/latency_samples``) and the summary say for
     each cause (``trip_report``): the sample that crossed, the latency to
     the first safe force, in samples: 0 for every cause."""
-    setpoint = np.array(mech.setpoint_lengths, float)
+    setpoint = np.array(setup.task.setpoint_lengths, float)
     steady = (lambda k: np.zeros(6))     # noqa: E731
     overrides, kwargs = {}, {'request': steady}
     if cause == 'lengths_stale':        # a leg missing from sample 100: 20 ms at 120
@@ -195,8 +195,8 @@ def test_every_cause_reports_its_sample_and_its_latency_in_samples(mech, params,
         kwargs['lengths'] = lambda k: aside if k >= 100 else setpoint
     else:                               # the node's: estop, /diagnostics, trip_request, homing
         kwargs['event'] = lambda k: k == 100 and sup.trip_now(cause, 'test', k * 1_000_000)
-    sup = supervisor_from_params(mech, dict(params, **overrides), RATE)
-    answered = drive(sup, mech, **kwargs)
+    sup = supervisor_from_params(setup, dict(params, **overrides), RATE)
+    answered = drive(sup, setup, **kwargs)
     # (stale: the last good reading or request on 99, 20 or 50 ms before)
     expected = {'lengths_stale': 119, 'forces_stale': 149, 'tracking_error': 100}.get(cause, 100)
     report = sup.trip_report(sup.trip)
@@ -204,12 +204,12 @@ def test_every_cause_reports_its_sample_and_its_latency_in_samples(mech, params,
     assert report['latency_samples'] == 0 and report['action'] == CAUSES[cause][0]
 
 
-def test_readings_no_pose_has_trip_the_box_and_the_descent_still_answers(mech, params):
+def test_readings_no_pose_has_trip_the_box_and_the_descent_still_answers(setup, mech, params):
     """Legs 1 and 2 read 1.3 m, too short to meet over their base points: a
     lying sensor. The box trips, and its safe action answers (PD with the
     gravity load of the last pose the readings gave) instead of raising."""
-    sup = supervisor_from_params(mech, params, RATE)
-    setpoint = np.array(mech.setpoint_lengths, float)
+    sup = supervisor_from_params(setup, params, RATE)
+    setpoint = np.array(setup.task.setpoint_lengths, float)
     sup.on_sample(0, setpoint, np.zeros(6))
     sup.on_request(0, np.zeros(6))
     sup.trip_now('estop', 'test')
@@ -221,9 +221,9 @@ def test_readings_no_pose_has_trip_the_box_and_the_descent_still_answers(mech, p
     np.testing.assert_allclose(sup.safe_forces(1_000_000), holding)
 
 
-def test_dropout_trips_exactly_when_the_reading_has_been_missing_for_stale_lengths_ms(
+def test_dropout_trips_exactly_when_the_reading_has_been_missing_for_stale_lengths_ms(setup,
         mech, params):
-    sup, out = supervised(mech, params, 1.0, ['sensor_dropout:leg_2@0.5'],
+    sup, out = supervised(setup, params, 1.0, ['sensor_dropout:leg_2@0.5'],
                           stale_lengths_ms=20.0)
     # sample 499 is the last good one; 500..519 missing: 20 ms at 519
     assert sup.trip.sample_ns == 519_000_000
@@ -231,9 +231,9 @@ def test_dropout_trips_exactly_when_the_reading_has_been_missing_for_stale_lengt
     assert not np.all(out['forces'][518] == 0.0)
 
 
-def test_a_nan_request_trips_and_holds_the_last_good_lengths(mech, params):
-    sup = supervisor_from_params(mech, params, RATE)
-    lengths = np.array(mech.setpoint_lengths, float)
+def test_a_nan_request_trips_and_holds_the_last_good_lengths(setup, mech, params):
+    sup = supervisor_from_params(setup, params, RATE)
+    lengths = np.array(setup.task.setpoint_lengths, float)
     sup.on_sample(0, lengths, np.zeros(6))
     assert np.all(sup.on_request(0, np.ones(6)) == 1.0)
     sup.on_sample(1_000_000, lengths + 0.01, np.zeros(6))
@@ -242,28 +242,28 @@ def test_a_nan_request_trips_and_holds_the_last_good_lengths(mech, params):
     # eq. (40) towards the last good lengths (those of this sample: it was
     # good), plus what holds the platform against gravity there
     from stewart63_ros.core.laws import PDGravityLaw
-    gravity = PDGravityLaw(mech, {})
+    gravity = PDGravityLaw(mech, setup.to_params())
     hold = lengths + 0.01
     position, rotation, _ = gravity.estimator(hold, np.zeros(6))
     holding = gravity.holding_forces(position, rotation)
     np.testing.assert_allclose(forces, holding, atol=1e-9)
     sup.on_sample(2_000_000, lengths, np.zeros(6))
     position, rotation, _ = gravity.estimator(lengths, np.zeros(6))
-    np.testing.assert_allclose(sup.safe_forces(2_000_000), np.array(mech.kp) * 0.01
+    np.testing.assert_allclose(sup.safe_forces(2_000_000), np.array(setup.gains.kp) * 0.01
                                + gravity.holding_forces(position, rotation))
     # a wrong-sized request trips too
-    sup2 = supervisor_from_params(mech, params, RATE)
+    sup2 = supervisor_from_params(setup, params, RATE)
     sup2.on_sample(0, lengths, np.zeros(6))
     sup2.on_request(0, np.ones(5))
     assert sup2.trip.cause == 'bad_command'
 
 
 @pytest.mark.parametrize('trip_at', [0.05, 2.0])     # while rising fast; at rest at the setpoint
-def test_the_descent_ends_at_rest_inside_the_soft_stroke(mech, params, trip_at):
+def test_the_descent_ends_at_rest_inside_the_soft_stroke(setup, mech, params, trip_at):
     """The plant's dynamics (RK4, end stops) under the descent: every true
     leg length inside the soft stroke all the way, at rest at the rest
     lengths at the end, no leg faster than the profile allows."""
-    sup = supervisor_from_params(mech, params, RATE)
+    sup = supervisor_from_params(setup, params, RATE)
     limits = sup.limits
 
     class EstopAt:
@@ -280,8 +280,8 @@ def test_the_descent_ends_at_rest_inside_the_soft_stroke(mech, params, trip_at):
 
     from stewart63_ros.core.laws import Controller
     descent = Descent(np.full(6, 1.9), sup.rest, limits.descent_speed)   # ~ its duration
-    out = run_supervised(mech, sup, trip_at + descent.duration + 1.5, RATE,
-                         controller=EstopAt(Controller(mech)))
+    out = run_supervised(setup, sup, trip_at + descent.duration + 1.5, RATE,
+                         controller=EstopAt(Controller(setup)))
     assert sup.trip.cause == 'estop' and sup.trip.action == DESCEND
     k = int(round(trip_at * RATE))
     after = out['lengths'][k:]
@@ -295,16 +295,16 @@ def test_the_descent_ends_at_rest_inside_the_soft_stroke(mech, params, trip_at):
     assert out['lengths'][-1].min() > limits.soft_min
 
 
-def test_the_rest_pose_is_level_inside_the_soft_stroke(mech, params):
+def test_the_rest_pose_is_level_inside_the_soft_stroke(setup, mech, params):
     limits = limits_from_params(mech, params)
-    rest = rest_lengths(mech, limits)
+    rest = rest_lengths(setup, limits)
     assert rest.min() == pytest.approx(limits.soft_min + limits.rest_clearance, abs=1e-9)
     assert rest.max() < limits.soft_max
 
 
-def test_a_reset_is_refused_while_the_cause_holds(mech, params):
-    sup = supervisor_from_params(mech, params, RATE)
-    good = np.array(mech.setpoint_lengths, float)
+def test_a_reset_is_refused_while_the_cause_holds(setup, mech, params):
+    sup = supervisor_from_params(setup, params, RATE)
+    good = np.array(setup.task.setpoint_lengths, float)
     bad = good.copy()
     bad[2] = sup.limits.soft_min - 0.01
     sup.on_sample(0, good, np.zeros(6))
@@ -319,17 +319,17 @@ def test_a_reset_is_refused_while_the_cause_holds(mech, params):
     assert ok and sup.trip is None, why
 
 
-def test_estop_and_reset_are_answered_before_any_sample(mech, params):
-    sup = supervisor_from_params(mech, params, RATE)
+def test_estop_and_reset_are_answered_before_any_sample(setup, mech, params):
+    sup = supervisor_from_params(setup, params, RATE)
     sup.trip_now('estop', '~/estop')
     ok, why = sup.reset()
     assert not ok and 'NaN' in why      # no reading yet: nothing to resume on
 
 
-def test_a_platform_at_rest_passes_every_check_and_a_reset_there_is_accepted(mech, params):
+def test_a_platform_at_rest_passes_every_check_and_a_reset_there_is_accepted(setup, mech, params):
     """Where the descent ends, the packaged limits hold: an estop's descent
     ends in a state that can be reset, and trips nothing once reset."""
-    sup = supervisor_from_params(mech, params, RATE)
+    sup = supervisor_from_params(setup, params, RATE)
     sup.on_sample(0, sup.rest.copy(), np.zeros(6))
     assert sup.trip is None
     sup.trip_now('estop', '~/estop')
@@ -350,13 +350,13 @@ def test_a_platform_at_rest_passes_every_check_and_a_reset_there_is_accepted(mec
     ({'stale_lengths_ms': 0.0}, 'stale_lengths_ms'),
     ({'rest_clearance': 2.0}, 'rest_clearance'),
 ])
-def test_contradictory_limits_are_refused_naming_the_key(mech, params, overrides, key):
+def test_contradictory_limits_are_refused_naming_the_key(setup, mech, params, overrides, key):
     with pytest.raises(ParameterError) as exc:
-        supervisor_from_params(mech, dict(params, **overrides), RATE)
+        supervisor_from_params(setup, dict(params, **overrides), RATE)
     assert exc.value.key == key
 
 
-def test_homing_recovers_the_hidden_offsets_within_the_sensor_resolution(mech, params):
+def test_homing_recovers_the_hidden_offsets_within_the_sensor_resolution(setup, mech, params):
     """Incremental sensors with unknown zeros (the plant's homing_offset),
     quantised at 0.1 mm: the homing drives every leg to its upper end stop
     (the plant's dynamics, its end-stop spring), finds each offset, sets it,
@@ -364,8 +364,8 @@ def test_homing_recovers_the_hidden_offsets_within_the_sensor_resolution(mech, p
     from stewart63_ros.core.sensor import SensorModel
     resolution = 1e-4
     hidden = np.array([3.0, -2.0, 5.0, 0.0, -4.0, 1.2]) * 1e-3
-    sup = supervisor_from_params(mech, dict(params, homing=True, homing_speed=0.2), RATE)
-    out = run_supervised(mech, sup, 12.0, RATE, homing_offset=hidden,
+    sup = supervisor_from_params(setup, dict(params, homing=True, homing_speed=0.2), RATE)
+    out = run_supervised(setup, sup, 12.0, RATE, homing_offset=hidden,
                          sensor=SensorModel({'sensor_resolution': resolution}))
     assert sup.homed and sup.trips == []
     assert np.all(np.abs(sup.offsets - hidden) <= resolution), (sup.offsets - hidden)
@@ -379,10 +379,10 @@ def test_homing_recovers_the_hidden_offsets_within_the_sensor_resolution(mech, p
                                atol=1.5 * resolution)     # quantum + what homing left
 
 
-def test_homing_to_stops_no_pose_reaches_is_refused(mech, params):
+def test_homing_to_stops_no_pose_reaches_is_refused(setup, mech, params):
     # the default 6-3 machine: legs 1 and 2 share a vertex over base points
     # 2.95 m apart, so they cannot both be at 1.2 m
     with pytest.raises(ParameterError) as exc:
-        supervisor_from_params(mech, dict(params, homing=True, homing_direction='retract'),
+        supervisor_from_params(setup, dict(params, homing=True, homing_direction='retract'),
                                RATE)
     assert exc.value.key == 'homing_direction' and 'legs 1 and 2' in str(exc.value)

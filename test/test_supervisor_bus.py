@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 from stewart63_ros.core.bus import load_bus_config
 from stewart63_ros.core.fk import ForwardKinematics
 from stewart63_ros.core.kinematics import leg_lengths
-from stewart63_ros.core.params import load_mechanism, mechanism_from_params
+from stewart63_ros.core.params import load_mechanism, load_setup
 from stewart63_ros.core.rotation import euler_from_matrix, rotation_from_euler
 from stewart63_ros.core.supervisor import run_supervised, supervisor_from_params
 from stewart63_ros.tools.rig import Rig
@@ -50,8 +50,10 @@ HIDDEN = [0.003, -0.002, 0.005, 0.0, -0.004, 0.0012]
 def homing_start() -> dict:
     """Every leg 2.2 m long (the platform tilted 27°, 1.74 m up): 10 cm from
     the upper stops, so the homing takes 1.96 s of simulated time."""
-    mech = load_mechanism(PARAMS)
-    pose = ForwardKinematics(mech).all_modes(np.full(6, 2.2))[0]
+    setup = load_setup(PARAMS)
+    mech, task = setup.mechanism, setup.task
+    pose = ForwardKinematics(mech, start=(task.initial_position, task.initial_rotation)).all_modes(
+        np.full(6, 2.2))[0]
     position = pose.position.round(3).tolist()
     euler = np.round(euler_from_matrix(pose.rotation), 3).tolist()
     setpoint = leg_lengths(mech, np.array(position), rotation_from_euler(np.array(euler)))
@@ -166,10 +168,10 @@ def test_rig_cli_runs_supervisor_on_the_bus_and_a_bus_fault_trips_on_stale_lengt
     assert done.returncode == 0, (done.stdout, done.stderr, logs_of(tmp_path / 'rig'))
     assert 'supervisor: 1 trip' in done.stdout and 'lengths_stale' in done.stdout, done.stdout
     # the core, with that leg's reading missing over the same samples
-    core_params = dict(load_mechanism(PARAMS).to_params())
-    mech = mechanism_from_params(core_params)
-    core = supervisor_from_params(mech, core_params, RATE)
-    run_supervised(mech, core, duration, RATE, ['sensor_dropout:leg_3@0.1-0.13'])
+    setup = load_setup(PARAMS)
+    core_params = setup.to_params()
+    core = supervisor_from_params(setup, core_params, RATE)
+    run_supervised(setup, core, duration, RATE, ['sensor_dropout:leg_3@0.1-0.13'])
     assert core.trip.cause == 'lengths_stale'
     summary = json.loads((tmp_path / 'rig' / 'supervisor_summary.json').read_text())
     assert [(t['cause'], t['sample'], t['latency_samples']) for t in summary['trips']] == [

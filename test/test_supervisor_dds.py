@@ -46,18 +46,18 @@ def level_of(status) -> int:
 
 def core_run(faults, duration, law=None, homing=False, limits=None):
     from stewart63_ros.core.laws import Controller
-    from stewart63_ros.core.params import mechanism_from_params
+    from stewart63_ros.core.params import load_setup, setup_from_params
     from stewart63_ros.core.sensor import SensorModel
-    params = dict(load_mechanism(PARAMS).to_params())
+    params = load_setup(PARAMS).to_params()
     sensor = offset = None
     if homing:
         params.update(HOMING['supervisor'])
         sensor, offset = SensorModel(HOMING['plant']), HOMING['plant']['homing_offset']
     params.update(limits or {})
-    mech = mechanism_from_params(params)
-    sup = supervisor_from_params(mech, params, RATE)
-    return sup, run_supervised(mech, sup, duration, RATE, faults,
-                               controller=Controller(mech, params, law=law), sensor=sensor,
+    setup = setup_from_params(params)
+    sup = supervisor_from_params(setup, params, RATE)
+    return sup, run_supervised(setup, sup, duration, RATE, faults,
+                               controller=Controller(setup, params, law=law), sensor=sensor,
                                homing_offset=offset)
 
 

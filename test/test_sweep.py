@@ -36,12 +36,13 @@ class FlakyLaw:
 
     def __init__(self, mech, params):
         self.mech = mech
+        self.kp = np.array(params['kp'], float)
+        self.kv = np.array(params['kv'], float)
 
     def __call__(self, t, lengths, rates, ref):
         if self.mech.platform_mass > 17.0 and t > 0.2:
             raise ValueError('too heavy for this law')
-        m = self.mech
-        return pd_law(lengths, rates, ref.lengths, m.kp, m.kv, m.max_force)
+        return pd_law(lengths, rates, ref.lengths, self.kp, self.kv, self.mech.max_force)
 
 
 def read_rows(path):
@@ -92,7 +93,7 @@ def test_settling_time_of_a_known_response():
 
 
 @pytest.mark.slow      # forks worker processes
-def test_rows_equal_single_sim_runs(tmp_path, default_params_file):
+def test_rows_equal_single_sim_runs(setup, tmp_path, default_params_file):
     out = tmp_path / 'sweep'
     status, text = run_tool(['--runs', '6', '--vary', 'platform_mass=12:19', '--vary',
                              'kv[1]=200:400', '--seed', '3', '--workers', '2',
@@ -113,8 +114,8 @@ def test_rows_equal_single_sim_runs(tmp_path, default_params_file):
         # In-process the very same number: sim's arithmetic, bit for bit.
         mech = load_mechanism(params, node_name='plant')
         dyn = Dynamics(mech)
-        result = run_continuous(mech, 10.0, dyn=dyn)
-        exact = result.final_leg_error_percent(dyn, mech.setpoint_lengths).max()
+        result = run_continuous(setup, 10.0, dyn=dyn)
+        exact = result.final_leg_error_percent(dyn, setup.task.setpoint_lengths).max()
         assert float(row['final_error_percent']) == exact
         assert float(row['max_force']) == np.abs(result.forces).max()
         assert int(row['endstop_samples']) == result.endstop_samples
@@ -224,7 +225,7 @@ def test_a_key_the_runs_do_not_read_is_refused(tmp_path, capsys, key, words):
     assert not (tmp_path / 'runs.csv').exists()
 
 
-def test_sensor_rate_takes_effect_under_sampled_control(tmp_path, default_mech):
+def test_sensor_rate_takes_effect_under_sampled_control(default_setup, tmp_path, default_mech):
     out = tmp_path / 'rate'
     status, _ = run_tool(['--runs', '2', '--control', 'sampled', '--vary',
                           'sensor_rate=200:1000', '--duration', '1', '--seed', '5',
@@ -234,9 +235,9 @@ def test_sensor_rate_takes_effect_under_sampled_control(tmp_path, default_mech):
     assert rows[0]['settling_time_s'] != rows[1]['settling_time_s']
     dyn = Dynamics(default_mech)
     for row in rows:
-        result = run_sampled(default_mech, 1.0, float(row['param.sensor_rate']), dyn=dyn)
+        result = run_sampled(default_setup, 1.0, float(row['param.sensor_rate']), dyn=dyn)
         assert float(row['final_error_percent']) == \
-            result.final_leg_error_percent(dyn, default_mech.setpoint_lengths).max()
+            result.final_leg_error_percent(dyn, default_setup.task.setpoint_lengths).max()
     # --rate fixes the control rate: then sensor_rate is not read, and refused
     assert sweep_tool.main(['--runs', '2', '--control', 'sampled', '--rate', '500', '--vary',
                             'sensor_rate=200:1000', '--out', str(tmp_path / 'no')]) == 2

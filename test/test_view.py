@@ -337,15 +337,13 @@ class PageClient:
         return any(text in t for t in list(self.texts))
 
 
-def test_dragging_the_ghost_publishes_a_pose_setpoint(ros, tmp_path):
+def test_dragging_the_ghost_publishes_a_pose_setpoint(setup, ros, tmp_path):
     """The handle at the ghost, dragged on the page, sends ``pose_setpoint``;
     a pose outside the stroke is refused on the page and not sent."""
     from geometry_msgs.msg import PoseStamped
     from ros_harness import wait_matched
 
     from stewart63_ros import topics
-    from stewart63_ros.core.params import load_mechanism
-    mech = load_mechanism()
     got = []
     node = ros.node('probe')
     sub = node.create_subscription(PoseStamped, 'pose_setpoint', got.append,
@@ -356,7 +354,7 @@ def test_dragging_the_ghost_publishes_a_pose_setpoint(ros, tmp_path):
     assert wait_matched(sub, 1, timeout=60)
     # the handle exists on the page (its scene message came) before it is dragged
     assert wait_until(lambda: page.said('/setpoint_handle'), 60), page.texts[-3:]
-    target = np.asarray(mech.initial_position) + [0.02, -0.01, 0.05]
+    target = np.asarray(setup.task.initial_position) + [0.02, -0.01, 0.05]
     page.drag(target)
     assert ros.spin_until(lambda: got, timeout=30), page.texts[-3:]
     p = got[-1].pose.position

@@ -17,7 +17,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from stewart63_ros import topics
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.params import load_setup
 from stewart63_ros.nodes.controller import ControllerNode
 from stewart63_ros.runtime.parameters import set_arguments
 from stewart63_ros.runtime.rclpy_internals import WaitAny
@@ -38,8 +38,8 @@ def main(argv) -> int:
     deadline = time.monotonic() + 20
     while pub.get_subscription_count() < 1 and time.monotonic() < deadline:
         time.sleep(0.01)
-    mech = load_mechanism()
-    lengths = [float(x) for x in mech.setpoint_lengths]
+    setup = load_setup()
+    lengths = [float(x) for x in setup.task.setpoint_lengths]
 
     def send(k: int, dropped_leg: int | None = None) -> None:
         position, velocity = list(lengths), [0.0] * 6

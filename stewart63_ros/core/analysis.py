@@ -76,6 +76,7 @@ from stewart63_ros.core.rotation import (
     rotvec_between,
     rotvec_from_rotation,
 )
+from stewart63_ros.core.setup import Setup
 
 #: A pose whose Jacobian (rows [s_i, q_i x s_i], metres) has a 2-norm
 #: condition number above this is refused as near-singular (``--max-condition``).
@@ -152,12 +153,12 @@ class Equilibrium:
         return x
 
 
-def setpoint_pose(mech: Mechanism) -> tuple[np.ndarray, np.ndarray]:
+def setpoint_pose(setup: Setup) -> tuple[np.ndarray, np.ndarray]:
     """The setpoint's pose: the forward kinematics of ``setpoint_lengths``, the
     assembly mode nearest the initial pose.
 
     Args:
-        mech: the mechanism (``setpoint_lengths``, the initial pose).
+        setup: the machine and the task (``setpoint_lengths``, the initial pose).
 
     Returns:
         (position t (3,) [m], rotation R (3, 3), platform to base).
@@ -166,7 +167,9 @@ def setpoint_pose(mech: Mechanism) -> tuple[np.ndarray, np.ndarray]:
         AnalysisError: the setpoint lengths close no platform.
     """
     try:
-        mode = ForwardKinematics(mech).all_modes(mech.setpoint_lengths)[0]
+        task = setup.task
+        mode = ForwardKinematics(setup.mechanism, start=(
+            task.initial_position, task.initial_rotation)).all_modes(task.setpoint_lengths)[0]
     except ValueError as exc:
         raise AnalysisError('setpoint_lengths: no pose: %s' % exc) from None
     return mode.position, mode.rotation
@@ -237,13 +240,13 @@ def holding_forces(dyn: Dynamics, position: ArrayLike, rotation: ArrayLike) -> n
                                    np.asarray(position, float), zero, zero, np.zeros(6))
 
 
-def equilibrium(mech: Mechanism, pose: ArrayLike | None = None,
+def equilibrium(setup: Setup, pose: ArrayLike | None = None,
                 max_condition: float = DEFAULT_MAX_CONDITION,
                 dyn: Dynamics | None = None) -> Equilibrium:
     """The equilibrium at ``pose``; default the setpoint's pose (``setpoint_pose``).
 
     Args:
-        mech: the mechanism.
+        setup: the machine and the task (the setpoint's pose).
         pose: (6,) x, y, z [m], theta_x, theta_y, theta_z [rad] (R = Rz Ry Rx),
             or None for the setpoint's pose.
         max_condition: the largest Jacobian condition number accepted.
@@ -257,8 +260,9 @@ def equilibrium(mech: Mechanism, pose: ArrayLike | None = None,
             the stroke, near-singular, or needing a holding force beyond
             ``max_force``; the setpoint lengths close no platform.
     """
+    mech = setup.mechanism
     if pose is None:
-        position, rotation = setpoint_pose(mech)
+        position, rotation = setpoint_pose(setup)
     else:
         pose = np.asarray(pose, dtype=float)
         if pose.shape != (6,) or not np.all(np.isfinite(pose)):
@@ -481,14 +485,14 @@ def open_loop(mech: Mechanism, eq: Equilibrium, dyn: Dynamics | None = None) -> 
                        eq)
 
 
-def _law_controller(mech, params, law, eq: Equilibrium, references):
-    ref = Reference.constant_lengths(mech, references, near=(eq.position, eq.rotation))
-    return Controller(mech, params, law=law, reference=ref)
+def _law_controller(setup, params, law, eq: Equilibrium, references):
+    ref = Reference.constant_lengths(setup.mechanism, references,
+                                     near=(eq.position, eq.rotation))
+    return Controller(setup, params, law=law, reference=ref)
 
 
 def law_jacobians(dyn: Dynamics, eq: Equilibrium, law: str, references: ArrayLike,
-                  params: Mapping[str, Any] | None = None,
-                  controller_mech: Mechanism | None = None,
+                  controller: Setup, params: Mapping[str, Any] | None = None,
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Forces of a law (through ``laws.Controller``, as the controller node runs it)
     and their derivatives at the equilibrium, by central differences.
@@ -499,8 +503,8 @@ def law_jacobians(dyn: Dynamics, eq: Equilibrium, law: str, references: ArrayLik
         law: the law's name (``pd``, ``pd_gravity``, ``computed_torque``,
             ``package.module:Class``).
         references: (6,) the leg-length references about which to differentiate [m].
-        params: the controller's parameters (over its mechanism's), or None.
-        controller_mech: the controller's mechanism (default ``dyn.mech``).
+        controller: the controller's setup (machine, gains, task).
+        params: the controller's parameters (over its setup's), or None.
 
     Returns:
         (forces (6,) [N], K_x (6, 12) = dF/dx, K_r (6, 6) = dF/d(reference)
@@ -509,7 +513,6 @@ def law_jacobians(dyn: Dynamics, eq: Equilibrium, law: str, references: ArrayLik
     Raises:
         AnalysisError: the law raised (``LawError``) at the pose.
     """
-    mech = controller_mech or dyn.mech
     references = np.asarray(references, dtype=float)
 
     def forces_of(controller, dx):
@@ -517,13 +520,14 @@ def law_jacobians(dyn: Dynamics, eq: Equilibrium, law: str, references: ArrayLik
         return np.array(controller(lengths, rates, 0.0), dtype=float)
 
     try:
-        at_ref = _law_controller(mech, params, law, eq, references)
+        at_ref = _law_controller(controller, params, law, eq, references)
         zero = np.zeros(12)
         forces = forces_of(at_ref, zero)          # also settles a law's pose estimate
         K_x = _central(lambda d: forces_of(at_ref, d), 12, STATE_STEP)
 
         def by_reference(d):
-            return forces_of(_law_controller(mech, params, law, eq, references + d), zero)
+            return forces_of(_law_controller(controller, params, law, eq, references + d),
+                             zero)
 
         K_r = _central(by_reference, 6, REFERENCE_STEP)
     except LawError as exc:
@@ -536,9 +540,8 @@ def _pd_gains(mech, params, law_name='pd'):
     return np.asarray(law.kp, float), np.asarray(law.kv, float)
 
 
-def holding_references(dyn: Dynamics, eq: Equilibrium, law: str,
+def holding_references(dyn: Dynamics, eq: Equilibrium, law: str, controller: Setup,
                        params: Mapping[str, Any] | None = None,
-                       controller_mech: Mechanism | None = None,
                        iterations: int = 20) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The leg-length references u0 for which the law gives the holding forces at
     rest at the pose, with the law's Jacobians there.
@@ -550,8 +553,8 @@ def holding_references(dyn: Dynamics, eq: Equilibrium, law: str,
         dyn: the plant's model.
         eq: the equilibrium x0 (its holding forces are the target).
         law: the law's name, as ``law_jacobians``.
+        controller: the controller's setup (machine, gains, task).
         params: the controller's parameters, or None.
-        controller_mech: the controller's mechanism (default ``dyn.mech``).
         iterations: the most Newton steps.
 
     Returns:
@@ -561,11 +564,10 @@ def holding_references(dyn: Dynamics, eq: Equilibrium, law: str,
         AnalysisError: the law's forces do not depend on the references, or
             Newton does not converge (the law cannot hold the pose).
     """
-    mech = controller_mech or dyn.mech
     r = eq.lengths.copy()
     tol = 1e-9 * max(1.0, float(np.max(np.abs(eq.forces))))
     for _ in range(iterations):
-        forces, K_x, K_r = law_jacobians(dyn, eq, law, r, params, mech)
+        forces, K_x, K_r = law_jacobians(dyn, eq, law, r, controller, params)
         miss = forces - eq.forces
         if np.max(np.abs(miss)) <= tol:
             return r, K_x, K_r
@@ -581,9 +583,9 @@ def holding_references(dyn: Dynamics, eq: Equilibrium, law: str,
                         'the holding forces (off by %.3g N)' % (law, np.max(np.abs(miss))))
 
 
-def closed_loop(mech: Mechanism, eq: Equilibrium, law: str,
+def closed_loop(setup: Setup, eq: Equilibrium, law: str,
                 params: Mapping[str, Any] | None = None, dyn: Dynamics | None = None,
-                controller_mech: Mechanism | None = None,
+                controller: Setup | None = None,
                 numeric: bool = False) -> LinearModel:
     """The plant under a control law about ``eq``: inputs the six leg-length references.
 
@@ -592,13 +594,13 @@ def closed_loop(mech: Mechanism, eq: Equilibrium, law: str,
     differenced through ``laws.Controller``.
 
     Args:
-        mech: the plant's mechanism.
+        setup: the plant's setup (its machine).
         eq: the equilibrium x0.
         law: the law's name.
         params: the controller's parameter dictionary (gains), over the
-            controller mechanism's own; None for those alone.
-        dyn: the plant's model (default: a new ``Dynamics(mech)``).
-        controller_mech: the controller's mechanism (default ``mech``).
+            controller setup's own; None for those alone.
+        dyn: the plant's model (default: a new ``Dynamics(setup.mechanism)``).
+        controller: the controller's setup (default ``setup``).
         numeric: difference ``pd`` through ``laws.Controller`` too.
 
     Returns:
@@ -609,41 +611,42 @@ def closed_loop(mech: Mechanism, eq: Equilibrium, law: str,
         AnalysisError: the law cannot hold the pose (a zero gain, no
             convergence) or fails there.
     """
+    mech = setup.mechanism
     dyn = dyn or Dynamics(mech)
     plant = open_loop(mech, eq, dyn)
-    ctrl_mech = controller_mech or mech
-    params = dict(ctrl_mech.to_params(), **(params or {}))
+    controller = controller or setup
+    params = dict(controller.to_params(), **(params or {}))
     if law in HOLDING_GAIN_LAWS:
-        problem = holding_gain_problem(law, _pd_gains(ctrl_mech, params, law)[0])
+        problem = holding_gain_problem(law, _pd_gains(controller.mechanism, params, law)[0])
         if problem:
             raise AnalysisError(problem)
     if law == 'pd' and not numeric:
-        kp, kv = _pd_gains(ctrl_mech, params)
+        kp, kv = _pd_gains(controller.mechanism, params)
         u0 = eq.lengths + eq.forces / kp
         jac = plant.C[:, 0:6]
         rate_rows = np.hstack([np.zeros((6, 6)), jac])      # dL/dt = J [v; omega] (eq. 13)
         K_x = -kp[:, None] * plant.C - kv[:, None] * rate_rows
         K_r = np.diag(kp)
     else:
-        u0, K_x, K_r = holding_references(dyn, eq, law, params, ctrl_mech)
+        u0, K_x, K_r = holding_references(dyn, eq, law, controller, params)
     A = plant.A + plant.B @ K_x
     B = plant.B @ K_r
     return LinearModel(A, B, plant.C.copy(), np.zeros((6, 6)), plant.x0, u0, plant.y0, eq, law)
 
 
-def linearize(mech: Mechanism, law: str | None = None, pose: ArrayLike | None = None,
+def linearize(setup: Setup, law: str | None = None, pose: ArrayLike | None = None,
               params: Mapping[str, Any] | None = None, max_condition: float = DEFAULT_MAX_CONDITION,
-              controller_mech: Mechanism | None = None) -> LinearModel:
+              controller: Setup | None = None) -> LinearModel:
     """The linear model about the equilibrium at ``pose`` (default: the setpoint's).
 
     Args:
-        mech: the plant's mechanism.
+        setup: the plant's setup (machine; task: the setpoint's pose).
         law: None for the open loop, else a law name (``pd``, ``pd_gravity``,
             ``computed_torque``, ``package.module:Class``).
         pose: (6,) x, y, z [m], theta_x, theta_y, theta_z [rad], or None.
         params: the controller's parameter dictionary (gains, law parameters).
         max_condition: refuse poses whose Jacobian condition number exceeds this.
-        controller_mech: the controller's mechanism (default ``mech``).
+        controller: the controller's setup (default ``setup``).
 
     Returns:
         The ``LinearModel``.
@@ -651,11 +654,11 @@ def linearize(mech: Mechanism, law: str | None = None, pose: ArrayLike | None = 
     Raises:
         AnalysisError: an unusable pose or law; ParameterError: an unknown law.
     """
-    dyn = Dynamics(mech)
-    eq = equilibrium(mech, pose, max_condition, dyn)
+    dyn = Dynamics(setup.mechanism)
+    eq = equilibrium(setup, pose, max_condition, dyn)
     if law is None:
-        return open_loop(mech, eq, dyn)
-    return closed_loop(mech, eq, law, params, dyn, controller_mech)
+        return open_loop(setup.mechanism, eq, dyn)
+    return closed_loop(setup, eq, law, params, dyn, controller)
 
 
 # -- modes ------------------------------------------------------------------------------------

@@ -56,7 +56,6 @@ from numpy.typing import ArrayLike
 
 from stewart63_ros.core.fk import ForwardKinematics
 from stewart63_ros.core.legs import LEG_VERTEX
-from stewart63_ros.core.node_parameters import read
 from stewart63_ros.core.params import Mechanism, ParameterError
 from stewart63_ros.core.rotation import (
     rotation_angle_between,
@@ -186,35 +185,20 @@ def parameter_vector(mech: Mechanism) -> np.ndarray:
     """The 33 parameters of a mechanism: b (18), p (9), offsets (6) [m].
 
     Args:
-        mech: the mechanism (its ``leg_length_offset``, default zeros).
+        mech: the mechanism (its ``leg_length_offset``).
 
     Returns:
         (33,) the parameter vector, ordered as ``PARAMETER_NAMES``.
     """
     return np.concatenate([np.ravel(mech.base_points), np.ravel(mech.platform_points),
-                           leg_length_offset(mech)])
-
-
-def leg_length_offset(mech: Mechanism) -> np.ndarray:
-    """The mechanism's sensor zero offsets, ``leg_length_offset`` (zeros if unset).
-
-    Args:
-        mech: the mechanism.
-
-    Returns:
-        (6,) o_i [m]: reading = true length + o_i.
-
-    Raises:
-        ParameterError: the key is not six finite numbers.
-    """
-    return np.asarray(read(mech.extra, OFFSET_KEY), dtype=float)
+                           mech.leg_length_offset])
 
 
 def mechanism_with(mech: Mechanism, theta: ArrayLike) -> Mechanism:
     """``mech`` with the geometry and offsets of the parameter vector, validated.
 
     Args:
-        mech: the mechanism to start from (masses, gains, ... are kept).
+        mech: the mechanism to start from (masses, stroke, ... are kept).
         theta: (33,) parameters.
 
     Returns:
@@ -222,7 +206,7 @@ def mechanism_with(mech: Mechanism, theta: ArrayLike) -> Mechanism:
 
     Raises:
         ParameterError: the parameters describe an impossible mechanism
-            (params.mechanism_from_params names the key).
+            (``mechanism.validated`` names the key).
     """
     theta = np.asarray(theta, dtype=float)
     return mech.replace(base_points=theta[BASE], platform_points=theta[PLATFORM],
@@ -602,7 +586,7 @@ def pose_errors(mech: Mechanism, meas: Measurements) -> dict:
         one, and the RMS of the readings' prediction error.
     """
     fk = ForwardKinematics(mech)
-    offsets = leg_length_offset(mech)
+    offsets = mech.leg_length_offset
     dpos, dang = [], []
     for n in range(meas.count):
         try:

@@ -30,7 +30,7 @@ from stewart63_ros.core import calibration as cal
 from stewart63_ros.core.analysis import AnalysisError, holding_forces, setpoint_pose
 from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.fk import ForwardKinematics
-from stewart63_ros.core.params import Mechanism
+from stewart63_ros.core.mechanism import Mechanism
 from stewart63_ros.core.rotation import (
     euler_from_matrix,
     quaternion_from_rotation,
@@ -39,6 +39,7 @@ from stewart63_ros.core.rotation import (
     rotation_from_quaternion,
     rotvec_between,
 )
+from stewart63_ros.core.setup import Setup
 
 #: Default half-ranges of the candidates around the setpoint's pose: x, y, z
 #: [m], then the rotation vector's three components [rad].
@@ -72,13 +73,13 @@ class Plan:
     candidates: int
 
 
-def candidate_poses(mech: Mechanism, count: int, rng: np.random.Generator,
+def candidate_poses(setup: Setup, count: int, rng: np.random.Generator,
                     half_range: ArrayLike = DEFAULT_RANGE, max_condition: float = 100.0,
                     force_share: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """Random feasible poses around the setpoint's pose.
 
     Args:
-        mech: the mechanism (the drawing).
+        setup: the machine as drawn, and its task (the setpoint's pose is the centre).
         count: how many.
         rng: the random generator (seeded by the caller).
         half_range: (6,) half-ranges x, y, z [m], rotation vector [rad].
@@ -91,14 +92,15 @@ def candidate_poses(mech: Mechanism, count: int, rng: np.random.Generator,
     Raises:
         PlanError: fewer than ``count`` feasible poses in 50 x ``count`` draws.
     """
+    mech = setup.mechanism
     try:
-        centre, centre_rot = setpoint_pose(mech)
+        centre, centre_rot = setpoint_pose(setup)
     except AnalysisError as exc:
         raise PlanError(str(exc)) from None
     half = np.asarray(half_range, dtype=float)
     if half.shape != (6,) or not np.all(np.isfinite(half)) or np.any(half < 0):
         raise PlanError('the pose range must be 6 numbers >= 0, got %r' % (half_range,))
-    fk = ForwardKinematics(mech)
+    fk = ForwardKinematics(mech, start=(setup.task.initial_position, setup.task.initial_rotation))
     dyn = Dynamics(mech)
     stroke = mech.leg_length_max - mech.leg_length_min
     low = mech.leg_length_min + STROKE_MARGIN * stroke
@@ -111,7 +113,7 @@ def candidate_poses(mech: Mechanism, count: int, rng: np.random.Generator,
             rng.uniform(-1, 1, (batch, 3)) * half[3:], centre_rot))
         meas = cal.Measurements(pos, rot, np.zeros((batch, 6)))
         lengths = cal.predict_readings(cal.parameter_vector(mech), meas) \
-            - cal.leg_length_offset(mech)
+            - mech.leg_length_offset
         inside = np.all((lengths >= low) & (lengths <= high), axis=1)
         for n in np.flatnonzero(inside):
             if fk.condition(pos[n], rot[n]) > max_condition:
@@ -233,13 +235,13 @@ def tour(mech: Mechanism, positions: np.ndarray, rotations: np.ndarray,
     return order
 
 
-def plan(mech: Mechanism, count: int, seed: int = 0, noise: cal.NoiseModel | None = None,
+def plan(setup: Setup, count: int, seed: int = 0, noise: cal.NoiseModel | None = None,
          candidates: int = 1500, half_range: ArrayLike = DEFAULT_RANGE,
          max_condition: float = 100.0, force_share: float = 0.5) -> Plan:
     """Choose ``count`` poses that make the identification well conditioned.
 
     Args:
-        mech: the drawing.
+        setup: the machine as drawn, and its task (the initial pose is the tour's start).
         count: poses, at least ``calibration.MIN_POSES``.
         seed: the candidates' random seed.
         noise: the tracker's noise (the whitening; default ``NoiseModel()``).
@@ -259,19 +261,20 @@ def plan(mech: Mechanism, count: int, seed: int = 0, noise: cal.NoiseModel | Non
                         % (candidates, count))
     noise = noise or cal.NoiseModel()
     rng = np.random.default_rng(seed)
-    positions, rotations = candidate_poses(mech, candidates, rng, half_range, max_condition,
+    mech = setup.mechanism
+    positions, rotations = candidate_poses(setup, candidates, rng, half_range, max_condition,
                                            force_share)
     blocks = _blocks(mech, positions, rotations, noise)
     chosen = choose(blocks, count)
     o1, o3 = indices(blocks, chosen)
-    start = (np.asarray(mech.initial_position), rotation_from_euler(mech.initial_orientation))
+    start = (np.asarray(setup.task.initial_position), setup.task.initial_rotation)
     order = tour(mech, positions[chosen], rotations[chosen], start)
     chosen = [chosen[j] for j in order]
     return Plan(positions[chosen], rotations[chosen], o1, o3,
                 1.0 / o3 if o3 > 0 else np.inf, len(positions))
 
 
-def reference_rows(mech: Mechanism, positions: np.ndarray, rotations: np.ndarray,
+def reference_rows(setup: Setup, positions: np.ndarray, rotations: np.ndarray,
                    hold: float = 2.0, move: float = 2.0, leg_speed: float = 0.1,
                    row_step: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
     """A reference (§7 rows) from the initial pose through every pose, holding each.
@@ -281,7 +284,7 @@ def reference_rows(mech: Mechanism, positions: np.ndarray, rotations: np.ndarray
     spline through the rows stays on it; each pose is held ``hold`` seconds.
 
     Args:
-        mech: the mechanism (its initial pose is the start).
+        setup: the machine, and its task (the initial pose is the start).
         positions: (N, 3); rotations: (N, 3, 3), in visiting order.
         hold: seconds at each pose.
         move: the shortest move [s].
@@ -297,11 +300,12 @@ def reference_rows(mech: Mechanism, positions: np.ndarray, rotations: np.ndarray
     """
     if not (hold > 0 and move > 0 and leg_speed > 0 and row_step > 0):
         raise PlanError('hold, move, leg speed and row step must be > 0')
-    theta = cal.parameter_vector(mech)
-    start = np.concatenate([mech.initial_position, mech.initial_orientation])
+    task = setup.task
+    theta = cal.parameter_vector(setup.mechanism)
+    start = np.concatenate([task.initial_position, task.initial_orientation])
     targets = np.hstack([positions, euler_from_matrix(rotations)])
-    meas = cal.Measurements(np.vstack([mech.initial_position, positions]),
-                            np.concatenate([[_rot(mech.initial_orientation)], rotations]),
+    meas = cal.Measurements(np.vstack([task.initial_position, positions]),
+                            np.concatenate([[_rot(task.initial_orientation)], rotations]),
                             np.zeros((len(positions) + 1, 6)))
     lengths = cal.predict_readings(theta, meas)
     times, rows = [0.0], [start]

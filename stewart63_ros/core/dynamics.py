@@ -43,7 +43,6 @@ from stewart63_ros.core._jit import njit, njit_kernel
 from stewart63_ros.core.control import PDGains, pd_leg
 from stewart63_ros.core.kinematics import LegState, leg_kernel
 from stewart63_ros.core.linalg import solve_linear
-from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.rotation import matrix_from_quaternion, rotation_rows
 
 if TYPE_CHECKING:
@@ -464,8 +463,8 @@ class Dynamics:
 
     The state ``y`` is a float array (13,): t [m], quaternion (x, y, z, w),
     v [m/s], omega [rad/s], all in the base frame (``POS``, ``QUAT``, ``VEL``,
-    ``OMEGA``). ``endstop_stiffness`` / ``endstop_damping`` come from
-    ``mech.extra`` (declared in core/node_parameters.py).
+    ``OMEGA``). The end stops are the mechanism's (``endstop_stiffness``,
+    ``endstop_damping``).
 
     Args:
         mech: the mechanism.
@@ -473,7 +472,6 @@ class Dynamics:
 
     def __init__(self, mech: Mechanism) -> None:
         self.mech = mech
-        extra = mech.extra
         const = np.zeros(_NCONST)
         const[_MASS] = mech.platform_mass
         const[_G:_G + 3] = mech.gravity
@@ -482,8 +480,8 @@ class Dynamics:
         const[_LD], const[_LU] = mech.leg_lower_com, mech.leg_upper_com
         const[_IT] = mech.leg_lower_inertia[1] + mech.leg_upper_inertia[1]
         const[_CP], const[_CU] = mech.piston_damping, mech.ujoint_damping
-        const[_KSTOP] = read_declared(extra, 'endstop_stiffness')
-        const[_CSTOP] = read_declared(extra, 'endstop_damping')
+        const[_KSTOP] = mech.endstop_stiffness
+        const[_CSTOP] = mech.endstop_damping
         const[_LMIN], const[_LMAX] = mech.leg_length_min, mech.leg_length_max
         #: Arrays the compiled kernels take (see ``kernel_args``).
         self.constants = const

@@ -47,7 +47,6 @@ from stewart63_ros.core.node_parameters import DEFAULT_COND_THRESHOLD
 from stewart63_ros.core.rotation import (
     euler_from_matrix,
     quaternion_of_matrix,
-    rotation_from_euler,
 )
 
 if TYPE_CHECKING:
@@ -682,9 +681,13 @@ class ForwardKinematics:
         mech: the mechanism.
         cond_threshold: a pose whose Jacobian's condition number exceeds this
             is flagged ``singular``.
+        start: (position (3,) [m], rotation (3, 3)) the pose modes are ordered
+            by nearness to (``all_modes``), a run's start (``Setup.task``);
+            None: the machine's ``Mechanism.neutral_pose``.
     """
 
-    def __init__(self, mech: Mechanism, cond_threshold: float = DEFAULT_COND_THRESHOLD) -> None:
+    def __init__(self, mech: Mechanism, cond_threshold: float = DEFAULT_COND_THRESHOLD,
+                 start: tuple[ArrayLike, ArrayLike] | None = None) -> None:
         self.mech = mech
         self.cond_threshold = float(cond_threshold)
         self.base = _arr(mech.base_points)
@@ -714,8 +717,9 @@ class ForwardKinematics:
             e2.append(v)
         self.axis, self.e1, self.e2 = np.array(axis), np.array(e1), np.array(e2)
         self.pair_distance = np.linalg.norm(self.base[1::2] - self.base[0::2], axis=1)
-        self.reference = (_arr(mech.initial_position),
-                          _arr(rotation_from_euler(mech.initial_orientation)))
+        if start is None:
+            start = mech.neutral_pose()
+        self.reference = (_arr(start[0]), _arr(start[1]))
 
     # -- small helpers --------------------------------------------------------
     def check_lengths(self, lengths: ArrayLike) -> np.ndarray:
@@ -857,7 +861,8 @@ class FKTracker:
 
     Args:
         mech_or_fk: the mechanism, or a ``ForwardKinematics`` to share.
-        position: (3,) [m] and rotation: (3, 3), the start; default the initial pose.
+        position: (3,) [m] and rotation: (3, 3), the start; default the
+            ``ForwardKinematics``'s reference pose (its ``start``).
         cond_threshold: overrides the ``ForwardKinematics``'s.
         max_move: the largest jump from the prediction Newton may make [m].
         max_iter: Newton iterations at most per sample.
@@ -870,8 +875,9 @@ class FKTracker:
                  max_iter: int = 12, extrapolate: bool = True) -> None:
         if isinstance(mech_or_fk, ForwardKinematics):
             fk = mech_or_fk
-        else:
-            fk = ForwardKinematics(mech_or_fk)
+        else:       # the start is the reference of its modes too
+            fk = ForwardKinematics(mech_or_fk, start=None if position is None or rotation is None
+                                   else (position, rotation))
         if cond_threshold is not None:
             fk.cond_threshold = float(cond_threshold)
         self.fk = fk

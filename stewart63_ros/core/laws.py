@@ -4,8 +4,10 @@ Every law follows one interface, so that ``sim``, the controller node and a
 user's own law are interchangeable:
 
 - constructed once as ``Law(mech, params)``: the ``Mechanism`` (geometry,
-  masses, limits) and the controller's parameter dictionary (every key of
-  the parameter file that applies to the controller, ``mech.extra`` included);
+  masses, limits: the machine) and the controller's parameter dictionary
+  (every key of the parameter file that applies to the controller: the gains
+  ``kp``, ``kv``, the task's ``setpoint_lengths`` and ``initial_*``, the
+  settings; ``Setup.to_params()``);
 - called once per sample as ``law(t, lengths, rates, ref)`` with the sample
   time t [s], the measured L_i [m] and dL_i/dt [m/s] (numpy arrays (6,)) and
   the reference sample ``ref`` (a ``ReferenceSample``: ``ref.position``,
@@ -69,10 +71,11 @@ from stewart63_ros.core.reference import (
     ReferenceSample,
     rotation_error,
 )
-from stewart63_ros.core.rotation import rotation_from_euler
+from stewart63_ros.core.setup import task_from_params
 
 if TYPE_CHECKING:
     from stewart63_ros.core.mechanism import Mechanism
+    from stewart63_ros.core.setup import Setup
 
 class LawError(RuntimeError):
     """A law that raised or returned forces that cannot be applied."""
@@ -137,17 +140,18 @@ class PoseEstimator:
     the previous estimate (``fk.pose_and_twist``, compiled), falling back on the
     assembly mode nearest the previous estimate when Newton fails.
 
-    Starts at the mechanism's initial pose; ``position`` (3,), ``rotation``
-    (3, 3) and ``twist`` (6,) hold the last estimate.
+    Starts at ``start``; ``position`` (3,), ``rotation`` (3, 3) and ``twist``
+    (6,) hold the last estimate.
 
     Args:
         mech: the mechanism.
+        start: (position (3,) [m], rotation (3, 3)), the run's initial pose.
     """
 
-    def __init__(self, mech: Mechanism) -> None:
-        self.fk = ForwardKinematics(mech)
-        self.position = np.array(mech.initial_position, dtype=float)
-        self.rotation = rotation_from_euler(mech.initial_orientation)
+    def __init__(self, mech: Mechanism, start: tuple[ArrayLike, ArrayLike]) -> None:
+        self.fk = ForwardKinematics(mech, start=start)
+        self.position = np.array(start[0], dtype=float)
+        self.rotation = np.array(start[1], dtype=float)
         self.twist = np.zeros(6)
 
     def __call__(self, lengths: np.ndarray,
@@ -182,9 +186,11 @@ class _LegGains:
 
     parameters = ('kp', 'kv')
 
-    def _read_gains(self, mech: Mechanism, params: Mapping[str, Any]) -> None:
+    def _read_gains(self, params: Mapping[str, Any]) -> None:
         for name in self.parameters:
-            self.set_parameter(name, params.get(name, getattr(mech, name)))
+            if params.get(name) is None:
+                raise ParameterError(name, 'missing')
+            self.set_parameter(name, params[name])
 
     def set_parameter(self, name: str, value: Any) -> None:
         """Change the gain ``name`` (one of ``parameters``); ParameterError to refuse."""
@@ -195,13 +201,13 @@ class PDLaw(_LegGains):
     """``pd``: eq. (40) on every leg, towards the reference's lengths and rates.
 
     Args:
-        mech: the mechanism (``max_force``, and the default gains).
+        mech: the mechanism (``max_force``).
         params: the controller's parameters (``kp``, ``kv``: six gains each).
     """
 
     def __init__(self, mech: Mechanism, params: Mapping[str, Any]) -> None:
         self.max_force = float(mech.max_force)
-        self._read_gains(mech, params)
+        self._read_gains(params)
         self.estimate = None
 
     def __call__(self, t: float, lengths: np.ndarray, rates: np.ndarray,
@@ -211,12 +217,14 @@ class PDLaw(_LegGains):
 
 
 class _ModelLaw:
-    """A law that uses the plant's model at the estimated pose."""
+    """A law that uses the plant's model at the estimated pose, tracked from
+    the run's initial pose (the task's keys of ``params``)."""
 
     def __init__(self, mech: Mechanism, params: Mapping[str, Any]) -> None:
         self.max_force = float(mech.max_force)
         self.args = Dynamics(mech).kernel_args()
-        self.estimator = PoseEstimator(mech)
+        task = task_from_params(mech, params)
+        self.estimator = PoseEstimator(mech, (task.initial_position, task.initial_rotation))
 
     @property
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
@@ -234,7 +242,7 @@ class PDGravityLaw(_LegGains, _ModelLaw):
 
     def __init__(self, mech: Mechanism, params: Mapping[str, Any]) -> None:
         super().__init__(mech, params)
-        self._read_gains(mech, params)
+        self._read_gains(params)
 
     def holding_forces(self, position: ArrayLike, rotation: ArrayLike) -> np.ndarray:
         """H^-1 eta(q, 0): piston forces that hold the mechanism still at this pose.
@@ -372,39 +380,45 @@ def make_law(name: str, mech: Mechanism, params: Mapping[str, Any]) -> Any:
     return law
 
 
+def _start_pose(setup: Setup) -> tuple[np.ndarray, np.ndarray]:
+    """The run's initial pose: the assembly mode a lengths reference takes."""
+    return setup.task.initial_position, setup.task.initial_rotation
+
+
 class Controller:
     """A law with its reference: ``forces(t, lengths, rates)`` per sample.
 
-    ``reference`` (a ``Reference``; default: hold ``mech.setpoint_lengths``) is
+    ``reference`` (a ``Reference``; default: hold the task's ``setpoint_lengths``) is
     sampled at ``t - start`` (``start``: the reference's time 0 on the sample
     clock; None: the first sample's time). Forces are saturated at max_force;
     a law that raises or returns anything but six finite numbers raises
     ``LawError`` (the caller withholds the forces).
 
     Args:
-        mech: the mechanism.
-        params: the controller's parameters, over ``mech.to_params()``.
+        setup: the machine, gains, task and settings (``params.load_setup``).
+        params: the controller's parameters, over ``setup.to_params()``.
         law: the law's name (default: ``params['control_law']``, else ``pd``).
-        reference: what to follow (default: hold ``mech.setpoint_lengths``).
+        reference: what to follow (default: hold ``setup.task.setpoint_lengths``).
         start: the reference's time 0 on the sample clock [s] (None: the first sample).
 
     Raises:
         ParameterError: the law cannot be built from the parameters.
     """
 
-    def __init__(self, mech: Mechanism, params: Mapping[str, Any] | None = None,
+    def __init__(self, setup: Setup, params: Mapping[str, Any] | None = None,
                  law: str | None = None, reference: Reference | None = None,
                  start: float | None = 0.0) -> None:
-        self.mech = mech
-        self.params = dict(mech.to_params())
+        self.setup = setup
+        self.mech = mech = setup.mechanism
+        self.params = setup.to_params()
         self.params.update(params or {})
         self.max_force = float(mech.max_force)
         name = law if law is not None else read_declared(self.params, 'control_law')
         self.law = make_law(name, mech, self.params)
         self.law_name = name
         self.sample = ReferenceSample(np.zeros(SAMPLE_SIZE))
-        self.set_reference(reference or Reference.constant_lengths(mech, mech.setpoint_lengths),
-                           start)
+        self.set_reference(reference or Reference.constant_lengths(
+            mech, setup.task.setpoint_lengths, near=_start_pose(setup)), start)
 
     def set_reference(self, reference: Reference, start: float | None = None) -> None:
         """Follow ``reference`` from ``start`` on the sample clock (None: the next sample)."""
@@ -510,25 +524,27 @@ class Controller:
 
 class PDController(Controller):
     """The paper's controller: the built-in ``pd`` law holding fixed leg lengths,
-    eq. (40), with the mechanism's gains and saturation (``sim``'s default).
+    eq. (40), with the setup's gains and the mechanism's saturation (``sim``'s default).
 
     Args:
-        mech: the mechanism (``kp``, ``kv``, ``max_force``, ``setpoint_lengths``).
-        setpoint: (6,) lengths to hold [m] instead of ``mech.setpoint_lengths``.
-        params: the controller's parameters, over ``mech.to_params()``.
+        setup: the machine (``max_force``), gains (``kp``, ``kv``) and task
+            (``setpoint_lengths``).
+        setpoint: (6,) lengths to hold [m] instead of ``setup.task.setpoint_lengths``.
+        params: the controller's parameters, over ``setup.to_params()``.
 
     Raises:
         ParameterError: a gain the law refuses.
         ValueError: a setpoint that is not six finite lengths.
     """
 
-    def __init__(self, mech: Mechanism, setpoint: ArrayLike | None = None,
+    def __init__(self, setup: Setup, setpoint: ArrayLike | None = None,
                  params: Mapping[str, Any] | None = None) -> None:
-        lengths = np.array(mech.setpoint_lengths if setpoint is None else setpoint, float)
+        lengths = np.array(setup.task.setpoint_lengths if setpoint is None else setpoint, float)
         if lengths.shape != (6,) or not np.all(np.isfinite(lengths)):
             raise ValueError('setpoint must be six finite lengths')
-        super().__init__(mech, params, law='pd',
-                         reference=Reference.constant_lengths(mech, lengths))
+        super().__init__(setup, params, law='pd',
+                         reference=Reference.constant_lengths(setup.mechanism, lengths,
+                                                              near=_start_pose(setup)))
 
     @property
     def setpoint(self) -> np.ndarray:

@@ -290,7 +290,7 @@ class Scene:
         """Copies of the numbers that never change, and where the rest go."""
         if not hasattr(self, '_static'):
             rot = np.eye(3)
-            sample = self.shapes(self.mech.initial_position, rot)
+            sample = self.shapes(self.mech.neutral_pose()[0], rot)
             f8, f4 = flatten(sample)
             o, at = {}, 0
             for shape in sample:

@@ -1,10 +1,16 @@
-"""The mechanism: a validated 6-3 platform, its masses, friction, limits,
-gains and scenario (``Mechanism``), and the checks that make one from a flat
-parameter dictionary (``validated``).
+"""The mechanism: the machine a run drives, validated (``Mechanism``), and the
+checks that make one from a flat parameter dictionary (``validated``).
+
+The machine is everything the kinematics and dynamics need and nothing a run
+chooses: geometry, masses, inertias, friction, gravity, the stroke and its end
+stops, the force limit and the sensors' zero offsets. The gains of eq. (40),
+the setpoint and the initial state, and the nodes' settings are the run's:
+``setup.Setup`` holds them beside the mechanism (docs/design.md, "One
+parameter model").
 
 A leaf module: it imports nothing of the package but other leaf modules
-(``errors``, ``legs``, ``rotation``, ``node_parameters``), so every module
-can name ``Mechanism`` in its type hints without an import circle
+(``errors``, ``legs``, ``node_parameters``), so every module can name
+``Mechanism`` in its type hints without an import circle
 (test/test_imports.py). Reading the parameter file is ``params``' job.
 """
 from __future__ import annotations
@@ -18,8 +24,7 @@ from numpy.typing import ArrayLike
 
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.core.legs import LEG_VERTEX
-from stewart63_ros.core.node_parameters import gain_vector
-from stewart63_ros.core.rotation import rotation_from_euler
+from stewart63_ros.core.node_parameters import read as read_declared
 
 
 def _vector(params: Mapping[str, Any], key: str, size: int) -> np.ndarray:
@@ -38,13 +43,6 @@ def _vector(params: Mapping[str, Any], key: str, size: int) -> np.ndarray:
         raise ParameterError(key, 'non-finite value (NaN or Inf) in %r' % (value,))
     arr.setflags(write=False)
     return arr
-
-
-def _gains(params: Mapping[str, Any], key: str) -> np.ndarray:
-    # eq. (40)'s gains: checked by the one check of every gain vector
-    if key not in params:
-        raise ParameterError(key, 'missing')
-    return _frozen(gain_vector(key, params[key]))
 
 
 def _scalar(params, key, positive=False, nonnegative=False) -> float:
@@ -89,9 +87,12 @@ def _frozen(arr) -> np.ndarray:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Mechanism:
-    """A validated 6-3 platform, its masses, friction, limits, gains and scenario.
+    """A validated 6-3 platform: the machine, and nothing a run chooses.
 
     Arrays are read-only. Leg i (0-based) meets vertex ``LEG_VERTEX[i]``.
+    Every field is a key of the parameter file, declared (unit, range, words)
+    in core/node_parameters.py: the model's keys in ``MODEL``, the end stops
+    and the sensors' zero offsets in ``DECLARED``.
     """
     base_points: np.ndarray          # (6, 3) b_i, base frame
     platform_points: np.ndarray      # (3, 3) p_k, platform frame
@@ -110,14 +111,9 @@ class Mechanism:
     leg_length_min: float
     leg_length_max: float
     max_force: float
-    kp: np.ndarray
-    kv: np.ndarray
-    setpoint_lengths: np.ndarray
-    initial_position: np.ndarray
-    initial_velocity: np.ndarray
-    initial_orientation: np.ndarray
-    initial_orientation_rate: np.ndarray
-    extra: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    endstop_stiffness: float         # [N/m] past the stroke; inf: rigid
+    endstop_damping: float           # [N s/m]
+    leg_length_offset: np.ndarray    # (6,) o_i [m]: a sensor reads L_i + o_i
 
     @property
     def leg_platform_points(self) -> np.ndarray:
@@ -135,8 +131,28 @@ class Mechanism:
         """
         return self.leg_platform_points @ rot.T + np.asarray(position) - self.base_points
 
+    def neutral_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """A pose of the machine alone, for when no run gives one (a run's
+        start is its task's initial pose): the platform level, its vertices'
+        centre over the base points' centre, on the side the base plane's
+        normal (z up) points to, the legs' mean square length at mid-stroke.
+
+        Returns:
+            (position t (3,) [m], rotation R (3, 3) = identity).
+        """
+        base = self.base_points
+        normal = np.linalg.svd(base - base.mean(0))[2][2]
+        normal = normal if normal[2] >= 0 else -normal
+        legs = self.leg_platform_points - self.platform_points.mean(0) + base.mean(0) - base
+        flat = legs - np.outer(legs @ normal, normal)       # in the base plane
+        mid = 0.5 * (self.leg_length_min + self.leg_length_max)
+        height = np.sqrt(max(mid ** 2 - float(np.mean(np.sum(flat ** 2, axis=1))),
+                             (0.1 * mid) ** 2))
+        return base.mean(0) - self.platform_points.mean(0) + height * normal, np.eye(3)
+
     def replace(self, **changes: Any) -> Mechanism:
-        """A copy with some fields changed, validated again.
+        """A copy with some fields changed, validated again (the checks of
+        ``validated``, the one path of every change).
 
         Args:
             **changes: field names and new values (``platform_inertia`` as six
@@ -146,26 +162,22 @@ class Mechanism:
             The new mechanism.
 
         Raises:
-            ParameterError: the changed mechanism is not valid.
+            ParameterError: the changed mechanism is not valid, or a name is
+                not one of its fields.
         """
-        params = self.to_params()
-        params.update({k: (np.asarray(v).ravel().tolist() if np.ndim(v) else v)
-                       for k, v in changes.items()})
-        if 'platform_inertia' in changes and np.shape(changes['platform_inertia']) == (3, 3):
-            m = np.asarray(changes['platform_inertia'])
-            params['platform_inertia'] = [m[0, 0], m[1, 1], m[2, 2], m[0, 1], m[0, 2], m[1, 2]]
-        return validated(params)
+        unknown = sorted(set(changes) - MECHANISM_KEYS)
+        if unknown:
+            raise ParameterError(unknown[0], 'not a field of the mechanism')
+        return validated(changed_params(self.to_params(), changes))
 
     def to_params(self) -> dict:
         """The flat parameter dictionary this mechanism was built from.
 
         Returns:
-            {key: value} with lists for arrays, ``extra`` included.
+            {key: value} of every field, with lists for arrays.
         """
-        out = dict(self.extra)
+        out = {}
         for field in dataclasses.fields(self):
-            if field.name == 'extra':
-                continue
             value = getattr(self, field.name)
             if field.name == 'platform_inertia':
                 value = [value[0, 0], value[1, 1], value[2, 2],
@@ -173,15 +185,37 @@ class Mechanism:
             out[field.name] = np.asarray(value).ravel().tolist() if np.ndim(value) else value
         return out
 
-#: The keys the mechanism holds (the others of a parameter file go to ``extra``).
-KNOWN_KEYS = frozenset(f.name for f in dataclasses.fields(Mechanism)) - {'extra'}
+def changed_params(params: Mapping[str, Any], changes: Mapping[str, Any]) -> dict:
+    """``params`` with ``changes`` over it, as a parameter file holds them: lists
+    for arrays, ``platform_inertia`` as six numbers when given as the matrix.
+
+    Args:
+        params: the flat parameter dictionary.
+        changes: keys and new values.
+
+    Returns:
+        A new flat dictionary (not yet checked).
+    """
+    out = dict(params)
+    out.update({k: (np.asarray(v).ravel().tolist() if np.ndim(v) else v)
+                for k, v in changes.items()})
+    if 'platform_inertia' in changes and np.shape(changes['platform_inertia']) == (3, 3):
+        m = np.asarray(changes['platform_inertia'])
+        out['platform_inertia'] = [m[0, 0], m[1, 1], m[2, 2], m[0, 1], m[0, 2], m[1, 2]]
+    return out
+
+
+#: The keys the mechanism holds (the others of a parameter file are the run's:
+#: ``setup.Setup``).
+MECHANISM_KEYS = frozenset(f.name for f in dataclasses.fields(Mechanism))
 
 
 def validated(params: Mapping[str, Any]) -> Mechanism:
     """The mechanism of a flat parameter dictionary, every value checked.
 
     Args:
-        params: {key: value}, the mechanism's keys and any others (kept in ``extra``).
+        params: {key: value}, the mechanism's keys (any others are ignored
+            here: they are the run's, ``setup.setup_from_params``).
 
     Returns:
         The validated, immutable mechanism.
@@ -234,21 +268,14 @@ def validated(params: Mapping[str, Any]) -> Mechanism:
         leg_length_min=lmin,
         leg_length_max=lmax,
         max_force=_scalar(params, 'max_force', positive=True),
-        kp=_gains(params, 'kp'),
-        kv=_gains(params, 'kv'),
-        setpoint_lengths=_vector(params, 'setpoint_lengths', 6),
-        initial_position=_vector(params, 'initial_position', 3),
-        initial_velocity=_vector(params, 'initial_velocity', 3),
-        initial_orientation=_vector(params, 'initial_orientation', 3),
-        initial_orientation_rate=_vector(params, 'initial_orientation_rate', 3),
-        extra={k: v for k, v in params.items() if k not in KNOWN_KEYS},
+        # declared with the nodes' keys (a default each), checked by their declaration
+        endstop_stiffness=read_declared(params, 'endstop_stiffness'),
+        endstop_damping=read_declared(params, 'endstop_damping'),
+        leg_length_offset=_frozen(read_declared(params, 'leg_length_offset')),
     )
-    if np.any(mech.setpoint_lengths <= 0):
-        raise ParameterError('setpoint_lengths', 'lengths must be > 0')
     if mech.leg_lower_com > lmax or mech.leg_upper_com > lmax:
         raise ParameterError('leg_lower_com' if mech.leg_lower_com > lmax else 'leg_upper_com',
                              'centre of mass lies beyond the longest leg (%g m)' % lmax)
-    _check_initial_pose(mech)
     return mech
 
 
@@ -273,17 +300,3 @@ def _check_geometry(base: np.ndarray, plat: np.ndarray) -> None:
     sv = np.linalg.svd(centred, compute_uv=False)
     if sv[1] < 1e-9 * max(sv[0], 1e-12):
         raise ParameterError('base_points', 'all six base points are collinear')
-
-
-def _check_initial_pose(mech: Mechanism) -> None:
-    rot = rotation_from_euler(mech.initial_orientation)
-    lengths = np.linalg.norm(mech.leg_vectors(mech.initial_position, rot), axis=1)  # eq. (5)
-    for key, values in (('initial_position', lengths), ('setpoint_lengths', mech.setpoint_lengths)):
-        bad = np.flatnonzero((values < mech.leg_length_min) | (values > mech.leg_length_max))
-        if bad.size:
-            i = int(bad[0])
-            raise ParameterError(
-                key, 'leg_%d length %.4f m is outside the stroke [leg_length_min %g, '
-                'leg_length_max %g]' % (i + 1, values[i], mech.leg_length_min, mech.leg_length_max))
-
-

@@ -6,9 +6,8 @@ node runs, one line of doc, and the check that turns a value as given into
 the value used (or raises ``ParameterError`` with the reason). From these
 declarations, and nowhere else, come:
 
-- the keys each node reads (``NODE_KEYS``; with the model's keys, the fields
-  of ``params.Mechanism``, every key an executable knows: a key outside both
-  is reported as unknown);
+- the keys each node reads (``NODE_KEYS``; with the model's keys, ``MODEL``,
+  every key an executable knows: a key outside both is reported as unknown);
 - the value a node, ``sim`` or the core uses: ``read(params, name)``,
   defaulted and checked;
 - the table "Node-specific keys" of docs/interface.md: ``markdown_table()``
@@ -18,10 +17,12 @@ declarations, and nowhere else, come:
   (``describe``: description with unit, range, read-only; runtime/parameters.py
   makes the ParameterDescriptor of it) and the value's ROS type (``ros_value``).
 
-The model's keys (geometry, masses, gains, initial state) are the fields of
-``params.Mechanism``, checked together in ``params.mechanism_from_params``;
-their unit, words and range are declared here too (``MODEL``, which writes
-the page's model table: ``model_markdown_table()``).
+The model's keys (geometry, masses, gains, initial state) are checked together
+where they are held (core/setup.py: the machine's in ``mechanism.validated``,
+the gains and the task in ``setup``); their unit, words and range are declared
+here too (``MODEL``, which writes the page's model table:
+``model_markdown_table()``). Which part of a run's ``Setup`` holds a key
+(mechanism, gains, task or settings) is the rule of core/setup.py.
 
 A node that reads a new parameter: declare it here (it is then known,
 checked and documented), and read it with ``read`` (``RigNode.param``).
@@ -509,12 +510,12 @@ NODE_KEYS: dict[str, frozenset[str]] = {
 # -- the model's keys ----------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
 class ModelKey:
-    """One key of the model (a field of ``params.Mechanism``, checked there,
-    in ``mechanism_from_params``): what the interface page and ``ros2 param
-    describe`` say of it. Every node reads every model key.
+    """One key of the model (a field of the ``Mechanism``, the ``Gains`` or the
+    ``Task`` of core/setup.py, checked there): what the interface page and
+    ``ros2 param describe`` say of it. Every node reads every model key.
 
     Attributes:
-        name: the key (the Mechanism field).
+        name: the key (the field's name).
         size: 1 for a number, n for a list of n numbers.
         unit: the unit of each number.
         packaged: the packaged file's value, in words.

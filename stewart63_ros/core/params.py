@@ -1,5 +1,6 @@
-"""The parameter file: read it, check its keys, and make the ``Mechanism`` of it
-(the type and its checks live in the leaf module ``mechanism``).
+"""The parameter file: read it, check its keys, and make the ``Setup`` of it
+(the machine, gains, task and settings; the types and their checks live in
+the leaf modules ``mechanism`` and ``setup``).
 
 The file is a ROS 2 parameter file (docs/interface.md): shared keys under
 ``/**: ros__parameters:``, node-specific keys under ``/**/<node>:``. This module
@@ -19,11 +20,12 @@ import yaml
 from stewart63_ros.core.errors import ParameterError
 
 # The legs' names live in the leaf module legs, the Mechanism and its checks in
-# the leaf module mechanism; importing them from here works too.
+# the leaf module mechanism, the Setup in the leaf module setup; importing them
+# from here works too.
 from stewart63_ros.core.legs import LEG_NAMES, LEG_VERTEX  # noqa: F401
-from stewart63_ros.core.mechanism import KNOWN_KEYS, Mechanism, inertia_matrix, validated  # noqa: F401
-from stewart63_ros.core.node_parameters import NODE_KEYS
-from stewart63_ros.core.node_parameters import read as read_declared
+from stewart63_ros.core.mechanism import Mechanism, inertia_matrix  # noqa: F401
+from stewart63_ros.core.node_parameters import MODEL_BY_NAME, NODE_KEYS
+from stewart63_ros.core.setup import Setup, validated_setup
 from stewart63_ros.paths import default_params_path
 
 
@@ -92,7 +94,7 @@ def known_keys(params: Mapping[str, Any] | None = None) -> set[str]:
     Returns:
         The set of key names.
     """
-    keys = set(KNOWN_KEYS).union(*NODE_KEYS.values())
+    keys = set(MODEL_BY_NAME).union(*NODE_KEYS.values())
     law = (params or {}).get('control_law')
     if isinstance(law, str) and ':' in law:
         try:
@@ -157,30 +159,26 @@ def _missing_hint(key: str, params: Mapping[str, Any]) -> str:
     return ' (the file has the unknown key %s: a typo?)' % close[0] if close else ''
 
 
-def mechanism_from_params(params: Mapping[str, Any]) -> Mechanism:
-    """Validate a flat parameter dictionary; every error names its key.
+def setup_from_params(params: Mapping[str, Any]) -> Setup:
+    """Validate a flat parameter dictionary into its parts; every error names
+    its key.
 
     A missing key that looks like an unknown key of ``params`` says so
     (``platform_mass: missing (the file has the unknown key platfrom_mass:
     a typo?)``).
 
     Args:
-        params: {key: value}, the mechanism's keys and any others (kept in ``extra``).
+        params: {key: value}, every key a node or ``sim`` reads.
 
     Returns:
-        The validated, immutable mechanism.
+        The validated, immutable setup: ``mechanism``, ``gains``, ``task``,
+        ``settings``.
 
     Raises:
         ParameterError: a key missing or out of its range (docs/interface.md).
     """
     try:
-        mech = validated(params)
-        # The end stops belong to the model the plant integrates (and sim); an
-        # infinitely stiff one is allowed (the integrators then report it). The
-        # sensors' zero offsets belong to the machine the file describes.
-        for key in ('endstop_stiffness', 'endstop_damping', 'leg_length_offset'):
-            read_declared(params, key)
-        return mech
+        return validated_setup(params)
     except ParameterError as exc:
         if exc.problem == 'missing':
             hint = _missing_hint(exc.key, params)
@@ -189,8 +187,24 @@ def mechanism_from_params(params: Mapping[str, Any]) -> Mechanism:
         raise
 
 
-def load_mechanism(path: str | os.PathLike | None = None, node_name: str | None = None,
-                   overrides: Mapping[str, Any] | None = None) -> Mechanism:
+def mechanism_from_params(params: Mapping[str, Any]) -> Mechanism:
+    """The machine of a flat parameter dictionary, the whole setup checked
+    (``setup_from_params``).
+
+    Args:
+        params: {key: value}, every key a node or ``sim`` reads.
+
+    Returns:
+        The validated, immutable mechanism.
+
+    Raises:
+        ParameterError: a key missing or out of its range (docs/interface.md).
+    """
+    return setup_from_params(params).mechanism
+
+
+def load_setup(path: str | os.PathLike | None = None, node_name: str | None = None,
+               overrides: Mapping[str, Any] | None = None) -> Setup:
     """Read and validate a parameter file (default: the packaged one).
 
     Args:
@@ -199,12 +213,28 @@ def load_mechanism(path: str | os.PathLike | None = None, node_name: str | None 
         overrides: values that replace the file's.
 
     Returns:
-        The validated mechanism.
+        The validated setup: ``mechanism``, ``gains``, ``task``, ``settings``.
 
     Raises:
-        ParameterError: as ``read_parameter_file`` and ``mechanism_from_params``.
+        ParameterError: as ``read_parameter_file`` and ``setup_from_params``.
     """
     params = read_parameter_file(path if path is not None else default_params_path(), node_name)
     if overrides:
         params.update(overrides)
-    return mechanism_from_params(params)
+    return setup_from_params(params)
+
+
+def load_mechanism(path: str | os.PathLike | None = None, node_name: str | None = None,
+                   overrides: Mapping[str, Any] | None = None) -> Mechanism:
+    """The machine of a parameter file, the whole file checked (``load_setup``).
+
+    Args:
+        path, node_name, overrides: as ``load_setup``.
+
+    Returns:
+        The validated mechanism.
+
+    Raises:
+        ParameterError: as ``load_setup``.
+    """
+    return load_setup(path, node_name, overrides).mechanism

@@ -69,12 +69,13 @@ def main() -> None:
     from stewart63_ros.core.dynamics import Dynamics
     from stewart63_ros.core.fk import FKTracker
     from stewart63_ros.core.laws import PDController
-    from stewart63_ros.core.params import load_mechanism
+    from stewart63_ros.core.params import load_setup
     from stewart63_ros.core.simulate import initial_state, run_continuous, run_sampled
-    mech = load_mechanism()
+    setup = load_setup()
+    mech, task = setup.mechanism, setup.task
     dyn = Dynamics(mech)
-    law = PDController(mech)
-    y = initial_state(mech)
+    law = PDController(setup)
+    y = initial_state(task)
     dyn.derivative(y, np.zeros(6))
     dyn.derivative_with(y, law.pd_gains())
     dyn.step(y, np.zeros(6), 1e-3)
@@ -85,23 +86,23 @@ def main() -> None:
     tracker.solve(lengths, rates)
     tracker.fk.all_modes(lengths)
     # The compiled closed loops: scipy's RK45 (dopri), its output samples, the sampled loop.
-    run_continuous(mech, 0.02, dyn=dyn)
-    run_sampled(mech, 0.002, 1000.0, dyn=dyn)
+    run_continuous(setup, 0.02, dyn=dyn)
+    run_sampled(setup, 0.002, 1000.0, dyn=dyn)
     # The control laws and the reference motions.
     # lazy: the kernels cost 692 ms; cli imports this for the notice
     from stewart63_ros.core.laws import LAWS, Controller
     from stewart63_ros.core.reference import Reference
     ref = Reference.from_poses(mech, [0.0, 0.5, 1.0], np.zeros((3, 6)) + np.concatenate(
-        [mech.initial_position, mech.initial_orientation]))
+        [task.initial_position, task.initial_orientation]))
     ref.check(1.0, 1.0)
     for name in LAWS:
-        Controller(mech, law=name, reference=ref)(lengths, rates, 0.25)
+        Controller(setup, law=name, reference=ref)(lengths, rates, 0.25)
     # The analysis: holding forces, the workspace grid, a sweep run's leg lengths.
     # lazy: the kernels cost 692 ms; cli imports this for the notice
     from stewart63_ros.core.analysis import holding_forces
     from stewart63_ros.core.sweep import leg_lengths_of_states
     from stewart63_ros.core.workspace import workspace_map
-    holding_forces(dyn, mech.initial_position, np.eye(3))
+    holding_forces(dyn, task.initial_position, np.eye(3))
     workspace_map(mech, np.eye(3), 1.0)
     leg_lengths_of_states(dyn.base_points, dyn.leg_points, y[None, :])
     print('numba kernels ready (%.1f s)' % (time.perf_counter() - start))

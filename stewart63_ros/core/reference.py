@@ -282,8 +282,9 @@ class Reference:
             mech: the mechanism.
             lengths: (6,) [m], the desired lengths exactly.
             near: (position (3,), rotation (3, 3)): the pose is the forward
-                kinematics of ``lengths`` nearest it (default: the initial
-                pose); NaN where they admit no assembly.
+                kinematics of ``lengths`` nearest it (default: the machine's
+                ``Mechanism.neutral_pose``; a run passes its initial pose); NaN where
+                they admit no assembly.
 
         Returns:
             The reference (``kind`` ``'lengths'``).

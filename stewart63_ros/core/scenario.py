@@ -726,21 +726,21 @@ def node_parameters(scenario: Scenario, node: str) -> dict:
 
 
 def build_plant(scenario: Scenario) -> Any:
-    """The plant's mechanism of the scenario.
+    """The plant's setup of the scenario (its machine, initial state, settings).
 
     Args:
         scenario: the scenario.
 
     Returns:
-        The ``Mechanism``.
+        The ``Setup``.
 
     Raises:
         ScenarioError: a parameter value the validation refuses (its key named).
     """
     # lazy: core.params costs 715 ms (numba); scenario --help, pytest
-    from stewart63_ros.core.params import mechanism_from_params
+    from stewart63_ros.core.params import setup_from_params
     try:
-        return mechanism_from_params(node_parameters(scenario, 'plant'))
+        return setup_from_params(node_parameters(scenario, 'plant'))
     except ParameterError as exc:
         raise ScenarioError('params: %s' % exc) from None
 
@@ -760,11 +760,11 @@ def build_controller(scenario: Scenario) -> tuple[Any, Any]:
     """
     # lazy: core.laws costs 926 ms (numba); scenario --help, pytest
     from stewart63_ros.core.laws import Controller
-    from stewart63_ros.core.params import mechanism_from_params
+    from stewart63_ros.core.params import setup_from_params
     from stewart63_ros.core.reference import ReferenceError, load_reference
     params = node_parameters(scenario, 'controller')
     try:
-        mech = mechanism_from_params(params)
+        setup = setup_from_params(params)
         reference = None
         if scenario.reference is not None:
             limits = (read_declared(params, 'max_leg_speed'),
@@ -773,10 +773,10 @@ def build_controller(scenario: Scenario) -> tuple[Any, Any]:
                 # a topic file: read with the package's bag I/O (rosbags, no ROS)
                 # lazy: bagio costs 197 ms; only a reference from a bag needs it
                 from stewart63_ros.bagio import reference_from_bag
-                reference = reference_from_bag(mech, scenario.reference, *limits)
+                reference = reference_from_bag(setup.mechanism, scenario.reference, *limits)
             else:
-                reference = load_reference(mech, scenario.reference, *limits)
-        return Controller(mech, params, reference=reference), reference
+                reference = load_reference(setup.mechanism, scenario.reference, *limits)
+        return Controller(setup, params, reference=reference), reference
     except ParameterError as exc:
         raise ScenarioError('params: %s' % exc) from None
     except ReferenceError as exc:
@@ -849,26 +849,26 @@ def run_sim(scenario: Scenario) -> Trace:
     from stewart63_ros.core.dynamics import Dynamics
     from stewart63_ros.core.laws import PDLaw
     from stewart63_ros.core.simulate import run_sampled
-    mech = build_plant(scenario)
+    plant = build_plant(scenario)
+    mech = plant.mechanism
     controller, reference = build_controller(scenario)
-    rate = float(read_declared(mech.extra, 'sensor_rate'))
+    rate = float(plant.setting('sensor_rate'))
     n = int(round(scenario.duration * rate))
     times = np.arange(n + 1) / rate
     wrenches = wrench_samples(scenario.wrench, times)
     faults = None
-    plant_faults = list(mech.extra.get('faults') or []) + list(scenario.faults)
+    plant_faults = list(plant.settings.get('faults') or []) + list(scenario.faults)
     if plant_faults:
-        faults = FaultModel(parse_faults(plant_faults), rate,
-                            read_declared(mech.extra, 'sensor_seed'))
+        faults = FaultModel(parse_faults(plant_faults), rate, plant.setting('sensor_seed'))
     dyn = Dynamics(mech)
     if scenario.supervised:
-        return _run_supervised(scenario, mech, dyn, controller, reference, rate, faults, wrenches)
+        return _run_supervised(scenario, plant, dyn, controller, reference, rate, faults, wrenches)
     if reference is None and type(controller.law) is PDLaw and faults is None:
         # eq. (40) towards the setpoint: the compiled loop (controller.pd_gains())
         law: Any = controller
     else:
         law = _Withholding(controller, rate)
-    result = run_sampled(mech, scenario.duration, rate, controller=law, dyn=dyn,
+    result = run_sampled(plant, scenario.duration, rate, controller=law, dyn=dyn,
                          faults=faults, wrench=wrenches)
     if not np.all(np.isfinite(result.states)):
         raise RuntimeError('the simulation diverged (non-finite state)')
@@ -918,13 +918,13 @@ def build_supervisor(scenario: Scenario, reference: Any = None) -> Any:
         ScenarioError: a limit out of range or contradicting another (its key named).
     """
     # lazy: core.params costs 715 ms (numba); scenario --help, pytest
-    from stewart63_ros.core.params import mechanism_from_params
+    from stewart63_ros.core.params import setup_from_params
     from stewart63_ros.core.supervisor import supervisor_from_params
     params = node_parameters(scenario, 'supervisor')
     params['reference_file'] = ''       # the scenario's reference is handed over below
     rate = float(read_declared(node_parameters(scenario, 'plant'), 'sensor_rate'))
     try:
-        supervisor = supervisor_from_params(mechanism_from_params(params), params, rate)
+        supervisor = supervisor_from_params(setup_from_params(params), params, rate)
     except ParameterError as exc:
         raise ScenarioError('params: %s' % exc) from None
     if reference is not None:
@@ -932,7 +932,7 @@ def build_supervisor(scenario: Scenario, reference: Any = None) -> Any:
     return supervisor
 
 
-def _run_supervised(scenario: Scenario, mech: Any, dyn: Any, controller: Any, reference: Any,
+def _run_supervised(scenario: Scenario, plant: Any, dyn: Any, controller: Any, reference: Any,
                     rate: float, faults: Any, wrenches: np.ndarray | None) -> Trace:
     """``run_sim`` with the supervisor between controller and plant:
     ``core.supervisor.run_supervised``, the loop ``rig --supervisor`` runs."""
@@ -940,7 +940,8 @@ def _run_supervised(scenario: Scenario, mech: Any, dyn: Any, controller: Any, re
     from stewart63_ros.core.supervisor import run_supervised
     supervisor = build_supervisor(scenario, reference)
     law = _LawCalls(controller, rate)
-    out = run_supervised(mech, supervisor, scenario.duration, rate, faults=faults,
+    mech = plant.mechanism
+    out = run_supervised(plant, supervisor, scenario.duration, rate, faults=faults,
                          controller=law, wrench=wrenches)
     if not np.all(np.isfinite(out['states'])):
         raise RuntimeError('the simulation diverged (non-finite state)')
@@ -958,22 +959,22 @@ def _run_supervised(scenario: Scenario, mech: Any, dyn: Any, controller: Any, re
                  rate=rate, trips=trips)
 
 
-def build_controller_mechanism(scenario: Scenario) -> Any:
-    """The controller's mechanism (its setpoint and gains) of the scenario.
+def build_controller_setup(scenario: Scenario) -> Any:
+    """The controller's setup (its setpoint and gains) of the scenario.
 
     Args:
         scenario: the scenario.
 
     Returns:
-        The ``Mechanism`` from the controller's parameters.
+        The ``Setup`` from the controller's parameters.
 
     Raises:
         ScenarioError: a parameter value the validation refuses.
     """
     # lazy: core.params costs 715 ms (numba); scenario --help, pytest
-    from stewart63_ros.core.params import mechanism_from_params
+    from stewart63_ros.core.params import setup_from_params
     try:
-        return mechanism_from_params(node_parameters(scenario, 'controller'))
+        return setup_from_params(node_parameters(scenario, 'controller'))
     except ParameterError as exc:
         raise ScenarioError('params: %s' % exc) from None
 
@@ -990,8 +991,8 @@ def reference_lengths(scenario: Scenario, reference: Any, times: np.ndarray) -> 
         (N, 6) [m].
     """
     if reference is None:
-        mech = build_controller_mechanism(scenario)
-        return np.tile(np.asarray(mech.setpoint_lengths, float), (len(times), 1))
+        setup = build_controller_setup(scenario)
+        return np.tile(np.asarray(setup.task.setpoint_lengths, float), (len(times), 1))
     from stewart63_ros.core.reference import R_LEN  # lazy: core.reference costs 570 ms (numba)
     return reference.sample_many(times)[:, R_LEN]
 

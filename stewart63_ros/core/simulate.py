@@ -48,27 +48,27 @@ from stewart63_ros.core.rotation import (
 from stewart63_ros.core.trajectory import COLUMNS
 
 if TYPE_CHECKING:
-    from stewart63_ros.core.mechanism import Mechanism
+    from stewart63_ros.core.setup import Setup, Task
 
 #: Longest RK4 step of the sampled/plant integrator [s]. 1 ms keeps the
 #: end-stop spring (about 700 rad/s) well inside RK4's stability region.
 MAX_STEP = 1.0e-3
 
 
-def initial_state(mech: Mechanism) -> np.ndarray:
+def initial_state(task: Task) -> np.ndarray:
     """The state at t = 0 from t_0, dt_0/dt, theta_0, dtheta_0/dt of the parameters.
 
     Args:
-        mech: the mechanism (its ``initial_*`` values).
+        task: the run's task (its ``initial_*`` values; ``Setup.task``).
 
     Returns:
         (13,) t, quaternion (x, y, z, w), v, omega (base frame), as in the dynamics.
     """
     y = np.empty(STATE_SIZE)
-    y[POS] = mech.initial_position
-    y[QUAT] = quaternion_from_euler(mech.initial_orientation)
-    y[VEL] = mech.initial_velocity
-    y[OMEGA] = euler_rate_matrix(mech.initial_orientation) @ mech.initial_orientation_rate
+    y[POS] = task.initial_position
+    y[QUAT] = quaternion_from_euler(task.initial_orientation)
+    y[VEL] = task.initial_velocity
+    y[OMEGA] = euler_rate_matrix(task.initial_orientation) @ task.initial_orientation_rate
     return y
 
 
@@ -196,16 +196,17 @@ def _pd_samples(base, plat, states, setpoint, kp, kv, max_force, lmin, lmax):
     return forces, contact
 
 
-def _fixed_pd(mech: Mechanism, controller: Controller | None) -> PDGains | None:
+def _fixed_pd(setup: Setup, controller: Controller | None) -> PDGains | None:
     """Eq. (40) towards fixed lengths, which the compiled loops evaluate themselves:
-    the mechanism's own (no controller), or the controller's ``pd_gains()``; None
+    the setup's own (no controller), or the controller's ``pd_gains()``; None
     for any other law (the loops call the controller per sample)."""
     if controller is None:
-        return PDGains(mech.setpoint_lengths, mech.kp, mech.kv, float(mech.max_force))
+        return PDGains(setup.task.setpoint_lengths, setup.gains.kp, setup.gains.kv,
+                       float(setup.mechanism.max_force))
     return controller.pd_gains()
 
 
-def run_sampled(mech: Mechanism, duration: float, rate: float,
+def run_sampled(setup: Setup, duration: float, rate: float,
                 controller: Controller | None = None, y0: ArrayLike | None = None,
                 dyn: Dynamics | None = None, loop: str = 'compiled',
                 faults: FaultModel | Iterable[str] | None = None,
@@ -222,11 +223,11 @@ def run_sampled(mech: Mechanism, duration: float, rate: float,
     controller's ``forces(t, lengths, rates)`` answers each sample.
 
     Args:
-        mech: the mechanism.
+        setup: the machine, gains and task (``params.load_setup``).
         duration: simulated time [s]; rate: the control and sample rate [Hz].
-        controller: a ``laws.Controller``; None: ``laws.PDController(mech)``.
-        y0: the initial state (13,); default ``initial_state(mech)``.
-        dyn: the model to use (default: a new ``Dynamics(mech)``).
+        controller: a ``laws.Controller``; None: ``laws.PDController(setup)``.
+        y0: the initial state (13,); default ``initial_state(setup.task)``.
+        dyn: the model to use (default: a new ``Dynamics(setup.mechanism)``).
         loop: ``'compiled'`` or ``'python'``.
         faults: a ``FaultModel``, or a list of fault strings: the faulted
             loop (``run_faulted``); None: none.
@@ -245,20 +246,21 @@ def run_sampled(mech: Mechanism, duration: float, rate: float,
     """
     if loop not in ('compiled', 'python'):
         raise ValueError("loop must be 'compiled' or 'python', not %r" % (loop,))
+    mech = setup.mechanism
     dyn = dyn or Dynamics(mech)
     period = 1.0 / rate
     steps = substeps_for(period)
     n = int(round(duration * rate))
     wrenches = _wrench_rows(wrench, n)
     if faults is not None:
-        return run_faulted(mech, duration, rate, faults, controller, y0, dyn, wrench)
-    y = initial_state(mech) if y0 is None else np.array(y0, float)
-    pd = _fixed_pd(mech, controller)
+        return run_faulted(setup, duration, rate, faults, controller, y0, dyn, wrench)
+    y = initial_state(setup.task) if y0 is None else np.array(y0, float)
+    pd = _fixed_pd(setup, controller)
     if loop == 'compiled' and pd is not None:
         states, forces, contact = _sampled_pd_segments(mech, dyn, pd, y, wrenches,
                                                        n, period / steps, steps)
         return Result(np.arange(n + 1) * period, states, forces, int(contact), 4 * steps * n)
-    controller = controller or PDController(mech)
+    controller = controller or PDController(setup)
     states = np.empty((n + 1, STATE_SIZE))
     forces = np.empty((n + 1, 6))
     contact = 0
@@ -312,7 +314,7 @@ def _sampled_pd_segments(mech, dyn, pd, y, wrenches, n, dt, steps):
     return np.concatenate(states), np.concatenate(forces), contact
 
 
-def run_faulted(mech: Mechanism, duration: float, rate: float,
+def run_faulted(setup: Setup, duration: float, rate: float,
                 faults: FaultModel | Iterable[str] | None,
                 controller: Controller | None = None, y0: ArrayLike | None = None,
                 dyn: Dynamics | None = None, wrench: ArrayLike | None = None) -> Result:
@@ -325,7 +327,7 @@ def run_faulted(mech: Mechanism, duration: float, rate: float,
     gives the applied forces, held over the period.
 
     Args:
-        mech, duration, rate, controller, y0, dyn, wrench: as ``run_sampled``.
+        setup, duration, rate, controller, y0, dyn, wrench: as ``run_sampled``.
         faults: a ``FaultModel`` (used as it is: a fresh one for a fresh
             run) or fault strings (a model at ``rate``, seed 0; None: none).
 
@@ -341,13 +343,14 @@ def run_faulted(mech: Mechanism, duration: float, rate: float,
     """
     if not isinstance(faults, FaultModel):
         faults = FaultModel(parse_faults(faults), rate)
+    mech = setup.mechanism
     dyn = dyn or Dynamics(mech)
-    controller = controller or PDController(mech)
+    controller = controller or PDController(setup)
     period = 1.0 / rate
     steps = substeps_for(period)
     n = int(round(duration * rate))
     wrenches = _wrench_rows(wrench, n)
-    y = initial_state(mech) if y0 is None else np.array(y0, float)
+    y = initial_state(setup.task) if y0 is None else np.array(y0, float)
     states = np.empty((n + 1, STATE_SIZE))
     forces = np.empty((n + 1, 6))
     applied = np.empty((n + 1, 6))
@@ -371,7 +374,7 @@ def run_faulted(mech: Mechanism, duration: float, rate: float,
                   applied=applied, measured=measured, faults=faults.summary())
 
 
-def run_continuous(mech: Mechanism, duration: float, output_rate: float = 100.0,
+def run_continuous(setup: Setup, duration: float, output_rate: float = 100.0,
                    controller: Controller | None = None, y0: ArrayLike | None = None,
                    rtol: float = 1e-8, atol: float = 1e-10,
                    dyn: Dynamics | None = None, integrator: str = 'compiled',
@@ -385,13 +388,13 @@ def run_continuous(mech: Mechanism, duration: float, output_rate: float = 100.0,
     fixed lengths) runs inside scipy's ``solve_ivp``.
 
     Args:
-        mech: the mechanism.
+        setup: the machine, gains and task (``params.load_setup``).
         duration: simulated time [s]; output_rate: rows per second [Hz].
-        controller: a ``laws.Controller``; None: eq. (40) with the mechanism's
-            setpoint, gains and saturation.
-        y0: the initial state (13,); default ``initial_state(mech)``.
+        controller: a ``laws.Controller``; None: eq. (40) with the setup's
+            setpoint and gains and the mechanism's saturation.
+        y0: the initial state (13,); default ``initial_state(setup.task)``.
         rtol, atol: the integrator's tolerances.
-        dyn: the model to use (default: a new ``Dynamics(mech)``).
+        dyn: the model to use (default: a new ``Dynamics(setup.mechanism)``).
         integrator: ``'compiled'`` or ``'scipy'``.
         max_steps: bounds the compiled integrator's step attempts.
 
@@ -404,17 +407,18 @@ def run_continuous(mech: Mechanism, duration: float, output_rate: float = 100.0,
     """
     if integrator not in ('compiled', 'scipy'):
         raise ValueError("integrator must be 'compiled' or 'scipy', not %r" % (integrator,))
+    mech = setup.mechanism
     dyn = dyn or Dynamics(mech)
-    pd = _fixed_pd(mech, controller)
+    pd = _fixed_pd(setup, controller)
     if pd is None:
-        return _continuous_law(mech, dyn, duration, output_rate, controller, y0, rtol, atol)
+        return _continuous_law(setup, dyn, duration, output_rate, controller, y0, rtol, atol)
 
     # One compiled call per evaluation: dynamics and eq. (40) from the same L, dL/dt.
     args = dyn.kernel_args()
     gains = pd.rows()
     zero, max_force = np.zeros(6), float(pd.max_force)
 
-    y = initial_state(mech) if y0 is None else np.array(y0, float)
+    y = initial_state(setup.task) if y0 is None else np.array(y0, float)
     n = int(round(duration * output_rate))
     t_eval = np.arange(n + 1) / output_rate
     if integrator == 'compiled':
@@ -442,7 +446,7 @@ def run_continuous(mech: Mechanism, duration: float, output_rate: float = 100.0,
     return Result(times, states, forces, int(contact), int(nfev))
 
 
-def _continuous_law(mech, dyn, duration, output_rate, controller, y0, rtol, atol) -> Result:
+def _continuous_law(setup, dyn, duration, output_rate, controller, y0, rtol, atol) -> Result:
     """A law other than plain eq. (40) inside the ODE: scipy's RK45 (``solve_ivp``)
     on dy/dt = f(y, law(t, L(y), dL/dt(y))). A law with a pose estimate tracks it
     from evaluation to evaluation (Newton from the previous one). The forces
@@ -457,7 +461,7 @@ def _continuous_law(mech, dyn, duration, output_rate, controller, y0, rtol, atol
     def rhs(t, y):
         return derivative_pd(*args, y, law(t, y), NO_WRENCH, True, NO_GAINS, 0.0)
 
-    y = initial_state(mech) if y0 is None else np.array(y0, float)
+    y = initial_state(setup.task) if y0 is None else np.array(y0, float)
     n = int(round(duration * output_rate))
     t_eval = np.arange(n + 1) / output_rate
     sol = solve_ivp(rhs, (0.0, t_eval[-1]), y, method='RK45', t_eval=t_eval, rtol=rtol,
@@ -470,6 +474,6 @@ def _continuous_law(mech, dyn, duration, output_rate, controller, y0, rtol, atol
     contact = 0
     for k, yk in enumerate(states):
         lengths, rates = lengths_rates(base, plat, yk)
-        contact += _outside_stroke(mech, lengths)
+        contact += _outside_stroke(setup.mechanism, lengths)
         forces[k] = controller.forces(sol.t[k], lengths, rates)
     return Result(sol.t, states, forces, int(contact), int(sol.nfev))

@@ -47,8 +47,9 @@ from stewart63_ros.core.reference import R_LEN, Reference, ReferenceError, load_
 from stewart63_ros.core.rotation import rotation_from_euler
 
 if TYPE_CHECKING:
-    from stewart63_ros.core.params import Mechanism
+    from stewart63_ros.core.mechanism import Mechanism
     from stewart63_ros.core.reference import Reference
+    from stewart63_ros.core.setup import Setup
 
 ZERO, HOLD, DESCEND = 'zero', 'hold', 'descend'
 
@@ -148,7 +149,7 @@ def limits_from_params(mech: Mechanism, params: Mapping[str, Any]) -> Limits:
                   rest_clearance=value['rest_clearance'])
 
 
-def rest_lengths(mech: Mechanism, limits: Limits) -> np.ndarray:
+def rest_lengths(setup: Setup, limits: Limits) -> np.ndarray:
     """The rest pose's leg lengths: the platform level (zero Euler angles),
     over the initial position's x, y, lowered until its shortest leg is
     ``rest_clearance`` above the soft lower limit.
@@ -158,7 +159,7 @@ def rest_lengths(mech: Mechanism, limits: Limits) -> np.ndarray:
     found by bisection on z.
 
     Args:
-        mech: the mechanism.
+        setup: the machine and the task (its initial position).
         limits: the supervisor's limits.
 
     Returns:
@@ -168,8 +169,9 @@ def rest_lengths(mech: Mechanism, limits: Limits) -> np.ndarray:
         ParameterError: (``rest_clearance``) no such level pose inside the soft
             stroke; (``pose_box``) the rest pose outside ``pose_box``.
     """
+    mech = setup.mechanism
     rot = rotation_from_euler(np.zeros(3))
-    x, y = float(mech.initial_position[0]), float(mech.initial_position[1])
+    x, y = float(setup.task.initial_position[0]), float(setup.task.initial_position[1])
     target = limits.soft_min + limits.rest_clearance
 
     def shortest(z):
@@ -237,17 +239,18 @@ class Homing:
     on the cosine profile at ``speed``; then the homing is done.
 
     Args:
-        mech: the mechanism (stroke, ``kp``, ``kv``, ``max_force``).
+        setup: the machine (stroke, ``max_force``) and the gains (``kp``, ``kv``).
         direction: ``extend`` or ``retract``.
         speed: [m/s]; force: [N]; stiffness: the end stops' [N/m].
     """
 
-    def __init__(self, mech: Mechanism, direction: str, speed: float, force: float,
+    def __init__(self, setup: Setup, direction: str, speed: float, force: float,
                  stiffness: float) -> None:
+        mech = setup.mechanism
         self.sign = 1.0 if direction == 'extend' else -1.0
         self.stop = mech.leg_length_max if direction == 'extend' else mech.leg_length_min
         self.speed, self.force, self.stiffness = speed, force, stiffness
-        self.kp, self.kv = np.array(mech.kp, float), np.array(mech.kv, float)
+        self.kp, self.kv = np.array(setup.gains.kp, float), np.array(setup.gains.kv, float)
         self.max_force = float(mech.max_force)
         self.start: np.ndarray | None = None
         self.start_ns = 0
@@ -329,7 +332,8 @@ class Supervisor:
     """Per-sample checks, the latch, the safe actions (see the module's doc).
 
     Args:
-        mech: the mechanism (stroke, gains for hold and descent).
+        setup: the machine (stroke), the gains for hold and descent, the task
+            (the rest pose's x, y).
         limits: from ``limits_from_params``.
         rate: the sample rate [Hz].
         reference: what the controller follows (the tracking check), or None
@@ -338,16 +342,17 @@ class Supervisor:
             the forward kinematics for the pose box, or None (no box check).
     """
 
-    def __init__(self, mech: Mechanism, limits: Limits, rate: float,
+    def __init__(self, setup: Setup, limits: Limits, rate: float,
                  reference: Reference | None = None,
                  pose: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
                  homing: Homing | None = None) -> None:
-        self.mech = mech
+        self.setup = setup
+        self.mech = mech = setup.mechanism
         self.period = 1.0 / rate
         self.reference = reference
         self.pose = pose
-        self.kp = np.array(mech.kp, float)
-        self.kv = np.array(mech.kv, float)
+        self.kp = np.array(setup.gains.kp, float)
+        self.kv = np.array(setup.gains.kv, float)
         self.max_force = float(mech.max_force)
         self.set_limits(limits)
         self.trip: Trip | None = None
@@ -374,7 +379,7 @@ class Supervisor:
 
     def set_limits(self, limits: Limits) -> None:
         """New limits (checked by ``limits_from_params``); the rest pose follows."""
-        self.rest = rest_lengths(self.mech, limits)
+        self.rest = rest_lengths(self.setup, limits)
         self.limits = limits
 
     def new_run(self) -> None:
@@ -608,7 +613,7 @@ class Supervisor:
         has (a lying sensor, the ``pose_box`` trip's) keep those of the last
         pose they gave (none yet: zero), so the safe action still acts."""
         if self._gravity is None:
-            self._gravity = PDGravityLaw(self.mech, {})
+            self._gravity = PDGravityLaw(self.mech, self.setup.to_params())
             self._last_holding = np.zeros(6)
         try:
             position, rotation, _ = self._gravity.estimator(lengths, rates)
@@ -693,7 +698,7 @@ def _legs(mask) -> str:
     return ','.join(str(i + 1) for i in np.flatnonzero(mask))
 
 
-def run_supervised(mech: Mechanism, supervisor: Supervisor, duration: float, rate: float,
+def run_supervised(setup: Setup, supervisor: Supervisor, duration: float, rate: float,
                    faults: Any = None, controller: Any = None,
                    y0: ArrayLike | None = None, sensor: Any = None,
                    homing_offset: ArrayLike | None = None,
@@ -710,7 +715,7 @@ def run_supervised(mech: Mechanism, supervisor: Supervisor, duration: float, rat
     controller's ERROR does on the rig.
 
     Args:
-        mech: the mechanism.
+        setup: the machine, gains and task.
         supervisor: a fresh ``Supervisor`` at ``rate``.
         duration: simulated seconds; rate: samples per second [Hz].
         faults: a ``FaultModel`` or fault strings (core/faults.py), or None.
@@ -733,17 +738,17 @@ def run_supervised(mech: Mechanism, supervisor: Supervisor, duration: float, rat
     from stewart63_ros.core.simulate import initial_state, sensor_reading, substeps_for
     if not isinstance(faults, FaultModel):
         faults = FaultModel(parse_faults(faults or []), rate)
-    controller = controller or Controller(mech)
+    controller = controller or Controller(setup)
     n = int(round(duration * rate))
     if wrench is not None:
         wrench = np.asarray(wrench, float)
         if wrench.shape != (n + 1, 6):
             raise ValueError('wrench must be (%d, 6), one row per sample, got %s'
                              % (n + 1, wrench.shape))
-    dyn = Dynamics(mech)
+    dyn = Dynamics(setup.mechanism)
     period = 1.0 / rate
     steps = substeps_for(period)
-    y = initial_state(mech) if y0 is None else np.array(y0, float)
+    y = initial_state(setup.task) if y0 is None else np.array(y0, float)
     out = {key: np.full((n + 1, size), np.nan) for key, size in (
         ('states', 13), ('lengths', 6), ('measured', 6), ('forces', 6), ('requests', 6))}
     shift = np.zeros(6) if homing_offset is None else np.array(homing_offset, float)
@@ -785,14 +790,14 @@ def run_supervised(mech: Mechanism, supervisor: Supervisor, duration: float, rat
     return out
 
 
-def supervisor_from_params(mech: Mechanism, params: Mapping[str, Any],
+def supervisor_from_params(setup: Setup, params: Mapping[str, Any],
                            rate: float) -> Supervisor:
     """The supervisor a node with ``params`` runs: its limits, the reference
     the controller follows (``reference_file``, else ``setpoint_lengths``),
     the forward kinematics (core/fk.py ``FKTracker``) for the pose box.
 
     Args:
-        mech: the mechanism.
+        setup: the machine, gains and task.
         params: the node's parameters.
         rate: the sample rate [Hz].
 
@@ -803,7 +808,9 @@ def supervisor_from_params(mech: Mechanism, params: Mapping[str, Any],
         ParameterError: a limit out of range or contradicting another, the
             reference file unreadable (key ``reference_file``).
     """
+    mech = setup.mechanism
     limits = limits_from_params(mech, params)
+    start = (setup.task.initial_position, setup.task.initial_rotation)
     path = read_declared(params, 'reference_file')
     if path:
         try:
@@ -811,8 +818,8 @@ def supervisor_from_params(mech: Mechanism, params: Mapping[str, Any],
         except ReferenceError as exc:
             raise ParameterError('reference_file', str(exc)) from None
     else:
-        reference = Reference.constant_lengths(mech, mech.setpoint_lengths)
-    tracker = FKTracker(mech)
+        reference = Reference.constant_lengths(mech, setup.task.setpoint_lengths, near=start)
+    tracker = FKTracker(mech, *start)
 
     def pose(lengths):
         result = tracker.solve(lengths)
@@ -826,6 +833,6 @@ def supervisor_from_params(mech: Mechanism, params: Mapping[str, Any],
         if limits.leg_speed and speed >= limits.leg_speed:
             raise ParameterError('homing_speed', '%g m/s is not below trip_leg_speed (%g m/s)'
                                  % (speed, limits.leg_speed))
-        homing = Homing(mech, direction, speed, read_declared(params, 'homing_force'),
-                        read_declared(params, 'endstop_stiffness'))
-    return Supervisor(mech, limits, rate, reference, pose, homing)
+        homing = Homing(setup, direction, speed, read_declared(params, 'homing_force'),
+                        mech.endstop_stiffness)
+    return Supervisor(setup, limits, rate, reference, pose, homing)

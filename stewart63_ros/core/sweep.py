@@ -48,14 +48,15 @@ from stewart63_ros.core._jit import njit
 from stewart63_ros.core.dynamics import Dynamics, lengths_rates
 from stewart63_ros.core.faults import FaultError, FaultModel, parse_faults
 from stewart63_ros.core.laws import Controller, LawError, holding_gain_problem, law_class
+from stewart63_ros.core.mechanism import MECHANISM_KEYS
 from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.params import (
-    Mechanism,
     ParameterError,
     known_keys,
-    mechanism_from_params,
     read_parameter_file,
+    setup_from_params,
 )
+from stewart63_ros.core.setup import GAIN_KEYS, TASK_KEYS
 from stewart63_ros.core.simulate import run_continuous, run_sampled
 
 METRICS = ('final_error_percent', 'max_force', 'settling_time_s', 'endstop_samples',
@@ -306,11 +307,11 @@ def readable_keys(law: str, control: str = 'continuous', rate: float | None = No
         faults: whether the runs have faults (``sensor_seed``: their noise).
 
     Returns:
-        The model's keys (``params.Mechanism``), the end stop's, the law's, and
-        ``sensor_rate`` / ``sensor_seed`` where they take effect.
+        The machine's keys (``Mechanism``; its sensors' zero offsets aside:
+        a run simulates true readings), the gains and the task (``Setup``),
+        the law's, and ``sensor_rate`` / ``sensor_seed`` where they take effect.
     """
-    keys = {f.name for f in dataclasses.fields(Mechanism)} - {'extra'}
-    keys |= {'endstop_stiffness', 'endstop_damping'}
+    keys = (MECHANISM_KEYS - {'leg_length_offset'}) | GAIN_KEYS | TASK_KEYS
     if law != 'pd':
         keys |= set(getattr(law_class(law), 'parameters', ()) or ())
     if control == 'sampled' and rate is None:
@@ -391,21 +392,20 @@ def _check_key(var: Variation, plant: dict, controller: dict) -> None:
 
 
 def _build(plan: SweepPlan, values):
-    """(plant mechanism, controller or None) of one run; ParameterError if invalid
+    """(plant setup, controller or None) of one run; ParameterError if invalid
     (a gain of zero under a law it leaves unable to hold the pose too)."""
-    plant = apply_values(plan.plant_params, plan.variations, values)
-    mech = mechanism_from_params(plant)
+    plant = setup_from_params(apply_values(plan.plant_params, plan.variations, values))
     if plan.law == 'pd':
-        problem = holding_gain_problem(plan.law, mech.kp)
+        problem = holding_gain_problem(plan.law, plant.gains.kp)
         if problem:
             raise ParameterError('kp', problem)
-        return mech, None
+        return plant, None
     ctrl_params = apply_values(plan.controller_params, plan.variations, values)
-    ctrl_mech = mechanism_from_params(ctrl_params)
-    problem = holding_gain_problem(plan.law, ctrl_params.get('kp', ctrl_mech.kp))
+    ctrl = setup_from_params(ctrl_params)
+    problem = holding_gain_problem(plan.law, ctrl.gains.kp)
     if problem:
         raise ParameterError('kp', problem)
-    return mech, Controller(ctrl_mech, ctrl_params, law=plan.law)
+    return plant, Controller(ctrl, ctrl_params, law=plan.law)
 
 
 def _file_faults(plant_params: Mapping[str, Any]) -> list[str]:
@@ -628,11 +628,11 @@ def run_one(plan: SweepPlan, values: Iterable[float]) -> dict[str, Any]:
            'settling_time_s': math.nan, 'endstop_samples': 0, 'diverged': 1, 'failure': ''}
     values = [float(v) for v in values]
     try:
-        mech, controller = _build(plan, values[:len(plan.variations)])
+        setup, controller = _build(plan, values[:len(plan.variations)])
     except ParameterError as exc:
         row['failure'] = 'invalid parameters: %s' % exc
         return row
-    dyn = Dynamics(mech)
+    dyn = Dynamics(setup.mechanism)
     try:
         if plan.control == 'sampled':
             plant = apply_values(plan.plant_params, plan.variations, values)
@@ -644,10 +644,10 @@ def run_one(plan: SweepPlan, values: Iterable[float]) -> dict[str, Any]:
             except FaultError as exc:       # a draw the fault syntax refuses (T1 <= T0)
                 row['failure'] = 'invalid fault: %s' % exc
                 return row
-            result = run_sampled(mech, plan.duration, rate, dyn=dyn, controller=controller,
+            result = run_sampled(setup, plan.duration, rate, dyn=dyn, controller=controller,
                                  faults=model)
         else:
-            result = run_continuous(mech, plan.duration, output_rate=plan.output_rate,
+            result = run_continuous(setup, plan.duration, output_rate=plan.output_rate,
                                     dyn=dyn, controller=controller)
     except LawError as exc:
         row['failure'] = 'the control law failed: %s' % exc
@@ -658,7 +658,7 @@ def run_one(plan: SweepPlan, values: Iterable[float]) -> dict[str, Any]:
     if not np.all(np.isfinite(result.states)):
         row['failure'] = 'diverged: non-finite state'
         return row
-    errors = result.final_leg_error_percent(dyn, mech.setpoint_lengths)   # as sim's summary
+    errors = result.final_leg_error_percent(dyn, setup.task.setpoint_lengths)   # as sim's summary
     lengths = leg_lengths_of_states(dyn.base_points, dyn.leg_points, result.states)
     row.update(final_error_percent=float(errors.max()),
                max_force=float(np.max(np.abs(result.forces))),

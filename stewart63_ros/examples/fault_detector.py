@@ -44,8 +44,8 @@ class CheckedPD:
     parameters = ('fd_window', 'fd_threshold')
 
     def __init__(self, mech, params):
-        self.kp = np.array(params.get('kp', mech.kp), dtype=float)
-        self.kv = np.array(params.get('kv', mech.kv), dtype=float)
+        self.kp = np.array(params['kp'], dtype=float)
+        self.kv = np.array(params['kv'], dtype=float)
         self.window = self._window(params.get('fd_window', 20))
         self.threshold = self._threshold(params.get('fd_threshold', 0.002))
         self.samples = deque(maxlen=self.window + 1)     # (t, lengths, rates)

@@ -3,8 +3,9 @@
 The interface every law follows (docs/controllers.md, docs/interface.md "Control laws"):
 
 - ``__init__(self, mech, params)``: ``mech`` is the validated ``Mechanism``
-  (geometry, masses, ``max_force``, ...), ``params`` the controller's
-  parameter dictionary. A law reads its own keys there, named with a prefix of
+  (the machine: geometry, masses, ``max_force``, ...), ``params`` the
+  controller's parameter dictionary (the gains ``kp``, ``kv``, the setpoint and
+  initial state, every other key). A law reads its own keys there, named with a prefix of
   its own (here ``legpd_kp``, ``legpd_kv``) and lists them in ``parameters``:
   the controller then lets them change at run time (``ros2 param set``)
   through ``set_parameter``.
@@ -29,8 +30,8 @@ class LegPD:
     parameters = ('legpd_kp', 'legpd_kv')
 
     def __init__(self, mech, params):
-        self.kp = self._gains('legpd_kp', params.get('legpd_kp', mech.kp))
-        self.kv = self._gains('legpd_kv', params.get('legpd_kv', mech.kv))
+        self.kp = self._gains('legpd_kp', params.get('legpd_kp', params['kp']))
+        self.kv = self._gains('legpd_kv', params.get('legpd_kv', params['kv']))
 
     @staticmethod
     def _gains(name, value):
@@ -57,7 +58,7 @@ class Failing:
 
     def __init__(self, mech, params):
         self.after = float(params.get('failing_after', 0.0))
-        self.kp = np.array(mech.kp, float)
+        self.kp = np.array(params['kp'], float)
 
     def __call__(self, t, lengths, rates, ref):
         if t >= self.after:

@@ -47,7 +47,7 @@ from stewart63_ros.core.reference import (
     tracking_summary,
     trajectory_poses,
 )
-from stewart63_ros.core.rotation import rotation_from_euler, rotation_from_quaternion
+from stewart63_ros.core.rotation import rotation_from_quaternion
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode
@@ -133,7 +133,7 @@ class ControllerNode(RigNode):
         self.max_leg_speed = self.param('max_leg_speed')
         self.offset = self.param('leg_length_offset')
         self.max_leg_acceleration = self.param('max_leg_acceleration')
-        self.control = Controller(mech, self.params)        # ParameterError: exit 2
+        self.control = Controller(self.setup, self.params)        # ParameterError: exit 2
         # Load the compiled laws now (0.7-1.7 s measured), not on the first sample: a
         # realtime plant would integrate that long without forces.
         self._warm_up()
@@ -196,17 +196,17 @@ class ControllerNode(RigNode):
     def _warm_up(self, name=None):
         """Load the compiled kernels of law ``name`` (default: the active one), on a
         throwaway copy: the first sample must not wait for them."""
-        mech = self.mech
-        rot = rotation_from_euler(mech.initial_orientation)
-        lengths = leg_lengths(mech, mech.initial_position, rot)
-        still = Reference.constant_pose(mech, mech.initial_position, rot)
+        mech, task = self.mech, self.setup.task
+        rot = task.initial_rotation
+        lengths = leg_lengths(mech, task.initial_position, rot)
+        still = Reference.constant_pose(mech, task.initial_position, rot)
         # The active law only (another one loads when chosen at run time): loading
         # every law's kernels costs a restarted controller CPU the plant needs.
         name = name or self.control.law_name
         if name in LAWS:
             for reference in (None, still):
                 try:
-                    Controller(mech, self.params, law=name, reference=reference)(
+                    Controller(self.setup, self.params, law=name, reference=reference)(
                         lengths, np.zeros(6), 0.0)
                 except (LawError, ParameterError):
                     pass            # a law that cannot run here fails on its first sample

@@ -24,7 +24,6 @@ from sensor_msgs.msg import JointState
 from stewart63_ros import topics
 from stewart63_ros.core.fk import FKTracker, NoAssemblyError
 from stewart63_ros.core.kinematics import leg_lengths
-from stewart63_ros.core.rotation import rotation_from_euler
 from stewart63_ros.nodes.markers import MarkerPublisher
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode
@@ -37,7 +36,9 @@ class FKNode(RigNode):
     def __init__(self, options):
         super().__init__('fk')
         threshold = self.param('singularity_threshold')
-        self.tracker = FKTracker(self.mech, cond_threshold=threshold)
+        task = self.setup.task
+        self.tracker = FKTracker(self.mech, task.initial_position, task.initial_rotation,
+                                 cond_threshold=threshold)
         self.offset = self.param('leg_length_offset')
         self.warm_up()
         self.gate = StampGate(RESTART_PAUSE)
@@ -56,7 +57,7 @@ class FKNode(RigNode):
         self.markers = None
         rate = self.param('marker_rate')
         if rate:
-            self.markers = MarkerPublisher(self, self.mech, float(rate), self.tracker.fk)
+            self.markers = MarkerPublisher(self, self.setup, float(rate), self.tracker.fk)
         # Every sample gets a pose: a short queue rather than newest-only.
         # Serialized samples in, serialized poses out: see runtime/wire.py.
         self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
@@ -74,12 +75,11 @@ class FKNode(RigNode):
 
     def warm_up(self):
         """Compile / load the solver kernels now, not on the first sample."""
-        mech = self.mech
-        lengths = leg_lengths(mech, mech.initial_position,
-                              rotation_from_euler(mech.initial_orientation))
+        task = self.setup.task
+        lengths = leg_lengths(self.mech, task.initial_position, task.initial_rotation)
         self.tracker.solve(lengths, np.zeros(6))
         self.tracker.fk.all_modes(lengths)
-        self.tracker.reset(mech.initial_position, rotation_from_euler(mech.initial_orientation))
+        self.tracker.reset(task.initial_position, task.initial_rotation)
 
     def on_sample(self, data, info):
         self.health.received[topics.LEG_LENGTHS] += 1
@@ -99,8 +99,8 @@ class FKNode(RigNode):
             self.progress.note(ns)      # handled, whether a pose comes of it or not
         if self.gate.new_run:
             # Another run (a bag played again): track from the pose it starts at.
-            self.tracker.reset(self.mech.initial_position,
-                               rotation_from_euler(self.mech.initial_orientation))
+            self.tracker.reset(self.setup.task.initial_position,
+                               self.setup.task.initial_rotation)
         self.accept_sample(self.gate, ns, source, topics.LEG_LENGTHS)
         rates = values.get('velocity')
         # The sensors read the true length plus leg_length_offset (the file's).

@@ -191,12 +191,12 @@ def _with_numbers(shape_list, f8, f4):
 class MarkerPublisher:
     """The ``markers`` timer of a node that sees every sample (see module doc)."""
 
-    def __init__(self, node, mech, rate: float, fk=None):
+    def __init__(self, node, setup, rate: float, fk=None):
         self.node = node
-        self.mech = mech
+        self.mech = mech = setup.mechanism
         self.fk = fk
         self.scene = shapes_mod.Scene(mech)
-        self.template = MarkerTemplate(self.scene.shapes(mech.initial_position, np.eye(3)))
+        self.template = MarkerTemplate(self.scene.shapes(setup.task.initial_position, np.eye(3)))
         # A data publisher of the node: the subscriptions the graph shows are
         # waited for before the first sample like the 1 kHz topics' (a recorder
         # started first gets every array); flushed at the end.
@@ -208,7 +208,7 @@ class MarkerPublisher:
         self.forces_data = None
         self.ghost = None
         self.published = 0
-        self.set_ghost_lengths(np.asarray(mech.setpoint_lengths, dtype=float))
+        self.set_ghost_lengths(np.asarray(setup.task.setpoint_lengths, dtype=float))
         # The newest force only: taken as bytes, read when drawn.
         node.create_subscription(JointState, topics.LEG_FORCES, self.on_forces,
                                  topics.LATEST_SUB, raw=True)

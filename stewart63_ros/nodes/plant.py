@@ -95,7 +95,7 @@ class PlantNode(PlantBus, PlantControl, RigNode):
         self.dyn = Dynamics(self.mech)
         self.period = 1.0 / self.rate
         self.substeps = substeps_for(self.period)
-        self.y = initial_state(self.mech)
+        self.y = initial_state(self.setup.task)
         # Load the kernels now: a first call costs milliseconds, a realtime
         # loop would start that far behind its deadlines.
         self.dyn.step(self.y, np.zeros(6), self.period, self.substeps)

@@ -294,7 +294,7 @@ class PlantControl:
             self.reset_requested = self.resetting = False
         if STOP.requested:
             return
-        self.y = initial_state(self.mech)
+        self.y = initial_state(self.setup.task)
         self.k = 0
         self.t_phys = 0.0
         self.force = np.zeros(6)

@@ -55,7 +55,7 @@ class TrackingError:
 def run_summary(plant, stopped: bool) -> dict:
     """What the plant did in its run (``stopped``: by a signal), for its summary file."""
     lengths, _ = plant.dyn.lengths_and_rates(plant.y)
-    setpoint = plant.mech.setpoint_lengths
+    setpoint = plant.setup.task.setpoint_lengths
     errors = 100.0 * np.abs(lengths - setpoint) / setpoint
     summary = {
         'clock_mode': plant.mode, 'rate_hz': plant.rate, 'samples': plant.k + 1,

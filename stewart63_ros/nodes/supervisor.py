@@ -62,11 +62,11 @@ class SupervisorNode(RigNode):
         self.trip_on_diagnostics = self.param('trip_on_diagnostics')
         # Load the kernels (forward kinematics, the hold's model) on a throwaway
         # copy now, not on the first sample or the first trip.
-        warm = supervisor_from_params(self.mech, self.params, self.rate)     # exit 2
-        warm.on_sample(0, np.array(self.mech.setpoint_lengths, float), np.zeros(6))
+        warm = supervisor_from_params(self.setup, self.params, self.rate)    # exit 2
+        warm.on_sample(0, np.array(self.setup.task.setpoint_lengths, float), np.zeros(6))
         warm.trip_now('estop', 'warm-up')
         warm.safe_forces(0)
-        self.core = supervisor_from_params(self.mech, self.params, self.rate)
+        self.core = supervisor_from_params(self.setup, self.params, self.rate)
         for limit_key in LIMIT_KEYS:
             self.tunable(limit_key, self._limit_setter(limit_key))
         self.tunable('trip_on_diagnostics', self._set_trip_on_diagnostics)

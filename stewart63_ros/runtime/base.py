@@ -12,7 +12,7 @@ from stewart63_ros import topics
 from stewart63_ros.core.node_parameters import BY_NAME as DECLARED
 from stewart63_ros.core.node_parameters import NODE_KEYS, describe, node_keys
 from stewart63_ros.core.node_parameters import read as read_declared
-from stewart63_ros.core.params import ParameterError, mechanism_from_params, unknown_keys
+from stewart63_ros.core.params import ParameterError, setup_from_params, unknown_keys
 from stewart63_ros.core.precompile import COMPILE_NOTICE, kernel_cache_cold
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.checks import Rejected, SkipCounter, source_of
@@ -28,7 +28,8 @@ from stewart63_ros.runtime.stopping import Flush
 
 
 class RigNode(HotLoop, Node):
-    """Loads the mechanism from the node's parameters and owns the diagnostics.
+    """Loads the setup (``setup``: mechanism, gains, task, settings) from the
+    node's parameters and owns the diagnostics.
 
     Its hot loop (``run_on``, ``housekeeping``, ``drive_by``): runtime/hotloop.py.
 
@@ -57,7 +58,9 @@ class RigNode(HotLoop, Node):
         self.kind = name                      # 'plant', 'controller', 'fk' (whatever remapped)
         self.params = params
         self._check_unknown_keys()
-        self.mech = mechanism_from_params(self.params)
+        #: the machine, gains, task and settings of its parameters (core/setup.py)
+        self.setup = setup_from_params(self.params)
+        self.mech = self.setup.mechanism
         for key in NODE_KEYS[name]:           # every key it reads passes its check first
             self.param(key)
         declare_parameters(self, name, self.params)

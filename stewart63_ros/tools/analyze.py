@@ -36,7 +36,7 @@ from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.params import (
     ParameterError,
     default_params_path,
-    load_mechanism,
+    load_setup,
     read_parameter_file,
 )
 from stewart63_ros.core.rotation import euler_from_matrix, rotation_from_euler
@@ -117,19 +117,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 # -- linear model -----------------------------------------------------------------------------
 def law_of(args, params_path):
-    """(law name or None, controller params, controller mechanism)."""
+    """(law name or None, controller params, controller setup)."""
     params = read_parameter_file(params_path, 'controller')
     law = args.control_law or read_declared(params, 'control_law')
     if law == 'none':
         return None, params, None
     law_class(law)                                   # ParameterError for an unknown law
-    return law, params, load_mechanism(params_path, node_name='controller')
+    return law, params, load_setup(params_path, node_name='controller')
 
 
-def linear_model(mech, args, params_path):
-    law, params, ctrl_mech = law_of(args, params_path)
-    return linearize(mech, law, args.pose, params,
-                     args.max_condition or DEFAULT_MAX_CONDITION, ctrl_mech)
+def linear_model(setup, args, params_path):
+    law, params, controller = law_of(args, params_path)
+    return linearize(setup, law, args.pose, params,
+                     args.max_condition or DEFAULT_MAX_CONDITION, controller)
 
 
 def _loop_label(model) -> str:
@@ -262,7 +262,7 @@ def write_workspace(result, out: Path) -> Path:
     return path
 
 
-def draw_workspace(mech, result, setpoint, path: Path, title: str) -> Path:
+def draw_workspace(setup, result, setpoint, path: Path, title: str) -> Path:
     """Three slices through the setpoint position (z, y and x constant): the top
     row coloured by reason, the bottom row the largest holding force where the
     legs are within the stroke; the paper's start position (o) and the
@@ -283,7 +283,7 @@ def draw_workspace(mech, result, setpoint, path: Path, title: str) -> Path:
     ix = int(np.argmin(np.abs(xs - setpoint[0])))
     iy = int(np.argmin(np.abs(ys - setpoint[1])))
     iz = int(np.argmin(np.abs(zs - setpoint[2])))
-    start = np.asarray(mech.initial_position, float)
+    start = np.asarray(setup.task.initial_position, float)
     setpoint = _clean(setpoint)
     inside = result.points[result.reason != 'stroke']
     margin = 0.15
@@ -341,13 +341,14 @@ def draw_workspace(mech, result, setpoint, path: Path, title: str) -> Path:
 
 
 # -- main -------------------------------------------------------------------------------------
-def _run(args, mech, params_path) -> int:
+def _run(args, setup, params_path) -> int:
+    mech = setup.mechanism
     out = Path(args.out) if getattr(args, 'out', None) else None
     if args.command == 'workspace':
         step = DEFAULT_STEP if args.step is None else args.step
         if not (np.isfinite(step) and step > 0):
             return _fail('--step must be a positive length [m], got %g' % step)
-        position, rotation = analysis.setpoint_pose(mech)
+        position, rotation = analysis.setpoint_pose(setup)
         if args.orientation is not None:
             if not np.all(np.isfinite(args.orientation)):
                 return _fail('--orientation must be three finite angles [rad]')
@@ -370,7 +371,7 @@ def _run(args, mech, params_path) -> int:
         result = workspace_map(mech, rotation, step, limit, through=position)
         csv_path = write_workspace(result, out)
         theta = euler_from_matrix(rotation)
-        png = draw_workspace(mech, result, position, out / 'workspace.png',
+        png = draw_workspace(setup, result, position, out / 'workspace.png',
                              'workspace at theta = (%.3f, %.3f, %.3f) rad, step %g m: within '
                              'the stroke [%g, %g] m, condition <= %g, holding force <= %g N'
                              % (*_clean(theta), step, mech.leg_length_min,
@@ -391,7 +392,7 @@ def _run(args, mech, params_path) -> int:
         print('written: %s, %s' % (csv_path, png))
         return 0
 
-    model = linear_model(mech, args, params_path)
+    model = linear_model(setup, args, params_path)
     if args.command == 'linearize':
         npz, js = write_linear(model, out)
         print('%s about %s' % (_loop_label(model), _pose_text(model.equilibrium.pose)))
@@ -433,12 +434,12 @@ def main(argv=None) -> int:
     if args.max_condition is not None and not args.max_condition > 1:
         return _fail('--max-condition must be above 1, got %g' % args.max_condition)
     params_path = args.params or default_params_path()
-    mech = load_checked(PROG, params_path, node_name='plant', strict=args.strict)
-    if mech is None:
+    setup = load_checked(PROG, params_path, node_name='plant', strict=args.strict)
+    if setup is None:
         return 2
     announce_compile(PROG)
     try:
-        return _run(args, mech, params_path)
+        return _run(args, setup, params_path)
     except (AnalysisError, ParameterError) as exc:
         return _fail(exc)
 

@@ -264,16 +264,16 @@ def run_fit(args, mech, params_path: Path) -> int:
     return 0
 
 
-def run_plan(args, mech) -> int:
+def run_plan(args, setup) -> int:
     noise = _noise(args)
     try:
-        plan = cp.plan(mech, args.poses, args.seed, noise, args.candidates)
-        times, rows = cp.reference_rows(mech, plan.positions, plan.rotations, args.hold,
+        plan = cp.plan(setup, args.poses, args.seed, noise, args.candidates)
+        times, rows = cp.reference_rows(setup, plan.positions, plan.rotations, args.hold,
                                         args.move, args.leg_speed)
     except cp.PlanError as exc:
         raise InputError(exc) from None
     try:
-        Reference.from_poses(mech, times, rows).check()
+        Reference.from_poses(setup.mechanism, times, rows).check()
     except ReferenceError as exc:
         raise InputError('the planned reference leaves the stroke: %s' % exc) from None
     out = Path(args.out)
@@ -418,15 +418,15 @@ def main(argv=None) -> int:
     if problem:
         return _fail(problem)
     params_path = Path(args.params or default_params_path())
-    mech = load_checked(PROG, params_path)
-    if mech is None:
+    setup = load_checked(PROG, params_path)
+    if setup is None:
         return 2
     try:
         if args.command == 'fit':
-            return run_fit(args, mech, params_path)
+            return run_fit(args, setup.mechanism, params_path)
         if args.command == 'plan':
-            return run_plan(args, mech)
-        return run_machine(args, mech, params_path)
+            return run_plan(args, setup)
+        return run_machine(args, setup.mechanism, params_path)
     except InputError as exc:
         return _fail(exc)
     except OSError as exc:

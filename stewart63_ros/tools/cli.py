@@ -14,7 +14,8 @@ STRICT_HELP = ('refuse (exit 2) a parameter file with a key no executable reads,
 
 
 def load_checked(prog: str, path=None, node_name=None, strict=False):
-    """The validated mechanism of ``path`` (default: the packaged file), or
+    """The validated setup of ``path`` (default: the packaged file; its
+    ``mechanism``, ``gains``, ``task``, ``settings``), or
     None after a one-line error on stderr (the caller exits 2). Every key no
     executable reads is named first: a warning, an error with ``strict``."""
     # lazy: core.params costs 715 ms (numba); plot, record import cli
@@ -22,19 +23,19 @@ def load_checked(prog: str, path=None, node_name=None, strict=False):
         ParameterError,
         default_params_path,
         file_parameters,
-        load_mechanism,
+        load_setup,
         unknown_keys,
     )
     path = str(path or default_params_path())
     try:
         problems = unknown_keys(file_parameters(path))
-    except Exception:  # noqa: BLE001 - unreadable or not YAML: load_mechanism says how
+    except Exception:  # noqa: BLE001 - unreadable or not YAML: load_setup says how
         problems = []
     for problem in problems:
         print('%s: %s: %s: %s' % (prog, 'error' if strict else 'warning', path, problem),
               file=sys.stderr)
     try:
-        mech = load_mechanism(path, node_name=node_name)
+        setup = load_setup(path, node_name=node_name)
     except ParameterError as exc:
         print('%s: parameter error: %s: %s' % (prog, path, exc), file=sys.stderr)
         return None
@@ -42,7 +43,7 @@ def load_checked(prog: str, path=None, node_name=None, strict=False):
         print('%s: parameter error: %s: unknown keys refused (--strict)' % (prog, path),
               file=sys.stderr)
         return None
-    return mech
+    return setup
 
 
 def add_control_options(parser) -> None:

@@ -67,12 +67,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    mech = load_checked('fk', args.params, node_name='fk', strict=args.strict)
-    if mech is None:
+    setup = load_checked('fk', args.params, node_name='fk', strict=args.strict)
+    if setup is None:
         return 2
+    mech = setup.mechanism
     announce_compile('fk')
     try:
-        modes = ForwardKinematics(mech).all_modes(args.solve)
+        modes = ForwardKinematics(mech, start=(setup.task.initial_position,
+                                               setup.task.initial_rotation)).all_modes(args.solve)
     except NoAssemblyError as exc:
         print('fk: no assembly: %s' % exc, file=sys.stderr)
         return 2

@@ -273,10 +273,10 @@ def main(argv=None) -> int:
     for _, columns, _ in drawn:
         if len(columns['t']) == 0 or not np.all(np.isfinite(columns['t'])):
             parser.exit(2, 'plot: error: %s holds no samples\n' % source)
-    mech = load_checked('plot', args.params, node_name='controller')
-    if mech is None:
+    setup = load_checked('plot', args.params, node_name='controller')
+    if setup is None:
         return 2
-    setpoint = mech.setpoint_lengths
+    setpoint = setup.task.setpoint_lengths
     out = Path(args.out) if args.out else (
         source / 'figure.png' if source.is_dir() else source.with_name('figure.png'))
     for run, columns, faults in drawn:
@@ -302,8 +302,8 @@ def animate_main(parser, args, source) -> int:
         source / 'animation.gif' if source.is_dir() else source.with_name('animation.gif'))
     if out.suffix.lower() not in ('.gif', '.mp4'):
         parser.exit(2, 'plot: error: %s: --animate writes a .gif or an .mp4\n' % out)
-    mech = load_checked('plot', args.params)
-    if mech is None:
+    setup = load_checked('plot', args.params)
+    if setup is None:
         return 2
     try:
         runs = source_runs(source, args.run)
@@ -313,7 +313,7 @@ def animate_main(parser, args, source) -> int:
                 raise ValueError('%s holds no samples' % source)
             title = source.name if run is None or run.count == 1 else '%s, %s (%d of %d)' % (
                 source.name, run.name, run.index, run.count)
-            path, frames, speed = Animator(columns, mech, title=title).save(
+            path, frames, speed = Animator(columns, setup.mechanism, title=title).save(
                 run_output(out, run, runs), args.fps)
             print('%s (%d frames at %g fps%s%s)' % (
                 path, frames, args.fps, ', %.1fx real time' % speed if speed > 1 else '',

@@ -630,11 +630,11 @@ def plant_params_problem(args, params) -> str:
     if 'plant' not in nodes_arg(args.nodes):
         return 'it is the plant\'s file: it needs plant in --nodes'
     # lazy: core.params costs 715 ms (numba); --help answers
-    from stewart63_ros.core.params import mechanism_from_params, read_parameter_file
+    from stewart63_ros.core.params import read_parameter_file, setup_from_params
     try:
         merged = read_parameter_file(params, 'plant')
         merged.update(read_parameter_file(args.plant_params, 'plant', allow_empty=True))
-        mechanism_from_params(merged)
+        setup_from_params(merged)
     except ParameterError as exc:
         return '%s: %s' % (args.plant_params, exc)
     return ''

@@ -148,7 +148,8 @@ def trace_from_rig(scenario, bag: Path, summary: dict, trips: list | None = None
     if not stamps:
         raise RuntimeError('the bag %s has no sample with both leg_lengths and '
                            'ground_truth/pose' % bag)
-    mech = build_plant(scenario)
+    plant = build_plant(scenario)
+    mech = plant.mechanism
     dyn = Dynamics(mech)
     states = np.zeros((len(stamps), 13))
     states[:, :7] = [poses[s] for s in stamps]
@@ -173,9 +174,7 @@ def trace_from_rig(scenario, bag: Path, summary: dict, trips: list | None = None
     lost += max(0, expected - len(lengths_msgs))
     missed = int(summary.get('missed_cycles', 0)) + int(summary.get('force_timeouts', 0))
     if rate <= 0:
-        # lazy: numpy costs 50 ms; --help answers without it
-        from stewart63_ros.core.node_parameters import read as read_declared
-        rate = float(read_declared(mech.extra, 'sensor_rate'))
+        rate = float(plant.setting('sensor_rate'))
     records = tuple(TripRecord(t['cause'], int(t['sample']), t.get('latency_samples'),
                                t.get('detail', '')) for t in trips or ())
     return Trace(times, lengths, reference_lengths(scenario, reference, times), rows, withheld,

@@ -31,7 +31,7 @@ from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.params import (
     ParameterError,
     default_params_path,
-    load_mechanism,
+    load_setup,
     read_parameter_file,
 )
 from stewart63_ros.core.reference import (
@@ -53,9 +53,9 @@ from stewart63_ros.tools.cli import (
 from stewart63_ros.tools.plot import draw_figure
 
 
-def summarize(mech, dyn, result) -> dict:
+def summarize(setup, dyn, result) -> dict:
     """Final errors of a run, as printed by `sim` and the rig's summary."""
-    errors = result.final_leg_error_percent(dyn, mech.setpoint_lengths)
+    errors = result.final_leg_error_percent(dyn, setup.task.setpoint_lengths)
     lengths, _ = dyn.lengths_and_rates(result.states[-1])
     return {
         'final_time_s': float(result.times[-1]),
@@ -110,14 +110,14 @@ def make_controller(params_path, law=None, reference_csv=None):
     hold the setpoint, eq. (40) towards fixed lengths runs compiled, as
     ``Controller.pd_gains`` says). Raises ParameterError or ReferenceError."""
     params = read_parameter_file(params_path, 'controller')
-    mech = load_mechanism(params_path, node_name='controller')
+    setup = load_setup(params_path, node_name='controller')
     law = law or read_declared(params, 'control_law')
     reference = None
     if reference_csv is not None:
-        reference = load_reference(mech, reference_csv,
+        reference = load_reference(setup.mechanism, reference_csv,
                                    read_declared(params, 'max_leg_speed'),
                                    read_declared(params, 'max_leg_acceleration'))
-    return Controller(mech, params, law=law, reference=reference), reference
+    return Controller(setup, params, law=law, reference=reference), reference
 
 
 @quiet_on_closed_pipe
@@ -146,9 +146,10 @@ def main(argv=None) -> int:
         parser.error('--rate must be a positive number of Hz')
 
     params_path = args.params or default_params_path()
-    mech = load_checked('sim', params_path, node_name='plant', strict=args.strict)
-    if mech is None:
+    setup = load_checked('sim', params_path, node_name='plant', strict=args.strict)
+    if setup is None:
         return 2
+    mech = setup.mechanism
     try:
         controller, reference = make_controller(params_path, args.control_law, args.reference)
     except (ParameterError, ReferenceError) as exc:
@@ -177,15 +178,15 @@ def main(argv=None) -> int:
     start = time.perf_counter()
     try:
         if args.control == 'sampled':
-            rate = args.rate or read_declared(mech.extra, 'sensor_rate')
+            rate = args.rate or setup.setting('sensor_rate')
             model = None
             if faults:
-                model = FaultModel(faults, rate, read_declared(mech.extra, 'sensor_seed'))
-            result = run_sampled(mech, args.duration, rate, dyn=dyn, controller=controller,
+                model = FaultModel(faults, rate, setup.setting('sensor_seed'))
+            result = run_sampled(setup, args.duration, rate, dyn=dyn, controller=controller,
                                  faults=model)
         else:
             rate = args.rate or 100.0
-            result = run_continuous(mech, args.duration, output_rate=rate, dyn=dyn,
+            result = run_continuous(setup, args.duration, output_rate=rate, dyn=dyn,
                                     controller=controller)
     except LawError as exc:
         print('sim: error: the control law failed: %s' % exc, file=sys.stderr)
@@ -212,9 +213,9 @@ def main(argv=None) -> int:
                     title='sim %s: %s, %s control, %g Hz, %g s, %s' % (
                         out, law, args.control, rate, args.duration,
                         Path(args.params).name if args.params else 'packaged parameters'),
-                    reference=ref_columns, setpoint=mech.setpoint_lengths,
+                    reference=ref_columns, setpoint=setup.task.setpoint_lengths,
                     faults=result.faults)
-    summary = summarize(mech, dyn, result)
+    summary = summarize(setup, dyn, result)
     summary.update(control=args.control, control_law=law, rate_hz=rate,
                    wall_time_s=round(wall, 4), csv=str(out / 'trajectory.csv'))
     if not args.no_figure:

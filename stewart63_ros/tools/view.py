@@ -65,16 +65,16 @@ def rgb(color) -> tuple:
 class ViewScene:
     """The rig's shapes as viser scene nodes, made once and moved per frame."""
 
-    def __init__(self, server, mech):
+    def __init__(self, server, setup):
         self.server = server
-        self.mech = mech
+        self.mech = mech = setup.mechanism
         self.scene = shapes_mod.Scene(mech)
         sc = server.scene
         sc.set_up_direction('+z')
         server.initial_camera.position = (2.6, -2.4, 3.0)
         server.initial_camera.look_at = (0.0, 0.0, 0.7)
         sc.add_grid('/grid', width=6.0, height=6.0, cell_size=0.5, position=(0, 0, -0.025))
-        shapes = self.scene.shapes(mech.initial_position, np.eye(3))
+        shapes = self.scene.shapes(setup.task.initial_position, np.eye(3))
         by = {(s.ns, s.id): s for s in shapes}
         base = by[('base', 0)]
         sc.add_cylinder('/base', radius=base.scale[0] / 2, height=base.scale[2],
@@ -170,7 +170,7 @@ def _quat_xyzw(wxyz) -> np.ndarray:
 class LiveSource:
     """The newest state of a rig over DDS, taken without an executor."""
 
-    def __init__(self, namespace: str, mech):
+    def __init__(self, namespace: str, setup):
         import rclpy  # lazy: rclpy costs 302 ms; view of a bag needs no ROS
         from diagnostic_msgs.msg import DiagnosticArray
 
@@ -180,8 +180,9 @@ class LiveSource:
         from sensor_msgs.msg import JointState
 
         from stewart63_ros import topics
-        self.mech = mech
-        self.fk = ForwardKinematics(mech)
+        self.mech = mech = setup.mechanism
+        self.fk = ForwardKinematics(mech, start=(setup.task.initial_position,
+                                                 setup.task.initial_rotation))
         use_rig_profile()
         rclpy.init(args=['view'])
         ns = namespace.strip('/')
@@ -205,7 +206,7 @@ class LiveSource:
         self.forces = None
         self.last_pose_wall = None
         self.statuses = {}          # name -> (level, message, {key: value})
-        self.setpoint_lengths = np.asarray(mech.setpoint_lengths, dtype=float)
+        self.setpoint_lengths = np.asarray(setup.task.setpoint_lengths, dtype=float)
         self.ghost = self._fk(self.setpoint_lengths, None)
         self.started = time.monotonic()
 
@@ -370,7 +371,7 @@ class BagRun:
     that spans a reset holds several runs (``bagio.bag_runs``): one of them,
     ``number`` (``--run``; default the last), never several joined."""
 
-    def __init__(self, bag, mech, number=None):
+    def __init__(self, bag, setup, number=None):
         runs = bagio.bag_runs(bag)
         self.run = bagio.select_run(runs, number) if runs else None
         self.others = [r for r in runs if r is not self.run]
@@ -396,11 +397,12 @@ class BagRun:
         self.lengths = lengths if np.all(np.isfinite(lengths)) else None
         forces = np.column_stack([cols['F%d' % i][have] for i in range(1, 7)])
         self.forces = forces
-        self.ghost_t, self.ghost = self._ghosts(bag, mech, cols)
+        self.ghost_t, self.ghost = self._ghosts(bag, setup, cols)
 
-    def _ghosts(self, bag, mech, cols):
+    def _ghosts(self, bag, setup, cols):
         """Ghost poses against time from the bag's markers (their 'ghost'
         triangle), else one from its setpoints, else the parameter file's."""
+        mech = setup.mechanism
         t0 = None
         times, poses = [], []
         try:
@@ -420,7 +422,8 @@ class BagRun:
             return np.array(times) - t0, poses
         fk = ForwardKinematics(mech)
         try:
-            r = fk.nearest(np.asarray(mech.setpoint_lengths), self.position[0], self.rot[0])
+            r = fk.nearest(np.asarray(setup.task.setpoint_lengths), self.position[0],
+                           self.rot[0])
             return np.array([0.0]), [(np.asarray(r.position), np.asarray(r.rotation))]
         except NoAssemblyError:
             return np.array([0.0]), [None]
@@ -495,9 +498,10 @@ def url_of(host: str, port: int) -> str:
     return 'http://%s:%d/' % (shown, port)
 
 
-def run_live(server, mech, namespace, stop):
-    view = ViewScene(server, mech)
-    src = LiveSource(namespace, mech)
+def run_live(server, setup, namespace, stop):
+    mech = setup.mechanism
+    view = ViewScene(server, setup)
+    src = LiveSource(namespace, setup)
     gui = server.gui
     with gui.add_folder('Rig'):
         panel = gui.add_markdown('Starting…')
@@ -571,8 +575,8 @@ def run_live(server, mech, namespace, stop):
     src.close()
 
 
-def run_bag(server, mech, bag_run: BagRun, stop):
-    view = ViewScene(server, mech)
+def run_bag(server, setup, bag_run: BagRun, stop):
+    view = ViewScene(server, setup)
     gui = server.gui
     end = float(bag_run.t[-1])
     step = max(1e-3, round(end / 1000.0, 3)) if end > 0 else 1e-3
@@ -647,13 +651,13 @@ def main(argv=None) -> int:
     if args.run is not None and not args.bag:
         print('view: error: --run goes with a BAG', file=sys.stderr)
         return 2
-    mech = load_checked('view', args.params)
-    if mech is None:
+    setup = load_checked('view', args.params)
+    if setup is None:
         return 2
     bag_run = None
     if args.bag:
         try:
-            bag_run = BagRun(args.bag, mech, args.run)
+            bag_run = BagRun(args.bag, setup, args.run)
         except BagError as exc:
             print('view: error: %s' % exc, file=sys.stderr)
             return 2
@@ -675,9 +679,9 @@ def main(argv=None) -> int:
     StopSignals(stop.set, deadline=False, interrupt=False).install()
     try:
         if bag_run is not None:
-            run_bag(server, mech, bag_run, stop)
+            run_bag(server, setup, bag_run, stop)
         else:
-            run_live(server, mech, args.namespace, stop)
+            run_live(server, setup, args.namespace, stop)
     finally:
         server.stop()
     return 0
