@@ -717,8 +717,8 @@ def print_summary(rig, wall, started_unix=None):
     if rig.bus:
         s = rig.summary('canopen_bridge')
         print('  canopen_bridge: %s' % ('no summary' if not s else
-                                        '%g Hz, %d cycles, missed cycles %d, force timeouts %d, TPDOs '
-                                        'missed %s, computed bus load %s %%' % (
+                                        '%g Hz, %d cycles, missed cycles %d, force timeouts '
+                                        '%d, TPDOs missed %s, computed bus load %s %%' % (
                                             s['rate_hz'], s['cycles'], s['missed_cycles'],
                                             s['force_timeouts'], s['tpdo_missed'],
                                             s['bus_load_computed_percent'])))
