@@ -566,6 +566,7 @@ def main(argv=None) -> int:
         except BusConfigError as exc:
             print('rig: error: %s' % exc, file=sys.stderr)
             return 2
+        # lazy: core.node_parameters costs 715 ms (numba, with core.params); --help answers
         from stewart63_ros.core.node_parameters import BY_NAME
         rates = bus_rates(params, args.plant_params)
         plant_rate = rates['plant'] if rates['plant'] is not None \
