@@ -176,9 +176,9 @@ class Rig:
             plant['bus_channels'], bridge['bus_channels'] = channels, list(channels)
         # One rate: the plant steps one period a SYNC, so the bridge's SYNCs
         # come at the plant's sensor_rate (main() refuses two).
-        rates = bus_rates(self.params, self.plant_params)
-        if rates['plant'] is not None:
-            bridge['sensor_rate'] = rates['plant']
+        plant_rate, _ = bus_rates(self.params, self.plant_params)
+        if plant_rate is not None:
+            bridge['sensor_rate'] = plant_rate
         doc['/**/canopen_bridge'] = {'ros__parameters': bridge}
 
     def ros_args(self, name):
@@ -568,13 +568,13 @@ def main(argv=None) -> int:
             return 2
         # lazy: core.node_parameters costs 715 ms (numba, with core.params); --help answers
         from stewart63_ros.core.node_parameters import BY_NAME
-        rates = bus_rates(params, args.plant_params)
-        plant_rate = rates['plant'] if rates['plant'] is not None \
-            else BY_NAME['sensor_rate'].default
-        if rates['canopen_bridge'] is not None and rates['canopen_bridge'] != plant_rate:
+        plant_rate, bridge_rate = bus_rates(params, args.plant_params)
+        if plant_rate is None:
+            plant_rate = BY_NAME['sensor_rate'].default
+        if bridge_rate is not None and bridge_rate != plant_rate:
             print('rig: error: the bus has one rate: canopen_bridge sensor_rate %g Hz, plant '
                   '%g Hz (the plant steps one period a SYNC): set sensor_rate once, for both'
-                  % (rates['canopen_bridge'], plant_rate), file=sys.stderr)
+                  % (bridge_rate, plant_rate), file=sys.stderr)
             return 2
     rig = Rig(params, args.mode, args.duration, args.record, args.namespace, args.log_dir,
               nodes=nodes, realtime_priority=args.realtime_priority, compose=args.compose,
@@ -641,16 +641,16 @@ def plant_params_problem(args, params) -> str:
     return ''
 
 
-def bus_rates(params, plant_params=None) -> dict:
-    """The ``sensor_rate`` [Hz] the parameter files give the plant (after its
-    ``plant_params``) and the bridge; None where a file sets none."""
+def bus_rates(params, plant_params=None) -> tuple:
+    """The ``sensor_rate`` [Hz] the parameter files give (the plant, after
+    its ``plant_params``; the bridge); None where a file sets none."""
     # lazy: core.params costs 715 ms (numba); --help answers without it
     from stewart63_ros.core.params import read_parameter_file
     plant = read_parameter_file(params, 'plant', allow_empty=True)
     if plant_params:
         plant.update(read_parameter_file(plant_params, 'plant', allow_empty=True))
     bridge = read_parameter_file(params, 'canopen_bridge', allow_empty=True)
-    return {'plant': plant.get('sensor_rate'), 'canopen_bridge': bridge.get('sensor_rate')}
+    return plant.get('sensor_rate'), bridge.get('sensor_rate')
 
 
 def nodes_arg(text: str) -> tuple:
