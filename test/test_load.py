@@ -198,7 +198,7 @@ def starve_main_thread(pid: int, seconds: float) -> None:
 
 
 def test_starved_fk_and_recorder_hold_the_lockstep_plant_and_lose_nothing(
-        ros, monkeypatch, tmp_path, mech, warm_kernels):
+        ros, monkeypatch, tmp_path, setup, warm_kernels):
     """fk's, then the recorder's, main thread starved for 5 s each mid-run:
     without flow control the plant runs thousands of samples ahead and
     they are lost (measured here: fk received 9988 of 10001, the recorder
@@ -213,14 +213,14 @@ def test_starved_fk_and_recorder_hold_the_lockstep_plant_and_lose_nothing(
           % (peers['held_samples'], peers['held_s'], peers['window']))
     assert not peers['dropped'], peers
     assert peers['held_samples'] > 0, peers
-    assert_whole_and_equal_to_the_offline_run(bag, summary, fk, mech, logs)
+    assert_whole_and_equal_to_the_offline_run(bag, summary, fk, setup, logs)
 
 
 def test_a_lockstep_rig_beside_a_busy_core_answers_poses_and_records_every_sample(
-        ros, monkeypatch, tmp_path, mech, warm_kernels):
+        ros, monkeypatch, tmp_path, setup, warm_kernels):
     with busy_cores(1):
         bag, summary, fk, logs = run_lockstep(ros, monkeypatch, tmp_path)
-    counts = assert_whole_and_equal_to_the_offline_run(bag, summary, fk, mech, logs)
+    counts = assert_whole_and_equal_to_the_offline_run(bag, summary, fk, setup, logs)
     print('\nbeside a busy core: %d samples in %.2f s wall, final error %.4f %%, held %.2f s; '
           'bag %s' % (summary['samples'], summary['wall_time_s'],
                       summary['positioning_error_percent'],

@@ -23,7 +23,7 @@ import pytest
 from stewart63_ros.core import sweep
 from stewart63_ros.core.control import pd_law
 from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.params import load_setup
 from stewart63_ros.core.simulate import run_continuous, run_sampled
 from stewart63_ros.tools import sim
 from stewart63_ros.tools import sweep as sweep_tool
@@ -112,10 +112,10 @@ def test_rows_equal_single_sim_runs(setup, tmp_path, default_params_file):
         # sim prints round(error, 4)
         assert float(sim_error(params, tmp_path)) == round(float(row['final_error_percent']), 4)
         # In-process the very same number: sim's arithmetic, bit for bit.
-        mech = load_mechanism(params, node_name='plant')
-        dyn = Dynamics(mech)
-        result = run_continuous(setup, 10.0, dyn=dyn)
-        exact = result.final_leg_error_percent(dyn, setup.task.setpoint_lengths).max()
+        run_setup = load_setup(params, node_name='plant')
+        dyn = Dynamics(run_setup.mechanism)
+        result = run_continuous(run_setup, 10.0, dyn=dyn)
+        exact = result.final_leg_error_percent(dyn, run_setup.task.setpoint_lengths).max()
         assert float(row['final_error_percent']) == exact
         assert float(row['max_force']) == np.abs(result.forces).max()
         assert int(row['endstop_samples']) == result.endstop_samples
