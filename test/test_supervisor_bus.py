@@ -135,7 +135,10 @@ def test_homing_over_the_bus_sets_the_drives_and_a_killed_supervisor_leaves_no_t
         rig.procs['supervisor'].wait(10)
         wait_for(lambda: last('canopen_bridge', 'stale_force_from_sample'), 60)
         last_answer = max(ns for ns, _ in answers) // 1_000_000
-        assert int(last('canopen_bridge', 'stale_force_from_sample')) == last_answer + 51
+        # A SIGKILL during a publish can deliver the last answer to one reader
+        # (the bridge, this test) and not to the other: each gets its own copy.
+        stale_from = int(last('canopen_bridge', 'stale_force_from_sample'))
+        assert abs(stale_from - 51 - last_answer) <= 1, (stale_from, last_answer)
         wait_for(lambda: statuses['plant'] and json.loads(
             statuses['plant'][-1].get('bus_forces', '[1]')) == [0.0] * 6, 30)
     finally:
