@@ -160,8 +160,11 @@ class Rig:
             QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)))
         self.diag_sub = node.create_subscription(DiagnosticArray, '/diagnostics',
                                                  self.on_diag, T.DIAGNOSTICS_QOS)
+        # standing in for a plant's "run: ..." announcements
+        self.pub_diag = node.create_publisher(DiagnosticArray, '/diagnostics',
+                                              T.DIAGNOSTICS_QOS)
         self.msg = {'JointState': JointState, 'PoseStamped': PoseStamped,
-                    'WrenchStamped': WrenchStamped}
+                    'WrenchStamped': WrenchStamped, 'DiagnosticArray': DiagnosticArray}
 
     # -- callbacks -----------------------------------------------------------
     def on_truth(self, msg):
@@ -226,6 +229,14 @@ class Rig:
         msg.velocity = [float(v) for v in velocity]
         msg.effort = [float(v) for v in effort]
         return msg
+
+    def announce_run(self, ns, run, stamp_ns):
+        """``run: <run>`` from ``/<ns>/plant`` on /diagnostics, stamped ``stamp_ns``."""
+        from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+        msg = self.msg['DiagnosticArray'](status=[DiagnosticStatus(
+            name='stewart63/%s/plant' % ns, values=[KeyValue(key='run', value=run)])])
+        msg.header.stamp = to_time(stamp_ns)
+        self.pub_diag.publish(msg)
 
     def next_stamp(self, ns='a', dt=0.01) -> int:
         self.stamp[ns] += int(round(dt * 1e9))
@@ -294,7 +305,9 @@ def rig(tmp_path_factory, mech):
             sorted({d[1] for d in r.diags}), '\n'.join(p.describe() for p in r.procs.values()))
         pairs = [(r.pub_lengths['a'], 2), (r.pub_lengths['wd'], 1), (r.pub_leg_setpoint, 1),
                  (r.pub_pose_setpoint, 1), (r.pub_plant_forces, 1), (r.pub_wrench, 1),
-                 *[(s, 1) for s in r.subs]]
+                 *[(s, 1) for s in r.subs],
+                 # every /diagnostics reader the graph shows (each node has reported)
+                 (r.pub_diag, r.node.count_subscribers('/diagnostics'))]
         for entity, n in pairs:
             assert wait_matched(entity, n, timeout=20), 'not matched: %s' % entity.topic_name
         yield r
@@ -674,6 +687,22 @@ def test_watchdog(setup, rig, mech):
     rig.check_alive('wd')
     print('\nwatchdog 0.2 s: ERROR %.3f s after the last sample; resumed with %d forces '
           'for %d samples' % (delay, len(got), len(sent)))
+
+    # The plant pauses: it says "run: paused", stamped with its next sample,
+    # and its last sample (stamped before that) comes after the word, as it
+    # does over a field bus (through the bridge). That late sample is no
+    # resumed run: the silence after it is the pause, not a lost sensor.
+    in_flight = rig.next_stamp('wd', 0.02)
+    rig.announce_run('wd', 'paused', in_flight + 20_000_000)
+    rig.spin_for(0.1)                   # the word first, then the late sample
+    t_late = time.monotonic()
+    rig.pub_lengths['wd'].publish(rig.joint_state(in_flight, lengths, rates))
+    assert rig.wait_report(name, lambda d: d[0] > t_late + 0.8, 3.0) is not None
+    levels = [d[2] for d in rig.reports(name, t_late)]
+    assert ERROR not in levels, rig.reports(name, t_late)
+    assert in_flight in rig.forces['wd'], 'the late sample was answered'
+    # the plant runs on: its next sample ends the pause
+    rig.announce_run('wd', 'running', in_flight + 20_000_000)
 
 
 # -- 6. diagnostics at about 1 Hz ----------------------------------------------------

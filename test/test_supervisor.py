@@ -349,6 +349,9 @@ def test_a_platform_at_rest_passes_every_check_and_a_reset_there_is_accepted(set
     ({'pose_box': [-0.3, -0.3, 0.8, 0.3, 0.3, 1.6]}, 'pose_box'),
     ({'stale_lengths_ms': 0.0}, 'stale_lengths_ms'),
     ({'rest_clearance': 2.0}, 'rest_clearance'),
+    # 1e7 N/s: past any change between two requests within +-3000 N at RATE
+    ({'trip_force_rate': 1e7}, 'trip_force_rate'),
+    ({'trip_force_rate': 4000 * RATE, 'trip_force': 2000.0}, 'trip_force_rate'),
 ])
 def test_contradictory_limits_are_refused_naming_the_key(setup, mech, params, overrides, key):
     with pytest.raises(ParameterError) as exc:

@@ -403,9 +403,13 @@ DECLARED: tuple[Declared, ...] = (
              'leg rate reading faster trips (descent); 0: off', nonnegative, runtime=True),
     Declared('trip_force', ('supervisor',), 0.0, 'N', '', 'a requested force above this '
              'trips (hold); 0: the model\'s `max_force`', nonnegative, runtime=True),
-    Declared('trip_force_rate', ('supervisor',), 1.0e7, 'N/s', '', 'a requested force '
-             'changing faster from one sample to the next trips (hold); 0: off', nonnegative,
-             runtime=True),
+    # Off by default: a PD law's request jumps by kp x the step at a setpoint
+    # step, up to the whole force range (the packaged run's first request:
+    # 234 N from zero, 0.23 MN/s at 1 kHz; its largest change after: 6.5 kN/s).
+    Declared('trip_force_rate', ('supervisor',), 0.0, 'N/s', '≥ 0, < 2 `trip_force` × '
+             '`sensor_rate`', 'a requested force changing faster from one sample to the next '
+             'trips (hold); 0: off (the default: a PD law\'s request may jump by the whole '
+             'force range at a setpoint step)', nonnegative, runtime=True),
     Declared('trip_tracking_error', ('supervisor',), 0.05, 'm', '', 'a leg farther than this '
              'from its reference (`reference_file`, else `setpoint_lengths`) for '
              '`trip_tracking_time` trips (descent); 0: off', nonnegative, runtime=True),

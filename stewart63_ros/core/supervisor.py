@@ -105,12 +105,15 @@ class Limits:
     rest_clearance: float
 
 
-def limits_from_params(mech: Mechanism, params: Mapping[str, Any]) -> Limits:
+def limits_from_params(mech: Mechanism, params: Mapping[str, Any],
+                       rate: float | None = None) -> Limits:
     """The limits of ``params`` (the supervisor's keys), checked together.
 
     Args:
         mech: the mechanism (stroke, max_force).
         params: the node's parameters.
+        rate: the sample rate [Hz] (the force-rate check's period); None:
+            ``sensor_rate`` of ``params``.
 
     Returns:
         The ``Limits``.
@@ -129,6 +132,15 @@ def limits_from_params(mech: Mechanism, params: Mapping[str, Any]) -> Limits:
     soft_min, soft_max = mech.leg_length_min + margin, mech.leg_length_max - margin
     box = value['pose_box']         # (its check: each minimum below its maximum)
     force = value['trip_force'] or float(mech.max_force)
+    rate = read_declared(params, 'sensor_rate') if rate is None else rate
+    # Requests above `force` trip first: no change between two samples is
+    # larger than 2 force, so a force-rate limit above 2 force x rate would
+    # be accepted and never act.
+    if value['trip_force_rate'] and value['trip_force_rate'] >= 2 * force * rate:
+        raise ParameterError('trip_force_rate', '%g N/s can never trip: with trip_force %g N '
+                             'at %g Hz the largest change between two samples is %g N/s '
+                             '(0 turns the check off)' % (value['trip_force_rate'], force,
+                                                           rate, 2 * force * rate))
     if value['descent_speed'] <= 0:
         raise ParameterError('descent_speed', 'must be > 0 (the descent must end)')
     if value['trip_leg_speed'] and value['descent_speed'] >= value['trip_leg_speed']:
@@ -809,7 +821,7 @@ def supervisor_from_params(setup: Setup, params: Mapping[str, Any],
             reference file unreadable (key ``reference_file``).
     """
     mech = setup.mechanism
-    limits = limits_from_params(mech, params)
+    limits = limits_from_params(mech, params, rate)
     start = (setup.task.initial_position, setup.task.initial_rotation)
     path = read_declared(params, 'reference_file')
     if path:

@@ -48,6 +48,7 @@ from stewart63_ros.core.reference import (
     trajectory_poses,
 )
 from stewart63_ros.core.rotation import rotation_from_quaternion
+from stewart63_ros.core.stamps import stamp_ns
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode
@@ -180,6 +181,10 @@ class ControllerNode(RigNode):
         self.plant_status = topics.status_name(topics.node_full_name(self.get_namespace(),
                                                                      'plant'))
         self.source_ended = False       # or why the plant is silent: 'ended', 'paused', ...
+        # The stamp of that announcement (ns): samples stamped before it were
+        # in flight when the plant fell silent (over a field bus they arrive
+        # after the announcement) and do not end the silence.
+        self.silent_from_ns = 0
         self.plant_run = None
         self.sub_diagnostics = self.create_subscription(
             DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics, topics.DIAGNOSTICS_QOS)
@@ -250,7 +255,8 @@ class ControllerNode(RigNode):
         if self.sample_gate.new_run:
             self.ref_start_ns = None        # a new run: the reference starts again
         self.last_sample_wall = time.monotonic()
-        self.source_ended = False        # a run goes on (or a new one began)
+        if self.source_ended and (ns >= self.silent_from_ns or self.sample_gate.new_run):
+            self.source_ended = False        # a run goes on (or a new one began)
         if self.tripped:
             self.tripped = False
             self.health.fault = self.law_fault
@@ -377,6 +383,8 @@ class ControllerNode(RigNode):
         said = plant_run(msg, self.plant_status)
         run = said.get('run')
         if run in self.SILENT_RUN:
+            if self.source_ended != run:
+                self.silent_from_ns = stamp_ns(msg.header.stamp)
             self.source_ended = run
         elif run in ('running', 'stepping'):
             self.source_ended = False
