@@ -48,7 +48,6 @@ from stewart63_ros.core.reference import (
     trajectory_poses,
 )
 from stewart63_ros.core.rotation import rotation_from_quaternion
-from stewart63_ros.core.stamps import stamp_ns
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode
