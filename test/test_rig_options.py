@@ -87,3 +87,39 @@ def test_a_summary_without_the_run_times_names_no_run_time(capsys):
     print_summary(_Ended(summary), 14.66, 1000.0)
     first = capsys.readouterr().out.splitlines()[0]
     assert first == 'rig summary: 5001 samples; 14.66 s wall in all (realtime, 1000 Hz)', first
+
+
+@pytest.mark.parametrize('options, node', [(['--supervisor'], 'supervisor'),
+                                           (['--bus', 'canopen'], 'canopen_bridge')])
+def test_a_follower_at_another_sample_rate_than_the_plant_is_refused(tmp_path, options, node):
+    # The bridge's SYNCs and the supervisor's sample count follow the plant:
+    # a file that gives one of them another rate is refused before anything starts.
+    import yaml
+    params = yaml.safe_load(PARAMS.read_text())
+    params['/**/plant']['ros__parameters']['sensor_rate'] = 200.0
+    params['/**/%s' % node] = {'ros__parameters': {'sensor_rate': 500.0}}
+    (tmp_path / 'params.yaml').write_text(yaml.safe_dump(params))
+    logs = tmp_path / 'logs'
+    proc = subprocess.run([sys.executable, '-m', 'stewart63_ros.tools.rig', '--params',
+                           str(tmp_path / 'params.yaml'), '--duration', '1', *options,
+                           '--log-dir', str(logs)],
+                          capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert proc.returncode == 2, (proc.stdout, proc.stderr)
+    assert proc.stderr.strip() == (
+        'rig: error: one sample rate: %s sensor_rate 500 Hz, plant 200 Hz (%s): set '
+        'sensor_rate once, for both' % (node, {
+            'supervisor': 'it numbers the samples and checks the force rate at its own',
+            'canopen_bridge': 'the plant steps one period a SYNC'}[node])), proc.stderr
+    assert not logs.exists() and proc.stdout == ''
+
+
+def test_the_supervisor_and_the_bridge_take_the_plants_sample_rate(tmp_path):
+    import yaml
+    params = yaml.safe_load(PARAMS.read_text())
+    params['/**/plant']['ros__parameters']['sensor_rate'] = 200.0
+    (tmp_path / 'params.yaml').write_text(yaml.safe_dump(params))
+    rig = Rig(tmp_path / 'params.yaml', log_dir=tmp_path / 'logs', supervisor=True,
+              bus='canopen')
+    doc = yaml.safe_load(rig.overlay().read_text())
+    assert doc['/**/supervisor']['ros__parameters']['sensor_rate'] == 200.0
+    assert doc['/**/canopen_bridge']['ros__parameters']['sensor_rate'] == 200.0

@@ -143,6 +143,13 @@ class Rig:
             supervised(doc, plant, shared, self.log_dir)
         if self.bus:
             self.bus_overlay(doc, shared)
+        # One rate: the bridge's SYNCs and the supervisor's sample count (its
+        # trip samples, its force-rate check) follow the plant's sensor_rate
+        # where the files give it the plant only (main() refuses two).
+        plant_rate = sample_rates(self.params, self.plant_params)['plant']
+        if plant_rate is not None:
+            for node in rate_followers(self.bus, self.supervisor):
+                doc['/**/%s' % node]['ros__parameters']['sensor_rate'] = plant_rate
         for node, values in self.extra_params.items():
             section = doc.setdefault('/**/%s' % node, {'ros__parameters': dict(shared)})
             section['ros__parameters'].update(values)
@@ -174,11 +181,6 @@ class Rig:
         if all(bus.interface == 's63hub' for bus in buses):
             channels = ['rig%d-%s' % (os.getpid(), bus.name) for bus in buses]
             plant['bus_channels'], bridge['bus_channels'] = channels, list(channels)
-        # One rate: the plant steps one period a SYNC, so the bridge's SYNCs
-        # come at the plant's sensor_rate (main() refuses two).
-        plant_rate, _ = bus_rates(self.params, self.plant_params)
-        if plant_rate is not None:
-            bridge['sensor_rate'] = plant_rate
         doc['/**/canopen_bridge'] = {'ros__parameters': bridge}
 
     def ros_args(self, name):
@@ -566,16 +568,10 @@ def main(argv=None) -> int:
         except BusConfigError as exc:
             print('rig: error: %s' % exc, file=sys.stderr)
             return 2
-        # lazy: core.node_parameters costs 715 ms (numba, with core.params); --help answers
-        from stewart63_ros.core.node_parameters import BY_NAME
-        plant_rate, bridge_rate = bus_rates(params, args.plant_params)
-        if plant_rate is None:
-            plant_rate = BY_NAME['sensor_rate'].default
-        if bridge_rate is not None and bridge_rate != plant_rate:
-            print('rig: error: the bus has one rate: canopen_bridge sensor_rate %g Hz, plant '
-                  '%g Hz (the plant steps one period a SYNC): set sensor_rate once, for both'
-                  % (bridge_rate, plant_rate), file=sys.stderr)
-            return 2
+    two = two_rates(params, args.plant_params, rate_followers(args.bus, args.supervisor))
+    if two:
+        print('rig: error: %s' % two, file=sys.stderr)
+        return 2
     rig = Rig(params, args.mode, args.duration, args.record, args.namespace, args.log_dir,
               nodes=nodes, realtime_priority=args.realtime_priority, compose=args.compose,
               extra_params=extra, supervisor=args.supervisor, bus=args.bus)
@@ -641,16 +637,44 @@ def plant_params_problem(args, params) -> str:
     return ''
 
 
-def bus_rates(params, plant_params=None) -> tuple:
-    """The ``sensor_rate`` [Hz] the parameter files give (the plant, after
-    its ``plant_params``; the bridge); None where a file sets none."""
+def rate_followers(bus, supervisor) -> list[str]:
+    """The nodes of a rig that count the plant's samples at its rate: the
+    bridge (``--bus``: the plant steps one period a SYNC) and the supervisor."""
+    return [node for node, on in (('canopen_bridge', bus), ('supervisor', supervisor)) if on]
+
+
+def sample_rates(params, plant_params=None) -> dict:
+    """The ``sensor_rate`` [Hz] the parameter files give each node that has
+    one in a rig (the plant's after its ``plant_params``); None where the
+    files set none."""
     # lazy: core.params costs 715 ms (numba); --help answers without it
     from stewart63_ros.core.params import read_parameter_file
     plant = read_parameter_file(params, 'plant', allow_empty=True)
     if plant_params:
         plant.update(read_parameter_file(plant_params, 'plant', allow_empty=True))
-    bridge = read_parameter_file(params, 'canopen_bridge', allow_empty=True)
-    return plant.get('sensor_rate'), bridge.get('sensor_rate')
+    rates = {'plant': plant.get('sensor_rate')}
+    for node in ('canopen_bridge', 'supervisor'):
+        rates[node] = read_parameter_file(params, node, allow_empty=True).get('sensor_rate')
+    return rates
+
+
+def two_rates(params, plant_params, followers) -> str:
+    """Why the files give ``followers`` (nodes that count the plant's
+    samples) a ``sensor_rate`` other than the plant's; '' when they agree."""
+    if not followers:
+        return ''
+    # lazy: core.node_parameters costs 715 ms (numba, with core.params); --help answers
+    from stewart63_ros.core.node_parameters import BY_NAME
+    rates = sample_rates(params, plant_params)
+    plant_rate = rates['plant'] if rates['plant'] is not None else BY_NAME[
+        'sensor_rate'].default
+    for node in followers:
+        if rates[node] is not None and rates[node] != plant_rate:
+            why = ('the plant steps one period a SYNC' if node == 'canopen_bridge' else
+                   'it numbers the samples and checks the force rate at its own')
+            return ('one sample rate: %s sensor_rate %g Hz, plant %g Hz (%s): set sensor_rate '
+                    'once, for both' % (node, rates[node], plant_rate, why))
+    return ''
 
 
 def nodes_arg(text: str) -> tuple:
