@@ -381,3 +381,22 @@ def test_realtime_a_dropout_trips_latches_and_says_so(ros, monkeypatch, tmp_path
     assert summary['values']['tripped'] == 'true'
     assert [(t['cause'], str(t['sample']), str(t['latency_samples'])) for t in summary['trips']] \
         == [('lengths_stale', values['trip/sample'], values['trip/latency_samples'])], summary
+
+
+def test_a_supervisor_given_another_rate_than_the_plants_says_so(ros, monkeypatch, tmp_path):
+    """Started by hand with another sensor_rate than the plant's (rig refuses
+    such a file; ``extra_params`` gets past it, as a hand-made launch would),
+    the supervisor would number the samples wrongly: it says so, with the
+    spacing its stamps show, on /diagnostics (WARN), in its log and summary."""
+    rig_env(ros, monkeypatch)
+    rig = Rig(PARAMS, mode='lockstep', duration=0.05, nodes=NODES, log_dir=tmp_path / 'rig',
+              supervisor=True, extra_params={'supervisor': {'sensor_rate': 500.0}})
+    ok, codes, logs = run_to_end(rig, START_TIMEOUT)
+    assert ok and set(codes.values()) == {0}, logs
+    want = ("the samples come 1 ms apart, but sensor_rate 500 Hz says 2 ms: give this node "
+            "the plant's sensor_rate (1000 Hz), or its sample numbers are wrong")
+    log = (tmp_path / 'rig' / 'supervisor.log').read_text()
+    assert log.count(want) == 1, log
+    summary = json.loads((tmp_path / 'rig' / 'supervisor_summary.json').read_text())
+    assert summary['values']['sample_spacing_ms'] == 1.0, summary['values']
+    assert summary['status'] == want, summary['status']

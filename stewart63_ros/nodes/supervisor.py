@@ -32,6 +32,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from stewart63_ros import topics
+from stewart63_ros.core.stamps import NS_PER_S, SampleSpacing
 from stewart63_ros.core.supervisor import LIMIT_KEYS, limits_from_params, supervisor_from_params
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.runtime import wire
@@ -58,6 +59,7 @@ class SupervisorNode(RigNode):
         super().__init__('supervisor')
         self.lockstep = self.param('clock_mode') == 'lockstep'
         self.rate = self.param('sensor_rate')
+        self.spacing = SampleSpacing(NS_PER_S / self.rate)     # the plant's rate, checked
         self.request_timeout = self.param('request_timeout')
         self.trip_on_diagnostics = self.param('trip_on_diagnostics')
         # Load the kernels (forward kinematics, the hold's model) on a throwaway
@@ -152,6 +154,12 @@ class SupervisorNode(RigNode):
         if self.sample_gate.new_run:        # a plant's ~/reset: its stamps start again
             self.core.new_run()
         self.sample_gate.accept(ns, source_of(info))
+        wrong_rate = self.spacing.add(ns)
+        if wrong_rate:
+            # a setting to fix, not a fault of the machine: WARN, no trip
+            self.health.warning = wrong_rate
+            self.health.values['sample_spacing_ms'] = self.spacing.smallest * 1e-6
+            self.get_logger().warning(wrong_rate)
         self.latch_async(ns)
         core = self.core
         core.on_sample(ns, lengths, rates)
