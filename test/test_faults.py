@@ -54,16 +54,24 @@ def test_hang_kill_and_restart_of_nodes_in_a_realtime_rig(ros, tmp_path):
     assert wait_until(lambda: 'READY' in record.stdout(), 60), record.describe()
     procs = {}
 
-    def start(name, *extra):
-        proc = ros.spawn(exe(name) + args + list(extra), name=name)
-        procs[name] = proc
-        ready = 'realtime at' if name == 'plant' else 'matched after'
-        assert wait_until(lambda: ready in _text(proc) or proc.returncode is not None, 120), \
+    def spawn(name, *extra):
+        procs[name] = ros.spawn(exe(name) + args + list(extra), name=name)
+
+    def ready(name):
+        proc = procs[name]
+        said = 'realtime at' if name == 'plant' else 'matched after'
+        assert wait_until(lambda: said in _text(proc) or proc.returncode is not None, 120), \
             proc.describe()
         assert proc.returncode is None, proc.describe()
-        return proc
-    start('controller')
-    start('fk')
+
+    def start(name, *extra):
+        spawn(name, *extra)
+        ready(name)
+    # controller and fk start side by side (each waits only for the recorder)
+    spawn('controller')
+    spawn('fk')
+    ready('controller')
+    ready('fk')
     start('plant', '-p', 'lengths_subscribers:=3')
     plant_name, ctl_name = 'stewart63%s/plant' % NS, 'stewart63%s/controller' % NS
 
