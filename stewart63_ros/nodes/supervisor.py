@@ -114,8 +114,8 @@ class SupervisorNode(RigNode):
     def _limit_setter(self, name):
         def apply(value):
             params = dict(self.params, **{name: value})
-            rate = 1.0 / self.core.period       # the same checks as at start-up
-            self.core.set_limits(limits_from_params(self.mech, params, rate))
+            # the same checks as at start-up
+            self.core.set_limits(limits_from_params(self.mech, params, self.rate))
         return apply
 
     def _set_trip_on_diagnostics(self, value):
