@@ -474,14 +474,6 @@ REFERENCE_TOPICS = {'pose_trajectory': 'trajectory_msgs/msg/MultiDOFJointTraject
                     'pose_setpoint': 'geometry_msgs/msg/PoseStamped'}
 
 
-def _unit(q, where: str) -> np.ndarray:
-    quat = np.array([q.x, q.y, q.z, q.w], float)
-    norm = float(np.linalg.norm(quat))
-    if not np.all(np.isfinite(quat)) or not 0.9 < norm < 1.1:
-        raise BagError(f'{where}: not a unit quaternion ({quat.tolist()})')
-    return quat / norm
-
-
 def reference_points_from_bag(bag_dir) -> dict[str, np.ndarray | None]:
     """A reference motion's points from a topic file (a rosbag2 directory).
 
@@ -501,7 +493,12 @@ def reference_points_from_bag(bag_dir) -> dict[str, np.ndarray | None]:
         BagError: not a bag, none of the topics, both, a bad message.
     """
     # lazy: core.reference costs 570 ms (numba); plot needs no core
-    from stewart63_ros.core.reference import trajectory_poses
+    from stewart63_ros.core.reference import (
+        MessageError,
+        message_quaternion,
+        trajectory_points,
+        trajectory_poses,
+    )
     reader = open_reader(bag_dir)
     try:
         found = {}
@@ -529,38 +526,23 @@ def reference_points_from_bag(bag_dir) -> dict[str, np.ndarray | None]:
     if not msgs:
         raise BagError(f'{bag_dir}: {topic} holds no message')
     twists = accels = None
-    if name == 'pose_trajectory':
-        if len(msgs) > 1:
-            raise BagError(f'{bag_dir}: {topic} holds {len(msgs)} trajectories: a reference '
-                           f'is one')
-        msg = msgs[0]
-        if list(msg.joint_names) != ['platform']:
-            raise BagError(f"{bag_dir}: {topic}: joint_names must be ['platform'], got "
-                           f'{list(msg.joint_names)}')
-        points = msg.points
-        if not points or any(len(p.transforms) != 1 for p in points):
-            raise BagError(f'{bag_dir}: {topic}: every point needs one transform')
-        times = np.array([p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec
-                          for p in points])
-        translations = [[p.transforms[0].translation.x, p.transforms[0].translation.y,
-                         p.transforms[0].translation.z] for p in points]
-        quats = [_unit(p.transforms[0].rotation, f'{topic} point {k}')
-                 for k, p in enumerate(points)]
-
-        def six(items):
-            return [items[0].linear.x, items[0].linear.y, items[0].linear.z,
-                    items[0].angular.x, items[0].angular.y, items[0].angular.z]
-        if all(len(p.velocities) == 1 for p in points):
-            twists = np.array([six(p.velocities) for p in points])
-            if all(len(p.accelerations) == 1 for p in points):
-                accels = np.array([six(p.accelerations) for p in points])
-    else:
-        stamps = np.array([header_stamp_ns(m) for m in msgs], dtype=np.int64)
-        times = (stamps - stamps[0]) * 1e-9
-        translations = [[m.pose.position.x, m.pose.position.y, m.pose.position.z] for m in msgs]
-        quats = [_unit(m.pose.orientation, f'{topic} message {k}') for k, m in enumerate(msgs)]
-    if not np.all(np.isfinite(translations)):
-        raise BagError(f'{bag_dir}: {topic}: a position holds NaN or Inf')
+    try:
+        if name == 'pose_trajectory':
+            if len(msgs) > 1:
+                raise BagError(f'{bag_dir}: {topic} holds {len(msgs)} trajectories: a '
+                               f'reference is one')
+            times, translations, quats, twists, accels = trajectory_points(msgs[0])
+        else:
+            stamps = np.array([header_stamp_ns(m) for m in msgs], dtype=np.int64)
+            times = (stamps - stamps[0]) * 1e-9
+            translations = [[m.pose.position.x, m.pose.position.y, m.pose.position.z]
+                            for m in msgs]
+            quats = [message_quaternion(m.pose.orientation, 'message %d orientation' % k)
+                     for k, m in enumerate(msgs)]
+            if not np.all(np.isfinite(translations)):
+                raise BagError(f'{bag_dir}: {topic}: a position holds NaN or Inf')
+    except MessageError as exc:
+        raise BagError(f'{bag_dir}: {topic}: {exc}') from None
     poses, rates, accs = trajectory_poses(translations, quats, twists, accels)
     return {'times': times, 'poses': poses, 'rates': rates, 'accelerations': accs,
             'topic': topic}

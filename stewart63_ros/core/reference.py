@@ -65,6 +65,15 @@ class ReferenceError(ValueError):
     """A reference that cannot be used; the message says where and why."""
 
 
+class MessageError(ReferenceError):
+    """A pose message that cannot be a reference: ``reason`` is a short key
+    (the controller counts its refusals under it), the message says why."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+
+
 class ReferenceSample:
     """Named views into one reference sample (a flat array, ``.array``).
 
@@ -461,6 +470,77 @@ def load_reference(mech: Mechanism, path: str | os.PathLike, max_leg_speed: floa
     except ReferenceError as exc:
         raise ReferenceError('%s: %s' % (path, exc)) from None
     return ref
+
+
+#: The one joint of a pose_trajectory.
+PLATFORM_JOINT = 'platform'
+
+
+def _finite(values, size: int, field: str) -> np.ndarray:
+    arr = np.asarray(values, dtype=float)
+    if arr.shape != (size,) or not np.all(np.isfinite(arr)):
+        raise MessageError('non_finite' if arr.shape == (size,) else 'wrong_size',
+                           '%s must be %d finite numbers' % (field, size))
+    return arr
+
+
+def message_quaternion(q, field: str) -> np.ndarray:
+    """(4,) x, y, z, w of a message's quaternion ``q`` (fields x, y, z, w),
+    normalised; MessageError unless finite with a norm within 10 % of 1."""
+    quat = _finite([q.x, q.y, q.z, q.w], 4, field)
+    norm = np.linalg.norm(quat)
+    if not 0.9 < norm < 1.1:
+        raise MessageError('bad_quaternion', '%s is not a unit quaternion (norm %.3g)'
+                           % (field, norm))
+    return quat / norm
+
+
+def trajectory_points(msg) -> tuple:
+    """The points of a ``MultiDOFJointTrajectory`` of the one joint ``platform``
+    (the controller's ``pose_trajectory``, or one a topic file holds: only the
+    message's fields are read, so rclpy's and rosbags' messages alike).
+
+    Points: ``transforms[0]`` (base frame) at ``time_from_start``; velocities
+    (twist, base frame) where every point has one, accelerations where every
+    point has velocities and one acceleration.
+
+    Returns:
+        (times (N,) [s], translations (N, 3) [m], quaternions (N, 4) x, y, z, w,
+        twists (N, 6) or None, accelerations (N, 6) or None), for
+        ``trajectory_poses``.
+
+    Raises:
+        MessageError: another joint, no point, a point without one transform,
+            a number that is not finite, a quaternion far from unit length.
+    """
+    if list(msg.joint_names) != [PLATFORM_JOINT]:
+        raise MessageError('unknown_joint_names', 'joint_names must be [%r], got %s'
+                           % (PLATFORM_JOINT, list(msg.joint_names)))
+    points = msg.points
+    if not points:
+        raise MessageError('empty_trajectory', 'the trajectory has no points')
+    n = len(points)
+    times = np.empty(n)
+    translations = np.empty((n, 3))
+    quats = np.empty((n, 4))
+    twists = np.empty((n, 6)) if all(len(p.velocities) == 1 for p in points) else None
+    accels = (np.empty((n, 6)) if twists is not None
+              and all(len(p.accelerations) == 1 for p in points) else None)
+    for k, p in enumerate(points):
+        if len(p.transforms) != 1:
+            raise MessageError('wrong_size', 'point %d has %d transforms, expected 1'
+                               % (k, len(p.transforms)))
+        tr = p.transforms[0]
+        times[k] = p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec
+        translations[k] = _finite([tr.translation.x, tr.translation.y, tr.translation.z], 3,
+                                  'point %d translation' % k)
+        quats[k] = message_quaternion(tr.rotation, 'point %d rotation' % k)
+        for arr, items in ((twists, p.velocities), (accels, p.accelerations)):
+            if arr is not None:
+                lin, ang = items[0].linear, items[0].angular
+                arr[k] = _finite([lin.x, lin.y, lin.z, ang.x, ang.y, ang.z], 6,
+                                 'point %d twist' % k)
+    return times, translations, quats, twists, accels
 
 
 def trajectory_poses(translations: ArrayLike, quaternions: ArrayLike,

@@ -40,11 +40,14 @@ from stewart63_ros.core.kinematics import leg_lengths
 from stewart63_ros.core.laws import LAW_PARAMETERS, LAWS, Controller, LawError
 from stewart63_ros.core.params import ParameterError
 from stewart63_ros.core.reference import (
+    MessageError,
     Reference,
     ReferenceError,
     accumulate_tracking,
     load_reference,
+    message_quaternion,
     tracking_summary,
+    trajectory_points,
     trajectory_poses,
 )
 from stewart63_ros.core.rotation import rotation_from_quaternion
@@ -65,55 +68,29 @@ from stewart63_ros.runtime.handshake import plant_run
 from stewart63_ros.runtime.launcher import run
 from stewart63_ros.runtime.rclpy_internals import take, take_with_info
 
-#: The one joint of a pose_trajectory.
-PLATFORM_JOINT = 'platform'
 _NO_ROTATION = np.eye(3)
 
 
 def _unit_quaternion(q, field):
-    quat = finite_vector([q.x, q.y, q.z, q.w], 4, field)
-    norm = np.linalg.norm(quat)
-    if not 0.9 < norm < 1.1:
-        raise Rejected('bad_quaternion', '%s is not a unit quaternion (norm %.3g)' % (field, norm))
-    return quat / norm
+    try:
+        return message_quaternion(q, field)
+    except MessageError as exc:
+        raise Rejected(exc.reason, str(exc)) from None
 
 
 def reference_from_trajectory(mech, msg, max_leg_speed=0.0, max_leg_acceleration=0.0):
     """(Reference, start stamp in ns or None for "the next sample") from a
-    ``MultiDOFJointTrajectory`` of the one joint ``platform``; Rejected otherwise.
+    ``MultiDOFJointTrajectory`` of the one joint ``platform``
+    (``core.reference.trajectory_points``); Rejected otherwise.
 
-    Points: ``transforms[0]`` (base frame), ``time_from_start``; velocities
-    (twist, base frame) and accelerations used when every point has them
-    (quintic Hermite pieces with both, cubic Hermite with velocities only),
-    otherwise the poses are splined as a reference CSV is (clamped cubic)."""
-    if list(msg.joint_names) != [PLATFORM_JOINT]:
-        raise Rejected('unknown_joint_names', 'joint_names must be [%r], got %s'
-                       % (PLATFORM_JOINT, list(msg.joint_names)))
-    points = msg.points
-    if not points:
-        raise Rejected('empty_trajectory', 'the trajectory has no points')
-    n = len(points)
-    times = np.empty(n)
-    poses = np.empty((n, 6))
-    quats = np.empty((n, 4))
-    twists = np.empty((n, 6)) if all(len(p.velocities) == 1 for p in points) else None
-    accels = (np.empty((n, 6)) if twists is not None
-              and all(len(p.accelerations) == 1 for p in points) else None)
-    for k, p in enumerate(points):
-        if len(p.transforms) != 1:
-            raise Rejected('wrong_size', 'point %d has %d transforms, expected 1'
-                           % (k, len(p.transforms)))
-        tr = p.transforms[0]
-        times[k] = p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec
-        poses[k, :3] = finite_vector([tr.translation.x, tr.translation.y, tr.translation.z], 3,
-                                     'point %d translation' % k)
-        quats[k] = _unit_quaternion(tr.rotation, 'point %d rotation' % k)
-        for arr, items in ((twists, p.velocities), (accels, p.accelerations)):
-            if arr is not None:
-                lin, ang = items[0].linear, items[0].angular
-                arr[k] = finite_vector([lin.x, lin.y, lin.z, ang.x, ang.y, ang.z], 6,
-                                       'point %d twist' % k)
-    poses, rates, accs = trajectory_poses(poses[:, :3], quats, twists, accels)
+    Velocities and accelerations are used when every point has them (quintic
+    Hermite pieces with both, cubic Hermite with velocities only), otherwise
+    the poses are splined as a reference CSV is (clamped cubic)."""
+    try:
+        times, translations, quats, twists, accels = trajectory_points(msg)
+    except MessageError as exc:
+        raise Rejected(exc.reason, str(exc)) from None
+    poses, rates, accs = trajectory_poses(translations, quats, twists, accels)
     try:
         ref = Reference.from_poses(mech, times, poses, rates, accs)
         ref.check(max_leg_speed, max_leg_acceleration)
