@@ -27,7 +27,7 @@ from __future__ import annotations
 import csv
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -484,7 +484,7 @@ def _finite(values, size: int, field: str) -> np.ndarray:
     return arr
 
 
-def message_quaternion(q, field: str) -> np.ndarray:
+def message_quaternion(q: Any, field: str) -> np.ndarray:
     """(4,) x, y, z, w of a message's quaternion ``q`` (fields x, y, z, w),
     normalised; MessageError unless finite with a norm within 10 % of 1."""
     quat = _finite([q.x, q.y, q.z, q.w], 4, field)
@@ -495,7 +495,7 @@ def message_quaternion(q, field: str) -> np.ndarray:
     return quat / norm
 
 
-def trajectory_points(msg) -> tuple:
+def trajectory_points(msg: Any) -> tuple:
     """The points of a ``MultiDOFJointTrajectory`` of the one joint ``platform``
     (the controller's ``pose_trajectory``, or one a topic file holds: only the
     message's fields are read, so rclpy's and rosbags' messages alike).
