@@ -238,11 +238,14 @@ def test_estop_faults_errors_requests_reset_and_a_killed_supervisor(ros, monkeyp
     rig_env(ros, monkeypatch)
     client = Client(ros)
     # Short waits: the supervisor is killed at the end, and each sample then
-    # waits force_timeout for an answer that does not come.
+    # waits force_timeout for an answer that does not come. A lab's leg-speed
+    # limit: each reset hands a platform part-way down its descent back to
+    # the controller, whose pull back up reached 0.506 m/s once in CI (a
+    # leg_speed trip before the dropout's); this test is about the other causes.
     rig = Rig(PARAMS, mode='lockstep', duration=None, nodes=NODES, log_dir=tmp_path / 'rig',
               supervisor=True,
               extra_params={'plant': {'force_timeout': 0.05},
-                            'supervisor': {'request_timeout': 0.02}})
+                            'supervisor': {'request_timeout': 0.02, **LAB_SPEED}})
     try:
         rig.start()
         for service in (client.estop, client.reset):
