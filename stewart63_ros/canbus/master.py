@@ -22,6 +22,7 @@ import threading
 import time
 
 from stewart63_ros.canbus.devices import PDO_CODES, open_bus
+from stewart63_ros.canbus.pdo import configure_pdos
 from stewart63_ros.core.bus import (
     HOME_OFFSET,
     MODE_CST,
@@ -241,17 +242,9 @@ class Master:
         leg, node = link.leg, link.node
         link.booted = False
         try:
-            for pdo, number, objects, cob, trans in (
-                    (node.tpdo, 1, TPDO1, 0x180, 1), (node.tpdo, 2, TPDO2, 0x280, 255),
-                    (node.rpdo, 1, RPDO1, 0x200, 255)):
-                mapping = pdo[number]
-                mapping.clear()
-                for index, _ in objects:
-                    mapping.add_variable(index)
-                mapping.cob_id = cob + leg.node_id
-                mapping.trans_type = trans
-                mapping.enabled = True
-                mapping.save()
+            switched_off = configure_pdos(node, leg)   # only the bridge's PDOs on
+            if switched_off:
+                self.log('%s: %s off (unused)' % (link.name, ', '.join(switched_off)))
             node.sdo[0x1017].raw = self.config.heartbeat_ms
             rated = node.sdo[0x6076].raw
             if rated != leg.rated_torque_mnm:
