@@ -39,6 +39,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import JointState
 
 from stewart63_ros import topics
+from stewart63_ros.canbus.busload import WARNING_PREFIX, WireLoad
 from stewart63_ros.canbus.master import Master
 from stewart63_ros.core.bus import BusConfigError, BusLoadError, load_bus_config
 from stewart63_ros.core.errors import ParameterError
@@ -101,6 +102,9 @@ class BridgeNode(RigNode):
             raise ParameterError('bus_interface', str(exc)) from None
         for load in config.loads(self.rate):
             self.get_logger().info(load.text())
+        # the load on the wire beside the planned one; unknown COB-IDs (busload.py)
+        self.wire = WireLoad(config, self.rate)
+        self.wire.attach(self.master.networks)
         if self.mode == 'realtime':     # lockstep: a miss has waited bus_timeout already
             self.master.tpdo_error_cycles = self.param('tpdo_missing_error_cycles')
         self.late_tpdo = ''             # the last TPDO that missed its cycle (realtime)
@@ -141,7 +145,6 @@ class BridgeNode(RigNode):
         self.bus_wait_s = 0.0           # SYNC to the last TPDO (lockstep): the plant's step
         self.answer_wait_s = 0.0        # leg_lengths to leg_forces: the controller
         self.forces_in = None
-        self._load_since = (time.monotonic(), dict(self.master.bits))
 
     # -- inputs -----------------------------------------------------------------------------
     def on_forces(self, data: bytes, info):
@@ -245,16 +248,13 @@ class BridgeNode(RigNode):
     def report(self):
         master = self.master
         values = self.health.values
-        now = time.monotonic()
-        since, bits = self._load_since
-        if now - since > 0.5:
-            for bus in self.config.buses:
-                values['bus_load_percent/%s' % bus.name] = '%.1f' % (
-                    100.0 * (master.bits[bus.name] - bits[bus.name]) / (now - since)
-                    / bus.bitrate)
-            self._load_since = (now, dict(master.bits))
-        for load in self.config.loads(self.rate):
-            values['bus_load_computed_percent/%s' % load.bus] = '%.1f' % load.percent
+        self.wire.measure()             # planned and measured load, unknown COB-IDs
+        values.update(self.wire.values())
+        wire_error, wire_warning = self.wire.verdict()      # (of the last window)
+        torque = ('torque withheld: ' + '; '.join(self.errors)) if self.errors else ''
+        self.health.fault = '; '.join(m for m in (torque, wire_error) if m)
+        if wire_warning or self.health.warning.startswith(WARNING_PREFIX):
+            self.health.warning = wire_warning
         values.update({'sample': self.k, 'clock_mode': self.mode, 'missed_cycles': self.missed,
                        'force_timeouts': self.timeouts})
         for link in master.links:
