@@ -159,6 +159,59 @@ class Refused(Exception):
         self.code = code
 
 
+def check_write(od: dict, values: dict, index: int, sub: int, value: int) -> None:
+    """What CiA 301 and 402 forbid to write: raises Refused with the abort code."""
+    kind = _pdo_kind(index)
+    if kind == 'comm':
+        comm = index
+        valid = not values[(comm, 1)] & INVALID
+        if sub == 1:
+            if valid and (value ^ values[(comm, 1)]) & 0x3FFFFFFF:
+                raise Refused(ABORT_VALUE)      # bits 0-29 stay while it exists
+            if value & (1 << 29) or not value & INVALID and any(
+                    value & 0x7FF in r for r in RESTRICTED):
+                raise Refused(ABORT_VALUE)      # 29-bit ids; restricted COB-IDs
+        elif sub == 2:
+            allowed = value <= 240 or value in (254, 255)
+            if not allowed:
+                raise Refused(ABORT_VALUE)      # reserved; RTR-only types unsupported
+        elif sub == 3 and valid:
+            raise Refused(ABORT_STATE)          # inhibit time stays while it exists
+    elif kind == 'mapping':
+        comm = index - 0x200
+        if not values[(comm, 1)] & INVALID:
+            raise Refused(ABORT_STATE)          # remapped while the PDO exists
+        if sub == 0:
+            _check_mapping(od, values, index, value)
+        elif values[(index, 0)] != 0:
+            raise Refused(ABORT_STATE)          # entries only while the count is 0
+        elif value:
+            _mappable(od, index, value)
+    elif index == 0x6060 and not (1 <= value <= 10
+                                  and values.get((0x6502, 0), 0) >> (value - 1) & 1):
+        raise Refused(ABORT_VALUE)              # a mode 0x6502 does not list
+    elif index == 0x1005 and value & (1 << 30):
+        raise Refused(ABORT_VALUE)              # a SYNC consumer only
+
+def _mappable(od: dict, mapping: int, entry_value: int) -> Entry:
+    key = (entry_value >> 16, entry_value >> 8 & 0xFF)
+    entry = od.get(key)
+    receive = mapping < 0x1A00
+    if entry is None or not entry.mappable or entry.bits != entry_value & 0xFF or (
+            not entry.writable if receive else not entry.readable):
+        raise Refused(ABORT_NOT_MAPPABLE)
+    return entry
+
+def _check_mapping(od: dict, values: dict, mapping: int, count: int) -> None:
+    bits = 0
+    for sub in range(1, count + 1):
+        if (mapping, sub) not in od:
+            raise Refused(ABORT_PDO_LENGTH)
+        bits += _mappable(od, mapping, values[(mapping, sub)]).bits
+    if bits > 64:
+        raise Refused(ABORT_PDO_LENGTH)
+
+
 class StrictDrive:
     """One drive (see the module's doc).
 
@@ -305,60 +358,8 @@ class StrictDrive:
         if size != entry.layout.size:
             raise Refused(ABORT_LENGTH)
         value = entry.layout.unpack_from(data, 4)[0]
-        self._check(index, sub, value)
+        check_write(self.od, self.values, index, sub, value)
         self.write(index, sub, value)
-
-    def _check(self, index: int, sub: int, value: int) -> None:
-        """What the standards forbid to write (raises Refused)."""
-        kind = _pdo_kind(index)
-        if kind == 'comm':
-            comm = index
-            valid = not self.values[(comm, 1)] & INVALID
-            if sub == 1:
-                if valid and (value ^ self.values[(comm, 1)]) & 0x3FFFFFFF:
-                    raise Refused(ABORT_VALUE)      # bits 0-29 stay while it exists
-                if value & (1 << 29) or not value & INVALID and any(
-                        value & 0x7FF in r for r in RESTRICTED):
-                    raise Refused(ABORT_VALUE)      # 29-bit ids; restricted COB-IDs
-            elif sub == 2:
-                allowed = value <= 240 or value in (254, 255)
-                if not allowed:
-                    raise Refused(ABORT_VALUE)      # reserved; RTR-only types unsupported
-            elif sub == 3 and valid:
-                raise Refused(ABORT_STATE)          # inhibit time stays while it exists
-        elif kind == 'mapping':
-            comm = index - 0x200
-            if not self.values[(comm, 1)] & INVALID:
-                raise Refused(ABORT_STATE)          # remapped while the PDO exists
-            if sub == 0:
-                self._check_mapping(index, value)
-            elif self.values[(index, 0)] != 0:
-                raise Refused(ABORT_STATE)          # entries only while the count is 0
-            elif value:
-                self._mappable(index, value)
-        elif index == 0x6060 and not (1 <= value <= 10
-                                      and self.values.get((0x6502, 0), 0) >> (value - 1) & 1):
-            raise Refused(ABORT_VALUE)              # a mode 0x6502 does not list
-        elif index == 0x1005 and value & (1 << 30):
-            raise Refused(ABORT_VALUE)              # a SYNC consumer only
-
-    def _mappable(self, mapping: int, entry_value: int) -> Entry:
-        key = (entry_value >> 16, entry_value >> 8 & 0xFF)
-        entry = self.od.get(key)
-        receive = mapping < 0x1A00
-        if entry is None or not entry.mappable or entry.bits != entry_value & 0xFF or (
-                not entry.writable if receive else not entry.readable):
-            raise Refused(ABORT_NOT_MAPPABLE)
-        return entry
-
-    def _check_mapping(self, mapping: int, count: int) -> None:
-        bits = 0
-        for sub in range(1, count + 1):
-            if (mapping, sub) not in self.od:
-                raise Refused(ABORT_PDO_LENGTH)
-            bits += self._mappable(mapping, self.values[(mapping, sub)]).bits
-        if bits > 64:
-            raise Refused(ABORT_PDO_LENGTH)
 
     def write(self, index: int, sub: int, value: int) -> None:
         """A value written by SDO or RPDO, with its effect."""

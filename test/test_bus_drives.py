@@ -243,6 +243,7 @@ def wire(tmp_path):
         w.close()
 
 
+@pytest.mark.slow        # (the hub: a process per bus)
 def test_six_strict_drives_come_up_with_only_the_bridges_pdos_on_the_wire(wire):
     w = wire()
     assert w.bring_up() == [True] * 6, w.log
@@ -282,6 +283,7 @@ def test_six_strict_drives_come_up_with_only_the_bridges_pdos_on_the_wire(wire):
     assert w.wire.verdict() == ('', '')
 
 
+@pytest.mark.slow        # (the hub: a process per bus)
 def test_a_drive_whose_tpdo3_cannot_be_switched_off_is_refused_naming_the_object(wire):
     w = wire(read_only={3: [(0x1802, 1)]})
     ups = w.bring_up()
@@ -295,6 +297,7 @@ def test_a_drive_whose_tpdo3_cannot_be_switched_off_is_refused_naming_the_object
     assert (0x1802, 1, 0x06010002) in w.drives[3].aborts
 
 
+@pytest.mark.slow        # (the hub: a process per bus)
 def test_a_frame_nobody_configured_is_an_error_naming_its_cob_id(wire):
     import can
     w = wire()
