@@ -106,9 +106,21 @@ class WireLoad:
                 self.unknown[bus][cob] += 1
 
     def listener(self, bus: str):
-        """A python-can listener (a callable) counting the frames of ``bus``."""
+        """A python-can listener (a callable) counting the frames of ``bus``
+        (a fast path for classic data frames: about 15000 a second at 1 kHz)."""
+        known, unknown, bits, lock = self.known[bus], self.unknown[bus], _DATA_BITS, self._lock
+        count = self.count
+
         def on_message_received(msg) -> None:
-            self.count(bus, msg)
+            if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame \
+                    or msg.dlc > 8:
+                count(bus, msg)
+                return
+            with lock:
+                self.bits[bus] += bits[msg.dlc]
+                self.frames[bus] += 1
+                if msg.arbitration_id not in known:
+                    unknown[msg.arbitration_id] += 1
         return on_message_received
 
     def attach(self, networks: dict) -> None:
@@ -122,9 +134,11 @@ class WireLoad:
     def _count_sends(self, name: str, bus) -> None:
         send = bus.send
 
+        count = self.listener(name)
+
         def counted_send(msg, timeout=None):
             send(msg, timeout)
-            self.count(name, msg)
+            count(msg)
         bus.send = counted_send
 
     # -- the figures ------------------------------------------------------------------
