@@ -13,7 +13,8 @@ Six strict CiA 402 drives on raw python-can frames, on the local bus
   every SYNC adds 3.5 points at 100 Hz, 6.9 at 200 Hz);
 - a drive whose TPDO3 cannot be switched off is refused, naming 0x1802:01;
 - a frame nobody configured gives the ERROR naming its COB-ID, and traffic
-  over the plan a WARN.
+  over the plan a WARN; in a rig over the bus the bridge's /diagnostics
+  says so (the one DDS test here).
 """
 from __future__ import annotations
 
@@ -359,3 +360,46 @@ def test_wire_load_warns_over_the_plan_and_counts_frames_as_the_plan_does():
     assert error.startswith('unknown frames on bus a: COB-ID 0x381 ')
     assert warning == ('bus load measured on the wire: bus a 86.0 %%, planned 74.7 %%: over '
                        'by more than %g points (other traffic?)' % WARN_POINTS)
+
+
+def test_the_bridge_names_a_stray_cob_id_on_its_diagnostics(ros, monkeypatch, tmp_path):
+    # The node's side of the wire load: a rig over the bus (the plant's
+    # drives), and a stranger on bus b sending a frame nobody configured.
+    import os
+
+    import can
+    from test_bus_rig import run_bus_rig
+
+    from stewart63_ros import bagio
+    stop = threading.Event()
+
+    def stray():        # (drains the channel too: a reader must keep up with the hub)
+        bus = can.Bus(interface='s63hub', channel='rig%d-b' % os.getpid())
+        notifier = can.Notifier(bus, [lambda msg: None], 0.1)
+        try:
+            while not stop.wait(0.2):
+                bus.send(can.Message(arbitration_id=0x384, data=b'\x01', is_extended_id=False))
+        finally:
+            notifier.stop()
+            bus.shutdown()
+    thread = threading.Thread(target=stray, daemon=True)
+    thread.start()
+    try:
+        bag, _, bridge, logs = run_bus_rig(ros, monkeypatch, tmp_path, 'lockstep', 1.0)
+    finally:
+        stop.set()
+        thread.join(5)
+    errors, values = [], {}
+    for _, _, msg in bagio.read_messages(bag, ['/diagnostics']):
+        for status in msg.status:
+            if status.name.endswith('canopen_bridge'):
+                level = status.level if isinstance(status.level, int) \
+                    else int.from_bytes(status.level, 'little')
+                if level == 2:
+                    errors.append(status.message)
+                values.update({kv.key: kv.value for kv in status.values})
+    assert any('unknown frames on bus b: COB-ID 0x384 ' in e for e in errors), (errors, logs)
+    assert values['bus_unknown_cob_ids/a'] == 'none'
+    assert values['bus_unknown_cob_ids/b'].startswith('0x384 (')
+    assert values['bus_load_computed_percent/b'] == '74.7'
+    assert float(values['bus_load_percent/b']) > 0.0
