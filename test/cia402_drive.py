@@ -358,6 +358,8 @@ class StrictDrive:
         if size != entry.layout.size:
             raise Refused(ABORT_LENGTH)
         value = entry.layout.unpack_from(data, 4)[0]
+        if _pdo_kind(index) == 'mapping' and self.nmt == 'OPERATIONAL':
+            raise Refused(ABORT_STATE)      # (stricter than CiA 301, as many drives are)
         check_write(self.od, self.values, index, sub, value)
         self.write(index, sub, value)
 
@@ -554,7 +556,11 @@ class DriveRack:
                         drive.receive(msg.arbitration_id, bytes(msg.data), now)
                 due = min(drive.tick(now) for drive in self.drives.values())
 
-    def close(self) -> None:
+    def stop(self) -> None:
+        """The drives go quiet (the bus stays open)."""
         self._stop.set()
         self.thread.join(5)
+
+    def close(self) -> None:
+        self.stop()
         self.bus.shutdown()

@@ -102,6 +102,8 @@ def test_strict_drive_aborts_what_the_standards_forbid():
     assert out.sdo(drive, 'write', 0x1A02, 1, 0x60640010) == ('abort', ABORT_NOT_MAPPABLE)
     assert out.sdo(drive, 'write', 0x1602, 1, 0x60410010) == ('abort', ABORT_STATE)  # RPDO3 on
     assert out.sdo(drive, 'write', 0x1802, 1, 0x00000701) == ('abort', ABORT_VALUE)  # heartbeat's
+    drive.receive(0x000, bytes([0x01, 3]), time.monotonic())     # NMT start: operational
+    assert out.sdo(drive, 'write', 0x1A02, 0, 0, 1) == ('abort', ABORT_STATE)
 
 
 def test_strict_drive_state_machine_and_late_sync_answers():
@@ -224,12 +226,17 @@ class Wire:
         if self.closed:
             return
         self.closed = True
-        self.master.close()
+        # every reader stopped before any connection closes: a hub that ends
+        # as its buses go (canbus/hub.py) must find no thread still reading
+        for rack in self.racks:
+            rack.stop()
         for notifier in self.listeners:
             notifier.stop()
-            notifier.bus.shutdown()
+        self.master.close()
         for rack in self.racks:
             rack.close()
+        for notifier in self.listeners:
+            notifier.bus.shutdown()
 
 
 @pytest.fixture
