@@ -639,7 +639,7 @@ def main(argv=None) -> int:
 def plant_params_problem(args, params) -> str:
     """Why --plant-params cannot be used ('' if it can): the plant's two files
     must make a valid mechanism, and the plant must run in its own process."""
-    if args.compose and not args.bus:
+    if args.compose and not getattr(args, 'bus', None):
         return ('the composed nodes share one process and its files: not with --compose '
                 '(with --bus canopen the plant runs in its own process, and takes it)')
     if 'plant' not in nodes_arg(args.nodes):
