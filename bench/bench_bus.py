@@ -12,7 +12,7 @@
   and SYNC to the torques' RPDO on the wire (a passive bus on each channel,
   the sender's stamps), the bus load planned and as the bridge's
   /diagnostics measures it; the load average beside every run.
-- ``--accept``: issue 37's point 5, two 30 s composed supervised realtime
+- ``--accept``: the composed bridge's target (docs/bus.md), two 30 s realtime
   runs against their lockstep run, PASS or FAIL per figure (exit 0: pass).
   Run it with nothing else on the machine:
 
@@ -30,8 +30,8 @@ import textwrap
 import threading
 import time
 import uuid
-from pathlib import Path
 
+import can
 import numpy as np
 from bench_loop import private_domain
 
@@ -122,7 +122,6 @@ class WireWatch:
     bridge sent them), and the cycles with no RPDO before the next SYNC."""
 
     def __init__(self, channels):
-        import can
         self.buses = {name: can.Bus(interface='s63hub', channel=channel)
                       for name, channel in channels.items()}
         self.frames = {name: [] for name in channels}
@@ -246,8 +245,11 @@ def describe(name, run) -> str:
     if 'trips' in run:
         text += '; %s' % (', '.join(run['trips']) or 'no trip')
     if 'bus_load' in run:
-        text += '; bus load planned %s %%, on the bridge\'s /diagnostics %s' % (
-            run['planned_load'], run['bus_load'] or 'nothing measured')
+        measured = {k.split('/')[-1]: v for k, v in run['bus_load'].items()
+                    if 'computed' not in k}
+        text += '; bus load planned %s %%, measured on the bridge\'s /diagnostics %s' % (
+            ' '.join('%s %.1f' % kv for kv in run['planned_load'].items()),
+            ' '.join('%s %.1f %%' % kv for kv in measured.items()) or 'none')
     return text + ' (load average %.1f -> %.1f)' % run['load_average']
 
 
@@ -270,7 +272,6 @@ def measure(duration: float = 5.0, repeat: int = 1, rate: float = 1000.0) -> dic
     """The bus's realtime figures for bench_all: separate processes, then
     composed and supervised (``rig --bus canopen --compose --supervisor``),
     at ``rate``; medians of ``repeat`` runs each."""
-    sys.path.insert(0, str(Path(__file__).parent))
     results: dict = {}
     with private_domain():
         for prefix, compose, supervisor in (('bus_rt_separate_', False, False),
@@ -305,7 +306,7 @@ def uptime() -> str:
 
 
 def accept(duration: float = 30.0, runs: int = 2, rate: float = 1000.0) -> int:
-    """Issue 37's point 5 on this machine: ``rig --bus canopen --compose
+    """The composed bridge's target (docs/bus.md): ``rig --bus canopen --compose
     --supervisor`` in realtime at ``rate`` for ``duration`` s, ``runs`` times
     in a row, each against the lockstep run of the same rig: bridge cycles
     missed and each leg's missed TPDOs at most 0.1 %, no trip, final error
@@ -353,7 +354,7 @@ def main(argv=None) -> int:
     parser.add_argument('--repeat', type=int, default=1, help='realtime runs of each kind')
     parser.add_argument('--no-rig', action='store_true', help='only the bridge\'s cost')
     parser.add_argument('--accept', action='store_true',
-                        help='the acceptance check of issue 37 point 5 instead (30 s runs '
+                        help='the acceptance check of the composed bridge instead (30 s runs '
                         'unless --duration is given, two in a row): exit 0 if it passes')
     args = parser.parse_args(argv)
     if args.accept:

@@ -30,7 +30,8 @@ from __future__ import annotations
 import sys
 import time
 
-from stewart63_ros.core.node_names import ALL_NODES, NODES
+from stewart63_ros.core.node_names import ALL_NODES
+from stewart63_ros.core.node_names import NODES as NODE_NAMES
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.runtime.launcher import STOP, run
 
@@ -297,27 +298,27 @@ def hosting_problem(names) -> str:
 
 
 def node_class(name):
-    """The node class of ``name`` (imported on demand: each costs a second)."""
-    # lazy: the nodes cost 938 ms (python-can and canopen another 565 ms for the
-    # bridge): --help answers without them, and a process imports only its own
+    """The node class of ``name``, imported on demand: a process imports only
+    the nodes it hosts, and --help none."""
     if name == 'controller':
-        from stewart63_ros.nodes.controller import ControllerNode
+        from stewart63_ros.nodes.controller import ControllerNode  # lazy: costs 300 ms
         return ControllerNode
     if name == 'fk':
-        from stewart63_ros.nodes.fk_node import FKNode
+        from stewart63_ros.nodes.fk_node import FKNode  # lazy: costs 300 ms (the kernels)
         return FKNode
     if name == 'plant':
-        from stewart63_ros.nodes.plant import PlantNode
+        from stewart63_ros.nodes.plant import PlantNode  # lazy: costs 400 ms (the kernels)
         return PlantNode
     if name == 'supervisor':
-        from stewart63_ros.nodes.supervisor import SupervisorNode
+        from stewart63_ros.nodes.supervisor import SupervisorNode  # lazy: costs 1050 ms
         return SupervisorNode
+    # lazy: python-can and canopen cost 565 ms; only a process that hosts the bridge
     from stewart63_ros.nodes.canopen_bridge import BridgeNode
     return BridgeNode
 
 
 def _options(parser):
-    parser.add_argument('--nodes', default=','.join(NODES),
+    parser.add_argument('--nodes', default=','.join(NODE_NAMES),
                         help='the nodes this process hosts, comma-separated, of %s '
                         '(default: %%(default)s)' % ','.join(ALL_NODES))
     parser.add_argument('--record', metavar='DIR',
