@@ -218,3 +218,31 @@ def test_composed_supervisor_on_dds_answers_every_sample_and_is_the_direct_loop(
     expected = final_error(load_mechanism(PARAMS), Dynamics(load_mechanism(PARAMS)),
                            direct.states[-1])
     assert abs(summary['positioning_error_percent'] - expected) < 1e-9, (summary, expected)
+
+
+@pytest.mark.dds
+@pytest.mark.slow
+def test_composed_homing_over_the_bus_writes_the_drives_home_offsets(ros, monkeypatch,
+                                                                   tmp_path):
+    """The supervisor's homing sets the bridge's ``homed_offset`` in its own
+    process (nobody spins the bridge's parameter service while it waits)."""
+    import json
+
+    from test_supervisor_bus import HIDDEN, RESOLUTION, homing_start
+    rig_env(ros, monkeypatch)
+    extra = {'plant': dict(homing_start(), homing_offset=HIDDEN, sensor_resolution=RESOLUTION),
+             'controller': homing_start(),
+             'supervisor': dict(homing_start(), homing=True, homing_speed=0.2, trip_tilt=0.6,
+                                pose_box=[-0.3, -0.3, 0.5, 0.3, 0.3, 1.8])}
+    rig = Rig(PARAMS, mode='lockstep', duration=2.2, log_dir=tmp_path / 'rig', compose=True,
+              supervisor=True, bus='canopen', extra_params=extra)
+    ok, codes, logs = run_to_end(rig, RUN_TIMEOUT)
+    assert ok and codes == {'composed': 0, 'plant': 0}, (codes, logs)
+    supervisor, bridge = rig.summary('supervisor'), rig.summary('canopen_bridge')
+    assert supervisor['trips'] == [] and supervisor['values']['homed'] == 'true', supervisor
+    found = np.array(supervisor['values']['homing/offsets'])
+    assert np.all(np.abs(found - HIDDEN) <= RESOLUTION), (found, HIDDEN)
+    assert bridge['values']['home_offset_counts'] == [
+        leg.home_offset_counts(found[leg.leg]) for leg in load_bus_config().legs], bridge
+    print('\ncomposed homing over the bus: offsets %s, drives %s'
+          % (found.round(6).tolist(), json.dumps(bridge['values']['home_offset_counts'])))

@@ -315,7 +315,8 @@ class Rig:
                 return False
             if plant is not None and plant.poll() == 0:
                 return True
-            if any(p.poll() is not None for n, p in self.procs.items() if n != runner):
+            if any(p.poll() is not None for n, p in self.procs.items()
+                   if n not in self.ending_with_run()):
                 return False
             if deadline is not None and time.monotonic() > deadline:
                 return False
@@ -324,6 +325,15 @@ class Rig:
     def runner(self) -> str:
         """The process whose end is the end of the run (the plant's)."""
         return 'composed' if self.compose and not self.bus else 'plant'
+
+    def ending_with_run(self) -> set[str]:
+        """The processes that end by themselves at the end of the run: the
+        runner, and with --bus the bridge's (it counts the samples too, and
+        may end a moment before the plant: with exit 0, not a failure)."""
+        ending = {self.runner()}
+        if self.bus and self.duration:
+            ending.add('composed' if self.compose else 'canopen_bridge')
+        return ending
 
     def stop(self, grace=4.0):
         """SIGINT the nodes (the recorder last, so it gets their final messages).
@@ -604,7 +614,8 @@ def main(argv=None) -> int:
         while not signals.requested:
             ok = rig.wait(timeout=0.2)
             if ok or rig.failed() or any(
-                    p.poll() is not None for n, p in rig.procs.items() if n != rig.runner()):
+                    p.poll() is not None for n, p in rig.procs.items()
+                    if n not in rig.ending_with_run()):
                 break
     except KeyboardInterrupt:
         pass
