@@ -53,6 +53,7 @@ def _frame(cob, data=b''):
     return can.Message(arbitration_id=cob, data=data, is_extended_id=False)
 
 
+@pytest.mark.slow
 def test_hub_a_later_bus_hears_what_follows_and_a_batch_arrives_whole_in_order():
     import can
 
@@ -113,6 +114,7 @@ def test_one_process_hosts_the_machines_side_and_refuses_the_plant_beside_the_br
     assert 'not with --compose' in plant_params_problem(args, str(PARAMS))
 
 
+@pytest.mark.slow
 def test_rig_refuses_a_supervisor_without_the_plant_with_its_reason(tmp_path):
     done = subprocess.run([PYTHON, '-m', 'stewart63_ros.tools.rig', '--compose', '--supervisor',
                            '--nodes', 'controller,fk', '--log-dir', str(tmp_path)],
