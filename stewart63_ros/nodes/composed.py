@@ -1,27 +1,36 @@
-"""composed: plant, controller and fk (and the recorder) as nodes of one process.
+"""composed: the rig's nodes (and the recorder) as nodes of one process.
 
 As a ROS 2 component container does: each is its own node, with its own
 name, parameters (the same ``--params-file`` sections as when run alone) and
 /diagnostics, and every message between them still goes over the DDS topics,
 so a recorder, viewer or ``ros2 topic`` outside the process sees the same
 graph. What changes is who waits: one thread serves all the nodes. After the
-plant publishes a sample, the loop takes it on the controller's subscription
-at once and runs the controller's callback, then takes the answering force
-on the plant's side (the middleware hands a message to a reader in the same
-process before ``publish`` returns), then fk's sample and the recorder's
-share. No process switch and no wake-up between sample and answer.
+plant (or the bridge) publishes a sample, the loop takes it on the
+supervisor's and the controller's subscriptions at once and runs their
+callbacks, then takes the answering force on the plant's (the bridge's) side
+(the middleware hands a message to a reader in the same process before
+``publish`` returns), then fk's sample and the recorder's share. No process
+switch and no wake-up between sample and answer.
 
     composed [--nodes plant,controller,fk] [--record DIR] --ros-args --params-file F ...
 
-``--record DIR`` adds the recorder (``record``) as a fourth node that writes
-what it takes in the same loop. ``--nodes`` hosts a subset; the others run
-elsewhere (another process or host) and reach these over DDS as usual.
+``--nodes`` takes any of plant, controller, fk, supervisor and
+canopen_bridge; the nodes not hosted run elsewhere (another process or host)
+and reach these over DDS as usual. The loop is driven by the plant, or by the
+bridge (``canopen_bridge``: the machine's side of a rig on the field bus,
+``--nodes controller,supervisor,fk,canopen_bridge``, docs/bus.md), never by
+both: the plant standing in for the drives is the machine, its own process.
+With the supervisor, the controller's ``leg_forces`` must be remapped for the
+controller alone: ``-r controller:leg_forces:=leg_forces_request``.
+``--record DIR`` adds the recorder (``record``), which writes what it takes
+in the same loop.
 """
 from __future__ import annotations
 
 import sys
 import time
 
+from stewart63_ros.core.node_names import ALL_NODES
 from stewart63_ros.core.node_names import NODES as NODE_NAMES
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.runtime.launcher import STOP, run
@@ -38,15 +47,20 @@ class Peers:
     """
 
     def __init__(self, context, answer_first=(), then=(), recorder=None, period=1e-3,
-                 side_period=None, batch_then=False):
+                 side_period=None, batch_then=False, tickers=()):
         self.context = context
         self.own = None                         # DirectTake of the plant's leg_forces, or None
-        self.answer_first = list(answer_first)  # (node, DirectTake): the controller
+        # (node, DirectTake): the supervisor's samples, the controller's, the
+        # supervisor's requests (the controller's answers), in that order
+        self.answer_first = list(answer_first)
         self.then = list(then)                  # (node, DirectTake): fk
         self.recorder = recorder
         self.period = period
         self.waiter = None                      # made by start
-        self.nodes = [n for n, _ in self.answer_first + self.then]
+        self.nodes = list(dict.fromkeys(n for n, _ in self.answer_first + self.then))
+        #: ``tick(now)`` after every pass over answer_first: the supervisor's
+        #: ``attend`` (a request timeout, a trip that answers at once)
+        self.tickers = list(tickers)
         self.next_side = 0.0
         if side_period is not None:
             self.side_period = side_period
@@ -90,6 +104,10 @@ class Peers:
         """
         for _, direct in self.answer_first:
             direct.poll(0.0)
+        if self.tickers:
+            now = time.monotonic()
+            for tick in self.tickers:
+                tick(now)
         got = self.own.poll(0.0) if self.own is not None else False
         if not self.batch_then:
             for _, direct in self.then:
@@ -148,15 +166,10 @@ class Composed:
     def __init__(self, options):
         import rclpy  # lazy: rclpy costs 302 ms: --help answers without it
 
-        # lazy: the three nodes cost 938 ms: --help answers without them
-        from stewart63_ros.nodes.controller import ControllerNode
-        from stewart63_ros.nodes.fk_node import FKNode
-        from stewart63_ros.nodes.plant import PlantNode
         names = [n.strip() for n in options.nodes.split(',') if n.strip()]
-        unknown = sorted(set(names) - set(NODE_NAMES))
-        if unknown or not names:
-            raise SystemExit('composed: --nodes takes a comma-separated subset of %s, got %r'
-                             % (','.join(NODE_NAMES), options.nodes))
+        problem = hosting_problem(names)
+        if problem:
+            raise SystemExit('composed: --nodes %s: %s' % (options.nodes, problem))
         self.nodes = {}
         self.recorder = None
         self.loop = None
@@ -172,49 +185,64 @@ class Composed:
             except BagError as exc:
                 print('composed: error: %s' % exc, file=sys.stderr)
                 raise SystemExit(2) from None
-        classes = {'controller': ControllerNode, 'fk': FKNode, 'plant': PlantNode}
-        for name in ('controller', 'fk', 'plant'):
+        for name in HOST_ORDER:
             if name in names:
-                self.nodes[name] = classes[name](options)
+                self.nodes[name] = node_class(name)(options)
+        supervisor = self.nodes.get('supervisor')
+        if supervisor is not None and supervisor.core.homing is not None:
+            # its homing sets the zero of a node of this process directly
+            supervisor.zero_peer = self.nodes.get(supervisor.zero_node)
+
+    def runner(self):
+        """The node whose loop drives the others (the plant's or the
+        bridge's), or None: the loop of this process runs until a stop."""
+        return self.nodes.get('plant') or self.nodes.get('canopen_bridge')
 
     def run(self):
         nodes = self.nodes
-        peers = [nodes[n] for n in ('controller', 'fk') if n in nodes]
         # Each node waits for its own subscribers (the recorder, with
-        # wait_for_subscribers), as when it runs alone; the plant last
-        # (the start-up order: runtime/handshake.py).
-        for node in peers:
-            node.wait_for_matches()
+        # wait_for_subscribers), as when it runs alone; the plant or the
+        # bridge last (the start-up order: runtime/handshake.py).
+        for name in ANSWERING + ('fk',):
+            if name in nodes:
+                nodes[name].wait_for_matches()
         directs = {n: nodes[n].start_hot_loop(nodes[n].sub_samples)
-                   for n in ('controller', 'fk') if n in nodes}
-        plant = nodes.get('plant')
+                   for n in ANSWERING + ('fk',) if n in nodes}
+        runner = self.runner()
         context = next(iter(nodes.values())).context
 
-        lockstep = plant is not None and plant.mode == 'lockstep'
+        lockstep = runner is not None and runner.mode == 'lockstep'
         side_period = Peers.LOCKSTEP_SIDE_PERIOD if lockstep else Peers.SIDE_PERIOD
         if lockstep:
             for node in nodes.values():
                 node.EXECUTOR_PERIOD = Peers.LOCKSTEP_EXECUTOR_PERIOD
-
-        loop = Peers(context,
-                     [(nodes[n], directs[n]) for n in ('controller',) if n in directs],
+        answer_first = [(nodes[n], directs[n]) for n in ANSWERING if n in directs]
+        tickers = []
+        supervisor = nodes.get('supervisor')
+        if supervisor is not None:
+            # lazy: rclpy costs 302 ms: --help answers without it
+            from stewart63_ros.runtime.rclpy_internals import DirectTake
+            # its requests: the controller's answers, taken in the same pass
+            answer_first.append((supervisor, DirectTake(supervisor, supervisor.sub_requests)))
+            tickers.append(supervisor.attend)
+        loop = Peers(context, answer_first,
                      [(nodes[n], directs[n]) for n in ('fk',) if n in directs],
-                     self.recorder, plant.period if plant is not None else 1e-3,
-                     side_period, batch_then=lockstep)
-        if plant is None:
+                     self.recorder, runner.period if runner is not None else 1e-3,
+                     side_period, batch_then=lockstep, tickers=tickers)
+        if runner is None:
             import rclpy  # lazy: rclpy costs 302 ms: --help answers without it
 
             self.loop = loop.start()
             while rclpy.ok() and not STOP.requested:
                 loop.poll(0.1)
             return 0
-        # The plant's own loops, unchanged, driven by this one: every take of
-        # a force goes through it (see Peers), and the plant's housekeeping
-        # (its other subscriptions, timers, executor) keeps the pace of the
-        # others', not after every sample.
+        # The plant's (the bridge's) own loops, unchanged, driven by this one:
+        # every take of a force goes through it (see Peers), and its
+        # housekeeping (its other subscriptions, timers, executor) keeps the
+        # pace of the others', not after every sample.
         self.loop = loop
-        plant.drive_by(loop)
-        return plant.run()
+        runner.drive_by(loop)
+        return runner.run()
 
     def close(self):
         if self.closed:
@@ -249,9 +277,50 @@ class Composed:
             node.destroy_node()
 
 
+#: The nodes that answer a sample, in the order the loop serves them.
+ANSWERING = ('supervisor', 'controller')
+#: The order the nodes are made in: the runner (plant or bridge) last, so
+#: that its readers exist when it starts.
+HOST_ORDER = ('supervisor', 'controller', 'fk', 'canopen_bridge', 'plant')
+
+
+def hosting_problem(names) -> str:
+    """Why one process cannot host the nodes ``names`` ('' if it can)."""
+    unknown = sorted(set(names) - set(ALL_NODES))
+    if unknown or not names or len(set(names)) != len(names):
+        return 'a comma-separated subset of %s, each once' % ','.join(ALL_NODES)
+    if 'plant' in names and 'canopen_bridge' in names:
+        # Both drive the loop, and the bridge waits on the bus for the TPDOs
+        # that only the plant's loop sends: in one thread, neither would go on.
+        return ('the plant standing in for the drives and canopen_bridge each drive their '
+                'own loop: the plant runs in a process of its own (it is the machine)')
+    return ''
+
+
+def node_class(name):
+    """The node class of ``name``, imported on demand: a process imports only
+    the nodes it hosts, and --help none."""
+    if name == 'controller':
+        from stewart63_ros.nodes.controller import ControllerNode  # lazy: costs 300 ms
+        return ControllerNode
+    if name == 'fk':
+        from stewart63_ros.nodes.fk_node import FKNode  # lazy: costs 300 ms (the kernels)
+        return FKNode
+    if name == 'plant':
+        from stewart63_ros.nodes.plant import PlantNode  # lazy: costs 400 ms (the kernels)
+        return PlantNode
+    if name == 'supervisor':
+        from stewart63_ros.nodes.supervisor import SupervisorNode  # lazy: costs 1050 ms
+        return SupervisorNode
+    # lazy: python-can and canopen cost 565 ms; only a process that hosts the bridge
+    from stewart63_ros.nodes.canopen_bridge import BridgeNode
+    return BridgeNode
+
+
 def _options(parser):
     parser.add_argument('--nodes', default=','.join(NODE_NAMES),
-                        help='the nodes this process hosts, comma-separated (default: %(default)s)')
+                        help='the nodes this process hosts, comma-separated, of %s '
+                        '(default: %%(default)s)' % ','.join(ALL_NODES))
     parser.add_argument('--record', metavar='DIR',
                         help='also record every topic into a new bag DIR, in this process')
 

@@ -76,6 +76,7 @@ class SupervisorNode(RigNode):
         # The sensors read the true length plus leg_length_offset (the file's).
         self.length_offset = self.param('leg_length_offset')
         self.pending = None         # (ns, sec, nanosec, frame_id) of the sample to answer
+        self.waiting_since = None   # monotonic s: since when ``pending`` waits (attend)
         self.answered_ns = -1
         self.early = {}             # requests that came before their sample: ns -> forces
         self.async_trip = None      # (cause, detail) to latch before the next answer
@@ -104,6 +105,7 @@ class SupervisorNode(RigNode):
             # The node that owns the sensors' zero: the plant, or on the bus
             # the bridge (it writes the drives' home offset 0x607C).
             self.zero_node = self.param('homed_offset_node')
+            self.zero_peer = None   # that node, when composed with this one
             self.zero_parameters = self.create_client(SetParameters, '%s/set_parameters' % (
                 topics.node_full_name(self.get_namespace(), self.zero_node)))
             self.health.values['homed'] = 'false'
@@ -273,11 +275,18 @@ class SupervisorNode(RigNode):
     def set_zero(self, zero) -> str:
         """``homed_offset`` of the plant (or bridge) of this namespace; '' or
         why it failed."""
+        value = [float(v) for v in zero]
+        if self.zero_peer is not None:
+            # Composed with it (nodes/composed.py): its parameter service is
+            # served by its own executor, which nobody spins while this waits.
+            result = self.zero_peer.set_parameters([Parameter('homed_offset', value=value)])[0]
+            return '' if result.successful else 'the %s refused: %s' % (self.zero_node,
+                                                                        result.reason)
         client = self.zero_parameters
         if not client.wait_for_service(timeout_sec=5.0):
             return '%s: no such service' % client.srv_name
         future = client.call_async(SetParameters.Request(parameters=[Parameter(
-            'homed_offset', value=[float(v) for v in zero]).to_parameter_msg()]))
+            'homed_offset', value=value).to_parameter_msg()]))
         self.executor_.spin_until_future_complete(future, timeout_sec=10.0)
         if not future.done():
             return '%s: no answer within 10 s' % client.srv_name
@@ -323,33 +332,11 @@ class SupervisorNode(RigNode):
         self.start_hot_loop(self.sub_samples)
         waiter = WaitAny(self.context, [self.sub_samples, self.sub_requests,
                                         self.sub_diagnostics, self.sub_trip])
-        waiting_since = None
         while not STOP.requested:
             now = time.monotonic()
             wake = self.housekeeping(now)       # requests, /diagnostics, services, timers
-            if self.pending is not None:
-                if waiting_since is None:
-                    waiting_since = now
-                if self.async_trip is not None:
-                    self.latch_async(self.pending[0])
-                    self.answer(self.core.safe_forces(self.pending[0]))
-                elif self.lockstep and now - waiting_since > (
-                        self.request_timeout if self.health.received[REQUEST_TOPIC]
-                        else max(self.request_timeout, self.discovery_timeout)):
-                    # (the first request races discovery, as the plant's first
-                    # answer does: a reliable repair can take a heartbeat, ~1 s)
-                    self.timeouts += 1
-                    self.health.values['request_timeouts'] = self.timeouts
-                    self.health.warning = ('no request for the sample stamped %d ns within '
-                                           '%g s (request_timeout): answered without one'
-                                           % (self.pending[0], self.request_timeout))
-                    if self.timeouts <= 10:
-                        self.get_logger().warning(self.health.warning)
-                    self.answer(self.core.no_request(self.pending[0]))
-                elif not self.lockstep and now - waiting_since > 1.0 / self.rate:
-                    self.pending = None         # realtime: the plant holds the last force
+            self.attend(now)
             if self.pending is None:
-                waiting_since = None
                 taken = take_with_info(self.sub_samples)
                 if taken is not None:
                     self.on_sample(*taken)
@@ -359,6 +346,39 @@ class SupervisorNode(RigNode):
                 timeout = min(timeout, 0.005)
             waiter.wait(timeout)
         return 0
+
+    def attend(self, now: float) -> None:
+        """The sample waiting for its request (``pending``), at ``now``
+        (monotonic): answered at once with the safe action when a trip came
+        meanwhile; lockstep: answered without a request after
+        ``request_timeout``; realtime: given up after a period (the plant
+        holds the last force). Its own loop calls this, and so does the
+        composed rig's (nodes/composed.py)."""
+        if self.pending is None:
+            self.waiting_since = None
+            return
+        if self.waiting_since is None:
+            self.waiting_since = now
+        if self.async_trip is not None:
+            self.latch_async(self.pending[0])
+            self.answer(self.core.safe_forces(self.pending[0]))
+        elif self.lockstep and now - self.waiting_since > (
+                self.request_timeout if self.health.received[REQUEST_TOPIC]
+                else max(self.request_timeout, self.discovery_timeout)):
+            # (the first request races discovery, as the plant's first
+            # answer does: a reliable repair can take a heartbeat, ~1 s)
+            self.timeouts += 1
+            self.health.values['request_timeouts'] = self.timeouts
+            self.health.warning = ('no request for the sample stamped %d ns within '
+                                   '%g s (request_timeout): answered without one'
+                                   % (self.pending[0], self.request_timeout))
+            if self.timeouts <= 10:
+                self.get_logger().warning(self.health.warning)
+            self.answer(self.core.no_request(self.pending[0]))
+        elif not self.lockstep and now - self.waiting_since > 1.0 / self.rate:
+            self.pending = None         # realtime: the plant holds the last force
+        if self.pending is None:
+            self.waiting_since = None
 
     def summary(self) -> dict:
         out = super().summary()

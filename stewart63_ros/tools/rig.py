@@ -188,10 +188,12 @@ class Rig:
             name == 'plant' and self.plant_params) else []
         args = ['--ros-args', '--params-file', self.params] + own + [
             '--params-file', str(self.overlay())]
-        if self.supervisor and name == 'controller':
+        if self.supervisor and name in ('controller', 'composed'):
             # lazy: the node costs 1050 ms; --help answers without it
             from stewart63_ros.nodes.supervisor import REQUEST_TOPIC
-            args += ['-r', '%s:=%s' % ('leg_forces', REQUEST_TOPIC)]
+            # composed: the controller's alone (a rule naming the node)
+            args += ['-r', '%s%s:=%s' % ('controller:' if name == 'composed' else '',
+                                         'leg_forces', REQUEST_TOPIC)]
         if self.namespace:
             args += ['-r', '__ns:=%s' % self.namespace]
         return args
@@ -212,10 +214,12 @@ class Rig:
         """Recorder first; then controller and fk; the plant once they are
         matched (the order and its reasons: runtime/handshake.py)."""
         if self.compose:
-            argv = ['--nodes', ','.join(self.nodes)]
+            argv = ['--nodes', ','.join(self.composed_nodes())]
             if self.record:
                 argv += ['--record', str(self.record)]
             self.spawn('composed', argv + self.ros_args('composed'))
+            if self.bus and 'plant' in self.nodes:      # the machine: its own process
+                self.spawn('plant', self.ros_args('plant'))
             return
         # lazy: rclpy costs 302 ms; --help answers without it
         from stewart63_ros.runtime.handshake import MATCHED_LINE, READY_LINE, recorder_waits_for
@@ -240,6 +244,17 @@ class Rig:
             self.spawn('canopen_bridge', self.ros_args('canopen_bridge'))
         if 'plant' in self.nodes:
             self.spawn('plant', self.ros_args('plant'))
+
+    def composed_nodes(self) -> list[str]:
+        """The nodes ``composed`` hosts with --compose: the rig's, the
+        supervisor with --supervisor, and with --bus the bridge in place of
+        the plant (which stands in for the drives: the machine, its own process)."""
+        names = [n for n in self.nodes if not (self.bus and n == 'plant')]
+        if self.supervisor:
+            names.insert(names.index('controller'), 'supervisor')
+        if self.bus:
+            names.append('canopen_bridge')
+        return names
 
     def wait_for_line(self, name, line, timeout):
         log = self.log_dir / ('%s.log' % name)
@@ -300,7 +315,8 @@ class Rig:
                 return False
             if plant is not None and plant.poll() == 0:
                 return True
-            if any(p.poll() is not None for n, p in self.procs.items() if n != runner):
+            if any(p.poll() is not None for n, p in self.procs.items()
+                   if n not in self.ending_with_run()):
                 return False
             if deadline is not None and time.monotonic() > deadline:
                 return False
@@ -308,7 +324,16 @@ class Rig:
 
     def runner(self) -> str:
         """The process whose end is the end of the run (the plant's)."""
-        return 'composed' if self.compose else 'plant'
+        return 'composed' if self.compose and not self.bus else 'plant'
+
+    def ending_with_run(self) -> set[str]:
+        """The processes that end by themselves at the end of the run: the
+        runner, and with --bus the bridge's (it counts the samples too, and
+        may end a moment before the plant: with exit 0, not a failure)."""
+        ending = {self.runner()}
+        if self.bus and self.duration:
+            ending.add('composed' if self.compose else 'canopen_bridge')
+        return ending
 
     def stop(self, grace=4.0):
         """SIGINT the nodes (the recorder last, so it gets their final messages).
@@ -551,14 +576,16 @@ def main(argv=None) -> int:
                      'other nodes run until Ctrl-C or SIGTERM)')
     if not 0 <= args.realtime_priority <= 99:
         parser.error('--realtime-priority must be from 0 to 99')
-    if args.supervisor and (args.compose or 'controller' not in nodes or 'plant' not in nodes):
-        parser.error('--supervisor runs between the controller and the plant as its own '
-                     'process: it needs both in --nodes, and no --compose')
+    if args.supervisor and ('controller' not in nodes or 'plant' not in nodes):
+        # (the plant's parameters of this rig say to wait for its answers)
+        parser.error('--supervisor runs between the controller and the plant: it needs '
+                     'both in --nodes')
     if args.supervisor and reference_file_extra(extra):
         extra.setdefault('supervisor', {})['reference_file'] = reference_file_extra(extra)
-    if args.bus and (args.compose or 'plant' not in nodes):
+    if args.bus and 'plant' not in nodes:
+        # (the bridge takes over the plant's start-up parameters of this rig)
         parser.error('--bus canopen starts the bridge beside the plant: it needs plant in '
-                     '--nodes, and separate processes (not --compose)')
+                     '--nodes')
     if args.bus:
         # lazy: core.params costs 715 ms (numba); --help answers without it
         from stewart63_ros.core.bus import BusConfigError, load_bus_config
@@ -587,7 +614,8 @@ def main(argv=None) -> int:
         while not signals.requested:
             ok = rig.wait(timeout=0.2)
             if ok or rig.failed() or any(
-                    p.poll() is not None for n, p in rig.procs.items() if n != rig.runner()):
+                    p.poll() is not None for n, p in rig.procs.items()
+                    if n not in rig.ending_with_run()):
                 break
     except KeyboardInterrupt:
         pass
@@ -622,8 +650,9 @@ def main(argv=None) -> int:
 def plant_params_problem(args, params) -> str:
     """Why --plant-params cannot be used ('' if it can): the plant's two files
     must make a valid mechanism, and the plant must run in its own process."""
-    if args.compose:
-        return 'the composed nodes share one process and its files: not with --compose'
+    if args.compose and not getattr(args, 'bus', None):
+        return ('the composed nodes share one process and its files: not with --compose '
+                '(with --bus canopen the plant runs in its own process, and takes it)')
     if 'plant' not in nodes_arg(args.nodes):
         return 'it is the plant\'s file: it needs plant in --nodes'
     # lazy: core.params costs 715 ms (numba); --help answers
