@@ -63,6 +63,11 @@ from stewart63_ros.tools.cli import (
 #: includes loading the numba kernels, which a fresh install (or a changed
 #: core) compiles first: more than a minute on a loaded two-core machine.
 START_TIMEOUT = 180.0
+#: --tracking-bound's default: position [m], orientation [rad]. A planned
+#: calibration on a machine built off its drawing tracks within 2.7 cm (the
+#: drawing's error and the law's lag, docs/calibration.md); a platform that
+#: changes assembly mode ends 0.2-0.3 m and 1 rad away.
+TRACKING_BOUND = (0.05, 0.1)
 MODULES = {'plant': 'stewart63_ros.nodes.plant', 'controller': 'stewart63_ros.nodes.controller',
            'fk': 'stewart63_ros.nodes.fk_node', 'record': 'stewart63_ros.tools.record',
            'composed': 'stewart63_ros.nodes.composed', 'view': 'stewart63_ros.tools.view',
@@ -448,6 +453,12 @@ def main(argv=None) -> int:
     parser.add_argument('--reference', metavar='CSV',
                         help='reference motion t,x,y,z,theta_x,theta_y,theta_z to follow from '
                         'the first sample; the summary prints the tracking error')
+    parser.add_argument('--tracking-bound', type=float, nargs=2, default=TRACKING_BOUND,
+                        metavar=('M', 'RAD'),
+                        help='with --reference: a run whose true position error exceeds M or '
+                        'whose orientation error exceeds RAD after the first second lost its '
+                        'reference: the summary says so and rig exits 1 (0 0: no bound) '
+                        '(default: %g %g)' % TRACKING_BOUND)
     parser.add_argument('--nodes', default=','.join(NODES), metavar='LIST',
                         help='the nodes this rig runs, a subset of plant,controller,fk '
                         '(default: all three), e.g. the plant on the platform\'s computer '
@@ -487,6 +498,8 @@ def main(argv=None) -> int:
         print('rig: error: --namespace: %s' % exc, file=sys.stderr)
         return 2
     params = args.params or str(default_params_path())
+    if not all(b >= 0 for b in args.tracking_bound):       # NaN fails too
+        parser.error('--tracking-bound takes two numbers >= 0 (metres, radians)')
     if args.view:
         # lazy: tools.view costs 2255 ms; only --view needs it
         from stewart63_ros.tools.view import port_free
@@ -612,11 +625,32 @@ def main(argv=None) -> int:
     print_summary(rig, wall, start_unix)
     if args.record:
         print('  bag: %s' % args.record)
+    lost = lost_reference(rig.summary() if args.reference else None, args.tracking_bound)
+    if lost:
+        print('rig: error: %s' % lost, file=sys.stderr)
+        return 1
     if signals.requested:
         return 1 if failed_before else 0
     if died or not ok:
         return 1
     return 0
+
+
+def lost_reference(summary: dict | None, bound) -> str:
+    """Why the plant's run lost the reference it was to follow ('' if it did not):
+    its true position or orientation error (after the first second) beyond
+    ``bound`` (metres, radians; 0 turns one off). A platform that changed
+    assembly mode keeps its legs near the reference's and its pose 0.3 m away."""
+    err = (summary or {}).get('tracking_error') or {}
+    if not err.get('samples'):
+        return ''
+    position, angle = bound
+    if position and err['position_max_m'] > position or angle and \
+            err['orientation_max_rad'] > angle:
+        return ('the platform lost its reference: true tracking error position max %.4g m, '
+                'orientation max %.4g rad, beyond --tracking-bound %g m %g rad'
+                % (err['position_max_m'], err['orientation_max_rad'], position, angle))
+    return ''
 
 
 def plant_params_problem(args, params) -> str:
