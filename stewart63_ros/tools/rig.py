@@ -581,6 +581,11 @@ def main(argv=None) -> int:
         except BusConfigError as exc:
             print('rig: error: %s' % exc, file=sys.stderr)
             return 2
+    if args.supervisor:
+        problem = supervisor_problem(params, extra.get('supervisor', {}))
+        if problem:     # once, here, not from the supervisor's process as it fails
+            print('rig: error: %s' % problem, file=sys.stderr)
+            return 2
     two = two_rates(params, args.plant_params, rate_followers(args.bus, args.supervisor))
     if two:
         print('rig: error: %s' % two, file=sys.stderr)
@@ -634,6 +639,25 @@ def main(argv=None) -> int:
     if died or not ok:
         return 1
     return 0
+
+
+def supervisor_problem(params, extra: dict) -> str:
+    """Why the supervisor would refuse its parameters ('' if it would not): its
+    limits, its homing (``homing_direction: retract`` on a machine whose legs
+    cannot all be at their lower stops), its reference. Checked before anything
+    starts: one line, exit 2 (it was the supervisor's log tail and exit 1)."""
+    # lazy: core.supervisor costs a second (numba); --help answers without it
+    from stewart63_ros.core.node_parameters import read as read_declared
+    from stewart63_ros.core.params import read_parameter_file, setup_from_params
+    from stewart63_ros.core.supervisor import supervisor_from_params
+    try:
+        values = dict(read_parameter_file(params, 'supervisor'), **extra)
+        setup = setup_from_params(values)
+        values = dict(setup.to_params(), **values)
+        supervisor_from_params(setup, values, read_declared(values, 'sensor_rate'))
+    except ParameterError as exc:
+        return 'supervisor: parameter error: %s' % exc
+    return ''
 
 
 def lost_reference(summary: dict | None, bound) -> str:
@@ -734,6 +758,8 @@ def print_summary(rig, wall, started_unix=None):
     other nodes of this rig saw: for a timed run and for a stopped one alike.
     ``started_unix``: time.time() as the rig started (the wall time's parts)."""
     summary = rig.summary()
+    supervisor = rig.summary('supervisor') if rig.supervisor else None
+    homing = homing_unfinished(supervisor)
     if summary:
         lat = summary['loop_latency']
         parts = wall_parts(summary, wall, started_unix)
@@ -746,8 +772,11 @@ def print_summary(rig, wall, started_unix=None):
             print('rig summary: %d samples in %.2f s wall (%s); start-up %.2f s, stop %.2f s, '
                   '%.2f s in all' % (summary['samples'], parts['run'], mode,
                                      parts['start-up'], parts['stop'], wall))
-        print('  final positioning error: %.4f %% (max over legs of |L - L0| / L0)'
-              % summary['positioning_error_percent'])
+        if homing:      # the legs were on their way to the stops: no figure of the run's
+            print('  final positioning error: none, %s' % homing)
+        else:
+            print('  final positioning error: %.4f %% (max over legs of |L - L0| / L0)'
+                  % summary['positioning_error_percent'])
         if lat.get('count'):
             print('  loop latency (sample stamp -> force received): p50 %.3f ms, p99 %.3f ms, '
                   'max %.3f ms' % (lat['p50_ms'], lat['p99_ms'], lat['max_ms']))
@@ -772,7 +801,7 @@ def print_summary(rig, wall, started_unix=None):
         for fault in summary.get('faults', ()):
             print('  ' + format_fault(fault))
     if rig.supervisor:
-        print_trips(rig.summary('supervisor'))
+        print_trips(supervisor)
     if rig.bus:
         s = rig.summary('canopen_bridge')
         print('  canopen_bridge: %s' % ('no summary' if not s else
@@ -805,14 +834,25 @@ def reference_file_extra(extra: dict) -> str:
     return extra.get('controller', {}).get('reference_file', '')
 
 
+def homing_unfinished(summary) -> str:
+    """'the run ended before the homing finished ...' when the supervisor's
+    summary says it homes and is not homed; '' otherwise."""
+    if (summary or {}).get('values', {}).get('homed') == 'false':
+        return ('the run ended before the homing finished (homed: false): the controller '
+                'never drove the platform')
+    return ''
+
+
 def print_trips(summary) -> None:
-    """The supervisor's trips, one line each, in the rig's summary."""
+    """The supervisor's trips, one line each, in the rig's summary; a homing
+    the run cut short is said first (it read "no trip" and an error figure)."""
     if not summary:
         print('  supervisor: no summary')
         return
     trips = summary.get('trips', [])
-    print('  supervisor: %s' % ('%d trip%s' % (len(trips), 's' * (len(trips) != 1))
-                                if trips else 'no trip'))
+    homing = homing_unfinished(summary)
+    print('  supervisor: %s%s' % (homing + '; ' if homing else '', '%d trip%s' % (
+        len(trips), 's' * (len(trips) != 1)) if trips else 'no trip'))
     for trip in trips:
         print('    TRIP %s at sample %d (%s): %s, latency %s samples' % (
             trip['cause'], trip['sample'], trip['detail'], trip['action'],
