@@ -29,6 +29,7 @@ where a direct move would leave the limits.
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -47,6 +48,9 @@ from stewart63_ros.core.rotation import (
     rotvec_between,
 )
 from stewart63_ros.core.setup import Setup
+
+if TYPE_CHECKING:
+    from stewart63_ros.core.supervisor import Limits
 
 #: Default half-ranges of the candidates around the setpoint's pose: x, y, z
 #: [m], then the rotation vector's three components [rad].
@@ -115,7 +119,8 @@ class PlanLimits:
         return out
 
 
-def plan_limits(mech: Mechanism, supervisor=None, margin: float = LIMIT_MARGIN,
+def plan_limits(mech: Mechanism, supervisor: Limits | None = None,
+                margin: float = LIMIT_MARGIN,
                 tilt_margin: float = TILT_MARGIN) -> PlanLimits:
     """The limits a plan keeps: the stroke less ``STROKE_MARGIN``, and inside the
     supervisor's limits (``core.supervisor.Limits``, or None: none) by the margins.

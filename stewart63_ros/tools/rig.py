@@ -646,7 +646,7 @@ def supervisor_problem(params, extra: dict) -> str:
     limits, its homing (``homing_direction: retract`` on a machine whose legs
     cannot all be at their lower stops), its reference. Checked before anything
     starts: one line, exit 2 (it was the supervisor's log tail and exit 1)."""
-    # lazy: core.supervisor costs a second (numba); --help answers without it
+    # lazy: core.supervisor costs 1092 ms (numba, as tools.sim); --help answers without it
     from stewart63_ros.core.node_parameters import read as read_declared
     from stewart63_ros.core.params import read_parameter_file, setup_from_params
     from stewart63_ros.core.supervisor import supervisor_from_params
