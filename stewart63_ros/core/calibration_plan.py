@@ -23,8 +23,8 @@ stroke, ``pose_box``, ``trip_tilt``), each with a margin: the plan is made
 on the drawing, and the machine it is flown on stands up to a few
 millimetres off it (amplified into centimetres of pose by the Jacobian),
 while the law follows a move centimetres behind. The moves between the
-poses are checked too (``check_path``), and routed through the centre pose
-where a direct move would leave the limits.
+poses are checked too (``reference_rows``), and routed through the
+setpoint's pose where a direct move would leave the limits.
 """
 from __future__ import annotations
 
@@ -62,7 +62,9 @@ STROKE_MARGIN = 0.03
 #: machine`: 1.7 cm of pose for 5 mm of points and 10 mm of offsets) and
 #: pd_gravity follows a quick move up to 2.7 cm behind (docs/calibration.md).
 LIMIT_MARGIN = 0.04
-#: How far below the supervisor's tilt limit the plan stays [rad].
+#: How far below the supervisor's tilt limit the plan stays [rad]: the
+#: machine flown on the drawing's plan tilted up to 0.05 rad off it, and with
+#: a margin of 0.05 one of nine simulated runs tripped trip_tilt.
 TILT_MARGIN = 0.1
 #: The plan's fastest leg, at most this share of the supervisor's trip_leg_speed.
 SPEED_SHARE = 0.8
