@@ -3,7 +3,7 @@
     rig [--params FILE] [--mode realtime|lockstep] [--duration S] [--record DIR]
         [--namespace NS] [--nodes plant,controller,fk] [--realtime-priority P]
         [--compose] [--control-law NAME] [--reference CSV] [--fault FAULT]...
-        [--supervisor] [--plant-params FILE] [--bus canopen]
+        [--supervisor] [--plant-params FILE] [--bus canopen] [--tracking-bound M RAD]
 
 One parameter file and one namespace for all. Every node waits until its
 peers are matched before the first sample, so a short run loses nothing at
@@ -16,7 +16,8 @@ With --compose the nodes (and the recorder) run as nodes of one process
 (``composed``), still over the DDS topics. --control-law sets the
 controller's ``control_law``; --reference hands a reference CSV to the
 controller (``reference_file``, time 0 = the first sample) and to the plant,
-which reports the true tracking error in its summary. --fault (repeatable)
+which reports the true tracking error in its summary; beyond
+--tracking-bound the run lost its reference: rig says so and exits 1. --fault (repeatable)
 adds a fault to the plant's ``faults`` (docs/faults.md); the summary names
 each fault and when it acted. --supervisor puts the supervisor between the
 controller and the plant, or the bridge with --bus canopen
