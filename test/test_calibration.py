@@ -320,7 +320,7 @@ def test_an_impossible_calibration_is_never_written(setup, tmp_path, mech, truth
 def test_plan_writes_poses_and_a_reference_the_rig_accepts(tmp_path, mech):
     from stewart63_ros.core.reference import load_reference
     assert calibrate.main(['plan', '--poses', '12', '--out', str(tmp_path / 'plan'),
-                           '--hold', '0.5', '--move', '0.5', '--leg-speed', '0.5',
+                           '--hold', '0.5', '--move', '0.5', '--leg-speed', '0.4',
                            '--seed', '2']) == 0
     reference = load_reference(mech, tmp_path / 'plan' / 'reference.csv')
     with open(tmp_path / 'plan' / 'poses.csv') as stream:
@@ -334,6 +334,111 @@ def test_plan_writes_poses_and_a_reference_the_rig_accepts(tmp_path, mech):
             assert np.allclose(pose, want, atol=1e-6), (row, pose)
     assert json.loads((tmp_path / 'plan' / 'plan.json').read_text())['o3_per_m'] > 0
     assert calibrate.main(['plan', '--poses', '5', '--out', str(tmp_path / 'p2')]) == 2
+
+
+def test_fit_refuses_unit_mistakes_naming_the_file_and_row(tmp_path, mech, truth, planned,
+                                                           capsys):
+    """Millimetres read as metres, in every row or in one, and a file whose
+    columns were swapped in every other row: exit 2, one line naming the file and
+    the row(s), nothing written (it wrote the drawing and exited 0)."""
+    meas = tracked(truth, planned.positions, planned.rotations, np.random.default_rng(9))
+    readings_mm = meas.readings.copy()
+    readings_mm[3] *= 1000
+    positions_mm = meas.positions.copy()
+    positions_mm[4] *= 1000
+    swapped = meas.readings.copy()
+    swapped[::2] = swapped[::2, ::-1]
+    cases = {
+        'mm.csv': (cal.Measurements(meas.positions * 1000, meas.rotations,
+                                    meas.readings * 1000), 'row 1: leg_1 reads'),
+        'mm_reading.csv': (cal.Measurements(meas.positions, meas.rotations, readings_mm),
+                           'row 4: leg_1 reads'),
+        'mm_pose.csv': (cal.Measurements(positions_mm, meas.rotations, meas.readings),
+                        'row 5: the pose'),
+        'swapped.csv': (cal.Measurements(meas.positions, meas.rotations, swapped),
+                        'the rows it predicts worst: '),
+    }
+    for name, (bad, words) in cases.items():
+        write_measurements(tmp_path / name, bad)
+        out = tmp_path / (name + '.out')
+        code = calibrate.main(['fit', '--measurements', str(tmp_path / name),
+                               '--out', str(out)])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and words in err and str(tmp_path / name) in err, (name, err)
+        assert len(err.splitlines()) == 1, err
+        assert not out.exists(), name
+    # The rows named for the swapped file are rows that were swapped (odd ones).
+    named = err.split('predicts worst: ')[1].split(', ')
+    assert named and all(int(r) % 2 == 1 for r in named), err
+
+
+def test_held_out_readings_fk_cannot_solve_are_counted_not_infinite(mech):
+    meas = cal.Measurements(np.array([[0.01, 0.01, 1.0]] * 2), np.array([np.eye(3)] * 2),
+                            np.array([[1.2] * 5 + [2.3], [1.2, 2.3] * 3]))
+    errors = cal.pose_errors(mech, meas)
+    assert errors['unsolved'] == 2 and errors['position_rms_m'] is None
+    # report.json is strict JSON: no Infinity, no NaN.
+    text = json.dumps(calibrate.finite_or_none({'a': [1.0, float('inf')], 'b': float('nan')}),
+                      allow_nan=False)
+    assert json.loads(text) == {'a': [1.0, None], 'b': None}
+
+
+def test_fit_counts_the_poses_of_the_file_before_the_holdout(tmp_path, truth, planned,
+                                                              capsys):
+    meas = tracked(truth, planned.positions[:11], planned.rotations[:11],
+                   np.random.default_rng(3))
+    write_measurements(tmp_path / 'm.csv', meas)
+    code = calibrate.main(['fit', '--measurements', str(tmp_path / 'm.csv'),
+                           '--out', str(tmp_path / 'out')])
+    err = capsys.readouterr().err
+    assert code == 2 and '11 poses, 2 of them held out (--holdout 0.2): 9 left' in err, err
+
+
+def test_plan_stays_inside_the_supervisors_limits_with_a_margin(tmp_path, setup, mech, capsys):
+    """The plan's poses and the moves between them keep inside the supervisor's
+    soft stroke, pose_box and trip_tilt by the margins (a plan tilted to 0.41
+    rad against 0.35, legs at 1.22 m against a soft stroke from 1.25 m, and a
+    supervised run tripped pose_box); a tighter file's limits are kept too."""
+    import yaml
+
+    from stewart63_ros.core.reference import R_LEN, R_POS, R_RATE, R_ROT, load_reference
+    doc = yaml.safe_load(open(calibrate.default_params_path()))
+    doc['/**/supervisor'] = {'ros__parameters': {'trip_tilt': 0.3,
+                                                 'pose_box': [-0.2, -0.25, 0.5, 0.3, 0.3, 1.5]}}
+    (tmp_path / 'tight.yaml').write_text(yaml.safe_dump(doc))
+    for params, tilt, box in ((None, 0.35, [-0.3, -0.3, 0.5, 0.3, 0.3, 1.6]),
+                              (tmp_path / 'tight.yaml', 0.3, [-0.2, -0.25, 0.5, 0.3, 0.3, 1.5])):
+        out = tmp_path / ('plan_%s' % tilt)
+        argv = ['plan', '--poses', '10', '--out', str(out), '--hold', '0.3', '--move', '0.4',
+                '--leg-speed', '0.4']
+        assert calibrate.main(argv + (['--params', str(params)] if params else [])) == 0
+        reference = load_reference(mech, out / 'reference.csv')
+        samples = reference.sample_many(np.arange(0.0, reference.duration, 0.005))
+        rot = samples[:, R_ROT].reshape(-1, 3, 3)
+        tilts = np.arccos(np.clip(rot[:, 2, 2], -1, 1))
+        assert tilts.max() <= tilt - cp.TILT_MARGIN + 1e-6, tilts.max()
+        pos = samples[:, R_POS]
+        assert np.all(pos >= np.array(box[:3]) + cp.LIMIT_MARGIN - 1e-6)
+        assert np.all(pos <= np.array(box[3:]) - cp.LIMIT_MARGIN + 1e-6)
+        legs = samples[:, R_LEN]
+        assert legs.min() >= 1.25 + cp.LIMIT_MARGIN - 1e-6 and legs.max() <= 2.25 - 0.04
+        assert np.abs(samples[:, R_RATE]).max() <= 0.4
+    capsys.readouterr()
+    # Faster than the supervisor allows: refused, naming its limit.
+    assert calibrate.main(['plan', '--poses', '10', '--out', str(tmp_path / 'fast'),
+                           '--leg-speed', '1.0']) == 2
+    assert 'trip_leg_speed 0.5' in capsys.readouterr().err
+
+
+def test_rig_says_a_run_that_lost_its_reference_failed():
+    from stewart63_ros.tools.rig import TRACKING_BOUND, lost_reference
+    lost = {'tracking_error': {'samples': 10101, 'position_max_m': 0.2951,
+                               'orientation_max_rad': 1.135}}
+    kept = {'tracking_error': {'samples': 10101, 'position_max_m': 0.019,
+                               'orientation_max_rad': 0.051}}
+    assert 'lost its reference' in lost_reference(lost, TRACKING_BOUND)
+    assert lost_reference(kept, TRACKING_BOUND) == ''
+    assert lost_reference(lost, (0, 0)) == '' and lost_reference(None, TRACKING_BOUND) == ''
 
 
 # -- bags ---------------------------------------------------------------------------------

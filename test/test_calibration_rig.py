@@ -19,10 +19,13 @@ TRACKER_NOISE = 1e-4
 
 
 def run_rig(ros, tmp_path, name, *args):
+    """Run a lockstep rig to its end; exit 0 (with --reference: within
+    rig's --tracking-bound, 5 cm and 0.1 rad). Returns its standard output."""
     proc = ros.python('-m', 'stewart63_ros.tools.rig', '--mode', 'lockstep',
                       '--log-dir', str(tmp_path / (name + '.logs')), *args, name=name)
     code = proc.wait(RIG_TIMEOUT)
     assert code == 0, proc.describe()
+    return proc.stdout()
 
 
 def poses_by_stamp(bag, topic):
@@ -52,14 +55,24 @@ def test_plan_run_record_fit_on_the_lockstep_rig(ros, tmp_path):
     assert calibrate.main(['machine', '--seed', '4', '--out', str(machine),
                            '--tracker-rate', '50', '--tracker-noise', str(TRACKER_NOISE),
                            str(TRACKER_NOISE)]) == 0
-    # Short holds and quick moves: lockstep time costs wall time here.
+    # Short holds and quick moves (the fastest the supervisor allows): lockstep
+    # time costs wall time here.
     assert calibrate.main(['plan', '--poses', '10', '--out', str(tmp_path / 'plan'),
-                           '--hold', '0.3', '--move', '0.4', '--leg-speed', '1.0']) == 0
+                           '--hold', '0.3', '--move', '0.4', '--leg-speed', '0.4']) == 0
     plan = json.loads((tmp_path / 'plan' / 'plan.json').read_text())
     bag = tmp_path / 'bag'
-    run_rig(ros, tmp_path, 'rig', '--plant-params', str(machine), '--control-law', 'pd_gravity',
-            '--reference', str(tmp_path / 'plan' / 'reference.csv'),
-            '--duration', '%.3f' % plan['duration_s'], '--record', str(bag))
+    # The plan flown under the supervisor, on the machine it was not planned
+    # on: it must neither trip nor lose the plan (rig exits 1 beyond its
+    # tracking bound; the plan of 10 leg-speed-1.0 poses of the packaged
+    # mechanism on this machine once ended 0.295 m and 1.1 rad away).
+    out = run_rig(ros, tmp_path, 'rig', '--plant-params', str(machine), '--control-law',
+                  'pd_gravity', '--reference', str(tmp_path / 'plan' / 'reference.csv'),
+                  '--supervisor', '--duration', '%.3f' % plan['duration_s'], '--record', str(bag))
+    assert 'supervisor: no trip' in out, out
+    tracking = json.loads((tmp_path / 'rig.logs' / 'plant_summary.json').read_text())[
+        'tracking_error']
+    print('\nplan tracked on the machine: position max %.3g mm, orientation max %.3g mrad'
+          % (tracking['position_max_m'] * 1e3, tracking['orientation_max_rad'] * 1e3))
     # In its own process, as a user runs it (one BLAS thread: tools/calibrate.py).
     fit = ros.python('-m', 'stewart63_ros.tools.calibrate', 'fit', '--measurements', str(bag),
                      '--out', str(tmp_path / 'fit'), name='fit')

@@ -279,3 +279,17 @@ def test_the_tables_of_executables_list_every_console_script():
         section = section[:section.index('\n\n', section.index('|'))]
         rows = re.findall(r'^\| `([\w-]+)` \|', section, re.M)
         assert sorted(rows) == scripts, (path.name, sorted(set(scripts) ^ set(rows)))
+
+
+def test_the_rig_table_lists_every_rig_option():
+    """The `rig` table of the interface: one row per option of `rig`'s parser
+    (`--supervisor` was missing)."""
+    tree = ast.parse((ROOT / 'stewart63_ros' / 'tools' / 'rig.py').read_text())
+    options = {_const_str(arg) for node in ast.walk(tree) if isinstance(node, ast.Call)
+               and isinstance(node.func, ast.Attribute) and node.func.attr == 'add_argument'
+               for arg in node.args if (_const_str(arg) or '').startswith('--')}
+    text = DOC.read_text()
+    section = text[text.index('**`rig [options]`**'):]
+    section = section[:section.index('\n\n', section.index('|'))]
+    rows = set(re.findall(r'^\| `(--[\w-]+)', section, re.M))
+    assert '--supervisor' in options and options <= rows, sorted(options - rows)

@@ -300,6 +300,12 @@ def test_a_law_that_raises_has_every_sample_withheld(tmp_path, capsys):
      'platform_mas: unknown parameter (did you mean platform_mass?)'),
     ('  - name: a\n    params: {platform_mass: -3}\n    expect: {max_force: {max: 1}}\n',
      'platform_mass'),
+    ('  - name: a\n    bus: canopen\n    expect: {max_force: {max: 1}}\n',
+     'bus: a scenario runs over the bus on the rig: run: lockstep or realtime, not sim'),
+    ('  - name: a\n    run: lockstep\n    bus: canopn\n    expect: {max_force: {max: 1}}\n',
+     "bus: 'canopn' is not one of canopen (did you mean canopen?)"),
+    ('  - name: a\n    run: lockstep\n    faults: [bus_emcy:leg_3:0x2310@0.5]\n'
+     '    expect: {max_force: {max: 1}}\n', 'it needs bus: canopen'),
 ])
 def test_a_bad_file_gets_one_line_naming_the_key_and_exit_2(tmp_path, capsys, text, expected):
     path = write(tmp_path, 'scenarios:\n' + text)
@@ -701,3 +707,32 @@ def test_trajectory_poses_turn_twists_into_euler_rates():
     np.testing.assert_allclose(rates[:, :3], twists[:, :3])
     want = [(theta(t + 1e-3) - 2 * theta(t) + theta(t - 1e-3)) / 1e-6 for t in times]
     np.testing.assert_allclose(accs[:, 3:], want, atol=1e-4)
+
+
+def test_the_summarys_wall_time_is_the_time_the_user_waited(tmp_path):
+    """`scenario run`'s last line: the wall time from the command's start to its
+    end (it gave the runs' 3.7 s for a 23 s wait), with the figures' share apart."""
+    import re
+    import time
+    path = write(tmp_path, '''
+        scenarios:
+          - name: short
+            duration: 0.2
+            expect: {max_force: {max: 3000.0}}
+        ''')
+    started = time.perf_counter()
+    done = subprocess.run([sys.executable, '-m', 'stewart63_ros.tools.scenario', 'run',
+                           str(path), '--out', str(tmp_path / 'o')], capture_output=True,
+                          text=True, timeout=300)
+    waited = time.perf_counter() - started
+    assert done.returncode == 0, done.stderr
+    line = done.stdout.strip().splitlines()[-1]
+    found = re.search(r'; ([\d.]+) s wall in all: start-up and files ([\d.]+) s, runs ([\d.]+) '
+                      r's, report and figures ([\d.]+) s;', line)
+    assert found, line
+    in_all, startup, runs, report = map(float, found.groups())
+    # The process's own life: all but the fork before it and the exit after (no
+    # bound on any part: this machine's timing is not the code's).
+    assert 0.5 * waited - 1.0 <= in_all <= waited, (in_all, waited, line)
+    assert abs(startup + runs + report - in_all) < 0.05 * in_all + 0.02, line
+    assert startup > 0 and runs > 0 and report > 0, line

@@ -17,6 +17,7 @@ and the device config file (docs/bus.md). No ROS, no CAN library.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import os
 from pathlib import Path
@@ -415,6 +416,24 @@ class BusConfigError(ValueError):
     """A device config file that cannot work; the message names the key and why."""
 
 
+#: The keys of a device config file: at the top, per bus, per leg.
+TOP_KEYS = ('buses', 'heartbeat_ms', 'legs')
+BUS_KEYS = ('name', 'interface', 'channel', 'bitrate')
+LEG_KEYS = ('leg', 'bus', 'node_id', 'eds', 'metres_per_count', 'offset_m', 'direction',
+            'lead_m', 'gear_ratio', 'efficiency', 'rated_torque_mnm')
+
+
+def _refuse_unknown(where: str, entry: dict, known: tuple[str, ...]) -> None:
+    """A key the bridge does not read is refused, naming it and a close match
+    (``hearbeat_ms: 20`` ran with the default 100 ms, silently)."""
+    for key in entry:
+        if key not in known:
+            close = difflib.get_close_matches(str(key), known, n=1)
+            raise BusConfigError('%s: unknown key %r%s (known: %s)' % (
+                where, key, ': did you mean %s?' % close[0] if close else '',
+                ', '.join(known)))
+
+
 def _field(where: str, entry: dict, key: str, kind, check=None, why: str = '',
            default: Any = None):
     if key not in entry:
@@ -458,7 +477,8 @@ def load_bus_config(path: str | os.PathLike | None = None,
         The BusConfig; EDS paths made absolute (relative to the file).
 
     Raises:
-        BusConfigError: a missing or bad key (a scale of zero, a node id
+        BusConfigError: an unknown key (with a close match), a missing or
+            bad key (a scale of zero, a node id
             outside 1..127 or used twice on a bus, a leg missing or given
             twice, an unknown bus, a missing EDS file); the message names it.
     """
@@ -471,6 +491,7 @@ def load_bus_config(path: str | os.PathLike | None = None,
             or not isinstance(doc.get('legs'), list):
         raise BusConfigError('bus config %s: expected a mapping with lists buses and legs'
                              % path)
+    _refuse_unknown('bus config %s' % path, doc, TOP_KEYS)
     if channels and len(channels) != len(doc['buses']):
         raise BusConfigError('bus_channels: %d channels given for the %d buses of %s'
                              % (len(channels), len(doc['buses']), path))
@@ -479,6 +500,7 @@ def load_bus_config(path: str | os.PathLike | None = None,
         where = '%s: buses[%d]' % (path, i)
         if not isinstance(entry, dict):
             raise BusConfigError('%s: expected a mapping' % where)
+        _refuse_unknown(where, entry, BUS_KEYS)
         name = _field(where, entry, 'name', str)
         buses.append(Bus(name, interface or _field(where, entry, 'interface', str),
                          channels[i] if channels else _field(where, entry, 'channel', str),
@@ -494,6 +516,9 @@ def load_bus_config(path: str | os.PathLike | None = None,
         where = '%s: legs[%d]' % (path, i)
         if not isinstance(entry, dict):
             raise BusConfigError('%s: expected a mapping' % where)
+        # before the fields: a misspelt key is unknown, not another key missing
+        _refuse_unknown('%s (%s)' % (where, entry['leg']) if isinstance(entry.get('leg'), str)
+                        else where, entry, LEG_KEYS)
         leg_name = _field(where, entry, 'leg', str, lambda v: v in LEG_NAMES,
                           'must be one of leg_1 ... leg_6')
         where = '%s (%s)' % (where, leg_name)

@@ -78,6 +78,9 @@ STRUCTURAL_RTOL = 1.0e-7
 #: The fewest poses ``fit`` accepts: 60 readings for 33 parameters, so that the
 #: noise estimate rests on at least 27 degrees of freedom (±14 % in sigma).
 MIN_POSES = 10
+#: A fit whose estimate moves a parameter more than this many tolerances from
+#: the drawing diverged: the data are not of this machine (a bad row pulled it).
+DIVERGED = 10
 #: Huber's threshold, in whitened standard deviations.
 HUBER_SCALE = 3.0
 #: Default: how far the machine may be from its drawing [m] (a combination the
@@ -178,6 +181,74 @@ def measurements(positions: ArrayLike, quaternions: ArrayLike,
         raise CalibrationError('row %d: the quaternion (qx, qy, qz, qw) has length %.6g, '
                                'not 1' % (off[0] + 1, norms[off[0]]))
     return Measurements(positions, rotation_from_quaternion(quaternions), readings)
+
+
+def check_plausible(mech: Mechanism, meas: Measurements, tolerance: float = DEFAULT_TOLERANCE,
+                    rows: ArrayLike | None = None) -> None:
+    """Refuse measurements the machine cannot have made (a unit mistake: millimetres
+    read as metres, a column in degrees): a reading outside the stroke, or a pose
+    whose legs on the drawing leave it, each by more than the machine may differ
+    from its drawing.
+
+    A reading is the true length (inside the stroke: the machine stood there)
+    plus the sensor's offset, which the drawing knows to ``tolerance``; a
+    pose's legs on the drawing are within 2 ``tolerance`` of the machine's
+    (a base point and a platform point, each off by up to ``tolerance``).
+
+    Args:
+        mech: the drawing.
+        meas: the measurements.
+        tolerance: [m] how far the machine may be from its drawing.
+        rows: (N,) the row number to name for each pose (default 1, 2, ...).
+
+    Raises:
+        CalibrationError: naming the first row, the leg and the value.
+    """
+    rows = np.arange(1, meas.count + 1) if rows is None else np.asarray(rows)
+    low, high = mech.leg_length_min, mech.leg_length_max
+    readings = meas.readings - mech.leg_length_offset
+    bad = np.argwhere((readings < low - tolerance) | (readings > high + tolerance))
+    if bad.size:
+        n, i = bad[0]
+        raise CalibrationError(
+            'row %d: leg_%d reads %.6g m, outside the stroke [%g, %g] m by more than the '
+            'tolerance %g m (%s): not a reading of this machine (millimetres for '
+            'metres?)' % (rows[n], i + 1, meas.readings[n, i], low, high, tolerance,
+                          _rows_count(bad)))
+    legs, _ = _legs(parameter_vector(mech), meas)
+    lengths = np.linalg.norm(legs, axis=2)
+    slack = 2 * tolerance
+    bad = np.argwhere((lengths < low - slack) | (lengths > high + slack))
+    if bad.size:
+        n, i = bad[0]
+        raise CalibrationError(
+            'row %d: the pose (%.6g, %.6g, %.6g) m puts leg_%d at %.6g m on the drawing, '
+            'outside the stroke [%g, %g] m by more than %g m (%s): no assembly of '
+            'this machine reaches it (millimetres for metres? a tracker not registered to '
+            'the base frame?)' % (rows[n], *meas.positions[n], i + 1, lengths[n, i], low,
+                                  high, slack, _rows_count(bad)))
+
+
+def _rows_count(bad) -> str:
+    count = len(np.unique(bad[:, 0]))
+    return '1 such row' if count == 1 else '%d such rows' % count
+
+
+def worst_rows(theta: ArrayLike, meas: Measurements, count: int = 3,
+               rows: ArrayLike | None = None) -> list[int]:
+    """The rows whose readings the parameters ``theta`` predict worst.
+
+    Args:
+        theta: (33,) parameters; meas: the measurements.
+        count: how many rows.
+        rows: (N,) the row number of each pose (default 1, 2, ...).
+
+    Returns:
+        Row numbers, the worst first.
+    """
+    rows = np.arange(1, meas.count + 1) if rows is None else np.asarray(rows)
+    worst = np.max(np.abs(predict_readings(theta, meas) - meas.readings), axis=1)
+    return [int(rows[n]) for n in np.argsort(-worst)[:count]]
 
 
 # -- the model -----------------------------------------------------------------
@@ -495,8 +566,32 @@ def _huber_covariance(jac: np.ndarray, residuals: np.ndarray, threshold: float) 
     return variance * np.linalg.inv(info), variance, int(m - inside.sum())
 
 
+def _check_converged(solution, nominal, estimate, meas, tolerance, rows) -> None:
+    """Refuse a fit that did not converge, diverged (a parameter more than
+    ``DIVERGED`` tolerances from the drawing) or explains the readings no
+    better than ``tolerance`` RMS (the data are not of this machine: swapped
+    columns, a tracker in another frame), naming the rows predicted worst."""
+    finite = bool(np.all(np.isfinite(estimate)))
+    theta = estimate if finite else nominal
+    change = np.abs(theta - nominal)
+    worst = int(np.argmax(change))
+    rms = float(np.sqrt(np.mean((predict_readings(theta, meas) - meas.readings) ** 2)))
+    if solution.status <= 0 or not finite:
+        why = 'did not converge (%s)' % solution.message
+    elif change[worst] > DIVERGED * tolerance:
+        why = ('diverged: %s moved %.4g m from the drawing, more than %d x the tolerance %g m'
+               % (PARAMETER_NAMES[worst], change[worst], DIVERGED, tolerance))
+    elif rms > tolerance:
+        why = ('leaves the readings %.4g m RMS from the model, more than the tolerance %g m: '
+               'these are not readings of this machine at these poses' % (rms, tolerance))
+    else:
+        return
+    raise CalibrationError('the fit %s; the rows it predicts worst: %s'
+                           % (why, ', '.join(map(str, worst_rows(theta, meas, rows=rows)))))
+
+
 def fit(mech: Mechanism, meas: Measurements, noise: NoiseModel | None = None,
-        tolerance: float = DEFAULT_TOLERANCE) -> Fit:
+        tolerance: float = DEFAULT_TOLERANCE, rows: ArrayLike | None = None) -> Fit:
     """Identify base points, platform points and offsets from measurements.
 
     Steps (module doc): refuse poses that leave a combination unseen; a
@@ -510,13 +605,17 @@ def fit(mech: Mechanism, meas: Measurements, noise: NoiseModel | None = None,
         noise: the measurement noise (default ``NoiseModel()``: 0.1 mm,
             0.1 mrad, 0.01 mm).
         tolerance: [m], see ``Identifiability.weak``.
+        rows: (N,) the row number of each pose, for the messages (default 1, 2, ...).
 
     Returns:
         The fit.
 
     Raises:
         CalibrationError: too few poses, poses that leave a combination
-            unidentifiable (named), a fit that does not converge.
+            unidentifiable (named), a fit that does not converge, diverges
+            (a parameter more than ``DIVERGED`` tolerances from the drawing) or
+            leaves the readings more than ``tolerance`` RMS from the model,
+            naming the rows it predicts worst.
     """
     # lazy: scipy.optimize costs 968 ms; only a fit needs it
     from scipy.optimize import least_squares
@@ -555,9 +654,8 @@ def fit(mech: Mechanism, meas: Measurements, noise: NoiseModel | None = None,
     held = analysis.directions[:, weak]
     start = basis.T @ first.x
     final = solve(basis, start, 'huber', HUBER_SCALE * scale)
-    if final.status <= 0:
-        raise CalibrationError('the fit did not converge: %s' % final.message)
     estimate = nominal + basis @ final.x
+    _check_converged(final, nominal, estimate, meas, tolerance, rows)
     jac = _whitened_jacobian(estimate, meas, white) @ basis
     res = _whitened_residuals(estimate, meas, white)
     cov_z, variance, outliers = _huber_covariance(jac, res, HUBER_SCALE * scale)
@@ -582,29 +680,34 @@ def pose_errors(mech: Mechanism, meas: Measurements) -> dict:
 
     Returns:
         {'position_rms_m', 'position_max_m', 'angle_rms_rad', 'angle_max_rad',
-        'reading_rms_m', 'poses'}: the fk pose's distance from the tracked
-        one, and the RMS of the readings' prediction error.
+        'reading_rms_m', 'poses', 'unsolved'}: the fk pose's distance from the
+        tracked one (over the poses fk solves; None if it solves none), the
+        RMS of the readings' prediction error, and how many poses fk could not
+        solve (readings no assembly closes).
     """
     fk = ForwardKinematics(mech)
     offsets = mech.leg_length_offset
-    dpos, dang = [], []
+    dpos, dang, unsolved = [], [], 0
     for n in range(meas.count):
         try:
             mode = fk.nearest(meas.readings[n] - offsets, meas.positions[n], meas.rotations[n])
         except ValueError:
-            dpos.append(np.inf)
-            dang.append(np.inf)
+            unsolved += 1
             continue
         dpos.append(np.linalg.norm(mode.position - meas.positions[n]))
         dang.append(float(rotation_angle_between(meas.rotations[n][None],
                                                  mode.quaternion[None])[0]))
     dpos, dang = np.array(dpos), np.array(dang)
     pred = predict_readings(parameter_vector(mech), meas) - meas.readings
-    return {'position_rms_m': float(np.sqrt(np.mean(dpos ** 2))),
-            'position_max_m': float(np.max(dpos)),
-            'angle_rms_rad': float(np.sqrt(np.mean(dang ** 2))),
-            'angle_max_rad': float(np.max(dang)),
-            'reading_rms_m': float(np.sqrt(np.mean(pred ** 2))), 'poses': meas.count}
+
+    def stat(values, how):      # None, not inf or NaN: report.json is strict JSON
+        return float(how(values)) if values.size else None
+    return {'position_rms_m': stat(dpos, lambda v: np.sqrt(np.mean(v ** 2))),
+            'position_max_m': stat(dpos, np.max),
+            'angle_rms_rad': stat(dang, lambda v: np.sqrt(np.mean(v ** 2))),
+            'angle_max_rad': stat(dang, np.max),
+            'reading_rms_m': float(np.sqrt(np.mean(pred ** 2))), 'poses': meas.count,
+            'unsolved': unsolved}
 
 
 def check_assembles(mech: Mechanism, meas: Measurements) -> None:

@@ -71,7 +71,9 @@ from stewart63_ros.core.node_parameters import read as read_declared
 RUN_MODES = ('sim', 'lockstep', 'realtime')
 #: The keys of a scenario.
 SCENARIO_KEYS = ('name', 'description', 'run', 'duration', 'params_file', 'params',
-                 'control_law', 'reference', 'faults', 'wrench', 'expect', 'matrix')
+                 'control_law', 'reference', 'faults', 'wrench', 'expect', 'matrix', 'bus')
+#: The field buses a rig scenario can run over (``rig --bus``).
+BUSES = ('canopen',)
 #: The keys of an expectation.
 EXPECT_KEYS = ('max', 'min', 'from', 'to')
 #: The keys of a wrench interval.
@@ -148,6 +150,8 @@ class Scenario:
     expect: tuple[Expectation, ...]
     source: str = ''
     description: str = ''
+    #: the field bus the rig runs over (``rig --bus``; docs/bus.md), '' for none
+    bus: str = ''
 
     @property
     def supervised(self) -> bool:
@@ -550,6 +554,17 @@ def parse_scenario(doc: Any, where: str, base: Path, source: str = '') -> Scenar
         parse_faults(faults)
     except FaultError as exc:
         raise ScenarioError('%s.faults: %s' % (where, exc)) from None
+    bus = doc.get('bus') or ''
+    if bus not in ('',) + BUSES:
+        raise ScenarioError('%s.bus: %r is not one of %s%s' % (
+            where, bus, ', '.join(BUSES), _hint(bus, BUSES) if isinstance(bus, str) else ''))
+    if bus and run == 'sim':
+        raise ScenarioError('%s.bus: a scenario runs over the bus on the rig: run: lockstep or '
+                            'realtime, not sim' % where)
+    on_bus = [f for f in faults if f.strip().startswith('bus_')]
+    if on_bus and not bus:
+        raise ScenarioError('%s.faults: %s acts on the field bus: it needs bus: canopen (and '
+                            'run: lockstep or realtime)' % (where, on_bus[0]))
     wrench = parse_wrench(where, doc.get('wrench'), duration)
     if wrench and run != 'sim':
         raise ScenarioError('%s.wrench: a wrench schedule runs in sim only (the rig takes '
@@ -571,7 +586,7 @@ def parse_scenario(doc: Any, where: str, base: Path, source: str = '') -> Scenar
                                 '(the rig takes its reference as a CSV of poses)' % where)
     description = doc.get('description') or ''
     scenario = Scenario(name.strip(), run, duration, params_file, params, law, reference,
-                        tuple(faults), wrench, expect, source, str(description))
+                        tuple(faults), wrench, expect, source, str(description), bus)
     try:
         build_plant(scenario)
         build_controller(scenario)

@@ -48,6 +48,7 @@ from stewart63_ros.core.params import (  # noqa: E402
 from stewart63_ros.core.reference import Reference, ReferenceError, write_reference_csv
 from stewart63_ros.core.rotation import euler_from_matrix
 from stewart63_ros.core.sensor import TrackerModel
+from stewart63_ros.core.supervisor import limits_from_params
 from stewart63_ros.tools.cli import (
     load_checked,
     quiet_on_closed_pipe,  # noqa: E402
@@ -209,16 +210,24 @@ def run_fit(args, mech, params_path: Path) -> int:
     else:
         meas = read_measurements_csv(path)
     noise = _noise(args)
+    what = 'tracker sample' if path.is_dir() else 'row'
     try:
+        cal.check_plausible(mech, meas, args.tolerance)
         held_mask = cal.holdout_split(meas.count, args.holdout)
     except cal.CalibrationError as exc:
-        raise InputError(str(exc)) from None
+        raise InputError('%s: %s' % (path, str(exc).replace('row', what, 1))) from None
     fitted, held = meas.subset(~held_mask), meas.subset(held_mask)
+    if fitted.count < cal.MIN_POSES:
+        raise InputError('%s: %d poses, %d of them held out (--holdout %g): %d left to fit, '
+                         'the fit needs at least %d' % (path, meas.count, held.count,
+                                                        args.holdout, fitted.count,
+                                                        cal.MIN_POSES))
+    rows = np.flatnonzero(~held_mask) + 1        # each fitted pose's row in the file
     started = time.perf_counter()
     try:
-        result = cal.fit(mech, fitted, noise, args.tolerance)
+        result = cal.fit(mech, fitted, noise, args.tolerance, rows=rows)
     except cal.CalibrationError as exc:
-        raise InputError(exc) from None
+        raise InputError('%s: %s' % (path, str(exc).replace('rows', what + 's', 1))) from None
     try:
         calibrated = cal.mechanism_with(mech, result.estimate)
         cal.check_assembles(calibrated, meas)
@@ -247,16 +256,21 @@ def run_fit(args, mech, params_path: Path) -> int:
     except ParameterError as exc:
         raise InputError('the calibrated file would be invalid, nothing written: %s'
                          % exc) from None
-    (out / 'report.json').write_text(json.dumps(report, indent=1))
-    print('calibrate: %d poses fitted, %d held out, in %.2f s; reading RMS %.4g m -> %.4g m'
-          ' (noise scale %.3g)' % (fitted.count, held.count, fit_seconds, result.rms_before,
-                                   result.rms_after, result.noise_scale))
+    (out / 'report.json').write_text(json.dumps(finite_or_none(report), indent=1,
+                                                allow_nan=False))
+    print('calibrate: %d poses: %d fitted, %d held out; fitted in %.2f s; reading RMS %.4g m '
+          '-> %.4g m (noise scale %.3g)' % (meas.count, fitted.count, held.count, fit_seconds,
+                                             result.rms_before, result.rms_after,
+                                             result.noise_scale))
     if held_out:
-        print('calibrate: held-out fk error: position RMS %.4g m -> %.4g m, angle RMS %.4g rad'
-              ' -> %.4g rad' % (held_out['before']['position_rms_m'],
-                                held_out['after']['position_rms_m'],
-                                held_out['before']['angle_rms_rad'],
-                                held_out['after']['angle_rms_rad']))
+        before, after = held_out['before'], held_out['after']
+        print('calibrate: held-out fk error: position RMS %s -> %s, angle RMS %s -> %s%s' % (
+            _figure(before['position_rms_m'], 'm'), _figure(after['position_rms_m'], 'm'),
+            _figure(before['angle_rms_rad'], 'rad'), _figure(after['angle_rms_rad'], 'rad'),
+            ''.join('; fk solved no pose for %d of %d held-out readings %s' % (
+                errors['unsolved'], errors['poses'], when)
+                for errors, when in ((before, 'on the drawing'), (after, 'calibrated'))
+                if errors['unsolved'])))
     for item in report['unidentifiable']:
         print('calibrate: warning: held at the drawing (the data know it to only %.3g m): %s'
               % (item['predicted_std_m'], item['combination']), file=sys.stderr)
@@ -264,18 +278,50 @@ def run_fit(args, mech, params_path: Path) -> int:
     return 0
 
 
-def run_plan(args, setup) -> int:
+def supervisor_limits(setup, params_path: Path):
+    """The supervisor's limits on the machine of ``params_path`` (its section's
+    keys, else their defaults): a plan must fly under them."""
+    try:
+        params = dict(setup.to_params(), **read_parameter_file(params_path, 'supervisor'))
+        return limits_from_params(setup.mechanism, params)
+    except ParameterError as exc:
+        raise InputError('%s: %s' % (params_path, exc)) from None
+
+
+def finite_or_none(value):
+    """``value`` (dicts, lists, numbers) with every NaN or infinity as None:
+    report.json is strict JSON, which has neither."""
+    if isinstance(value, dict):
+        return {k: finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_or_none(v) for v in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
+def _figure(value, unit) -> str:
+    return 'none' if value is None else '%.4g %s' % (value, unit)
+
+
+def run_plan(args, setup, params_path: Path) -> int:
     noise = _noise(args)
     try:
-        plan = cp.plan(setup, args.poses, args.seed, noise, args.candidates)
+        limits = cp.plan_limits(setup.mechanism, supervisor_limits(setup, params_path))
+        if limits.leg_speed and args.leg_speed > limits.leg_speed:
+            raise InputError('--leg-speed %g m/s: the supervisor trips at trip_leg_speed %g '
+                             'm/s, and a plan keeps its legs under %g m/s (%g of it)'
+                             % (args.leg_speed, limits.leg_speed / cp.SPEED_SHARE,
+                                limits.leg_speed, cp.SPEED_SHARE))
+        plan = cp.plan(setup, args.poses, args.seed, noise, args.candidates, limits=limits)
         times, rows = cp.reference_rows(setup, plan.positions, plan.rotations, args.hold,
-                                        args.move, args.leg_speed)
+                                        args.move, args.leg_speed, limits=limits)
     except cp.PlanError as exc:
         raise InputError(exc) from None
     try:
-        Reference.from_poses(setup.mechanism, times, rows).check()
+        Reference.from_poses(setup.mechanism, times, rows).check(max_leg_speed=limits.leg_speed)
     except ReferenceError as exc:
-        raise InputError('the planned reference leaves the stroke: %s' % exc) from None
+        raise InputError('the planned reference breaks a limit: %s' % exc) from None
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_reference_csv(out / 'reference.csv', times, rows)
@@ -292,7 +338,7 @@ def run_plan(args, setup) -> int:
                'o3_per_m': plan.o3, 'worst_std_m': plan.worst_std,
                'candidates': plan.candidates, 'duration_s': float(times[-1]),
                'hold_s': args.hold, 'tracker_noise': list(args.tracker_noise)}
-    (out / 'plan.json').write_text(json.dumps(summary, indent=1))
+    (out / 'plan.json').write_text(json.dumps(finite_or_none(summary), indent=1, allow_nan=False))
     print('calibrate: %d poses from %d candidates: O3 %.4g /m (worst combination std %.3g m '
           'at the stated noise), O1 %.4g /m; reference %.1f s' % (
               len(plan.positions), plan.candidates, plan.o3, plan.worst_std, plan.o1,
@@ -425,7 +471,7 @@ def main(argv=None) -> int:
         if args.command == 'fit':
             return run_fit(args, setup.mechanism, params_path)
         if args.command == 'plan':
-            return run_plan(args, setup)
+            return run_plan(args, setup, params_path)
         return run_machine(args, setup.mechanism, params_path)
     except InputError as exc:
         return _fail(exc)

@@ -3,7 +3,7 @@
     rig [--params FILE] [--mode realtime|lockstep] [--duration S] [--record DIR]
         [--namespace NS] [--nodes plant,controller,fk] [--realtime-priority P]
         [--compose] [--control-law NAME] [--reference CSV] [--fault FAULT]...
-        [--supervisor] [--plant-params FILE] [--bus canopen]
+        [--supervisor] [--plant-params FILE] [--bus canopen] [--tracking-bound M RAD]
 
 One parameter file and one namespace for all. Every node waits until its
 peers are matched before the first sample, so a short run loses nothing at
@@ -16,7 +16,8 @@ With --compose the nodes (and the recorder) run as nodes of one process
 (``composed``), still over the DDS topics. --control-law sets the
 controller's ``control_law``; --reference hands a reference CSV to the
 controller (``reference_file``, time 0 = the first sample) and to the plant,
-which reports the true tracking error in its summary. --fault (repeatable)
+which reports the true tracking error in its summary; beyond
+--tracking-bound the run lost its reference: rig says so and exits 1. --fault (repeatable)
 adds a fault to the plant's ``faults`` (docs/faults.md); the summary names
 each fault and when it acted. --supervisor puts the supervisor between the
 controller and the plant, or the bridge with --bus canopen
@@ -63,6 +64,11 @@ from stewart63_ros.tools.cli import (
 #: includes loading the numba kernels, which a fresh install (or a changed
 #: core) compiles first: more than a minute on a loaded two-core machine.
 START_TIMEOUT = 180.0
+#: --tracking-bound's default: position [m], orientation [rad]. A planned
+#: calibration on a machine built off its drawing tracks within 2.7 cm (the
+#: drawing's error and the law's lag, docs/calibration.md); a platform that
+#: changes assembly mode ends 0.2-0.3 m and 1 rad away.
+TRACKING_BOUND = (0.05, 0.1)
 MODULES = {'plant': 'stewart63_ros.nodes.plant', 'controller': 'stewart63_ros.nodes.controller',
            'fk': 'stewart63_ros.nodes.fk_node', 'record': 'stewart63_ros.tools.record',
            'composed': 'stewart63_ros.nodes.composed', 'view': 'stewart63_ros.tools.view',
@@ -473,6 +479,12 @@ def main(argv=None) -> int:
     parser.add_argument('--reference', metavar='CSV',
                         help='reference motion t,x,y,z,theta_x,theta_y,theta_z to follow from '
                         'the first sample; the summary prints the tracking error')
+    parser.add_argument('--tracking-bound', type=float, nargs=2, default=TRACKING_BOUND,
+                        metavar=('M', 'RAD'),
+                        help='with --reference: a run whose true position error exceeds M or '
+                        'whose orientation error exceeds RAD after the first second lost its '
+                        'reference: the summary says so and rig exits 1 (0 0: no bound) '
+                        '(default: %g %g)' % TRACKING_BOUND)
     parser.add_argument('--nodes', default=','.join(NODES), metavar='LIST',
                         help='the nodes this rig runs, a subset of plant,controller,fk '
                         '(default: all three), e.g. the plant on the platform\'s computer '
@@ -512,6 +524,8 @@ def main(argv=None) -> int:
         print('rig: error: --namespace: %s' % exc, file=sys.stderr)
         return 2
     params = args.params or str(default_params_path())
+    if not all(b >= 0 for b in args.tracking_bound):       # NaN fails too
+        parser.error('--tracking-bound takes two numbers >= 0 (metres, radians)')
     if args.view:
         # lazy: tools.view costs 2255 ms; only --view needs it
         from stewart63_ros.tools.view import port_free
@@ -595,6 +609,11 @@ def main(argv=None) -> int:
         except BusConfigError as exc:
             print('rig: error: %s' % exc, file=sys.stderr)
             return 2
+    if args.supervisor:
+        problem = supervisor_problem(params, extra.get('supervisor', {}))
+        if problem:     # once, here, not from the supervisor's process as it fails
+            print('rig: error: %s' % problem, file=sys.stderr)
+            return 2
     two = two_rates(params, args.plant_params, rate_followers(args.bus, args.supervisor))
     if two:
         print('rig: error: %s' % two, file=sys.stderr)
@@ -640,11 +659,51 @@ def main(argv=None) -> int:
     print_summary(rig, wall, start_unix)
     if args.record:
         print('  bag: %s' % args.record)
+    lost = lost_reference(rig.summary() if args.reference else None, args.tracking_bound)
+    if lost:
+        print('rig: error: %s' % lost, file=sys.stderr)
+        return 1
     if signals.requested:
         return 1 if failed_before else 0
     if died or not ok:
         return 1
     return 0
+
+
+def supervisor_problem(params, extra: dict) -> str:
+    """Why the supervisor would refuse its parameters ('' if it would not): its
+    limits, its homing (``homing_direction: retract`` on a machine whose legs
+    cannot all be at their lower stops), its reference. Checked before anything
+    starts: one line, exit 2 (it was the supervisor's log tail and exit 1)."""
+    # lazy: core.supervisor costs 1092 ms (numba, as tools.sim); --help answers without it
+    from stewart63_ros.core.node_parameters import read as read_declared
+    from stewart63_ros.core.params import read_parameter_file, setup_from_params
+    from stewart63_ros.core.supervisor import supervisor_from_params
+    try:
+        values = dict(read_parameter_file(params, 'supervisor'), **extra)
+        setup = setup_from_params(values)
+        values = dict(setup.to_params(), **values)
+        supervisor_from_params(setup, values, read_declared(values, 'sensor_rate'))
+    except ParameterError as exc:
+        return 'supervisor: parameter error: %s' % exc
+    return ''
+
+
+def lost_reference(summary: dict | None, bound) -> str:
+    """Why the plant's run lost the reference it was to follow ('' if it did not):
+    its true position or orientation error (after the first second) beyond
+    ``bound`` (metres, radians; 0 turns one off). A platform that changed
+    assembly mode keeps its legs near the reference's and its pose 0.3 m away."""
+    err = (summary or {}).get('tracking_error') or {}
+    if not err.get('samples'):
+        return ''
+    position, angle = bound
+    if position and err['position_max_m'] > position or angle and \
+            err['orientation_max_rad'] > angle:
+        return ('the platform lost its reference: true tracking error position max %.4g m, '
+                'orientation max %.4g rad, beyond --tracking-bound %g m %g rad'
+                % (err['position_max_m'], err['orientation_max_rad'], position, angle))
+    return ''
 
 
 def plant_params_problem(args, params) -> str:
@@ -729,6 +788,8 @@ def print_summary(rig, wall, started_unix=None):
     other nodes of this rig saw: for a timed run and for a stopped one alike.
     ``started_unix``: time.time() as the rig started (the wall time's parts)."""
     summary = rig.summary()
+    supervisor = rig.summary('supervisor') if rig.supervisor else None
+    homing = homing_unfinished(supervisor)
     if summary:
         lat = summary['loop_latency']
         parts = wall_parts(summary, wall, started_unix)
@@ -741,8 +802,11 @@ def print_summary(rig, wall, started_unix=None):
             print('rig summary: %d samples in %.2f s wall (%s); start-up %.2f s, stop %.2f s, '
                   '%.2f s in all' % (summary['samples'], parts['run'], mode,
                                      parts['start-up'], parts['stop'], wall))
-        print('  final positioning error: %.4f %% (max over legs of |L - L0| / L0)'
-              % summary['positioning_error_percent'])
+        if homing:      # the legs were on their way to the stops: no figure of the run's
+            print('  final positioning error: none, %s' % homing)
+        else:
+            print('  final positioning error: %.4f %% (max over legs of |L - L0| / L0)'
+                  % summary['positioning_error_percent'])
         if lat.get('count'):
             print('  loop latency (sample stamp -> force received): p50 %.3f ms, p99 %.3f ms, '
                   'max %.3f ms' % (lat['p50_ms'], lat['p99_ms'], lat['max_ms']))
@@ -767,7 +831,7 @@ def print_summary(rig, wall, started_unix=None):
         for fault in summary.get('faults', ()):
             print('  ' + format_fault(fault))
     if rig.supervisor:
-        print_trips(rig.summary('supervisor'))
+        print_trips(supervisor)
     if rig.bus:
         s = rig.summary('canopen_bridge')
         print('  canopen_bridge: %s' % ('no summary' if not s else
@@ -800,14 +864,25 @@ def reference_file_extra(extra: dict) -> str:
     return extra.get('controller', {}).get('reference_file', '')
 
 
+def homing_unfinished(summary) -> str:
+    """'the run ended before the homing finished ...' when the supervisor's
+    summary says it homes and is not homed; '' otherwise."""
+    if (summary or {}).get('values', {}).get('homed') == 'false':
+        return ('the run ended before the homing finished (homed: false): the controller '
+                'never drove the platform')
+    return ''
+
+
 def print_trips(summary) -> None:
-    """The supervisor's trips, one line each, in the rig's summary."""
+    """The supervisor's trips, one line each, in the rig's summary; a homing
+    the run cut short is said first (it read "no trip" and an error figure)."""
     if not summary:
         print('  supervisor: no summary')
         return
     trips = summary.get('trips', [])
-    print('  supervisor: %s' % ('%d trip%s' % (len(trips), 's' * (len(trips) != 1))
-                                if trips else 'no trip'))
+    homing = homing_unfinished(summary)
+    print('  supervisor: %s%s' % (homing + '; ' if homing else '', '%d trip%s' % (
+        len(trips), 's' * (len(trips) != 1)) if trips else 'no trip'))
     for trip in trips:
         print('    TRIP %s at sample %d (%s): %s, latency %s samples' % (
             trip['cause'], trip['sample'], trip['detail'], trip['action'],
