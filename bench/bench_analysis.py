@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from stewart63_ros.core import analysis, sweep
+from stewart63_ros.core import linear, modal, sweep
 from stewart63_ros.core.params import load_setup
 from stewart63_ros.paths import default_params_path
 
@@ -40,11 +40,11 @@ def measure(repeat: int = 3, runs: int = 1000) -> dict:
               '%d diverged)' % (runs, walls[-1], outcome['workers'], runs / walls[-1],
                                 sum(r['diverged'] for r in outcome['rows'])), flush=True)
     setup = load_setup()
-    analysis.modes(analysis.linearize(setup, 'pd'))            # load the kernels
+    modal.modes(linear.linearize(setup, 'pd'))            # load the kernels
     modes_walls = []
     for _ in range(max(5, repeat)):
         start = time.perf_counter()
-        analysis.modes(analysis.linearize(setup, 'pd'))
+        modal.modes(linear.linearize(setup, 'pd'))
         modes_walls.append(time.perf_counter() - start)
     command_walls = []
     for _ in range(repeat):
