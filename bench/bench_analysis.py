@@ -22,16 +22,17 @@ import time
 
 import numpy as np
 
-from stewart63_ros.core import linear, modal, sweep
+from stewart63_ros.core import linear, modal, sweep, sweep_plan
 from stewart63_ros.core.params import load_setup
 from stewart63_ros.paths import default_params_path
 
 
 def measure(repeat: int = 3, runs: int = 1000) -> dict:
     """{'sweep_1000_runs_s', 'analyze_modes_s', 'analyze_modes_command_s'}."""
-    plan = sweep.make_plan(default_params_path(), [sweep.parse_vary('platform_mass=10:20'),
-                                                   sweep.parse_vary('kp[2]=3000:5000')])
-    values = sweep.draw_values(plan.variations, runs, seed=1)
+    plan = sweep_plan.make_plan(default_params_path(),
+                                [sweep_plan.parse_vary('platform_mass=10:20'),
+                                 sweep_plan.parse_vary('kp[2]=3000:5000')])
+    values = sweep_plan.draw_values(plan.variations, runs, seed=1)
     walls = []
     for _ in range(repeat):
         outcome = sweep.run_sweep(plan, values)
