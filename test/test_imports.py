@@ -195,13 +195,15 @@ def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
 
 def test_the_graph_sees_function_level_and_type_hint_imports(tmp_path):
     edges = graph()
-    assert 'stewart63_ros.core.laws' in edges['stewart63_ros.core.params']     # in a function
-    assert 'stewart63_ros.core.errors' in edges['stewart63_ros.core.params']
+    params = edges['stewart63_ros.core.params']
+    assert 'stewart63_ros.core.laws' in params     # in a function
+    assert 'stewart63_ros.core.errors' in params
     assert cycles({'a': {'b'}, 'b': {'c'}, 'c': {'a'}, 'd': {'a'}}) == [['a', 'b', 'c']]
     hinted = tmp_path / 'm.py'
     hinted.write_text('from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n'
                       '    from stewart63_ros.core.params import Mechanism\n')
-    assert imported(hinted, 'stewart63_ros.core.m', modules()) == {'stewart63_ros.core.params'}
+    assert imported(hinted, 'stewart63_ros.core.m', modules()) == {
+        'stewart63_ros.core.params'}
 
 
 def test_no_import_cycle_in_the_package():
@@ -231,7 +233,8 @@ def test_the_floor_rule_sees_an_import_up_a_floor():
     assert up_a_floor({'stewart63_ros.nodes.composed': {'stewart63_ros.recording.recorder',
                                                         'stewart63_ros.tools.rig'}}) == [
         'stewart63_ros.nodes.composed (nodes) imports stewart63_ros.tools.rig (tools)']
-    assert up_a_floor({'stewart63_ros.core.mechanism': {'stewart63_ros.core.params'}}) != []
+    assert up_a_floor({'stewart63_ros.core.mechanism': {
+        'stewart63_ros.core.params'}}) != []
     assert up_a_floor({'stewart63_ros.tools.rig': {'stewart63_ros.runtime.wire',
                                                    'stewart63_ros.core.legs'}}) == []
     # The domain packages' floors, whatever the tree (names of the packaged core).
