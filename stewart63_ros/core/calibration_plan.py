@@ -16,7 +16,7 @@ then improves in O3. Both are reported.
 Candidates: random poses (seeded) around the setpoint's pose, kept only
 where the analysis toolbox says the machine can stand: every leg inside the
 stroke with a margin, the Jacobian's condition number at most
-``max_condition`` (core/equilibrium.py), the holding forces against gravity
+``max_condition`` (core/analysis.py), the holding forces against gravity
 within ``force_share`` of ``max_force`` (core/workspace.py's three limits).
 """
 from __future__ import annotations
