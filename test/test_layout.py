@@ -32,11 +32,11 @@ LONG_MODULES = {
     'stewart63_ros/core/supervisor.py': 'being split (the supervisor work)',
     'stewart63_ros/core/node_parameters.py': 'under change (the node parameters work)',
     'stewart63_ros/core/calibration.py': 'under change (the calibration work)',
-    'stewart63_ros/core/reference.py': 'to split: issue 40 (parsing, sampling)',
+    'stewart63_ros/core/reference.py': 'to split by job (parsing, sampling)',
     'stewart63_ros/tools/rig.py': 'under change (the rig work)',
     'stewart63_ros/tools/scenario.py': 'to split with core/scenario.py',
-    'stewart63_ros/tools/view.py': 'to split: issue 40 (the server, the scene)',
-    'stewart63_ros/bagio.py': 'to split: issue 40 (reading, writing, repairing bags)',
+    'stewart63_ros/tools/view.py': 'to split by job (the server, the scene)',
+    'stewart63_ros/bagio.py': 'to split by job (reading, writing, repairing bags)',
 }
 #: Classes over CLASS_LINES, as 'path:Class'.
 LONG_CLASSES = {
