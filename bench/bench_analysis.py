@@ -22,16 +22,17 @@ import time
 
 import numpy as np
 
-from stewart63_ros.core import analysis, sweep
+from stewart63_ros.core import linear, modal, sweep, sweep_plan
 from stewart63_ros.core.params import load_setup
 from stewart63_ros.paths import default_params_path
 
 
 def measure(repeat: int = 3, runs: int = 1000) -> dict:
     """{'sweep_1000_runs_s', 'analyze_modes_s', 'analyze_modes_command_s'}."""
-    plan = sweep.make_plan(default_params_path(), [sweep.parse_vary('platform_mass=10:20'),
-                                                   sweep.parse_vary('kp[2]=3000:5000')])
-    values = sweep.draw_values(plan.variations, runs, seed=1)
+    plan = sweep_plan.make_plan(default_params_path(),
+                                [sweep_plan.parse_vary('platform_mass=10:20'),
+                                 sweep_plan.parse_vary('kp[2]=3000:5000')])
+    values = sweep_plan.draw_values(plan.variations, runs, seed=1)
     walls = []
     for _ in range(repeat):
         outcome = sweep.run_sweep(plan, values)
@@ -40,11 +41,11 @@ def measure(repeat: int = 3, runs: int = 1000) -> dict:
               '%d diverged)' % (runs, walls[-1], outcome['workers'], runs / walls[-1],
                                 sum(r['diverged'] for r in outcome['rows'])), flush=True)
     setup = load_setup()
-    analysis.modes(analysis.linearize(setup, 'pd'))            # load the kernels
+    modal.modes(linear.linearize(setup, 'pd'))            # load the kernels
     modes_walls = []
     for _ in range(max(5, repeat)):
         start = time.perf_counter()
-        analysis.modes(analysis.linearize(setup, 'pd'))
+        modal.modes(linear.linearize(setup, 'pd'))
         modes_walls.append(time.perf_counter() - start)
     command_walls = []
     for _ in range(repeat):

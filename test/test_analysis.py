@@ -33,7 +33,7 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
-from stewart63_ros.core import analysis, dopri
+from stewart63_ros.core import dopri, equilibrium, linear, modal
 from stewart63_ros.core.dynamics import NO_WRENCH, Dynamics, derivative_pd
 from stewart63_ros.core.kinematics import jacobian, leg_lengths
 from stewart63_ros.core.rotation import rotation_from_euler
@@ -51,12 +51,12 @@ def dyn(default_mech):
 
 @pytest.fixture(scope='module')
 def open_model(default_setup, default_mech):
-    return analysis.linearize(default_setup, None)
+    return linear.linearize(default_setup, None)
 
 
 @pytest.fixture(scope='module')
 def pd_model(default_setup, default_mech):
-    return analysis.linearize(default_setup, 'pd')
+    return linear.linearize(default_setup, 'pd')
 
 
 def linear_step(model, du, times):
@@ -80,7 +80,7 @@ def nonlinear_step(dyn, model, du, times, setup):
     else:
         states, _ = dopri.solve_pd(dyn, eq.state13(), times, forces=model.u0 + du,
                                    endstops=False, rtol=1e-12, atol=1e-14)
-    return analysis.chart_from_state13(states, eq)
+    return equilibrium.chart_from_state13(states, eq)
 
 
 @pytest.mark.parametrize('loop, size, duration', [('open', 2.0, 0.4), ('closed', 2e-3, 1.0)])
@@ -135,7 +135,7 @@ def test_frequency_response_agrees_with_a_sine_excited_nonlinear_run(default_set
                                  np.ones_like(times)])
         coef, *_ = np.linalg.lstsq(basis, lengths - model.y0, rcond=None)
         measured = (coef[0] + 1j * coef[1]) / amplitude          # (6,) leg_1 -> each leg
-        predicted = analysis.frequency_response(model, [f])[0][:, 0]
+        predicted = modal.frequency_response(model, [f])[0][:, 0]
         scale = np.abs(predicted).max()
         assert np.abs(measured - predicted).max() < 1e-5 * scale, (f, measured, predicted)
         # The diagonal's gain and phase, as the Bode plot shows them.
@@ -161,7 +161,7 @@ def test_output_matrix_is_the_jacobian_and_the_equilibrium_holds(default_setup, 
 
 
 def test_pd_loop_folded_in_analytically_equals_the_law_differenced(default_setup, pd_model):
-    numeric = analysis.closed_loop(default_setup, pd_model.equilibrium, 'pd', numeric=True)
+    numeric = linear.closed_loop(default_setup, pd_model.equilibrium, 'pd', numeric=True)
     scale = np.abs(pd_model.A).max()
     assert np.abs(numeric.A - pd_model.A).max() < 1e-6 * scale
     assert np.abs(numeric.B - pd_model.B).max() < 1e-6 * np.abs(pd_model.B).max()
@@ -176,7 +176,7 @@ def test_computed_torque_shows_its_designed_error_dynamics(default_setup, defaul
     sqrt(ct_kp) / 2 pi Hz with damping ct_kd / (2 sqrt(ct_kp)), here with gains
     that differ from the defaults (30 rad/s, zeta 0.5)."""
     params = {'ct_kp': [900.0] * 6, 'ct_kd': [30.0] * 6}
-    found = analysis.modes(analysis.linearize(default_setup, 'computed_torque', params=params))
+    found = modal.modes(linear.linearize(default_setup, 'computed_torque', params=params))
     assert np.allclose(found.frequencies_hz, 30.0 / (2 * np.pi), rtol=1e-5)
     assert np.allclose(found.damping_ratios, 0.5, rtol=1e-5)
     assert all(found.stable)
@@ -193,11 +193,11 @@ def test_modes_of_known_second_order_systems():
     a[:6, 6:] = np.eye(6)
     a[6:, :6] = -rot @ np.diag(ks) @ rot.T
     a[6:, 6:] = -rot @ np.diag(cs) @ rot.T
-    model = analysis.LinearModel(a, np.zeros((12, 6)), np.zeros((6, 12)), np.zeros((6, 6)),
-                                 np.zeros(12), np.zeros(6), np.zeros(6),
-                                 analysis.Equilibrium(np.zeros(3), np.eye(3), np.zeros(6),
-                                                      np.ones(6), 1.0))
-    found = analysis.modes(model)
+    model = linear.LinearModel(a, np.zeros((12, 6)), np.zeros((6, 12)), np.zeros((6, 6)),
+                               np.zeros(12), np.zeros(6), np.zeros(6),
+                               equilibrium.Equilibrium(np.zeros(3), np.eye(3), np.zeros(6),
+                                                       np.ones(6), 1.0))
+    found = modal.modes(model)
     expected = sorted(zip(np.sqrt(np.abs(ks)) / (2 * np.pi), cs / (2 * np.sqrt(np.abs(ks))),
                           ks > 0, range(6)))
     for k, (freq, zeta, stable, axis) in enumerate(expected):
@@ -212,7 +212,7 @@ def test_the_default_mechanism_modes(open_model, pd_model):
     """Figures docs/analysis.md quotes: held by constant forces the platform
     falls away in all six directions (each mode has one positive eigenvalue);
     the pd loop (eq. 40) is stable, slowest mode 2.59 Hz at damping 0.74."""
-    open_modes, pd_modes = analysis.modes(open_model), analysis.modes(pd_model)
+    open_modes, pd_modes = modal.modes(open_model), modal.modes(pd_model)
     assert not any(open_modes.stable)
     assert all(pd_modes.stable)
     assert pd_modes.frequencies_hz[0] == pytest.approx(2.5907, abs=1e-3)
@@ -253,7 +253,7 @@ def test_workspace_points_agree_with_inverse_kinematics_and_holding_forces(defau
         if expected != 'singular':
             assert result.max_force[k] == pytest.approx(np.abs(forces).max(), rel=1e-9)
         if expected == 'ok':
-            eq = analysis.Equilibrium(p, rot, forces, lengths, cond)
+            eq = equilibrium.Equilibrium(p, rot, forces, lengths, cond)
             dy = dyn.derivative(eq.state13(), forces, with_endstops=False)
             assert np.abs(dy[7:]).max() < 1e-9
 
@@ -278,7 +278,7 @@ def test_analyze_modes_json_and_table(capsys, open_model):
     doc = json.loads(capsys.readouterr().out)
     assert set(doc) >= {'frequencies_hz', 'damping_ratios', 'mode_shapes', 'pose'}
     assert len(doc['frequencies_hz']) == 6 and np.shape(doc['mode_shapes']) == (6, 6)
-    expected = analysis.modes(open_model)
+    expected = modal.modes(open_model)
     assert np.allclose(doc['frequencies_hz'], expected.frequencies_hz)
     assert analyze.main(['modes']) == 0
     table = capsys.readouterr().out
@@ -293,7 +293,7 @@ def test_analyze_freqresp_writes_csv_and_bode(tmp_path, capsys, pd_model):
     assert list(rows[0]) == ['f_hz', 'input', 'output', 'magnitude', 'phase_deg']
     assert len(rows) == 7 * 36
     assert {r['input'] for r in rows} == {'leg_%d' % i for i in range(1, 7)}
-    g = analysis.frequency_response(pd_model, [1.0])[0]
+    g = modal.frequency_response(pd_model, [1.0])[0]
     row = next(r for r in rows if r['input'] == 'leg_2' and r['output'] == 'leg_5'
                and abs(float(r['f_hz']) - 1.0) < 1e-9)
     assert float(row['magnitude']) == pytest.approx(abs(g[4, 1]), rel=1e-8)
@@ -344,7 +344,7 @@ def test_the_memory_bound_of_a_workspace_grid_holds(default_setup, default_mech)
     import tracemalloc
 
     from stewart63_ros.core import workspace
-    pos, rot = analysis.setpoint_pose(default_setup)
+    pos, rot = equilibrium.setpoint_pose(default_setup)
     workspace_map(default_mech, rot, 0.3, through=pos)      # compiled outside the trace
     tracemalloc.start()
     try:
@@ -375,7 +375,7 @@ def test_analyze_bad_input_is_one_line_and_exit_2(capsys, argv, words):
 
 
 def test_a_law_that_cannot_hold_the_pose_is_refused(default_setup):
-    with pytest.raises(analysis.AnalysisError, match='kp is zero on leg_3'):
-        analysis.linearize(default_setup.replace(kp=[4000, 4000, 0, 4000, 4000, 4000]), 'pd')
-    with pytest.raises(analysis.AnalysisError, match='beyond max_force'):
-        analysis.linearize(default_setup.replace(max_force=50.0), None)
+    with pytest.raises(equilibrium.AnalysisError, match='kp is zero on leg_3'):
+        linear.linearize(default_setup.replace(kp=[4000, 4000, 0, 4000, 4000, 4000]), 'pd')
+    with pytest.raises(equilibrium.AnalysisError, match='beyond max_force'):
+        linear.linearize(default_setup.replace(max_force=50.0), None)

@@ -35,7 +35,7 @@ if os.environ.get('STEWART63_REQUIRE_MUJOCO'):
 else:
     mujoco = pytest.importorskip('mujoco', reason='MuJoCo is the optional [bench] extra')
 
-from stewart63_ros.core import analysis  # noqa: E402
+from stewart63_ros.core import linear, modal  # noqa: E402
 from stewart63_ros.mujoco_model import MujocoPlatform, Settings  # noqa: E402
 
 TIMESTEPS = (2e-4, 1e-4)
@@ -75,7 +75,7 @@ def matched(ours, theirs):
 
 @pytest.mark.parametrize('law', [None, 'pd'])
 def test_modes_agree_with_mujocos_linearization(default_setup, law):
-    model = analysis.linearize(default_setup, law)
+    model = linear.linearize(default_setup, law)
     values, vectors = np.linalg.eig(model.A)
     gaps, estimates = [], []
     for dt in TIMESTEPS:
@@ -93,9 +93,9 @@ def test_modes_agree_with_mujocos_linearization(default_setup, law):
     extrapolated = 2 * estimates[1] - estimates[0]
     assert np.max(np.abs(extrapolated - values) / np.abs(values)) < 3e-4
     # The natural frequencies and damping ratios of the six modes.
-    for i, j in analysis.pair_eigenvalues(values, vectors):
-        ours = analysis.pair_figures(values[i], values[j])
-        theirs = analysis.pair_figures(extrapolated[i], extrapolated[j])
+    for i, j in modal.pair_eigenvalues(values, vectors):
+        ours = modal.pair_figures(values[i], values[j])
+        theirs = modal.pair_figures(extrapolated[i], extrapolated[j])
         assert theirs[0] == pytest.approx(ours[0], rel=3e-4)
         assert theirs[1] == pytest.approx(ours[1], rel=3e-4)
         assert theirs[2] == ours[2]

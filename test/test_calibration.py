@@ -193,7 +193,7 @@ def test_level_poses_are_refused_naming_what_they_leave_unseen(setup, mech, trut
 
 def test_poses_at_one_height_turning_only_about_z_are_refused(setup, mech, truth):
     rng = np.random.default_rng(3)
-    from stewart63_ros.core.analysis import setpoint_pose
+    from stewart63_ros.core.equilibrium import setpoint_pose
     centre, _ = setpoint_pose(setup)
     positions = centre + np.column_stack([rng.uniform(-0.2, 0.2, (30, 2)), np.zeros(30)])
     rotations = Rotation.from_euler('z', rng.uniform(-0.3, 0.3, (30, 1))).as_matrix()

@@ -23,9 +23,9 @@ from stewart63_ros.core.fk import (
     FKTracker,
     ForwardKinematics,
     NoAssemblyError,
-    condition_number,
-    real_angles,
 )
+from stewart63_ros.core.fk_modes import real_angles
+from stewart63_ros.core.fk_tracking import condition_number
 from stewart63_ros.core.kinematics import jacobian, leg_lengths, leg_rates
 from stewart63_ros.core.rotation import rotation_from_euler
 from stewart63_ros.tools import fk_solve

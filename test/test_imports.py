@@ -6,11 +6,20 @@ and type-hint imports included: a cycle hidden in a function or behind
 The floors (docs/design.md), lowest first; a module imports only from its
 own floor or those below:
 
-0. core leaf modules (``LEAVES``): import nothing of the package but other
-   leaf modules. ``Mechanism``, the linear solver and eq. (40) live here, so
-   every module may name them, even in type hints, without a circle.
-1. the core (``stewart63_ros.core``) and the package's ROS-free modules
-   beside it (paths, topics, exits, bagio, middleware, mujoco_model).
+1. the core (``stewart63_ros.core``, no ROS) and the package's ROS-free
+   modules beside it (paths, topics, exits, bagio, middleware, mujoco_model).
+   Inside the core, floors by domain package (``CORE_FLOORS``), lowest first:
+   ``plumbing`` (names, errors, the declaration of every key), ``mechanics``
+   (the mechanism, kinematics, fk, dynamics), ``controllers`` (eq. (40), the
+   laws, references, the sensor model, the offline closed loop), then
+   ``machine`` (supervisor, bus, calibration, faults) and ``analysis``
+   (equilibrium, linear model, modes, workspace, sweep) side by side,
+   ``scenarios`` on top, and ``precompile`` (which calls every kernel) above
+   all. A module of floor 0 imports nothing of the package but floor 0.
+   A few modules sit on another floor than their package's, each with its
+   reason (``CORE_FLOORS``). While the core is one flat folder (a branch
+   from before the move into packages), its leaf modules (``FLAT_LEAVES``)
+   are floor 0 and the rest floor 1.
 2. the runtime (``stewart63_ros.runtime``): the rclpy machinery under the
    nodes; it imports neither the recorder nor a node.
 3. recording (``stewart63_ros.recording``): the recorder, on the runtime; it
@@ -44,17 +53,56 @@ def modules() -> dict[str, Path]:
     return out
 
 
-#: Floor 0: the core's leaf modules.
-LEAVES = frozenset('stewart63_ros.core.' + m for m in (
+#: The core's floors, by domain package (docs/design.md), lowest first. Same
+#: floor: may import each other (no cycle: test_no_import_cycle_in_the_package).
+#: A dotted module under the core names a module that sits on another floor
+#: than its package, with the reason.
+CORE_FLOORS = {
+    'plumbing': 0,
+    'mechanics': 1,
+    'controllers': 2,
+    'machine': 3,
+    'analysis': 3,
+    'scenarios': 4,
+    # compiles every kernel: it imports them all
+    'precompile': 5,
+    # eq. (40), written once: mechanics.dynamics evaluates it inside the ODE
+    'controllers.control': 0,
+    # node_parameters checks the `faults` parameter with its parser
+    'machine.faults': 0,
+    # loading a file checks `control_law` against controllers.laws
+    'plumbing.params': 2,
+}
+#: Before the core is in packages (a branch from before the move): its leaf modules.
+FLAT_LEAVES = frozenset('stewart63_ros.core.' + m for m in (
     '_jit', 'errors', 'legs', 'rotation', 'linalg', 'control', 'mechanism', 'setup', 'faults',
     'node_names', 'node_parameters', 'stamps', 'trajectory'))
-FLOOR_NAMES = ('core leaf', 'core', 'runtime', 'recording', 'nodes', 'tools')
+CORE = 'stewart63_ros.core'
+FLOOR_NAMES = ('', 'core', 'runtime', 'recording', 'nodes', 'tools')
+
+
+def packaged() -> bool:
+    """True once the core is in its domain packages."""
+    return (PACKAGE / 'core' / 'mechanics').is_dir()
+
+
+def core_floor(name: str) -> int | None:
+    """The floor of core module ``name`` inside the core (None: not in the
+    core, or a core module the table does not place)."""
+    if name == CORE or not name.startswith(CORE + '.'):
+        return None
+    parts = name[len(CORE) + 1:].split('.')
+    for size in (2, 1):
+        key = '.'.join(parts[:size])
+        if len(parts) >= size and key in CORE_FLOORS:
+            return CORE_FLOORS[key]
+    if not packaged() and len(parts) == 1:
+        return 0 if name in FLAT_LEAVES else 1
+    return None
 
 
 def floor(name: str) -> int:
-    """The floor of module ``name`` (0 lowest; module docstring)."""
-    if name in LEAVES:
-        return 0
+    """The floor of module ``name`` (1 lowest; module docstring)."""
     if name.startswith(('stewart63_ros.tools', 'stewart63_ros.examples',
                         'stewart63_ros.pytest_plugin')):
         return 5
@@ -62,6 +110,28 @@ def floor(name: str) -> int:
         if name == 'stewart63_ros.' + package or name.startswith('stewart63_ros.%s.' % package):
             return number
     return 1
+
+
+def label(name: str) -> str:
+    """Where ``name`` sits, for a message: 'runtime', 'core/mechanics, floor 1'."""
+    inside = core_floor(name)
+    if inside is None:
+        return FLOOR_NAMES[floor(name)] if floor(name) > 1 else (
+            'core, no floor' if name.startswith(CORE + '.') else 'beside the core')
+    parts = name[len(CORE) + 1:].split('.')
+    where = 'core/' + parts[0] if len(parts) > 1 else 'core'
+    return '%s, floor %d' % (where, inside)
+
+
+def is_up(importer: str, imported_name: str) -> bool:
+    """True when ``importer`` may not import ``imported_name`` (a higher floor)."""
+    if floor(imported_name) != floor(importer):
+        return floor(imported_name) > floor(importer)
+    mine, theirs = core_floor(importer), core_floor(imported_name)
+    if mine is not None and theirs is not None:
+        return theirs > mine
+    # The core's ground floor imports nothing of the package but the ground floor.
+    return mine == 0 and theirs is None
 
 
 def imported(path: Path, name: str, known: dict[str, Path]) -> set[str]:
@@ -125,13 +195,15 @@ def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
 
 def test_the_graph_sees_function_level_and_type_hint_imports(tmp_path):
     edges = graph()
-    assert 'stewart63_ros.core.laws' in edges['stewart63_ros.core.params']     # in a function
-    assert 'stewart63_ros.core.errors' in edges['stewart63_ros.core.params']
+    params = edges['stewart63_ros.core.params']
+    assert 'stewart63_ros.core.laws' in params     # in a function
+    assert 'stewart63_ros.core.errors' in params
     assert cycles({'a': {'b'}, 'b': {'c'}, 'c': {'a'}, 'd': {'a'}}) == [['a', 'b', 'c']]
     hinted = tmp_path / 'm.py'
     hinted.write_text('from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n'
                       '    from stewart63_ros.core.params import Mechanism\n')
-    assert imported(hinted, 'stewart63_ros.core.m', modules()) == {'stewart63_ros.core.params'}
+    assert imported(hinted, 'stewart63_ros.core.m', modules()) == {
+        'stewart63_ros.core.params'}
 
 
 def test_no_import_cycle_in_the_package():
@@ -141,13 +213,14 @@ def test_no_import_cycle_in_the_package():
 
 def up_a_floor(edges: dict[str, set[str]]) -> list[str]:
     """Every import of a module on a higher floor than the importer's."""
-    return ['%s (%s) imports %s (%s)' % (a, FLOOR_NAMES[floor(a)], b, FLOOR_NAMES[floor(b)])
-            for a in sorted(edges) for b in sorted(edges[a]) if floor(b) > floor(a)]
+    return ['%s (%s) imports %s (%s)' % (a, label(a), b, label(b))
+            for a in sorted(edges) for b in sorted(edges[a]) if is_up(a, b)]
 
 
 def test_the_floor_rule_sees_an_import_up_a_floor():
     assert up_a_floor({'stewart63_ros.core.laws': {'stewart63_ros.runtime.wire'}}) == [
-        'stewart63_ros.core.laws (core) imports stewart63_ros.runtime.wire (runtime)']
+        'stewart63_ros.core.laws (%s) imports stewart63_ros.runtime.wire (runtime)'
+        % label('stewart63_ros.core.laws')]
     assert up_a_floor({'stewart63_ros.runtime.base': {'stewart63_ros.nodes.plant',
                                                       'stewart63_ros.recording.recorder'}}) == [
         'stewart63_ros.runtime.base (runtime) imports stewart63_ros.nodes.plant (nodes)',
@@ -160,10 +233,26 @@ def test_the_floor_rule_sees_an_import_up_a_floor():
     assert up_a_floor({'stewart63_ros.nodes.composed': {'stewart63_ros.recording.recorder',
                                                         'stewart63_ros.tools.rig'}}) == [
         'stewart63_ros.nodes.composed (nodes) imports stewart63_ros.tools.rig (tools)']
-    assert up_a_floor({'stewart63_ros.core.mechanism': {'stewart63_ros.core.params'}}) == [
-        'stewart63_ros.core.mechanism (core leaf) imports stewart63_ros.core.params (core)']
+    assert up_a_floor({'stewart63_ros.core.mechanism': {
+        'stewart63_ros.core.params'}}) != []
     assert up_a_floor({'stewart63_ros.tools.rig': {'stewart63_ros.runtime.wire',
                                                    'stewart63_ros.core.legs'}}) == []
+    # The domain packages' floors, whatever the tree (names of the packaged core).
+    assert up_a_floor({'stewart63_ros.core.mechanics.dynamics': {
+        'stewart63_ros.core.controllers.laws', 'stewart63_ros.core.controllers.control',
+        'stewart63_ros.core.plumbing.errors'}}) == [
+        'stewart63_ros.core.mechanics.dynamics (core/mechanics, floor 1) imports'
+        ' stewart63_ros.core.controllers.laws (core/controllers, floor 2)']
+    assert up_a_floor({'stewart63_ros.core.machine.supervisor': {
+        'stewart63_ros.core.analysis.sweep', 'stewart63_ros.core.scenarios.scenario'}}) == [
+        'stewart63_ros.core.machine.supervisor (core/machine, floor 3) imports'
+        ' stewart63_ros.core.scenarios.scenario (core/scenarios, floor 4)']
+    assert up_a_floor({'stewart63_ros.core.plumbing.node_parameters': {
+        'stewart63_ros.core.machine.faults', 'stewart63_ros.paths'}}) == [
+        'stewart63_ros.core.plumbing.node_parameters (core/plumbing, floor 0) imports'
+        ' stewart63_ros.paths (beside the core)']
+    assert up_a_floor({'stewart63_ros.core.machine.faults': {
+        'stewart63_ros.core.mechanics.kinematics'}}) != []
 
 
 def test_no_module_imports_up_a_floor():
@@ -171,8 +260,18 @@ def test_no_module_imports_up_a_floor():
     assert found == [], 'imports up a floor (module docstring):\n' + '\n'.join(found)
 
 
-def test_every_leaf_module_exists():
-    assert LEAVES <= set(modules())
+def test_every_core_module_has_a_floor():
+    """Each module of the core is in a package of the floor table (or is one the
+    table names), and every package and module the table names exists."""
+    known = modules()
+    if not packaged():
+        assert FLAT_LEAVES <= set(known)
+        return
+    unplaced = sorted(name for name in known
+                      if name.startswith(CORE + '.') and core_floor(name) is None)
+    assert unplaced == [], 'put these in a package of CORE_FLOORS: %s' % unplaced
+    missing = sorted(key for key in CORE_FLOORS if '%s.%s' % (CORE, key) not in known)
+    assert missing == [], 'CORE_FLOORS names what is not there: %s' % missing
 
 
 @pytest.mark.parametrize('name', sorted(modules()))

@@ -1,7 +1,7 @@
 """`sweep`: each row is a single `sim` run, failures are marked, Dask gives the same rows.
 
 - a row's final error is `sim`'s on a parameter file with that row's values
-  (``sweep.write_run_parameters``): the same printed digits, and in-process
+  (``sweep_report.write_run_parameters``): the same printed digits, and in-process
   the same bits;
 - summary.json's percentiles are numpy's of runs.csv's columns;
 - a run whose law raises or whose integration fails is a row with
@@ -20,7 +20,7 @@ import json
 import numpy as np
 import pytest
 
-from stewart63_ros.core import sweep
+from stewart63_ros.core import sweep, sweep_plan, sweep_report
 from stewart63_ros.core.control import pd_law
 from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.params import load_setup
@@ -69,15 +69,15 @@ def sim_error(params_file, tmp_path) -> str:
 
 
 def test_vary_is_parsed_and_draws_are_reproducible():
-    var = sweep.parse_vary('kp[2]=3000:5000')
+    var = sweep_plan.parse_vary('kp[2]=3000:5000')
     assert (var.name, var.index, var.low, var.high, var.key) == ('kp', 2, 3000.0, 5000.0,
                                                                  'kp[2]')
-    assert sweep.parse_vary(' platform_mass = 10:20').index is None
-    variations = [var, sweep.parse_vary('platform_mass=10:20')]
-    a = sweep.draw_values(variations, 50, seed=4)
-    assert np.array_equal(a, sweep.draw_values(variations, 50, seed=4))
+    assert sweep_plan.parse_vary(' platform_mass = 10:20').index is None
+    variations = [var, sweep_plan.parse_vary('platform_mass=10:20')]
+    a = sweep_plan.draw_values(variations, 50, seed=4)
+    assert np.array_equal(a, sweep_plan.draw_values(variations, 50, seed=4))
     assert np.all((a[:, 0] >= 3000) & (a[:, 0] <= 5000) & (a[:, 1] >= 10) & (a[:, 1] <= 20))
-    grid = sweep.draw_values(variations, 10, grid=True)      # round(sqrt(10)) = 3 per key
+    grid = sweep_plan.draw_values(variations, 10, grid=True)      # round(sqrt(10)) = 3 per key
     assert grid.shape == (9, 2)
     assert sorted(set(grid[:, 0])) == [3000.0, 4000.0, 5000.0]
 
@@ -104,11 +104,12 @@ def test_rows_equal_single_sim_runs(setup, tmp_path, default_params_file):
                              'max_force', 'settling_time_s', 'endstop_samples', 'diverged',
                              'failure']
     assert [int(r['run']) for r in rows] == list(range(6))
-    variations = [sweep.parse_vary('platform_mass=12:19'), sweep.parse_vary('kv[1]=200:400')]
+    variations = [sweep_plan.parse_vary('platform_mass=12:19'),
+                  sweep_plan.parse_vary('kv[1]=200:400')]
     for row in rows[:3]:
         values = [float(row['param.platform_mass']), float(row['param.kv[1]'])]
         params = tmp_path / ('run%s.yaml' % row['run'])
-        sweep.write_run_parameters(default_params_file, params, variations, values)
+        sweep_report.write_run_parameters(default_params_file, params, variations, values)
         # sim prints round(error, 4)
         assert float(sim_error(params, tmp_path)) == round(float(row['final_error_percent']), 4)
         # In-process the very same number: sim's arithmetic, bit for bit.
@@ -201,7 +202,7 @@ def test_a_varied_key_never_shares_a_column_with_a_metric(tmp_path):
                              '--out', str(out)])
     assert status == 0
     header = (out / 'runs.csv').read_text().splitlines()[0].split(',')
-    assert header == ['run', 'param.max_force'] + list(sweep.METRICS) + ['failure']
+    assert header == ['run', 'param.max_force'] + list(sweep_report.METRICS) + ['failure']
     summary = json.loads((out / 'summary.json').read_text())
     assert {'param.max_force', 'max_force'} <= set(summary['columns'])
     for row in read_rows(out / 'runs.csv'):
@@ -250,9 +251,9 @@ def test_a_zero_gain_is_refused_by_sweep_and_analyze_alike(tmp_path, capsys,
                             '--out', str(tmp_path)]) == 2
     assert 'kp is zero on leg_1' in capsys.readouterr().err
     zero = tmp_path / 'zero_kp.yaml'
-    sweep.write_run_parameters(default_params_file, zero,
-                               [sweep.parse_vary('kp[%d]=0:0' % i) for i in range(6)],
-                               [0.0] * 6)
+    sweep_report.write_run_parameters(default_params_file, zero,
+                                      [sweep_plan.parse_vary('kp[%d]=0:0' % i) for i in range(6)],
+                                      [0.0] * 6)
     assert sweep_tool.main(['--runs', '3', '--params', str(zero),
                             '--out', str(tmp_path)]) == 2
     swept = capsys.readouterr().err.strip()
@@ -264,18 +265,18 @@ def test_a_zero_gain_is_refused_by_sweep_and_analyze_alike(tmp_path, capsys,
 
 
 def test_fault_patterns_draw_legs_and_times():
-    pattern = sweep.parse_fault_pattern('actuator_dead:leg_{1..6}@U(1,5)', 1)
+    pattern = sweep_plan.parse_fault_pattern('actuator_dead:leg_{1..6}@U(1,5)', 1)
     assert [a.column for a in pattern.axes] == ['fault1.leg', 'fault1.start_s']
     assert pattern.resolve([4.0, 2.5]) == 'actuator_dead:leg_4@2.5'
-    values = sweep.draw_values(pattern.axes, 600, seed=7)
+    values = sweep_plan.draw_values(pattern.axes, 600, seed=7)
     assert set(values[:, 0]) == {1.0, 2.0, 3.0, 4.0, 5.0, 6.0}
     assert np.all((values[:, 1] >= 1) & (values[:, 1] <= 5))
     # each leg about as likely (600 draws: 100 each, +- 4 standard deviations)
     counts = np.bincount(values[:, 0].astype(int))[1:]
     assert np.all(np.abs(counts - 100) < 4 * np.sqrt(100 * 5 / 6)), counts
-    grid = sweep.draw_values(pattern.axes, 18, grid=True)      # every leg x 3 times
+    grid = sweep_plan.draw_values(pattern.axes, 18, grid=True)      # every leg x 3 times
     assert grid.shape == (18, 2) and sorted(set(grid[:, 0])) == [1, 2, 3, 4, 5, 6]
-    bias = sweep.parse_fault_pattern('sensor_bias:leg_2:{-0.01,0.02}@1-U(2,3)', 2)
+    bias = sweep_plan.parse_fault_pattern('sensor_bias:leg_2:{-0.01,0.02}@1-U(2,3)', 2)
     assert [a.column for a in bias.axes] == ['fault2.value', 'fault2.end_s']
     assert bias.resolve([0.02, 2.25]) == 'sensor_bias:leg_2:0.02@1-2.25'
 

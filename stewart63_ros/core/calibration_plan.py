@@ -35,8 +35,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from stewart63_ros.core import calibration as cal
-from stewart63_ros.core.analysis import AnalysisError, holding_forces, setpoint_pose
 from stewart63_ros.core.dynamics import Dynamics
+from stewart63_ros.core.equilibrium import AnalysisError, holding_forces, setpoint_pose
 from stewart63_ros.core.fk import ForwardKinematics
 from stewart63_ros.core.mechanism import Mechanism
 from stewart63_ros.core.rotation import (

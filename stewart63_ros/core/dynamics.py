@@ -31,6 +31,11 @@ travel as tuples of floats, J, H, eta, L and dL/dt are written into one work
 array, so that an evaluation allocates nothing but its result
 (``derivative_pd``; ``rk4`` allocates once per call), and the small kernels
 (``njit_kernel``) are inlined into their compiled callers.
+
+Why this long: one equation, eq. (38): the derivation above, the private
+kernels that assemble and solve it (inlined into each other), and the
+``Dynamics`` class over them; apart, the kernels would be imported across
+files by their private names, and the derivation read in two places.
 """
 from __future__ import annotations
 

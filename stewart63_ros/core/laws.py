@@ -52,7 +52,8 @@ from stewart63_ros.core._jit import njit
 from stewart63_ros.core.control import PDGains, pd_force, pd_law, pd_leg, saturated
 from stewart63_ros.core.dynamics import Dynamics, inverse_dynamics_forces
 from stewart63_ros.core.errors import ParameterError
-from stewart63_ros.core.fk import ForwardKinematics, pose_and_twist
+from stewart63_ros.core.fk import ForwardKinematics
+from stewart63_ros.core.fk_tracking import pose_and_twist
 from stewart63_ros.core.node_parameters import gain_vector, law_name
 from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.reference import (
@@ -137,7 +138,7 @@ def _computed_torque(const, base, plat, inertia, pos, rot, twist, ref, kp, kd, m
 # -- the pose estimate ------------------------------------------------------------------------
 class PoseEstimator:
     """Tracking FK of the measured lengths and rates (pose and twist): Newton from
-    the previous estimate (``fk.pose_and_twist``, compiled), falling back on the
+    the previous estimate (``fk_tracking.pose_and_twist``, compiled), falling back on the
     assembly mode nearest the previous estimate when Newton fails.
 
     Starts at ``start``; ``position`` (3,), ``rotation`` (3, 3) and ``twist``

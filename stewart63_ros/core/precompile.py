@@ -99,7 +99,7 @@ def main() -> None:
         Controller(setup, law=name, reference=ref)(lengths, rates, 0.25)
     # The analysis: holding forces, the workspace grid, a sweep run's leg lengths.
     # lazy: the kernels cost 692 ms; cli imports this for the notice
-    from stewart63_ros.core.analysis import holding_forces
+    from stewart63_ros.core.equilibrium import holding_forces
     from stewart63_ros.core.sweep import leg_lengths_of_states
     from stewart63_ros.core.workspace import workspace_map
     holding_forces(dyn, task.initial_position, np.eye(3))

@@ -27,7 +27,7 @@ from numpy.typing import ArrayLike
 
 from stewart63_ros.core._jit import njit
 from stewart63_ros.core.dynamics import Dynamics, inverse_dynamics_forces
-from stewart63_ros.core.fk import condition_number
+from stewart63_ros.core.fk_tracking import condition_number
 from stewart63_ros.core.kinematics import leg_kernel
 from stewart63_ros.core.mechanism import Mechanism
 

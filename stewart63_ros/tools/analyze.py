@@ -23,15 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart63_ros.core import analysis
-from stewart63_ros.core.analysis import (
-    DEFAULT_MAX_CONDITION,
-    AnalysisError,
-    frequency_table,
-    linearize,
-    strongest_couplings,
-)
+from stewart63_ros.core import equilibrium, modal
+from stewart63_ros.core.equilibrium import DEFAULT_MAX_CONDITION, AnalysisError
 from stewart63_ros.core.laws import law_class
+from stewart63_ros.core.linear import linearize
+from stewart63_ros.core.modal import frequency_table, strongest_couplings
 from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.params import (
     ParameterError,
@@ -348,12 +344,12 @@ def _run(args, setup, params_path) -> int:
         step = DEFAULT_STEP if args.step is None else args.step
         if not (np.isfinite(step) and step > 0):
             return _fail('--step must be a positive length [m], got %g' % step)
-        position, rotation = analysis.setpoint_pose(setup)
+        position, rotation = equilibrium.setpoint_pose(setup)
         if args.orientation is not None:
             if not np.all(np.isfinite(args.orientation)):
                 return _fail('--orientation must be three finite angles [rad]')
             rotation = rotation_from_euler(args.orientation)
-        limit = args.max_condition or analysis.DEFAULT_MAX_CONDITION
+        limit = args.max_condition or equilibrium.DEFAULT_MAX_CONDITION
         # Sizes first, before anything is made: memory, then the CSV.
         points = int(np.prod([len(a) for a in grid_axes(mech, step, through=position)],
                              dtype=float))
@@ -402,7 +398,7 @@ def _run(args, setup, params_path) -> int:
         print('written: %s, %s' % (npz, js))
         return 0
     if args.command == 'modes':
-        found = analysis.modes(model)
+        found = modal.modes(model)
         if args.json:
             print(json.dumps(found.to_json()))
         else:
@@ -415,7 +411,7 @@ def _run(args, setup, params_path) -> int:
     if args.points < 2:
         return _fail('--points must be at least 2, got %d' % args.points)
     freqs = np.logspace(np.log10(args.fmin), np.log10(args.fmax), args.points)
-    response = analysis.frequency_response(model, freqs)
+    response = modal.frequency_response(model, freqs)
     csv_path = write_freqresp(model, freqs, response, out)
     png = draw_bode(model, freqs, response, out / 'bode.png')
     dc = np.abs(response[0])

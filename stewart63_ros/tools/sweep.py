@@ -146,7 +146,7 @@ def draw_sweep(plan, rows, path: Path, title: str) -> Path:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     # lazy: core.sweep costs 692 ms (scipy.optimize); --help answers
-    from stewart63_ros.core import sweep
+    from stewart63_ros.core import sweep, sweep_plan, sweep_report
     if args.runs < 1:
         return _fail('--runs must be at least 1, got %d' % args.runs)
     if not (np.isfinite(args.duration) and args.duration > 0):
@@ -167,14 +167,15 @@ def main(argv=None) -> int:
     try:
         if args.scheduler:
             sweep.check_scheduler_address(args.scheduler)
-        variations = [sweep.parse_vary(text) for text in args.vary]
-        patterns = [sweep.parse_fault_pattern(text, n + 1) for n, text in enumerate(args.fault)]
-        plan = sweep.make_plan(params_path, variations, args.control_law, args.duration,
-                               patterns, args.control, args.rate)
-    except (sweep.SweepError, ParameterError) as exc:
+        variations = [sweep_plan.parse_vary(text) for text in args.vary]
+        patterns = [sweep_plan.parse_fault_pattern(text, n + 1)
+                    for n, text in enumerate(args.fault)]
+        plan = sweep_plan.make_plan(params_path, variations, args.control_law, args.duration,
+                                    patterns, args.control, args.rate)
+    except (sweep_plan.SweepError, ParameterError) as exc:
         return _fail(exc)
     seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % 2**32)
-    values = sweep.draw_values(plan.axes, args.runs, seed, args.grid)
+    values = sweep_plan.draw_values(plan.axes, args.runs, seed, args.grid)
     if args.grid and len(values) != args.runs:
         print('%s: note: the grid gives %d runs (%s values per axis)' % (
             PROG, len(values), ' x '.join(str(len(np.unique(values[:, j])))
@@ -186,7 +187,7 @@ def main(argv=None) -> int:
         outcome = sweep.run_sweep(plan, values, args.workers, args.scheduler, args.dask_local)
     except OSError as exc:          # a scheduler that cannot be reached
         return _fail('Dask scheduler %s: %s' % (args.scheduler, exc))
-    except sweep.SweepError as exc:  # the cluster lost runs
+    except sweep_plan.SweepError as exc:  # the cluster lost runs
         print('%s: error: %s' % (PROG, exc), file=sys.stderr)
         return 1
     rows = outcome['rows']
@@ -194,9 +195,9 @@ def main(argv=None) -> int:
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    names = sweep.columns(plan)
+    names = sweep_report.columns(plan)
     write_runs(out / 'runs.csv', names, rows)
-    stats = sweep.summary(plan, rows)
+    stats = sweep_report.summary(plan, rows)
     doc = {'runs': len(rows), 'diverged_runs': stats['diverged']['count'],
            'control_law': plan.law, 'duration_s': plan.duration, 'control': plan.control,
            'output_rate_hz': plan.output_rate if plan.control == 'continuous' else None,
