@@ -78,6 +78,8 @@ class SupervisorNode(RigNode):
         self.pending = None         # (ns, sec, nanosec, frame_id) of the sample to answer
         self.answered_ns = -1
         self.early = {}             # requests that came before their sample: ns -> forces
+        self.headers = {}           # realtime: the newest sample's (ns, sec, nanosec, frame_id)
+        self.state = None           # the core's state, on /diagnostics when it changes
         self.async_trip = None      # (cause, detail) to latch before the next answer
         self.node_errors = {}       # node of the rig -> its ERROR message, while in ERROR
         self.late_requests = 0
@@ -164,6 +166,8 @@ class SupervisorNode(RigNode):
         core = self.core
         core.on_sample(ns, lengths, rates)
         self.pending = (ns, sec, nanosec, frame_id)
+        if not self.lockstep:       # a late request answers its own sample (on_request)
+            self.headers = {ns: self.pending}
         if core.trip is not None:
             self.answer(core.safe_forces(ns))
         elif core.homing is not None:
@@ -192,10 +196,22 @@ class SupervisorNode(RigNode):
         if self.pending is not None and ns == self.pending[0]:
             self.latch_async(ns)
             self.answer(self.core.on_request(ns, forces))
+        elif self.core.trip is not None:
+            # Tripped, the safe force answers a sample at once: its request
+            # comes after, and is the latest the controller wants, which a
+            # reset judges (a request parked here would leave the core the
+            # one from before the trip, and forces_stale for ever).
+            self.core.note_request(ns, forces)
+        elif self.pending is None and ns > self.answered_ns and ns in self.headers:
+            # Realtime: its sample waited a period and went unanswered; the
+            # plant holds the last force until a newer one comes: this is it.
+            self.late_requests += 1
+            self.health.values['late_requests'] = self.late_requests
+            self.pending = self.headers[ns]
+            self.answer(self.core.on_request(ns, forces))
         elif self.pending is None or ns > self.pending[0]:
             self.early[ns] = forces
-        elif self.core.trip is None or ns > self.answered_ns:
-            # (tripped, the answers go out before the requests: not late)
+        else:
             self.late_requests += 1
             self.health.values['late_requests'] = self.late_requests
 
@@ -306,8 +322,14 @@ class SupervisorNode(RigNode):
         trip = self.core.trip
         if trip is not None and self.health.values.get('tripped') == 'false':
             self.announce(trip)
+        state = self.core.state
+        if state != self.state:
+            # (descended: a reset can lead back; returning, then forwarding)
+            self.state = self.health.values['state'] = state
+            self.report()
 
     def announce(self, trip) -> None:
+        self.state = self.health.values['state'] = self.core.state
         report = self.core.trip_report(trip)
         self.health.fault = 'tripped: %s at sample %d (%s); safe action: %s; latency %s ' \
             'samples' % (trip.cause, report['sample'], trip.detail, trip.action,
