@@ -539,3 +539,40 @@ def test_estop_descent_reset_and_return_ten_times_never_trip_with_the_packaged_l
                                    atol=0.02)
         np.testing.assert_array_equal(out['forces'][end - 100:end],
                                       out['requests'][end - 100:end])
+
+
+#: A dead piston whose force comes back: the platform falls, tilting, and
+#: leg 1's force returning at 1 s swings it through a singular pose (the
+#: motion checks that catch the fall first are off, to reach it).
+DEAD_THEN_BACK = ['actuator_dead:leg_1@0.5-1.0']
+NO_MOTION_CHECKS = {'trip_leg_speed': 0.0, 'trip_tilt': 0.0, 'pose_box': [],
+                    'trip_tracking_error': 0.0}
+
+
+def test_a_crossing_into_another_assembly_mode_is_named_and_the_supervisor_trips_before(
+        setup, mech, params):
+    """The plant's truth (core/assembly.py, as the plant node and sim run it):
+    det J changes sign on one sample; the supervisor, its singularity check
+    on the readings' pose (trip_condition, packaged 100), trips before it."""
+    from stewart63_ros.core.assembly import crossings
+    from stewart63_ros.core.dynamics import Dynamics
+    from stewart63_ros.core.simulate import run_sampled
+    dyn = Dynamics(mech)
+    base_plat = dyn.kernel_args()[1:3]
+    free = run_sampled(setup, 1.2, RATE, dyn=dyn)
+    assert crossings(*base_plat, free.states, RATE) == []       # the healthy run: none
+    from stewart63_ros.core.faults import FaultModel, parse_faults
+    fallen = run_sampled(setup, 1.2, RATE, dyn=dyn,
+                         faults=FaultModel(parse_faults(DEAD_THEN_BACK), RATE))
+    notes = crossings(*base_plat, fallen.states, RATE)
+    assert len(notes) >= 1 and notes[0].startswith('assembly mode changed at sample ')
+    crossing = int(notes[0].split()[5])
+    assert 900 < crossing < 1000, notes
+    sup, out = supervised(setup, params, 0.95, DEAD_THEN_BACK, **NO_MOTION_CHECKS)
+    trip = sup.trip
+    assert trip.cause == 'singularity' and trip.action == HOLD, sup.trips
+    k = trip.sample_ns // 1_000_000
+    assert crossing - 10 < k < crossing, (k, crossing)
+    assert 'Jacobian condition number' in trip.detail
+    # before the trip, the same run as the unsupervised one: none crossed yet
+    assert crossings(*base_plat, out['states'][:k + 1], RATE) == []
