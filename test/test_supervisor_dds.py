@@ -509,3 +509,53 @@ def test_estop_descent_reset_and_return_repeat_without_a_trip_on_the_packaged_li
     assert set(codes.values()) == {0}, (codes, logs_of(rig.log_dir))
     summary = json.loads((tmp_path / 'rig' / 'supervisor_summary.json').read_text())
     assert [trip['cause'] for trip in summary['trips']] == ['estop'] * cycles, summary['trips']
+
+
+def child_pid(parent: int, module: str) -> int | None:
+    """The pid of ``parent``'s child process running ``module`` (by /proc)."""
+    try:
+        children = Path('/proc/%d/task/%d/children' % (parent, parent)).read_text().split()
+    except OSError:
+        return None
+    for pid in map(int, children):
+        try:
+            if module in Path('/proc/%d/cmdline' % pid).read_bytes().decode(errors='replace'):
+                return pid
+        except OSError:
+            continue
+    return None
+
+
+def test_rig_whose_supervisor_is_killed_shows_the_plants_fail_safe_then_stops(ros, tmp_path):
+    """``rig --supervisor`` (the command line, lockstep: on a loaded machine
+    a realtime plant fails safe now and then anyway): the supervisor killed
+    with -9 mid-run. The rig does not tear down at once: it waits for the
+    plant's fail safe (zero force stale_forces_ms after the last answer),
+    says so, then stops; exit 1 (a node died), documented."""
+    from sensor_msgs.msg import JointState
+
+    from stewart63_ros import topics as T
+    plant = tmp_path / 'plant.yaml'
+    # each sample waits this long for the dead supervisor's answer (1 s by default)
+    plant.write_text('/**/plant:\n  ros__parameters:\n    force_timeout: 0.05\n')
+    proc = ros.python('-m', 'stewart63_ros.tools.rig', '--mode', 'lockstep', '--supervisor',
+                      '--plant-params', str(plant), '--duration', '120',
+                      '--log-dir', str(tmp_path / 'rig'), name='rig')
+    node = ros.node('probe')
+    forces = []
+    node.create_subscription(JointState, '/leg_forces', lambda m: forces.append(1),
+                             T.RECORD_SUB)
+    try:
+        assert ros.spin_until(lambda: len(forces) >= 200, START_TIMEOUT), proc.describe()
+        supervisor = child_pid(proc.pid, 'stewart63_ros.nodes.supervisor')
+        assert supervisor is not None, proc.describe()
+        os.kill(supervisor, signal.SIGKILL)
+        code = proc.wait(START_TIMEOUT)
+    finally:
+        ros.stop(proc)
+    out = proc.stdout()
+    assert code == 1, proc.describe()
+    assert 'rig: the supervisor ended (-9) during the run: waiting' in out, out
+    acted = re.search(r'rig: fail safe acted after the supervisor ended: plant: no force newer '
+                      r'than 50\.0 ms: zero force from sample (\d+) \(force_stale_ms\)', out)
+    assert acted, out
