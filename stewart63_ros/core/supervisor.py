@@ -53,6 +53,7 @@ from stewart63_ros.core.node_parameters import read as read_declared
 from stewart63_ros.core.reference import R_LEN, Reference, ReferenceError, load_reference
 from stewart63_ros.core.supervisor_checks import (
     PoseFunction,
+    latest_request_cause,
     legs,
     pose_cause,
     readings_complete,
@@ -127,6 +128,7 @@ class Supervisor:
         self.last_good: np.ndarray | None = None     # lengths of the last good sample
         self.last_good_ns: int | None = None
         self.last_request_ns: int | None = None
+        self.heard_ns = -1          # the sample current when the latest request came
         self.last_forwarded = np.zeros(6)
         self.last_request = self.previous_request = None
         self.start_ns: int | None = None             # the reference's time 0
@@ -261,6 +263,10 @@ class Supervisor:
         ``force_rate``). Tripped, the node hands over every request here
         (the answer, the safe force, has gone out already)."""
         self.last_request_ns = max(ns, self.last_request_ns or ns)
+        # when it came, on the samples' clock: tripped in lockstep the plant
+        # does not wait for the controller, whose requests then lag behind
+        # the samples while it is alive
+        self.heard_ns = self.sample_ns
         self.previous_request, self.last_request = self.last_request, (ns, forces)
 
     def no_request(self, ns: int) -> np.ndarray:
@@ -381,11 +387,11 @@ class Supervisor:
         if not readings_complete(lengths, rates):
             return 'the leg readings are missing (NaN) on the latest sample'
         cause = self.trip.cause
-        if cause == 'forces_stale' and (ns - self.last_request_ns) * 1e-9 > lim.stale_forces:
-            return 'no request from the controller for %.1f ms' % (
-                (ns - self.last_request_ns) * 1e-6)
+        if cause == 'forces_stale' and (ns - self.heard_ns) * 1e-9 > lim.stale_forces:
+            return 'no request from the controller for %.1f ms' % ((ns - self.heard_ns) * 1e-6)
         if cause in ('bad_command', 'force', 'force_rate'):
-            found = self._latest_request_cause()
+            found = latest_request_cause(lim, self.last_request, self.previous_request,
+                                         self.period)
             if found is not None and found[0] == cause:
                 return 'the latest request: %s' % found[1]
         checks = {'stroke': lambda: stroke_cause(lim, lengths),
@@ -395,23 +401,6 @@ class Supervisor:
                   else None}
         found = checks.get(cause, lambda: None)()
         return found[1] if found and found[0] == cause else ''
-
-    def _latest_request_cause(self):
-        """The request checks on the latest request, its rate from the one
-        before it (none: no rate)."""
-        if self.last_request is None:
-            return 'forces_stale', 'none yet'
-        ns, forces = self.last_request
-        lim = self.limits
-        before = self.previous_request
-        if lim.force_rate and before is not None and np.shape(before[1]) == (6,) \
-                and np.all(np.isfinite(before[1])) and ns > before[0]:
-            # the change over the samples between them, as a rate per period
-            lim = dataclasses.replace(lim, force_rate=lim.force_rate * (ns - before[0])
-                                      * 1e-9 / self.period)
-            return request_cause(lim, forces, np.asarray(before[1]), self.period)
-        return request_cause(dataclasses.replace(lim, force_rate=0.0), forces, None,
-                             self.period)
 
     def reset(self) -> tuple[bool, str]:
         """``~/reset``: clear the trip unless its cause persists; then the
@@ -431,6 +420,8 @@ class Supervisor:
         self.descent = None
         self.tracking_since = None
         self.returning = True           # from the next complete sample
+        # the controller's silence counts from here (it was heard: above)
+        self.last_request_ns = max(self.last_request_ns, self.sample_ns)
         # The force-rate check goes on from the controller's latest request:
         # the step from the safe action to the controller is the return's.
         latest = None if self.last_request is None else np.asarray(self.last_request[1])

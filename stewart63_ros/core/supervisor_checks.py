@@ -6,6 +6,7 @@ core/supervisor.py is the supervisor; docs/supervisor.md the user's page.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING
@@ -101,3 +102,19 @@ def request_cause(lim: Limits, forces, last_forwarded: np.ndarray, period: float
             return 'force_rate', 'leg_%d %.4g N/s, limit %g N/s' % (
                 i + 1, rate[i], lim.force_rate)
     return None
+
+
+def latest_request_cause(lim: Limits, latest: tuple | None, before: tuple | None,
+                         period: float) -> Found:
+    """``request_cause`` on the latest request (ns, forces), its rate from
+    the one ``before`` it (none, or not six finite forces: no rate check),
+    over the samples between them; no request at all: ``forces_stale``."""
+    if latest is None:
+        return 'forces_stale', 'none yet'
+    ns, forces = latest
+    if lim.force_rate and before is not None and np.shape(before[1]) == (6,) \
+            and np.all(np.isfinite(before[1])) and ns > before[0]:
+        lim = dataclasses.replace(lim, force_rate=lim.force_rate * (ns - before[0]) * 1e-9
+                                  / period)
+        return request_cause(lim, forces, np.asarray(before[1]), period)
+    return request_cause(dataclasses.replace(lim, force_rate=0.0), forces, None, period)
