@@ -559,3 +559,36 @@ def test_rig_whose_supervisor_is_killed_shows_the_plants_fail_safe_then_stops(ro
     acted = re.search(r'rig: fail safe acted after the supervisor ended: plant: no force newer '
                       r'than 50\.0 ms: zero force from sample (\d+) \(force_stale_ms\)', out)
     assert acted, out
+
+
+def test_the_plant_names_a_crossing_into_another_assembly_mode(ros, monkeypatch, tmp_path):
+    """A lockstep rig (no supervisor) whose leg 1 is dead from 0.5 to 1.0 s:
+    the platform falls and swings through a singular pose. The plant says
+    ERROR on /diagnostics naming the sample, the one sim's loop names
+    (core/assembly.py on run_sampled's states)."""
+    from stewart63_ros.core.assembly import crossings
+    from stewart63_ros.core.dynamics import Dynamics
+    from stewart63_ros.core.faults import FaultModel, parse_faults
+    from stewart63_ros.core.params import load_setup
+    from stewart63_ros.core.simulate import run_sampled
+    fault = ['actuator_dead:leg_1@0.5-1.0']
+    setup = load_setup(PARAMS)
+    dyn = Dynamics(setup.mechanism)
+    result = run_sampled(setup, 1.0, RATE, dyn=dyn, faults=FaultModel(parse_faults(fault), RATE))
+    expected = crossings(*dyn.kernel_args()[1:3], result.states, RATE)
+    assert expected, 'the fault no longer provokes a crossing'
+    rig_env(ros, monkeypatch)
+    client = Client(ros)
+    errors = []
+    client.node.create_subscription(
+        client.DiagnosticArray, '/diagnostics', lambda m: errors.extend(
+            s.message for s in m.status if s.name == 'stewart63/plant'
+            and level_of(s) == ERROR), 100)
+    rig = Rig(PARAMS, mode='lockstep', duration=1.0, nodes=NODES, log_dir=tmp_path / 'rig',
+              extra_params={'plant': {'faults': fault}})
+    ok, codes, logs = run_to_end(rig, START_TIMEOUT)
+    assert ok and set(codes.values()) == {0}, logs
+    log = (tmp_path / 'rig' / 'plant.log').read_text()
+    assert '[ERROR]' in log and expected[0] in log, (expected, log[-2000:])
+    ros.spin_until(lambda: any(expected[0] in m for m in errors), 10)
+    assert any(expected[0] in m for m in errors), errors[-3:]
