@@ -343,6 +343,8 @@ def test_a_platform_at_rest_passes_every_check_and_a_reset_there_is_accepted(set
     ({'stroke_margin': -0.01}, 'stroke_margin'),
     ({'trip_leg_speed': -1.0}, 'trip_leg_speed'),
     ({'descent_speed': 0.6, 'trip_leg_speed': 0.5}, 'descent_speed'),
+    ({'return_speed': 0.5}, 'return_speed'),            # the return would trip
+    ({'trip_condition': -1.0}, 'trip_condition'),
     ({'pose_box': [0, 0, 1, 0.1, 0.1, 0.5]}, 'pose_box'),
     ({'pose_box': [0, 0, 1]}, 'pose_box'),
     # the rest pose (z 0.56 m) below the box: at rest, no reset would clear it
@@ -576,3 +578,14 @@ def test_a_crossing_into_another_assembly_mode_is_named_and_the_supervisor_trips
     assert 'Jacobian condition number' in trip.detail
     # before the trip, the same run as the unsupervised one: none crossed yet
     assert crossings(*base_plat, out['states'][:k + 1], RATE) == []
+
+
+def test_the_return_speed_is_by_default_a_share_of_the_leg_speed_limit(setup, mech, params):
+    """return_speed 0 (the key's default): 40 % of trip_leg_speed, so a lab
+    that lowers the limit keeps a return below it; 0.2 m/s with it off."""
+    def speed(**overrides):
+        return limits_from_params(mech, dict(params, **overrides)).return_speed
+    assert speed() == pytest.approx(0.2)
+    assert speed(trip_leg_speed=0.2) == pytest.approx(0.08)
+    assert speed(trip_leg_speed=0.0) == pytest.approx(0.2)
+    assert speed(return_speed=0.3) == pytest.approx(0.3)

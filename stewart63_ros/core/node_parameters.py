@@ -436,10 +436,11 @@ DECLARED: tuple[Declared, ...] = (
              positive),
     Declared('descent_speed', ('supervisor',), 0.05, 'm/s', '> 0, < `trip_leg_speed`', 'peak '
              'leg speed of the descent to the rest pose', positive, runtime=True),
-    Declared('return_speed', ('supervisor',), 0.2, 'm/s', '> 0, < `trip_leg_speed`', 'peak '
+    Declared('return_speed', ('supervisor',), 0.0, 'm/s', '≥ 0, < `trip_leg_speed`', 'peak '
              'leg speed of the return after a reset: the setpoint goes from where the legs are '
-             'to the reference on a cosine profile, then the controller takes over',
-             positive, runtime=True),
+             'to the reference on a cosine profile, then the controller takes over; 0: 40 % '
+             'of `trip_leg_speed` (0.2 m/s with the packaged 0.5 m/s; 0.2 m/s if that is off)',
+             nonnegative, runtime=True),
     Declared('trip_condition', ('supervisor',), 100.0, '', '≥ 0', 'the Jacobian condition '
              'number of the pose the readings give above which the platform is near a '
              'singularity, where it could cross into another assembly mode: trips (hold); '

@@ -44,6 +44,10 @@ CAUSES: dict[str, tuple[str, str]] = {
     'homing': (ZERO, 'the offsets the homing found could not be set on the drives'),
 }
 
+#: ``return_speed`` 0: this share of ``trip_leg_speed``, or this speed [m/s]
+#: when that check is off (docs/supervisor.md, the return)
+RETURN_SHARE, RETURN_SPEED = 0.4, 0.2
+
 #: The supervisor's keys of core/node_parameters.py that ``Limits`` reads.
 LIMIT_KEYS = ('stroke_margin', 'trip_leg_speed', 'trip_force', 'trip_force_rate',
               'trip_tracking_error', 'trip_tracking_time', 'pose_box', 'trip_tilt',
@@ -124,6 +128,8 @@ def limits_from_params(mech: Mechanism, params: Mapping[str, Any],
         raise ParameterError('descent_speed', '%g m/s is not below trip_leg_speed (%g m/s): '
                              'the descent would trip on its own speed'
                              % (value['descent_speed'], value['trip_leg_speed']))
+    if not value['return_speed']:       # (the key's default: a margin under the limit)
+        value['return_speed'] = RETURN_SHARE * value['trip_leg_speed'] or RETURN_SPEED
     if value['trip_leg_speed'] and value['return_speed'] >= value['trip_leg_speed']:
         raise ParameterError('return_speed', '%g m/s is not below trip_leg_speed (%g m/s): '
                              'the return after a reset would trip on its own speed'
