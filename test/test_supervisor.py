@@ -589,3 +589,19 @@ def test_the_return_speed_is_by_default_a_share_of_the_leg_speed_limit(setup, me
     assert speed(trip_leg_speed=0.2) == pytest.approx(0.08)
     assert speed(trip_leg_speed=0.0) == pytest.approx(0.2)
     assert speed(return_speed=0.3) == pytest.approx(0.3)
+
+
+def test_a_run_that_starts_with_the_return_never_rises_faster_than_return_speed(setup, mech,
+                                                                              params):
+    """return_at_start: the paper's first motion (0.344 m/s under the PD
+    alone, and past 0.5 m/s on a loaded realtime rig whose first forces come
+    late) made as the return after a reset: at most return_speed, then the
+    controller's own forces, ending where the controller alone ends."""
+    sup, out = supervised(setup, params, 2.0, return_at_start=True)
+    assert sup.trips == [] and sup.state == 'forwarding'
+    speed = np.abs(true_rates(mech, out)).max(axis=1)
+    # (a short return, 0.45 s for the 5.8 cm: the PD lags it by 5 %)
+    assert speed.max() < 1.1 * sup.limits.return_speed, speed.max()
+    np.testing.assert_array_equal(out['forces'][-500:], out['requests'][-500:])
+    alone, plain = supervised(setup, params, 2.0)
+    np.testing.assert_allclose(out['lengths'][-1], plain['lengths'][-1], atol=1e-3)

@@ -441,6 +441,10 @@ DECLARED: tuple[Declared, ...] = (
              'to the reference on a cosine profile, then the controller takes over; 0: 40 % '
              'of `trip_leg_speed` (0.2 m/s with the packaged 0.5 m/s; 0.2 m/s if that is off)',
              nonnegative, runtime=True),
+    Declared('return_at_start', ('supervisor',), False, '', '', 'the run starts with the '
+             'return a reset makes: from where the legs are to the reference at `return_speed`, '
+             'then the controller\'s forces (a realtime rig whose first forces come late '
+             'overshoots its first motion past `trip_leg_speed`)', boolean),
     Declared('trip_condition', ('supervisor',), 100.0, '', '≥ 0', 'the Jacobian condition '
              'number of the pose the readings give above which the platform is near a '
              'singularity, where it could cross into another assembly mode: trips (hold); '

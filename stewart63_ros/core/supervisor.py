@@ -111,11 +111,12 @@ class Supervisor:
         pose: the forward kinematics for the pose box and the singularity
             check (``supervisor_checks.PoseFunction``), or None (neither).
         homing: the homing to run first, or None.
+        return_at_start: begin with the return a reset makes.
     """
 
     def __init__(self, setup: Setup, limits: Limits, rate: float,
                  reference: Reference | None = None, pose: PoseFunction | None = None,
-                 homing: Homing | None = None) -> None:
+                 homing: Homing | None = None, return_at_start: bool = False) -> None:
         self.setup = setup
         self.mech = setup.mechanism
         self.period = 1.0 / rate
@@ -136,8 +137,10 @@ class Supervisor:
         self.tracking_since: int | None = None       # first sample of the current excess
         self.descent: Descent | None = None
         self.descent_start_ns = 0
-        #: after a reset: True until its first sample, then the Return under way
-        self.returning: Return | bool | None = None
+        #: after a reset (or at the start): True until its first complete
+        #: sample, then the Return under way
+        self.return_at_start = return_at_start
+        self.returning: Return | bool | None = True if return_at_start else None
         self.sample_ns = -1
         self.lengths = np.full(6, np.nan)
         self.rates = np.full(6, np.nan)
@@ -158,7 +161,7 @@ class Supervisor:
         clocks of the checks start over; a latched trip stays."""
         self.start_ns = self.last_request_ns = self.last_good_ns = self.first_ns = None
         self.tracking_since = None
-        self.returning = None
+        self.returning = True if self.return_at_start else None
 
     @property
     def state(self) -> str:
@@ -578,4 +581,5 @@ def supervisor_from_params(setup: Setup, params: Mapping[str, Any],
                                  % (speed, limits.leg_speed))
         homing = Homing(setup, direction, speed, read_declared(params, 'homing_force'),
                         mech.endstop_stiffness)
-    return Supervisor(setup, limits, rate, reference, pose, homing)
+    return Supervisor(setup, limits, rate, reference, pose, homing,
+                      return_at_start=read_declared(params, 'return_at_start'))
