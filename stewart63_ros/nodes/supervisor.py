@@ -71,7 +71,8 @@ class SupervisorNode(RigNode):
         self.core = supervisor_from_params(self.setup, self.params, self.rate)
         for limit_key in LIMIT_KEYS:
             self.tunable(limit_key, self._limit_setter(limit_key))
-        self.tunable('trip_on_diagnostics', self._set_trip_on_diagnostics)
+        self.tunable('trip_on_diagnostics',
+                     lambda value: setattr(self, 'trip_on_diagnostics', value))
         self.sample_gate = StampGate(RESTART_PAUSE)
         # The sensors read the true length plus leg_length_offset (the file's).
         self.length_offset = self.param('leg_length_offset')
@@ -120,9 +121,6 @@ class SupervisorNode(RigNode):
             self.core.set_limits(limits_from_params(self.mech, params, self.rate))
         return apply
 
-    def _set_trip_on_diagnostics(self, value):
-        self.trip_on_diagnostics = value
-
     # -- inputs ----------------------------------------------------------------------
     def on_sample(self, data: bytes, info):
         """A leg_lengths sample: checked; answered at once when tripped or when
@@ -167,7 +165,9 @@ class SupervisorNode(RigNode):
         core.on_sample(ns, lengths, rates)
         self.pending = (ns, sec, nanosec, frame_id)
         if not self.lockstep:       # a late request answers its own sample (on_request)
-            self.headers = {ns: self.pending}
+            self.headers[ns] = self.pending
+            if len(self.headers) > 16:
+                del self.headers[min(self.headers)]
         if core.trip is not None:
             self.answer(core.safe_forces(ns))
         elif core.homing is not None:
@@ -179,7 +179,8 @@ class SupervisorNode(RigNode):
             if early is not None:
                 self.answer(core.on_request(ns, early))
         for old in [k for k in self.early if k < ns]:
-            del self.early[old]
+            # (a request for a sample this node skipped: its controller lives)
+            self.core.note_request(old, self.early.pop(old))
 
     def on_request(self, data: bytes, info=None):
         """The controller's forces for a sample: checked and answered if that
@@ -202,18 +203,19 @@ class SupervisorNode(RigNode):
             # reset judges (a request parked here would leave the core the
             # one from before the trip, and forces_stale for ever).
             self.core.note_request(ns, forces)
-        elif self.pending is None and ns > self.answered_ns and ns in self.headers:
-            # Realtime: its sample waited a period and went unanswered; the
-            # plant holds the last force until a newer one comes: this is it.
-            self.late_requests += 1
-            self.health.values['late_requests'] = self.late_requests
-            self.pending = self.headers[ns]
-            self.answer(self.core.on_request(ns, forces))
+        elif ns > self.answered_ns and ns in self.headers and (
+                self.pending is None or ns < self.pending[0]):
+            # Realtime: its sample went unanswered (it waited a period, or a
+            # newer one overtook it); the plant holds an older force until
+            # a newer one comes: this is it, stamped with its own sample.
+            self.count_late()
+            self.send(self.headers[ns], self.core.on_request(ns, forces))
+            self.answered_ns = ns
         elif self.pending is None or ns > self.pending[0]:
             self.early[ns] = forces
         else:
-            self.late_requests += 1
-            self.health.values['late_requests'] = self.late_requests
+            self.count_late()
+            self.core.note_request(ns, forces)      # late, but the controller lives
 
     def on_diagnostics(self, msg):
         """A node of this rig whose status turns ERROR (or names a new error)
@@ -314,11 +316,20 @@ class SupervisorNode(RigNode):
             self.async_trip = None
             self.core.trip_now(cause, detail, ns)
 
-    def answer(self, forces) -> None:
-        ns, sec, nanosec, frame_id = self.pending
-        self.pending = None
-        self.answered_ns = ns
+    def count_late(self) -> None:
+        self.late_requests += 1
+        self.health.values['late_requests'] = self.late_requests
+
+    def send(self, header, forces) -> None:
+        """``forces`` on leg_forces, stamped as the sample ``header``
+        (ns, sec, nanosec, frame_id) it answers."""
+        _, sec, nanosec, frame_id = header
         self.send_forces(self.forces_out.get(frame_id).fill(sec, nanosec, effort=forces))
+
+    def answer(self, forces) -> None:
+        header, self.pending = self.pending, None
+        self.answered_ns = header[0]
+        self.send(header, forces)
         trip = self.core.trip
         if trip is not None and self.health.values.get('tripped') == 'false':
             self.announce(trip)
