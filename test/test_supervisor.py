@@ -605,3 +605,23 @@ def test_a_run_that_starts_with_the_return_never_rises_faster_than_return_speed(
     np.testing.assert_array_equal(out['forces'][-500:], out['requests'][-500:])
     alone, plain = supervised(setup, params, 2.0)
     np.testing.assert_allclose(out['lengths'][-1], plain['lengths'][-1], atol=1e-3)
+
+
+def test_a_singularity_trip_is_refused_while_the_pose_is_near_one(setup, mech, params):
+    """The reset rule for ``singularity``: refused while the condition number
+    of the readings' pose is above trip_condition, accepted below it."""
+    from stewart63_ros.core.reference import Reference
+    condition = [10.0]
+    start = (setup.task.initial_position, setup.task.initial_rotation)
+    sup = supervisor_from_params(setup, params, RATE)
+    sup.pose = lambda lengths: (np.array(start[0]), np.array(start[1]), condition[0])
+    sup.reference = Reference.constant_lengths(mech, setup.task.setpoint_lengths, near=start)
+    live(sup, setup, range(10), request=lambda k: np.zeros(6))
+    condition[0] = 250.0
+    live(sup, setup, range(10, 20), request=lambda k: np.zeros(6))
+    assert sup.trip.cause == 'singularity' and sup.trip.sample_ns == 10_000_000
+    ok, why = sup.reset()
+    assert not ok and 'Jacobian condition number 250' in why, why
+    condition[0] = 40.0
+    live(sup, setup, range(20, 21), request=lambda k: np.zeros(6))
+    assert sup.reset()[0]
