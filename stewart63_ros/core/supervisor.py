@@ -443,9 +443,11 @@ def run_supervised(setup: Setup, supervisor: Supervisor, duration: float, rate: 
     lockstep rig with ``rig --supervisor`` runs it, sample for sample.
 
     Sample k (stamp k / rate): the faults begin k; the sensors read; the
-    supervisor checks the sample; tripped, it answers with its safe action;
-    else the controller's request (none for a sample with a missing reading)
-    is checked and forwarded; the pistons apply the answer (actuator faults)
+    supervisor checks the sample; tripped, it answers with its safe action
+    (and the controller's request, computed as the rig's controller does on
+    every sample, reaches it after: ``note_request``); else the controller's
+    request (none for a sample with a missing reading) is checked and
+    forwarded (during a return, blended); the pistons apply the answer (actuator faults)
     over the period (the plant's RK4, ``Dynamics.step``). A law that raises
     (``LawError``) trips it on that sample (``diagnostics_error``), as the
     controller's ERROR does on the rig.
