@@ -343,6 +343,8 @@ def test_a_platform_at_rest_passes_every_check_and_a_reset_there_is_accepted(set
     ({'stroke_margin': -0.01}, 'stroke_margin'),
     ({'trip_leg_speed': -1.0}, 'trip_leg_speed'),
     ({'descent_speed': 0.6, 'trip_leg_speed': 0.5}, 'descent_speed'),
+    ({'return_speed': 0.5}, 'return_speed'),            # the return would trip
+    ({'trip_condition': -1.0}, 'trip_condition'),
     ({'pose_box': [0, 0, 1, 0.1, 0.1, 0.5]}, 'pose_box'),
     ({'pose_box': [0, 0, 1]}, 'pose_box'),
     # the rest pose (z 0.56 m) below the box: at rest, no reset would clear it
@@ -389,3 +391,237 @@ def test_homing_to_stops_no_pose_reaches_is_refused(setup, mech, params):
         supervisor_from_params(setup, dict(params, homing=True, homing_direction='retract'),
                                RATE)
     assert exc.value.key == 'homing_direction' and 'legs 1 and 2' in str(exc.value)
+
+
+def live(sup, setup, ks, lengths=None, rates=None, request=None):
+    """Samples ``ks`` as the node hands them over, tripped or not: the
+    readings, then the controller's request (None: none came); tripped, the
+    safe force answers at once and the request still reaches the core."""
+    setpoint = np.array(setup.task.setpoint_lengths, float)
+    for k in ks:
+        ns = k * 1_000_000
+        sup.on_sample(ns, setpoint if lengths is None else lengths(k),
+                      np.zeros(6) if rates is None else rates(k))
+        forces = None if request is None else request(k)
+        if sup.trip is not None:
+            sup.safe_forces(ns)
+            if forces is not None:
+                sup.note_request(ns, forces)
+        elif forces is not None:
+            sup.on_request(ns, forces)
+        else:
+            sup.no_request(ns)
+
+
+#: cause -> (limits, the stream while the cause holds (from sample 100 on),
+#: the stream once it is gone): each a dict of live()'s lengths/rates/request
+def reset_cases(setup, mech):
+    from stewart63_ros.core.kinematics import leg_lengths
+    setpoint = np.array(setup.task.setpoint_lengths, float)
+    zero = {'request': lambda k: np.zeros(6)}
+    leg3_short = setpoint - np.where(np.arange(6) == 2, 0.4, 0.0)
+    aside = leg_lengths(mech, np.array([0.15, 0.01, 1.07]), np.eye(3))
+    return {
+        'lengths_stale': ({}, dict(zero, lengths=lambda k: np.where(np.arange(6) == 1, np.nan,
+                                                                     setpoint)), zero),
+        'forces_stale': ({}, {'request': lambda k: None}, zero),
+        'bad_command': ({}, {'request': lambda k: np.full(6, np.nan)}, zero),
+        'force': ({}, {'request': lambda k: np.full(6, 5000.0)}, zero),
+        # a request alternating by 1000 N a sample; then a steady one
+        'force_rate': ({'trip_force_rate': 1e5}, {'request': lambda k: np.full(
+            6, 1000.0 * (k % 2))}, {'request': lambda k: np.full(6, 1000.0)}),
+        'stroke': ({}, dict(zero, lengths=lambda k: leg3_short), zero),
+        'leg_speed': ({}, dict(zero, rates=lambda k: np.full(6, 0.6)), zero),
+        'pose_box': ({'pose_box': [-0.1, -0.1, 0.5, 0.1, 0.1, 1.6]},
+                     dict(zero, lengths=lambda k: aside), zero),
+    }
+
+
+@pytest.mark.parametrize('cause', sorted(CAUSES))
+def test_every_cause_is_reset_once_it_is_gone_and_refused_while_it_holds(setup, mech, params,
+                                                                         cause):
+    """docs/supervisor.md's reset rule, on the live state: the requests that
+    come while tripped reach the core (before, a ``forces_stale`` or ``force``
+    trip judged the request of before the trip for ever). Events (estop, a
+    user's request, an ERROR, the homing's) and tracking_error do not
+    persist; ``singularity`` is test_a_singularity_trips_before_the_crossing's."""
+    cases = reset_cases(setup, mech)
+    if cause not in cases:
+        overrides, holds = {}, None
+    else:
+        overrides, holds, gone = cases[cause]
+    sup = supervisor_from_params(setup, dict(params, **overrides), RATE)
+    steady = {'request': lambda k: np.zeros(6)}
+    live(sup, setup, range(100), **steady)
+    if holds is None:
+        sup.trip_now(cause, 'test', 100 * 1_000_000)
+        live(sup, setup, range(100, 200), **steady)
+        assert sup.trip.cause == cause
+        ok, why = sup.reset()
+        assert ok and why == 'reset: %s trip of sample 100 cleared' % cause, why
+        return
+    live(sup, setup, range(100, 400), **holds)
+    assert sup.trip.cause == cause, sup.trip
+    for _ in range(2):          # refused, and again: nothing changes by asking
+        ok, why = sup.reset()
+        assert not ok and why.startswith('the cause of the trip (%s) persists: ' % cause), why
+    live(sup, setup, range(400, 420), **gone)
+    ok, why = sup.reset()
+    assert ok and sup.trip is None, why
+    # and the stream goes on untripped (the return, then the controller)
+    live(sup, setup, range(420, 500), **gone)
+    assert sup.trip is None and len(sup.trips) == 1, sup.trip
+
+
+def test_the_refusals_name_what_holds_now(setup, mech, params):
+    """The words a user reads while the cause holds: the live figures."""
+    sup = supervisor_from_params(setup, params, RATE)
+    live(sup, setup, range(100), request=lambda k: np.zeros(6))
+    live(sup, setup, range(100, 300), request=lambda k: None)
+    assert sup.reset() == (False, 'the cause of the trip (forces_stale) persists: no request '
+                           'from the controller for 200.0 ms')
+    sup = supervisor_from_params(setup, params, RATE)
+    live(sup, setup, range(100), request=lambda k: np.zeros(6))
+    live(sup, setup, range(100, 101), request=lambda k: np.full(6, 5000.0))
+    assert sup.trip.cause == 'force'
+    assert sup.reset()[1].endswith('the latest request: leg_1 5000.0 N, limit 3000 N')
+    live(sup, setup, range(101, 110), request=lambda k: np.full(6, 4321.0))
+    assert sup.reset()[1].endswith('the latest request: leg_1 4321.0 N, limit 3000 N')
+
+
+class Cycles:
+    """A controller through which, ``cycles`` times: ~/estop 0.5 s after the
+    controller has the platform alone again, and ~/reset once the descent
+    has reached rest (the node serves both between samples)."""
+
+    def __init__(self, sup, controller, cycles):
+        self.sup, self.controller, self.cycles = sup, controller, cycles
+        self.events, self.since = [], None
+
+    def forces(self, t, lengths, rates):
+        k, state = int(round(t * RATE)), self.sup.state
+        if state == 'forwarding':
+            self.since = k if self.since is None else self.since
+            if k - self.since >= 500 and len(self.events) < 2 * self.cycles:
+                self.sup.trip_now('estop', '~/estop')
+                self.events.append(('estop', k))
+                self.since = None
+        elif state == 'descended':
+            ok, why = self.sup.reset()
+            assert ok, why
+            self.events.append(('reset', k))
+        return self.controller.forces(t, lengths, rates)
+
+
+def test_estop_descent_reset_and_return_ten_times_never_trip_with_the_packaged_limits(
+        setup, mech, params):
+    """The way back into operation: after each reset the setpoint goes from
+    rest to the controller's reference at return_speed (0.2 m/s, under the
+    packaged trip_leg_speed 0.5 m/s), and the controller takes over. Ten
+    cycles in one run (the plant's dynamics): the only trips are the
+    estops; no leg ever faster than return_speed (the plant's truth, with
+    the 2 % a PD tracking a profile overshoots); every return ends on the
+    setpoint with the controller's own forces."""
+    from stewart63_ros.core.laws import Controller
+    sup = supervisor_from_params(setup, params, RATE)
+    assert sup.limits.leg_speed == 0.5 and sup.limits.return_speed == 0.2   # packaged
+    cycles = Cycles(sup, Controller(setup), 10)
+    out = run_supervised(setup, sup, 130.0, RATE, controller=cycles)
+    estops = [k for what, k in cycles.events if what == 'estop']
+    resets = [k for what, k in cycles.events if what == 'reset']
+    assert len(estops) == len(resets) == 10, cycles.events
+    assert [(t.cause, t.sample_ns // 1_000_000) for t in sup.trips] == [
+        ('estop', k) for k in estops]
+    assert sup.state == 'forwarding'
+    speed = np.abs(true_rates(mech, out)).max(axis=1)
+    for reset, end in zip(resets, estops[1:] + [len(speed)]):
+        assert speed[reset:end].max() < 1.02 * sup.limits.return_speed, (reset, end)
+        # back on the setpoint (the PD's sag), the controller's forces alone
+        np.testing.assert_allclose(out['lengths'][end - 1], setup.task.setpoint_lengths,
+                                   atol=0.02)
+        np.testing.assert_array_equal(out['forces'][end - 100:end],
+                                      out['requests'][end - 100:end])
+
+
+#: A dead piston whose force comes back: the platform falls, tilting, and
+#: leg 1's force returning at 1 s swings it through a singular pose (the
+#: motion checks that catch the fall first are off, to reach it).
+DEAD_THEN_BACK = ['actuator_dead:leg_1@0.5-1.0']
+NO_MOTION_CHECKS = {'trip_leg_speed': 0.0, 'trip_tilt': 0.0, 'pose_box': [],
+                    'trip_tracking_error': 0.0}
+
+
+def test_a_crossing_into_another_assembly_mode_is_named_and_the_supervisor_trips_before(
+        setup, mech, params):
+    """The plant's truth (core/assembly.py, as the plant node and sim run it):
+    det J changes sign on one sample; the supervisor, its singularity check
+    on the readings' pose (trip_condition, packaged 100), trips before it."""
+    from stewart63_ros.core.assembly import crossings
+    from stewart63_ros.core.dynamics import Dynamics
+    from stewart63_ros.core.simulate import run_sampled
+    dyn = Dynamics(mech)
+    base_plat = dyn.kernel_args()[1:3]
+    free = run_sampled(setup, 1.2, RATE, dyn=dyn)
+    assert crossings(*base_plat, free.states, RATE) == []       # the healthy run: none
+    from stewart63_ros.core.faults import FaultModel, parse_faults
+    fallen = run_sampled(setup, 1.2, RATE, dyn=dyn,
+                         faults=FaultModel(parse_faults(DEAD_THEN_BACK), RATE))
+    notes = crossings(*base_plat, fallen.states, RATE)
+    assert len(notes) >= 1 and notes[0].startswith('assembly mode changed at sample ')
+    crossing = int(notes[0].split()[5])
+    assert 900 < crossing < 1000, notes
+    sup, out = supervised(setup, params, 0.95, DEAD_THEN_BACK, **NO_MOTION_CHECKS)
+    trip = sup.trip
+    assert trip.cause == 'singularity' and trip.action == HOLD, sup.trips
+    k = trip.sample_ns // 1_000_000
+    assert crossing - 10 < k < crossing, (k, crossing)
+    assert 'Jacobian condition number' in trip.detail
+    # before the trip, the same run as the unsupervised one: none crossed yet
+    assert crossings(*base_plat, out['states'][:k + 1], RATE) == []
+
+
+def test_the_return_speed_is_by_default_a_share_of_the_leg_speed_limit(setup, mech, params):
+    """return_speed 0 (the key's default): 40 % of trip_leg_speed, so a lab
+    that lowers the limit keeps a return below it; 0.2 m/s with it off."""
+    def speed(**overrides):
+        return limits_from_params(mech, dict(params, **overrides)).return_speed
+    assert speed() == pytest.approx(0.2)
+    assert speed(trip_leg_speed=0.2) == pytest.approx(0.08)
+    assert speed(trip_leg_speed=0.0) == pytest.approx(0.2)
+    assert speed(return_speed=0.3) == pytest.approx(0.3)
+
+
+def test_a_run_that_starts_with_the_return_never_rises_faster_than_return_speed(setup, mech,
+                                                                              params):
+    """return_at_start: the paper's first motion (0.344 m/s under the PD
+    alone, and past 0.5 m/s on a loaded realtime rig whose first forces come
+    late) made as the return after a reset: at most return_speed, then the
+    controller's own forces, ending where the controller alone ends."""
+    sup, out = supervised(setup, params, 2.0, return_at_start=True)
+    assert sup.trips == [] and sup.state == 'forwarding'
+    speed = np.abs(true_rates(mech, out)).max(axis=1)
+    # (a short return, 0.45 s for the 5.8 cm: the PD lags it by 5 %)
+    assert speed.max() < 1.1 * sup.limits.return_speed, speed.max()
+    np.testing.assert_array_equal(out['forces'][-500:], out['requests'][-500:])
+    alone, plain = supervised(setup, params, 2.0)
+    np.testing.assert_allclose(out['lengths'][-1], plain['lengths'][-1], atol=1e-3)
+
+
+def test_a_singularity_trip_is_refused_while_the_pose_is_near_one(setup, mech, params):
+    """The reset rule for ``singularity``: refused while the condition number
+    of the readings' pose is above trip_condition, accepted below it."""
+    from stewart63_ros.core.reference import Reference
+    condition = [10.0]
+    start = (setup.task.initial_position, setup.task.initial_rotation)
+    sup = supervisor_from_params(setup, params, RATE)
+    sup.pose = lambda lengths: (np.array(start[0]), np.array(start[1]), condition[0])
+    sup.reference = Reference.constant_lengths(mech, setup.task.setpoint_lengths, near=start)
+    live(sup, setup, range(10), request=lambda k: np.zeros(6))
+    condition[0] = 250.0
+    live(sup, setup, range(10, 20), request=lambda k: np.zeros(6))
+    assert sup.trip.cause == 'singularity' and sup.trip.sample_ns == 10_000_000
+    ok, why = sup.reset()
+    assert not ok and 'Jacobian condition number 250' in why, why
+    condition[0] = 40.0
+    live(sup, setup, range(20, 21), request=lambda k: np.zeros(6))
+    assert sup.reset()[0]

@@ -436,6 +436,19 @@ DECLARED: tuple[Declared, ...] = (
              positive),
     Declared('descent_speed', ('supervisor',), 0.05, 'm/s', '> 0, < `trip_leg_speed`', 'peak '
              'leg speed of the descent to the rest pose', positive, runtime=True),
+    Declared('return_speed', ('supervisor',), 0.0, 'm/s', '≥ 0, < `trip_leg_speed`', 'peak '
+             'leg speed of the return after a reset: the setpoint goes from where the legs are '
+             'to the reference on a cosine profile, then the controller takes over; 0: 40 % '
+             'of `trip_leg_speed` (0.2 m/s with the packaged 0.5 m/s; 0.2 m/s if that is off)',
+             nonnegative, runtime=True),
+    Declared('return_at_start', ('supervisor',), False, '', '', 'the run starts with the '
+             'return a reset makes: from where the legs are to the reference at `return_speed`, '
+             'then the controller\'s forces (a realtime rig whose first forces come late '
+             'overshoots its first motion past `trip_leg_speed`)', boolean),
+    Declared('trip_condition', ('supervisor',), 100.0, '', '≥ 0', 'the Jacobian condition '
+             'number of the pose the readings give above which the platform is near a '
+             'singularity, where it could cross into another assembly mode: trips (hold); '
+             '0: off', nonnegative, runtime=True),
     Declared('rest_clearance', ('supervisor',), 0.05, 'm', '≥ 0', 'the rest pose (level, '
              'over the initial x, y) has its shortest leg this far above the soft lower '
              'limit', nonnegative, runtime=True),

@@ -85,6 +85,9 @@ def main() -> None:
     tracker = FKTracker(mech)
     tracker.solve(lengths, rates)
     tracker.fk.all_modes(lengths)
+    # lazy: the kernels cost 692 ms; cli imports this for the notice
+    from stewart63_ros.core.assembly import jacobian_determinant
+    jacobian_determinant(*dyn.kernel_args()[1:3], y)
     # The compiled closed loops: scipy's RK45 (dopri), its output samples, the sampled loop.
     run_continuous(setup, 0.02, dyn=dyn)
     run_sampled(setup, 0.002, 1000.0, dyn=dyn)

@@ -33,6 +33,7 @@ from geometry_msgs.msg import WrenchStamped
 from sensor_msgs.msg import JointState
 
 from stewart63_ros import topics
+from stewart63_ros.core.assembly import AssemblyWatch
 from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.sensor import SensorModel, TrackerModel
 from stewart63_ros.core.simulate import initial_state, substeps_for
@@ -100,6 +101,8 @@ class PlantNode(PlantBus, PlantControl, RigNode):
         # loop would start that far behind its deadlines.
         self.dyn.step(self.y, np.zeros(6), self.period, self.substeps)
         self.dyn.lengths_and_rates(self.y)
+        self.assembly = AssemblyWatch(*self.dyn.kernel_args()[1:3], self.rate)
+        self.assembly.check(0, self.y)          # (its kernel loaded now, too)
         self.k = 0
         self.force = np.zeros(6)
         self.force_ns = None            # stamp of the sample the held force answers
@@ -181,6 +184,7 @@ class PlantNode(PlantBus, PlantControl, RigNode):
         if self.fault_model.states:
             self.begin_faults()
         lengths, rates = self.dyn.lengths_and_rates(self.y)
+        self.watch_assembly()
         if self.tracking is not None and self.k * self.period >= TRACKING_FROM - 1e-12:
             self.tracking.add(self.k * self.period, lengths, self.y)
         listed = lengths.tolist()           # (min and max of six: cheaper on a list)
@@ -355,6 +359,23 @@ class PlantNode(PlantBus, PlantControl, RigNode):
             self.k += 1
             if time.monotonic() - deadline > 0.5 * self.period:
                 self.late += 1
+
+    def watch_assembly(self) -> None:
+        """ERROR on /diagnostics, naming the sample, while the platform is in
+        another assembly mode than at the run's start (core/assembly.py)."""
+        if self.k == 0:         # (each run: a reset starts from the initial state)
+            self.assembly = AssemblyWatch(*self.dyn.kernel_args()[1:3], self.rate)
+        note = self.assembly.check(self.k, self.y)
+        if not note:
+            return
+        self.health.values['assembly_crossings'] = list(self.assembly.crossings)
+        if self.assembly.in_start_mode:
+            self.health.fault = ''
+            self.get_logger().info(note)
+        else:
+            self.health.fault = note
+            self.get_logger().error(note)
+        self.health.report()
 
     def advance_to(self, t: float) -> None:
         """Integrate from the physics time to ``t`` [s since start] with the held force."""

@@ -71,7 +71,8 @@ class SupervisorNode(RigNode):
         self.core = supervisor_from_params(self.setup, self.params, self.rate)
         for limit_key in LIMIT_KEYS:
             self.tunable(limit_key, self._limit_setter(limit_key))
-        self.tunable('trip_on_diagnostics', self._set_trip_on_diagnostics)
+        self.tunable('trip_on_diagnostics',
+                     lambda value: setattr(self, 'trip_on_diagnostics', value))
         self.sample_gate = StampGate(RESTART_PAUSE)
         # The sensors read the true length plus leg_length_offset (the file's).
         self.length_offset = self.param('leg_length_offset')
@@ -79,6 +80,8 @@ class SupervisorNode(RigNode):
         self.waiting_since = None   # monotonic s: since when ``pending`` waits (attend)
         self.answered_ns = -1
         self.early = {}             # requests that came before their sample: ns -> forces
+        self.headers = {}           # realtime: the newest sample's (ns, sec, nanosec, frame_id)
+        self.state = None           # the core's state, on /diagnostics when it changes
         self.async_trip = None      # (cause, detail) to latch before the next answer
         self.node_errors = {}       # node of the rig -> its ERROR message, while in ERROR
         self.late_requests = 0
@@ -119,9 +122,6 @@ class SupervisorNode(RigNode):
             # the same checks as at start-up
             self.core.set_limits(limits_from_params(self.mech, params, self.rate))
         return apply
-
-    def _set_trip_on_diagnostics(self, value):
-        self.trip_on_diagnostics = value
 
     # -- inputs ----------------------------------------------------------------------
     def on_sample(self, data: bytes, info):
@@ -166,6 +166,10 @@ class SupervisorNode(RigNode):
         core = self.core
         core.on_sample(ns, lengths, rates)
         self.pending = (ns, sec, nanosec, frame_id)
+        if not self.lockstep:       # a late request answers its own sample (on_request)
+            self.headers[ns] = self.pending
+            if len(self.headers) > 16:
+                del self.headers[min(self.headers)]
         if core.trip is not None:
             self.answer(core.safe_forces(ns))
         elif core.homing is not None:
@@ -177,7 +181,8 @@ class SupervisorNode(RigNode):
             if early is not None:
                 self.answer(core.on_request(ns, early))
         for old in [k for k in self.early if k < ns]:
-            del self.early[old]
+            # (a request for a sample this node skipped: its controller lives)
+            self.core.note_request(old, self.early.pop(old))
 
     def on_request(self, data: bytes, info=None):
         """The controller's forces for a sample: checked and answered if that
@@ -194,12 +199,25 @@ class SupervisorNode(RigNode):
         if self.pending is not None and ns == self.pending[0]:
             self.latch_async(ns)
             self.answer(self.core.on_request(ns, forces))
+        elif self.core.trip is not None:
+            # Tripped, the safe force answers a sample at once: its request
+            # comes after, and is the latest the controller wants, which a
+            # reset judges (a request parked here would leave the core the
+            # one from before the trip, and forces_stale for ever).
+            self.core.note_request(ns, forces)
+        elif ns > self.answered_ns and ns in self.headers and (
+                self.pending is None or ns < self.pending[0]):
+            # Realtime: its sample went unanswered (it waited a period, or a
+            # newer one overtook it); the plant holds an older force until
+            # a newer one comes: this is it, stamped with its own sample.
+            self.count_late()
+            self.send(self.headers[ns], self.core.on_request(ns, forces))
+            self.answered_ns = ns
         elif self.pending is None or ns > self.pending[0]:
             self.early[ns] = forces
-        elif self.core.trip is None or ns > self.answered_ns:
-            # (tripped, the answers go out before the requests: not late)
-            self.late_requests += 1
-            self.health.values['late_requests'] = self.late_requests
+        else:
+            self.count_late()
+            self.core.note_request(ns, forces)      # late, but the controller lives
 
     def on_diagnostics(self, msg):
         """A node of this rig whose status turns ERROR (or names a new error)
@@ -307,16 +325,31 @@ class SupervisorNode(RigNode):
             self.async_trip = None
             self.core.trip_now(cause, detail, ns)
 
-    def answer(self, forces) -> None:
-        ns, sec, nanosec, frame_id = self.pending
-        self.pending = None
-        self.answered_ns = ns
+    def count_late(self) -> None:
+        self.late_requests += 1
+        self.health.values['late_requests'] = self.late_requests
+
+    def send(self, header, forces) -> None:
+        """``forces`` on leg_forces, stamped as the sample ``header``
+        (ns, sec, nanosec, frame_id) it answers."""
+        _, sec, nanosec, frame_id = header
         self.send_forces(self.forces_out.get(frame_id).fill(sec, nanosec, effort=forces))
+
+    def answer(self, forces) -> None:
+        header, self.pending = self.pending, None
+        self.answered_ns = header[0]
+        self.send(header, forces)
         trip = self.core.trip
         if trip is not None and self.health.values.get('tripped') == 'false':
             self.announce(trip)
+        state = self.core.state
+        if state != self.state:
+            # (descended: a reset can lead back; returning, then forwarding)
+            self.state = self.health.values['state'] = state
+            self.report()
 
     def announce(self, trip) -> None:
+        self.state = self.health.values['state'] = self.core.state
         report = self.core.trip_report(trip)
         self.health.fault = 'tripped: %s at sample %d (%s); safe action: %s; latency %s ' \
             'samples' % (trip.cause, report['sample'], trip.detail, trip.action,

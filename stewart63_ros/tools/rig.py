@@ -8,7 +8,9 @@
 One parameter file and one namespace for all. Every node waits until its
 peers are matched before the first sample, so a short run loses nothing at
 its start. Ctrl-C or SIGTERM (any number of them) stops every process
-cleanly; the exit status is non-zero if a node died or failed. With
+cleanly; the exit status is non-zero if a node died or failed (a supervisor
+that dies: the rig first waits for the plant's or bridge's fail safe, zero
+force after force_stale_ms, says so, then stops; exit 1). With
 --duration the run ends after S simulated seconds (the plant stops itself).
 A summary is printed either way, for the part that ran. ``--nodes`` runs a
 part of the rig (one host's share of a rig split across machines).
@@ -34,6 +36,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -327,6 +330,42 @@ class Rig:
             if deadline is not None and time.monotonic() > deadline:
                 return False
             time.sleep(0.05)
+
+    #: s: the longest ``supervisor_fail_safe`` waits (lockstep: each sample
+    #: without an answer waits the plant's force_timeout, 1 s by default)
+    FAIL_SAFE_WAIT = 120.0
+    FAIL_SAFE_LINE = 'zero force from sample'
+
+    def supervisor_fail_safe(self) -> str:
+        """After the supervisor died (a SIGKILL, a crash) while the plant (or
+        the bridge, for the drives) runs: wait, bounded, until that node's
+        fail safe acts (``force_stale_ms``: its log's "zero force from
+        sample N"), so the stop that follows does not hide it. Returns that
+        line ('' : nothing to wait for, or it did not come)."""
+        dead = self.procs.get('supervisor')
+        holder = self.procs.get('canopen_bridge' if self.bus else self.runner())
+        if not self.supervisor or dead is None or dead.poll() in (None, 0) or holder is None:
+            return ''
+        name = 'canopen_bridge' if self.bus else self.runner()
+        print('rig: the supervisor ended (%s) during the run: waiting (at most %g s) for the '
+              '%s\'s fail safe (force_stale_ms) before stopping' % (
+                  dead.returncode, self.FAIL_SAFE_WAIT, name), flush=True)
+        # A loaded run may have failed safe before (a late supervisor): only
+        # a stretch that began about when it died counts (the rig sees a death
+        # within its 0.2 s poll; realtime acts 50 ms after, lockstep later).
+        since = time.time() - 0.5
+        deadline = time.monotonic() + self.FAIL_SAFE_WAIT
+        while holder.poll() is None and time.monotonic() < deadline:
+            try:
+                lines = (self.log_dir / ('%s.log' % name)).read_text().splitlines()
+            except OSError:
+                lines = []
+            for line in reversed(lines):    # '[ERROR] [<unix time>] [plant]: <text>'
+                stamp = re.match(r'\[\w+\] \[([0-9.]+)\] \[[^]]*\]: (.*)', line)
+                if stamp and self.FAIL_SAFE_LINE in line and float(stamp.group(1)) >= since:
+                    return '%s: %s' % (name, stamp.group(2))
+            time.sleep(0.05)
+        return ''
 
     def runner(self) -> str:
         """The process whose end is the end of the run (the plant's)."""
@@ -636,6 +675,11 @@ def main(argv=None) -> int:
                     p.poll() is not None for n, p in rig.procs.items()
                     if n not in rig.ending_with_run()):
                 break
+        if not ok and not signals.requested:
+            fail_safe = rig.supervisor_fail_safe()
+            if fail_safe:
+                print('rig: fail safe acted after the supervisor ended: %s' % fail_safe,
+                      flush=True)
     except KeyboardInterrupt:
         pass
     except RuntimeError as exc:

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from stewart63_ros.core.assembly import crossings
 from stewart63_ros.core.dynamics import Dynamics
 from stewart63_ros.core.faults import FaultError, FaultModel, parse_fault, parse_faults
 from stewart63_ros.core.laws import Controller, LawError
@@ -226,6 +227,12 @@ def main(argv=None) -> int:
         summary['tracking_error'] = {k: (round(v, 9) if isinstance(v, float) else v) for k, v in
                                      tracking_errors(mech, reference, result.times,
                                                      result.states).items()}
+    # the platform through a singular pose into another assembly mode: an ERROR
+    crossed = crossings(*dyn.kernel_args()[1:3], result.states, rate)
+    if crossed:
+        summary['assembly_crossings'] = len(crossed)
+    for note in crossed:
+        print('sim: error: %s' % note, file=sys.stderr)
     if summary['endstop_samples']:
         print('sim: warning: a leg met an end stop in %d samples' % summary['endstop_samples'],
               file=sys.stderr)
