@@ -351,6 +351,8 @@ class Cia402Drive:
         rising_reset = controlword & CW_FAULT_RESET and not self._last & CW_FAULT_RESET
         self._last = controlword
         state = self.state
+        if state == FAULT_REACTION_ACTIVE:     # reacting: no controlword acts until FAULT
+            return
         if state == FAULT:
             if rising_reset and not self.fault_active:
                 self.state = SWITCH_ON_DISABLED
