@@ -204,8 +204,8 @@ class BridgeNode(BridgeCycles, RigNode):
         while missing:          # says at once what it waits for, and again every few s
             waited = time.monotonic() - started
             self.get_logger().info('waiting %s for the boot-up of %s' % (
-                'up to %g s (boot_timeout)' % self.boot_timeout if not waited else
-                '(%.0f of %g s)' % (waited, self.boot_timeout), master.describe(missing)))
+                'up to %g s (boot_timeout)' % self.boot_timeout if missing is master.links
+                else '(%.0f of %g s)' % (waited, self.boot_timeout), master.describe(missing)))
             missing = master.wait_for_boot(min(BOOT_REPORT_PERIOD,
                                                self.boot_timeout - waited))
             if time.monotonic() - started >= self.boot_timeout:
