@@ -62,6 +62,9 @@ FAULT_REACTION_WAIT = 1.0
 STOP_CONFIRM = 0.3
 #: s: an SDO answer's bound during the stop (it must end within the stop deadline)
 STOP_SDO_TIMEOUT = 0.2
+#: s: the SDO confirmations of the stop end this long after its wait (a bus gone
+#: silent must not hold the stop past the launcher's deadline)
+STOP_SDO_BUDGET = 0.6
 #: NMT enter pre-operational (CiA 301)
 NMT_PRE_OPERATIONAL = 0x80
 
@@ -395,8 +398,8 @@ class Master(CycleSide):
         this (``command`` sends nothing).
 
         Returns:
-            {leg name: the state it was last seen in} for the drives that
-            were up; the others get the NMT only.
+            {leg name: READY TO SWITCH ON, or "not confirmed (last seen
+            ...)"} for the drives that were up; the others get the NMT only.
         """
         # lazy: optional: canopen costs 273 ms; the simulated bus runs without it
         import canopen
@@ -414,20 +417,23 @@ class Master(CycleSide):
                 if left <= 0:
                     break
                 self._arrived.wait(min(left, SETTLE_POLL))
+        states = {}
         for link in up:
-            if link.state == READY_TO_SWITCH_ON:
-                continue
-            link.node.sdo.RESPONSE_TIMEOUT = STOP_SDO_TIMEOUT
-            try:
-                link.node.sdo[0x6071].raw = 0
-                link.node.sdo[0x6040].raw = CW_SHUTDOWN
-                link.statusword = link.node.sdo[0x6041].raw
-            except (canopen.SdoCommunicationError, canopen.SdoAbortedError, OSError) as exc:
-                self.log('%s: safe stop not confirmed: %s' % (link.name, exc))
+            if link.state != READY_TO_SWITCH_ON and time.monotonic() < deadline + STOP_SDO_BUDGET:
+                link.node.sdo.RESPONSE_TIMEOUT = STOP_SDO_TIMEOUT
+                try:
+                    link.node.sdo[0x6071].raw = 0
+                    link.node.sdo[0x6040].raw = CW_SHUTDOWN
+                    link.statusword = link.node.sdo[0x6041].raw
+                except (canopen.SdoCommunicationError, canopen.SdoAbortedError,
+                        OSError) as exc:
+                    self.log('%s: safe stop not confirmed: %s' % (link.name, exc))
+            states[link.leg.name] = link.state if link.state == READY_TO_SWITCH_ON else \
+                'not confirmed (last seen %s)' % link.state
         for link in self.links:
             try:
                 link.node.nmt.send_command(NMT_PRE_OPERATIONAL)
             except OSError as exc:      # the bus is gone: nothing reaches the drive
                 self.log('%s: NMT pre-operational not sent: %s' % (link.name, exc))
             link.up = False
-        return {link.leg.name: link.state for link in up}
+        return states

@@ -15,9 +15,11 @@ answer becomes each drive's RPDO.
   lasts ``SYNC_WINDOW`` of the period; after a stall the SYNCs whose time
   has passed are skipped and counted (``syncs_skipped``), never sent in a
   burst.
-- Either way, a controller whose forces stop for ``force_timeout`` (after
-  it had answered) is lost: zero torque and the drives shut down (READY TO
-  SWITCH ON) until it answers again (docs/bus.md, "Stopping").
+- A controller whose forces stop (after it had answered) is lost: in
+  realtime after ``force_timeout`` s, in lockstep after
+  ``LOCKSTEP_LOST_TIMEOUTS`` samples in a row without an answer. Then zero
+  torque and the drives shut down (READY TO SWITCH ON) until it answers
+  again (docs/bus.md, "Stopping").
 """
 from __future__ import annotations
 
@@ -40,6 +42,9 @@ SYNC_WINDOW = 0.75
 #: realtime: a share of the period given beyond the window to a receive side
 #: that has frames waiting (they are judged on their reception times)
 CATCH_UP = 0.15
+#: lockstep: samples in a row without the controller's answer (each waited for
+#: ``force_timeout``) after which it is lost
+LOCKSTEP_LOST_TIMEOUTS = 3
 
 
 class BridgeCycles:
@@ -90,8 +95,11 @@ class BridgeCycles:
                 if STOP.requested:
                     return
                 self.timeouts += 1
+                self.timeouts_in_a_row += 1
                 self.health.warning = 'no force for sample %d within %.3f s' % (k, timeout)
                 self.get_logger().warning(self.health.warning)
+            else:
+                self.timeouts_in_a_row = 0
             self.answer_wait_s += time.perf_counter() - started
             self.write_torques(k, ns)
             if n_samples is not None and k >= n_samples:
@@ -174,10 +182,16 @@ class BridgeCycles:
                                           throttle_duration_sec=1.0)
 
     def controller_lost(self) -> bool:
-        """Whether the controller, having answered, has sent no force for
-        ``force_timeout`` s (wall clock); said once each time it happens."""
-        lost = self.force is not None and \
-            time.monotonic() - self.force_at > self.force_timeout
+        """Whether the controller, having answered, is lost: no force for
+        ``force_timeout`` s (realtime, wall clock), or none for
+        ``LOCKSTEP_LOST_TIMEOUTS`` samples in a row, each waited for
+        ``force_timeout`` (lockstep: one slow answer on a loaded machine
+        must not stop the drives). Said once each time it happens."""
+        if self.mode == 'lockstep':
+            lost = self.force is not None and self.timeouts_in_a_row >= LOCKSTEP_LOST_TIMEOUTS
+        else:
+            lost = self.force is not None and \
+                time.monotonic() - self.force_at > self.force_timeout
         if lost != self.lost_controller:
             self.lost_controller = lost
             if lost:

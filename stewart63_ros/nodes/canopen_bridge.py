@@ -141,6 +141,7 @@ class BridgeNode(BridgeCycles, RigNode):
         self.force_ns = None
         self.force_at = 0.0             # time.monotonic() the newest force came
         self.lost_controller = False
+        self.timeouts_in_a_row = 0      # lockstep: samples the controller did not answer
         self.schedule = None            # realtime: the SYNC clock (bridge_cycles)
         self.stopped_drives = None      # the drives' states after the safe stop
         self.sent_wall = {}
