@@ -15,11 +15,11 @@ answer becomes each drive's RPDO.
   lasts ``SYNC_WINDOW`` of the period; after a stall the SYNCs whose time
   has passed are skipped and counted (``syncs_skipped``), never sent in a
   burst.
-- A controller whose forces stop (after it had answered) is lost: in
-  realtime after ``force_timeout`` s, in lockstep after
-  ``LOCKSTEP_LOST_TIMEOUTS`` samples in a row without an answer. Then zero
-  torque and the drives shut down (READY TO SWITCH ON) until it answers
-  again (docs/bus.md, "Stopping").
+- A controller whose forces stop (after it had answered) is lost after
+  ``force_timeout`` s of wall clock, at least ``CONTROLLER_LOST_MIN``
+  (lockstep: while a sample waits for it). Then zero torque and the drives
+  shut down (READY TO SWITCH ON) until it answers again (docs/bus.md,
+  "Stopping").
 """
 from __future__ import annotations
 
@@ -42,9 +42,9 @@ SYNC_WINDOW = 0.75
 #: realtime: a share of the period given beyond the window to a receive side
 #: that has frames waiting (they are judged on their reception times)
 CATCH_UP = 0.15
-#: lockstep: samples in a row without the controller's answer (each waited for
-#: ``force_timeout``) after which it is lost
-LOCKSTEP_LOST_TIMEOUTS = 3
+#: s: the controller is lost after no force for ``force_timeout`` s, and at least this
+#: long (a short lockstep ``force_timeout`` must not stop the drives at one slow answer)
+CONTROLLER_LOST_MIN = 1.0
 
 
 class BridgeCycles:
@@ -183,21 +183,16 @@ class BridgeCycles:
 
     def controller_lost(self) -> bool:
         """Whether the controller, having answered, is lost: no force for
-        ``force_timeout`` s (realtime, wall clock), or none for
-        ``LOCKSTEP_LOST_TIMEOUTS`` samples in a row, each waited for
-        ``force_timeout`` (lockstep: one slow answer on a loaded machine
-        must not stop the drives). Said once each time it happens."""
-        if self.mode == 'lockstep':
-            lost = self.force is not None and self.timeouts_in_a_row >= LOCKSTEP_LOST_TIMEOUTS
-        else:
-            lost = self.force is not None and \
-                time.monotonic() - self.force_at > self.force_timeout
+        ``lost_after`` s of wall clock (in lockstep, while a sample waits for
+        its answer: a bridge waiting for a silent drive has not asked).
+        Said once each time it happens."""
+        lost = self.force is not None and time.monotonic() - self.force_at > self.lost_after \
+            and (self.mode != 'lockstep' or self.timeouts_in_a_row > 0)
         if lost != self.lost_controller:
             self.lost_controller = lost
             if lost:
-                self.get_logger().error('controller lost: no leg_forces for %.1f s '
-                                        '(force_timeout): zero torque, drives shut down'
-                                        % self.force_timeout)
+                self.get_logger().error('controller lost: no leg_forces for %g s: zero '
+                                        'torque, drives shut down' % self.lost_after)
             self.judge(force=True)
         return lost
 

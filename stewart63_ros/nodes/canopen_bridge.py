@@ -49,7 +49,7 @@ from stewart63_ros.canbus.master import Master
 from stewart63_ros.core.bus import BusConfigError, BusLoadError, load_bus_config
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.exits import quiet_on_closed_pipe
-from stewart63_ros.nodes.bridge_cycles import BridgeCycles
+from stewart63_ros.nodes.bridge_cycles import CONTROLLER_LOST_MIN, BridgeCycles
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode
 from stewart63_ros.runtime.checks import (
@@ -82,6 +82,7 @@ class BridgeNode(BridgeCycles, RigNode):
         self.mode = self.param('clock_mode')
         self.duration = self.param('duration')
         self.force_timeout = self.param('force_timeout')
+        self.lost_after = max(self.force_timeout, CONTROLLER_LOST_MIN)
         self.bus_timeout = self.param('bus_timeout')
         self.boot_timeout = self.param('boot_timeout')
         # With the supervisor in the rig (rig --supervisor): it answers every
@@ -240,8 +241,8 @@ class BridgeNode(BridgeCycles, RigNode):
         reported at once (ERROR while any)."""
         errors = self.master.errors()
         if self.lost_controller:
-            errors.append('controller lost: no leg_forces for over %g s (force_timeout): '
-                          'zero torque, drives shut down' % self.force_timeout)
+            errors.append('controller lost: no leg_forces for over %g s: zero torque, '
+                          'drives shut down' % self.lost_after)
         if errors != self.errors or force:
             if errors:
                 self.get_logger().error('torque withheld: %s' % '; '.join(errors))
