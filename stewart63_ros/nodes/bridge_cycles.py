@@ -164,9 +164,11 @@ class BridgeCycles:
                                catch_up=CATCH_UP * self.period)
             master.missing()
             self.judge()
-            # the SYNC's time: its slot, never later than it went out
-            ns = int(round(min(t0_wall + schedule.slot * self.period,
-                               master.windows.last[1]) * 1e9))
+            # the SYNC's time: its slot, never later than it went out; the run's
+            # clock starts once SYNC 0 is answered (a plant standing in for the
+            # drives may take seconds to start): sample 0 is stamped then
+            ns = int(round((min(t0_wall + schedule.slot * self.period,
+                                master.windows.last[1]) if k else t0_wall) * 1e9))
             answered_ns = ns if self.publish(ns) else self.force_ns
             if self.errors or self.controller_lost() or self.force_is_stale(k, ns,
                                                                               self.force_ns):
