@@ -23,25 +23,22 @@ import math
 import select
 import struct
 import time
-from typing import TYPE_CHECKING
 
 from stewart63_ros.core.bus import frame_bits
 
-if TYPE_CHECKING:
-    from stewart63_ros.canbus.master import Link
-
-#: s: the longest a wait for TPDOs sleeps before it looks at the clock again
+#: s: the longest the safe stop sleeps before it looks at the clock again
 SETTLE_POLL = 0.005
 
 
 class CycleSide:
-    """The receive side and the cycle's window (see the module's doc).
+    """The receive side and the cycle's window (see the module's doc); a
+    ``link`` is a drive's ``master.Link``.
     Uses the master's ``links``, ``windows``, ``networks``, ``bits``,
     ``received_to``, ``rate``, ``clock``, ``heartbeat_limit``,
     ``tpdo_error_cycles`` and its lock ``_arrived``."""
 
     # -- frames in (the notifier's thread) --------------------------------------------------
-    def _received(self, link: Link, timestamp: float, data_bytes: int) -> float:
+    def _received(self, link, timestamp: float, data_bytes: int) -> float:
         """Count a frame's bits and note how far the receive side has got;
         its reception time (python-can's stamp; now if the interface has none)."""
         stamp = timestamp or time.time()
@@ -50,7 +47,7 @@ class CycleSide:
             self.received_to[link.leg.bus] = stamp
         return stamp
 
-    def _on_tpdo1(self, link: Link):
+    def _on_tpdo1(self, link):
         unpack = link.tpdo_struct.unpack_from
 
         def on(cob_id, data, timestamp):
@@ -61,7 +58,7 @@ class CycleSide:
                 self._take_tpdo(link, unpack(data), self.windows.window_of(stamp))
         return on
 
-    def _take_tpdo(self, link: Link, values, sync: int | None) -> None:
+    def _take_tpdo(self, link, values, sync: int | None) -> None:
         """A TPDO1 received in the window of SYNC ``sync`` (under the lock).
 
         It is the cycle's reading only while the cycle's window is open;
@@ -89,7 +86,7 @@ class CycleSide:
         link.tpdo_taken_at = time.monotonic()
         self._arrived.notify()
 
-    def _on_tpdo2(self, link: Link):
+    def _on_tpdo2(self, link):
         def on(cob_id, data, timestamp):
             self._received(link, timestamp, len(data))
             if len(data) >= link.status_struct.size:
@@ -98,7 +95,7 @@ class CycleSide:
                     self._arrived.notify()
         return on
 
-    def _on_emcy(self, link: Link):
+    def _on_emcy(self, link):
         def on(cob_id, data, timestamp):
             self._received(link, timestamp, len(data))
             if len(data) >= 2:
@@ -106,7 +103,7 @@ class CycleSide:
                 link.emcys += 1
         return on
 
-    def _on_heartbeat(self, link: Link):
+    def _on_heartbeat(self, link):
         def on(cob_id, data, timestamp):
             if not data:
                 return
@@ -118,7 +115,7 @@ class CycleSide:
             link.heartbeat = (max(sync if sync is not None else 0, 0), stamp)
         return on
 
-    def heartbeat_age(self, link: Link) -> float:
+    def heartbeat_age(self, link) -> float:
         """How old ``link``'s newest heartbeat is [s]: in the run's time
         (lockstep) or on the wall clock measured to the newest frame the
         receive side has taken from its bus, so a receive side that lags
@@ -147,25 +144,28 @@ class CycleSide:
             network.send_message(0x80, b'')
             self.bits[name] += frame_bits(0)
 
-    def _done(self, now: float, silent_grace: float, settle: float) -> bool:
-        """Whether every drive that is up is done with this cycle (under the lock)."""
+    def _done(self, silent_grace: float, settle: float) -> float:
+        """When every drive that is up is done with this cycle (under the
+        lock): a time (``time.monotonic()``) to look again at, inf while a
+        drive that answered the SYNC before is still awaited."""
         waiting_live = False
-        silent = []
+        silent = False
         last = self._opened_at
+        ready = -math.inf
         for link in self.links:
             if not link.up:
                 continue
             if link.tpdo_sync == self.cycle:
                 last = max(last, link.tpdo_taken_at)
-                if not link.tpdo_firm and now < link.tpdo_taken_at + settle:
-                    return False
+                if not link.tpdo_firm:
+                    ready = max(ready, link.tpdo_taken_at + settle)
             elif link.missed_in_a_row:
-                silent.append(link)
+                silent = True
             else:
                 waiting_live = True
         if waiting_live:
-            return False
-        return not silent or now >= last + silent_grace
+            return math.inf
+        return max(ready, last + silent_grace) if silent else ready
 
     def _receive_pending(self) -> bool:
         """Frames on a bus not yet taken by the receive side (it lags)."""
@@ -201,7 +201,8 @@ class CycleSide:
         with self._arrived:
             while True:
                 now = time.monotonic()
-                if self._done(now, silent_grace, settle):
+                done_at = self._done(silent_grace, settle)
+                if now >= done_at:
                     return True
                 if now >= until:
                     if now >= until + catch_up or not self._receive_pending():
@@ -210,9 +211,9 @@ class CycleSide:
                     continue
                 if now >= start + give_back:
                     return False
-                self._arrived.wait(min(until, start + give_back, now + SETTLE_POLL) - now)
+                self._arrived.wait(min(until, start + give_back, done_at) - now)
 
-    def missing(self) -> list[Link]:
+    def missing(self) -> list:
         """The cycle is over: its window closes (a TPDO received in it from
         now on is late) and the drives that are up without its TPDO are
         counted."""

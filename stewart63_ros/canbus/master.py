@@ -4,13 +4,15 @@
 written by SDO from the EDS, the heartbeat, mode 10 = cyclic synchronous
 torque, the CiA 402 state machine to OPERATION ENABLED, NMT start), then runs
 the cycle the bridge node drives: ``sync`` (a SYNC on every bus), ``collect``
-(each leg's TPDO1: position and velocity), ``command`` (each drive's RPDO1:
-controlword and target torque). Heartbeats, EMCYs, statuswords (TPDO2) and
-boot-up messages arrive in the notifier's thread and are judged in
-``errors``: a leg with an error gets no torque, and while any leg has one the
-bridge withholds torque from all (zero torque to the drives that listen).
-A drive that boots again is brought up again; a drive in FAULT gets a fault
-reset, then shutdown, switch on, enable, one step per cycle.
+(each leg's TPDO1 received in that SYNC's window: canbus/cycle.py),
+``command`` (each drive's RPDO1: controlword and target torque). Heartbeats,
+EMCYs, statuswords (TPDO2) and boot-up messages arrive in the notifier's
+thread and are judged in ``errors``: a leg with an error gets no torque, and
+while any leg has one the bridge withholds torque from all (zero torque to
+the drives that listen). A drive that boots again is brought up again; a
+drive in FAULT gets a fault reset (never in FAULT REACTION ACTIVE), then
+shutdown, switch on, enable, one step per cycle. ``safe_stop`` leaves every
+drive READY TO SWITCH ON with zero torque, NMT pre-operational.
 
 No ROS here: nodes/canopen_bridge.py is the shell.
 """
