@@ -167,6 +167,11 @@ class CycleSide:
             return math.inf
         return max(ready, last + silent_grace) if silent else ready
 
+    @property
+    def opened_at(self) -> float:
+        """``time.monotonic()`` at the cycle's SYNC: its window starts there."""
+        return self._opened_at
+
     def _receive_pending(self) -> bool:
         """Frames on a bus not yet taken by the receive side (it lags)."""
         for network in self.networks.values():

@@ -160,7 +160,7 @@ class BridgeCycles:
             if k:
                 master.sync(k)
                 window = SYNC_WINDOW * self.period
-                master.collect(time.monotonic() + window, window, window,
+                master.collect(master.opened_at + window, window, window,
                                catch_up=CATCH_UP * self.period)
             master.missing()
             self.judge()
