@@ -11,6 +11,7 @@ one-line reason.
 """
 from __future__ import annotations
 
+import os
 import signal
 import threading
 import time
@@ -31,8 +32,11 @@ RATE = 100.0
 class Drives:
     """The plant's six drives on the bus, served in a thread."""
 
-    def __init__(self):
+    def __init__(self, wall_heartbeats=False):
         from stewart63_ros.canbus.devices import DeviceSet
+        #: heartbeats on the wall clock, as real drives beat (the plant's beat in run time)
+        self.wall_heartbeats = wall_heartbeats
+        self.sync_times = []        # time.monotonic() of each SYNC taken
         self.channels = channels()
         self.devices = DeviceSet(load_bus_config(CONFIG, channels=self.channels))
         self.lengths = np.array([1.9, 1.9, 1.6, 1.6, 1.6, 1.6])
@@ -43,10 +47,15 @@ class Drives:
 
     def _serve(self):
         devices = self.devices
+        started = time.monotonic()
         while not self.stop:
+            if self.wall_heartbeats:
+                devices.heartbeats(time.monotonic() - started)
             if devices.poll(0.002):
                 devices.take_sync()
-                devices.heartbeats(self.k / RATE)
+                self.sync_times.append(time.monotonic())
+                if not self.wall_heartbeats:
+                    devices.heartbeats(self.k / RATE)
                 devices.answer_sync(self.lengths, np.zeros(6))
                 self.k += 1
 
@@ -71,8 +80,8 @@ SAFE = (READY_TO_SWITCH_ON, 0, 'PRE-OPERATIONAL')
 
 
 @pytest.fixture
-def drives():
-    made = Drives()
+def drives(request):
+    made = Drives(**getattr(request, 'param', {}))
     yield made
     made.close()
 
@@ -170,3 +179,40 @@ def test_no_drive_on_the_bus_is_a_one_line_error_saying_what_it_waited_for(ros):
                      'channel %s); nodes 4, 5, 6 on bus b (s63hub channel %s): drives '
                      'powered, bus wired and terminated, bitrate right?' % tuple(names)], err
     print('\nno drive: exit 1 after %.1f s (boot_timeout 2 s, start-up included)' % took)
+
+
+@pytest.mark.parametrize('drives', [{'wall_heartbeats': True}], indirect=True)
+def test_a_stalled_bridge_skips_the_syncs_it_missed_sends_no_burst_and_loses_no_heartbeat(
+        ros, drives):
+    # The bridge process stopped for 0.6 s (SIGSTOP: a machine that stalls
+    # it), while the drives beat on the wall clock (100 ms: lost after 300 ms).
+    import json
+    summary = ros.log_dir / 'bridge_summary.json'
+    proc = start_bridge(ros, drives, '-p', 'summary_file:=%s' % summary)
+    wait_enabled(drives, proc)
+    time.sleep(0.5)
+    before = len(drives.sync_times)
+    os.killpg(proc.pid, signal.SIGSTOP)     # its group: the interpreter may be a child
+    time.sleep(0.6)
+    os.killpg(proc.pid, signal.SIGCONT)
+    time.sleep(1.0)
+    after = drives.sync_times[before - 1:]       # from the last SYNC before the stall
+    proc.popen.send_signal(signal.SIGINT)
+    assert proc.wait(60) == 0, proc.describe()
+    gaps = np.diff(after)
+    stall = int(np.argmax(gaps))
+    assert gaps[stall] >= 0.5, gaps
+    # after the stall, one SYNC a period, none sent to catch up: at most a
+    # period's worth in any 50 ms (a catch-up would send 60 at once); the
+    # drives here take them every 2 ms, so two may come close together
+    resumed = np.array(after[stall + 1:])
+    assert len(resumed) > 50, resumed
+    most = max(int(np.sum((resumed >= t) & (resumed < t + 0.05))) for t in resumed)
+    assert most <= 0.05 * RATE + 2, np.diff(resumed)[:20]
+    log = proc.stderr() + proc.stdout()
+    assert 'heartbeat lost' not in log, log
+    assert 'SYNCs skipped' in log, log
+    done = json.loads(summary.read_text())
+    assert done['syncs_skipped'] >= 40, done
+    print('\nstalled 0.6 s: %d SYNCs skipped, then at most %d SYNCs in 50 ms'
+          % (done['syncs_skipped'], most))
