@@ -3,17 +3,19 @@
 
 Frames arrive in the ``canopen`` library's notifier thread, each with its
 reception time (python-can's stamp: SocketCAN's kernel time, ``s63hub``'s
-time the frame went on the hub). A TPDO1 belongs to the SYNC whose window it
-was received in (canbus/sync.py), whenever the bridge's loop gets round to
-it: sample k holds only TPDOs received between SYNC k and the close of its
-window (``missing``); one received later is late, counted
-(``Link.late_tpdo``), never another sample's reading. A drive that did not
-answer the SYNC before may be answering that one late: its first TPDO in a
-window is firm only once the window's settle time has passed or a second one
-came (then the second is this SYNC's and the first was late). A missing
-TPDO leaves that leg NaN in the sample, in lockstep and realtime alike.
-Heartbeats are judged on their reception times (realtime) or on the run's
-time (lockstep, where the plant's drives beat in run time).
+time the frame went on the hub; a stamp more than 10 s from the wall clock
+is no reception time and is replaced by the time the frame is read). A
+TPDO1 belongs to the SYNC whose window it was received in (canbus/sync.py),
+whenever the bridge's loop gets round to it: sample k holds only TPDOs
+received between SYNC k and the close of its window (``missing``); one
+received later is late, counted (``Link.late_tpdo``), never another
+sample's reading. A drive that did not answer the SYNC before may be
+answering that one late: its first TPDO in a window is firm only once the
+window's settle time has passed or a second one came (then the second is
+this SYNC's and the first was late). A missing TPDO leaves that leg NaN in
+the sample, in lockstep and realtime alike. Heartbeats are judged on their
+reception times (realtime) or on the run's time (lockstep, where the
+plant's drives beat in run time).
 
 No ROS here.
 """
@@ -26,6 +28,8 @@ import time
 
 from stewart63_ros.core.bus import frame_bits
 
+#: s: a frame's stamp further than this from the wall clock is not a reception time
+STAMP_TRUST = 10.0
 #: s: the longest the safe stop sleeps before it looks at the clock again
 SETTLE_POLL = 0.005
 
@@ -41,7 +45,10 @@ class CycleSide:
     def _received(self, link, timestamp: float, data_bytes: int) -> float:
         """Count a frame's bits and note how far the receive side has got;
         its reception time (python-can's stamp; now if the interface has none)."""
-        stamp = timestamp or time.time()
+        now = time.time()
+        # (an interface whose stamps are not wall-clock times, a device's own
+        # clock say, is judged on when the frame is read)
+        stamp = timestamp if timestamp and abs(timestamp - now) < STAMP_TRUST else now
         self.bits[link.leg.bus] += frame_bits(min(data_bytes, 8))
         if stamp > self.received_to[link.leg.bus]:
             self.received_to[link.leg.bus] = stamp
