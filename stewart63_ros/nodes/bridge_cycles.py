@@ -149,9 +149,11 @@ class BridgeCycles:
         answered_ns = None
         while not STOP.requested:
             due = schedule.due()
-            while time.monotonic() < due:
+            while True:     # at least once: composed, this serves the controller too
                 wake = min(due, self.housekeeping(time.monotonic()))
                 self.forces_in.poll(max(0.0, wake - time.monotonic()))
+                if time.monotonic() >= due:
+                    break
             if k and self.force_ns != answered_ns:
                 self.missed += 1
             for name in master.bring_up_rebooted():
