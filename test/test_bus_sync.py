@@ -339,3 +339,43 @@ def test_a_silent_drive_in_lockstep_costs_one_wait_not_one_a_sample(bench):  # n
     print('\n100 lockstep samples with a silent drive: %.2f s (bus_timeout %.1f s)'
           % (took, bus_timeout))
     assert took < bus_timeout + 100 * 0.1, took     # one wait, then a grace a sample
+
+
+def lockstep_cycle(master, k, bus_timeout=0.1, pause=0.0):
+    """One lockstep cycle of the bridge's rules (nodes/bridge_cycles.py)."""
+    from stewart63_ros.nodes.bridge_cycles import LOCKSTEP_GRACE, LOCKSTEP_SETTLE
+    master.sync(k)
+    master.collect(time.monotonic() + bus_timeout, LOCKSTEP_GRACE, LOCKSTEP_SETTLE)
+    master.missing()
+    row = read_counts(master, master.readings()[0])
+    time.sleep(pause)
+    return row
+
+
+def test_lockstep_a_late_answer_after_the_next_sync_is_not_that_syncs_reading(double):
+    # node 2 answers SYNC 2 only once SYNC 3 has come, then SYNC 3's own 5 ms
+    # later: sample 3 holds SYNC 3's counts, SYNC 2's frame is counted late
+    d = double(lambda node, k: 'next' if node == 2 and k == 2 else 0.001)
+    master = d.master
+    rows = [lockstep_cycle(master, k) for k in range(5)]
+    assert rows[2][1] is None and rows[3][1] == counts(3, 2), rows
+    assert all(row == [counts(k, n) for n in range(1, 7)] for k, row in enumerate(rows)
+               if k != 2), rows
+    assert master.links[1].late_tpdo == 1 and master.links[1].missed_tpdo == 1
+
+
+def test_lockstep_a_drive_whose_answer_came_late_is_waited_for_not_taken_as_silent(double):
+    # node 4 misses SYNC 1's window (its answer comes after bus_timeout, before
+    # SYNC 2), then answers every SYNC 30 ms after the others: it is alive,
+    # waited for (bus_timeout), not given the 2 ms of a silent drive
+    def plan(node, k):
+        if node == 4:
+            return 0.15 if k == 1 else 0.03
+        return 0.001
+    d = double(plan)
+    master = d.master
+    rows = [lockstep_cycle(master, k, pause=0.1 if k == 1 else 0.0) for k in range(6)]
+    assert rows[1][3] is None, rows
+    assert all(row == [counts(k, n) for n in range(1, 7)] for k, row in enumerate(rows)
+               if k != 1), rows
+    assert master.links[3].late_tpdo == 1 and master.links[3].missed_tpdo == 1

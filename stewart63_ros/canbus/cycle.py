@@ -166,8 +166,9 @@ class CycleSide:
                 last = max(last, link.tpdo_taken_at)
                 if not link.tpdo_firm:
                     ready = max(ready, link.tpdo_taken_at + settle)
-            elif link.missed_in_a_row:
-                silent = True
+            elif link.missed_in_a_row and (link.answered is None
+                                           or link.answered < self.cycle - 1):
+                silent = True       # nothing from it for the SYNC before, not even late
             else:
                 waiting_live = True
         if waiting_live:

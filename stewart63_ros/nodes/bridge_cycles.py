@@ -7,10 +7,11 @@ go out as ``leg_lengths`` stamped with the SYNC's time; the controller's
 answer becomes each drive's RPDO.
 
 - lockstep: the next SYNC goes out once the controller has answered (or
-  ``force_timeout`` passed). A drive that answered the SYNC before is
-  waited for up to ``bus_timeout`` (a load spike must not decide a run); a
-  drive already silent only ``LOCKSTEP_GRACE`` after the others: a pulled
-  cable costs one ``bus_timeout``, not one a sample.
+  ``force_timeout`` passed). A drive that answered the SYNC before, even
+  late, is waited for up to ``bus_timeout`` (a load spike must not decide
+  a run); a drive silent since (not even a late answer) only
+  ``LOCKSTEP_GRACE`` after the others: a pulled cable costs one
+  ``bus_timeout``, not one a sample.
 - realtime: SYNC on the wall clock (``canbus.sync.Schedule``); a window
   lasts ``SYNC_WINDOW`` of the period; after a stall the SYNCs whose time
   has passed are skipped and counted (``syncs_skipped``), never sent in a
@@ -33,9 +34,11 @@ SLICE = 0.02
 #: the plant's ``run`` values during which its drives hold the SYNCs (no error)
 HELD_RUN = ('paused', 'reset')
 #: s: lockstep: once the others are in, how long a drive silent since the SYNC
-#: before is waited for, and how long a first TPDO after a miss waits for a
-#: second (the plant answers every drive of a SYNC at once)
+#: before is waited for (the plant answers every drive of a SYNC at once)
 LOCKSTEP_GRACE = 0.002
+#: s: lockstep: how long a drive's first TPDO after a miss waits for a second
+#: (which would make it the late answer to the SYNC before): paid after a miss only
+LOCKSTEP_SETTLE = 0.05
 #: realtime: the synchronous window, a share of the period: a TPDO received
 #: later than this after its SYNC is late (the reading is NaN for that sample)
 SYNC_WINDOW = 0.75
@@ -57,7 +60,7 @@ class BridgeCycles:
         plant started a new run."""
         timeout = max(self.bus_timeout, self.boot_timeout) if first else self.bus_timeout
         until = time.monotonic() + timeout
-        while not self.master.collect(until, LOCKSTEP_GRACE, LOCKSTEP_GRACE, give_back=SLICE):
+        while not self.master.collect(until, LOCKSTEP_GRACE, LOCKSTEP_SETTLE, give_back=SLICE):
             if STOP.requested or self.new_run:
                 return False
             self.serve(0.0)
