@@ -207,7 +207,7 @@ class Wire:
             while time.monotonic() < t0 + k * period:
                 time.sleep(0.0005)
             master.sync(k)
-            while not master.collect(0.5, 0.5):
+            while not master.collect(time.monotonic() + 0.5, 0.002, 0.002):
                 pass
             master.missing()
             errors = master.errors()

@@ -6,6 +6,7 @@
 - ``devices``: the simulated plant as CiA 402 drives on the bus (the device
   side: NMT, SDO server, PDOs, heartbeat, EMCY);
 - ``master``: the bridge's side, the master of the bus, on the ``canopen``
-  library;
+  library; ``cycle`` its receive side (which SYNC each frame answers) and
+  ``sync`` the SYNCs' windows and the realtime SYNC clock;
 - ``odrive``: ODrive's CAN protocol, the second protocol beside CANopen.
 """

@@ -269,6 +269,8 @@ STATUSWORDS = {NOT_READY: 0x0200, SWITCH_ON_DISABLED: 0x0240, READY_TO_SWITCH_ON
                SWITCHED_ON: 0x0223, OPERATION_ENABLED: 0x0227, QUICK_STOP_ACTIVE: 0x0207,
                FAULT_REACTION_ACTIVE: 0x020F, FAULT: 0x0208}
 CW_DISABLE_VOLTAGE, CW_SHUTDOWN, CW_SWITCH_ON, CW_ENABLE = 0x00, 0x06, 0x07, 0x0F
+#: disable operation: OPERATION ENABLED -> SWITCHED ON (the same bits as switch on)
+CW_DISABLE_OPERATION = 0x07
 CW_FAULT_RESET = 0x80
 #: modes of operation 0x6060: cyclic synchronous torque
 MODE_CST = 10
@@ -293,6 +295,10 @@ def next_controlword(state: str, last: int) -> int:
     """The master's controlword that takes a drive one step towards
     OPERATION ENABLED (shutdown, switch on, enable; from FAULT a fault
     reset, which acts on a rising edge of bit 7: after one, a 0 first).
+    In FAULT REACTION ACTIVE the drive is still reacting (braking, say) and
+    takes no controlword: no fault reset then (it would be a rising edge
+    the drive ignores, or acts on too early), disable voltage (0x00), so the
+    reset that follows in FAULT is a rising edge.
 
     Args:
         state: the drive's state (``drive_state``).
@@ -301,8 +307,10 @@ def next_controlword(state: str, last: int) -> int:
     Returns:
         The controlword to send now.
     """
-    if state in (FAULT, FAULT_REACTION_ACTIVE):
+    if state == FAULT:
         return CW_DISABLE_VOLTAGE if last & CW_FAULT_RESET else CW_FAULT_RESET
+    if state == FAULT_REACTION_ACTIVE:
+        return CW_DISABLE_VOLTAGE
     return {SWITCH_ON_DISABLED: CW_SHUTDOWN, READY_TO_SWITCH_ON: CW_SWITCH_ON,
             SWITCHED_ON: CW_ENABLE, OPERATION_ENABLED: CW_ENABLE,
             QUICK_STOP_ACTIVE: CW_DISABLE_VOLTAGE}.get(state, CW_DISABLE_VOLTAGE)
@@ -344,6 +352,8 @@ class Cia402Drive:
         rising_reset = controlword & CW_FAULT_RESET and not self._last & CW_FAULT_RESET
         self._last = controlword
         state = self.state
+        if state == FAULT_REACTION_ACTIVE:     # reacting: no controlword acts until FAULT
+            return
         if state == FAULT:
             if rising_reset and not self.fault_active:
                 self.state = SWITCH_ON_DISABLED

@@ -504,8 +504,9 @@ DECLARED: tuple[Declared, ...] = (
              integer(0, 10**7, 'a bitrate in bit/s (0: the config file\'s)'),
              default_text='0 (the config file\'s)'),
     Declared('bus_timeout', ('canopen_bridge',), 1.0, 's (wall clock)', '', 'lockstep: after '
-             'a SYNC, how long to wait for a drive\'s TPDO before naming it missing (a '
-             'silent drive costs this much wall time a sample)', positive),
+             'a SYNC, how long to wait for a drive\'s TPDO before naming it missing (a drive '
+             'already silent is waited for 2 ms after the others: a pulled cable costs this '
+             'once)', positive),
     Declared('tpdo_missing_error_cycles', ('canopen_bridge',), 5, 'cycles (SYNCs)', '1-1000',
              'realtime: a drive\'s TPDO missing this many cycles in a row is a bus fault (ERROR, '
              'torque withheld); fewer is a late message (WARN, counted): the supervisor\'s '

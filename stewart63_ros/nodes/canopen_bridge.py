@@ -13,7 +13,13 @@ clock_mode ``lockstep``: the next SYNC goes out once the controller has
 answered (or ``force_timeout`` passed), so a run through the bus is
 deterministic; stamps are the simulated time k / sensor_rate. ``realtime``:
 SYNC on the wall clock, forces written as they arrive; an answer that has
-not arrived by the next SYNC is a missed cycle, counted.
+not arrived by the next SYNC is a missed cycle, counted. A sample holds only
+the TPDOs received in its SYNC's window (nodes/bridge_cycles.py).
+
+On every way out (the end of ``duration``, SIGINT, SIGTERM, an exception)
+the drives are left safe: zero torque, disable operation and shutdown
+(READY TO SWITCH ON), NMT pre-operational; a lost controller shuts them
+down until it answers again. docs/bus.md, "Stopping".
 
 With ``rig --supervisor`` the supervisor answers every sample
 (``answer_every_sample``); a force that answers a sample more than
@@ -44,6 +50,7 @@ from stewart63_ros.canbus.master import Master
 from stewart63_ros.core.bus import BusConfigError, BusLoadError, load_bus_config
 from stewart63_ros.core.errors import ParameterError
 from stewart63_ros.exits import quiet_on_closed_pipe
+from stewart63_ros.nodes.bridge_cycles import CONTROLLER_LOST_MIN, BridgeCycles
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode
 from stewart63_ros.runtime.checks import (
@@ -53,21 +60,20 @@ from stewart63_ros.runtime.checks import (
     ros_time,
 )
 from stewart63_ros.runtime.handshake import plant_run
-from stewart63_ros.runtime.launcher import STOP, run
+from stewart63_ros.runtime.launcher import run
 from stewart63_ros.runtime.lockstep import PeerWindow
 from stewart63_ros.runtime.startup import PlantStartup
 
-#: s: realtime: after a drive's TPDO has come, the others of the cycle must follow
-#: within this (lockstep waits ``bus_timeout``: a load spike must not decide a run)
-BURST = 0.05
-#: s: the slice of a wait between two turns of housekeeping
-SLICE = 0.02
-#: the plant's ``run`` values during which its drives hold the SYNCs (no error)
-HELD_RUN = ('paused', 'reset')
+#: s: while waiting for the drives' boot-ups, how often the bridge says what it waits for
+BOOT_REPORT_PERIOD = 5.0
 
 
-class BridgeNode(RigNode):
-    """The bridge (see the module's doc)."""
+class NoDriveAnswers(RuntimeError):
+    """No drive of the config sent a boot-up: one line saying what was awaited."""
+
+
+class BridgeNode(BridgeCycles, RigNode):
+    """The bridge (see the module's doc; its loops: nodes/bridge_cycles.py)."""
 
     def __init__(self, options):
         super().__init__('canopen_bridge')
@@ -77,6 +83,7 @@ class BridgeNode(RigNode):
         self.mode = self.param('clock_mode')
         self.duration = self.param('duration')
         self.force_timeout = self.param('force_timeout')
+        self.lost_after = max(self.force_timeout, CONTROLLER_LOST_MIN)
         self.bus_timeout = self.param('bus_timeout')
         self.boot_timeout = self.param('boot_timeout')
         # With the supervisor in the rig (rig --supervisor): it answers every
@@ -107,6 +114,7 @@ class BridgeNode(RigNode):
         self.wire.attach(self.master.networks)
         if self.mode == 'realtime':     # lockstep: a miss has waited bus_timeout already
             self.master.tpdo_error_cycles = self.param('tpdo_missing_error_cycles')
+            self.master.clock = 'wall'  # heartbeats judged on their reception times
         self.late_tpdo = ''             # the last TPDO that missed its cycle (realtime)
         # The plant's start-up waits, now the bridge's: it publishes the samples.
         self.lengths_subscribers = self.param('lengths_subscribers')
@@ -136,6 +144,11 @@ class BridgeNode(RigNode):
                                  topics.DIAGNOSTICS_QOS)
         self.force = None
         self.force_ns = None
+        self.force_at = 0.0             # time.monotonic() the newest force came
+        self.lost_controller = False
+        self.timeouts_in_a_row = 0      # lockstep: samples the controller did not answer
+        self.schedule = None            # realtime: the SYNC clock (bridge_cycles)
+        self.stopped_drives = None      # the drives' states after the safe stop
         self.sent_wall = {}
         self.errors: list[str] = []
         self.k = 0
@@ -153,11 +166,12 @@ class BridgeNode(RigNode):
         if taken is None:
             return
         self.force_ns, self.force = taken
+        self.force_at = time.monotonic()
         sent = self.sent_wall.pop(self.force_ns, None)
         if sent is not None:
             self.health.latency.add(received - sent)
         if self.mode == 'realtime':         # on the bus at once; applied at the next SYNC
-            self.master.command(self.force, withhold=bool(self.errors))
+            self.write_torques(self.k, self.force_ns)
 
     def on_diagnostics(self, msg):
         said = plant_run(msg, self.plant_status)
@@ -190,7 +204,22 @@ class BridgeNode(RigNode):
         """Reset every drive and bring up those that boot within ``boot_timeout``."""
         master = self.master
         master.reset_all()
-        missing = master.wait_for_boot(self.boot_timeout)
+        started = time.monotonic()
+        missing = master.links
+        while missing:          # says at once what it waits for, and again every few s
+            waited = time.monotonic() - started
+            self.get_logger().info('waiting %s for the boot-up of %s' % (
+                'up to %g s (boot_timeout)' % self.boot_timeout if missing is master.links
+                else '(%.0f of %g s)' % (waited, self.boot_timeout), master.describe(missing)))
+            missing = master.wait_for_boot(min(BOOT_REPORT_PERIOD,
+                                               self.boot_timeout - waited))
+            if time.monotonic() - started >= self.boot_timeout:
+                break
+        if len(missing) == len(master.links):
+            raise NoDriveAnswers(
+                'no drive answered: no boot-up within %g s (boot_timeout) of an NMT reset '
+                'from %s: drives powered, bus wired and terminated, bitrate right?'
+                % (self.boot_timeout, master.describe(missing)))
         for link in master.links:
             if link.booted:
                 master.bring_up(link)
@@ -210,10 +239,14 @@ class BridgeNode(RigNode):
                 self.get_logger().error(str(exc))
         self.judge()
 
-    def judge(self) -> None:
-        """The drives' errors now; a change is reported at once (ERROR while any)."""
+    def judge(self, force: bool = False) -> None:
+        """The drives' errors now (and a lost controller); a change is
+        reported at once (ERROR while any)."""
         errors = self.master.errors()
-        if errors != self.errors:
+        if self.lost_controller:
+            errors.append('controller lost: no leg_forces for over %g s: zero torque, '
+                          'drives shut down' % self.lost_after)
+        if errors != self.errors or force:
             if errors:
                 self.get_logger().error('torque withheld: %s' % '; '.join(errors))
             elif self.errors:
@@ -258,8 +291,9 @@ class BridgeNode(RigNode):
         values.update({'sample': self.k, 'clock_mode': self.mode, 'missed_cycles': self.missed,
                        'force_timeouts': self.timeouts})
         for link in master.links:
-            values['drive/%s' % link.leg.name] = '%s, %s, TPDOs missed %d, EMCYs %d' % (
-                'up' if link.up else 'down', link.state.lower(), link.missed_tpdo, link.emcys)
+            values['drive/%s' % link.leg.name] = '%s, %s, TPDOs missed %d, late %d, EMCYs %d' % (
+                'up' if link.up else 'down', link.state.lower(), link.missed_tpdo,
+                link.late_tpdo, link.emcys)
         if not self.started:
             return
         if self.mode == 'lockstep':
@@ -269,19 +303,38 @@ class BridgeNode(RigNode):
 
     # -- the loops ---------------------------------------------------------------------------
     def run(self):
-        self.bring_up()
-        self.wait_for_matches(self.plant_startup.missing)
-        self.forces_in = self.start_hot_loop(self.sub_forces)
-        n_samples = int(round(self.duration * self.rate)) if self.duration > 0 else None
-        self.get_logger().info('%s at %g Hz%s' % (self.mode, self.rate,
-                                                  ', %d samples' % n_samples if n_samples
-                                                  else ''))
-        if self.mode == 'lockstep':
-            self.run_lockstep(n_samples)
-        else:
-            self.run_realtime(n_samples)
+        try:
+            self.bring_up()
+        except NoDriveAnswers as exc:
+            self.get_logger().error(str(exc))
+            print('canopen_bridge: error: %s' % exc, file=sys.stderr, flush=True)
+            return 1
+        try:
+            self.wait_for_matches(self.plant_startup.missing)
+            self.forces_in = self.start_hot_loop(self.sub_forces)
+            n_samples = int(round(self.duration * self.rate)) if self.duration > 0 else None
+            self.get_logger().info('%s at %g Hz%s' % (self.mode, self.rate,
+                                                      ', %d samples' % n_samples if n_samples
+                                                      else ''))
+            if self.mode == 'lockstep':
+                self.run_lockstep(n_samples)
+            else:
+                self.run_realtime(n_samples)
+        finally:                # every way out: the end, a stop signal, an exception
+            self.stop_drives()
         self.write_summary_file(self.summary())
         return 0
+
+    def stop_drives(self) -> None:
+        """Leave the drives safe (once; docs/bus.md, "Stopping")."""
+        if self.stopped_drives is not None:
+            return
+        states = self.master.safe_stop()
+        self.stopped_drives = states
+        self.health.values['safe_stop'] = ', '.join('%s: %s' % (leg, state.lower())
+                                                    for leg, state in states.items())
+        self.get_logger().info('safe stop: zero torque, shutdown, NMT pre-operational: %s'
+                               % (self.health.values['safe_stop'] or 'no drive was up'))
 
     def summary(self) -> dict:
         out = super().summary()
@@ -292,139 +345,19 @@ class BridgeNode(RigNode):
                     'force_timeouts': self.timeouts,
                     'tpdo_missed': {link.leg.name: link.missed_tpdo
                                     for link in self.master.links},
+                    'tpdo_late': {link.leg.name: link.late_tpdo for link in self.master.links},
+                    'syncs_skipped': self.schedule.skipped if self.schedule else 0,
+                    'drives_at_stop': self.stopped_drives,
                     'bus_load_computed_percent': {load.bus: round(load.percent, 1)
                                                   for load in self.config.loads(self.rate)}})
         return out
 
-    def wait_for_tpdos(self, first: bool) -> bool:
-        """Lockstep: wait for this cycle's TPDOs, serving the node meanwhile.
-        While the plant holds its run (paused, reset) there is no timeout.
-        False if a stop was requested or the plant started a new run."""
-        master = self.master
-        timeout = max(self.bus_timeout, self.boot_timeout) if first else self.bus_timeout
-        waited = 0.0
-        while not master.collect(SLICE, self.bus_timeout):
-            if STOP.requested or self.new_run:
-                return False
-            self.serve(0.0)
-            if self.plant_run in HELD_RUN:
-                waited = 0.0
-                continue
-            waited += SLICE
-            if waited >= timeout:
-                break
-        return True
-
-    def run_lockstep(self, n_samples):
-        master = self.master
-        k = 0
-        while not STOP.requested:
-            if self.new_run or self.plant_run in HELD_RUN:
-                if not self.hold_for_plant():
-                    return
-                k = 0
-            if self.peers is not None and not self.peers.hold(k * self.period_ns, self.serve):
-                return
-            for name in master.bring_up_rebooted():
-                self.get_logger().info('%s: back on the bus' % name)
-            self.k = k
-            started = time.perf_counter()
-            master.sync(k)
-            if not self.wait_for_tpdos(first=k == 0):
-                continue
-            self.bus_wait_s += time.perf_counter() - started
-            master.missing()
-            self.judge()
-            ns = k * self.period_ns
-            complete = self.publish(ns)
-            timeout = self.force_timeout if k else max(self.force_timeout,
-                                                       self.discovery_timeout)
-            started = time.perf_counter()
-            if (complete or self.answer_every_sample) and \
-                    not self.wait_for_answer(ns, timeout):
-                if STOP.requested:
-                    return
-                self.timeouts += 1
-                self.health.warning = 'no force for sample %d within %.3f s' % (k, timeout)
-                self.get_logger().warning(self.health.warning)
-            self.answer_wait_s += time.perf_counter() - started
-            stale = self.force_is_stale(k, ns, self.force_ns)
-            master.command(None if stale else self.force, withhold=bool(self.errors))
-            if n_samples is not None and k >= n_samples:
-                return
-            k += 1
-
-    def hold_for_plant(self) -> bool:
-        """The plant holds its run (paused, reset): wait until it runs again."""
-        self.new_run = False
-        while self.plant_run in HELD_RUN or self.new_run:
-            self.new_run = False
-            if STOP.requested:
-                return False
-            self.serve(SLICE)
-        self.force = None
-        self.force_ns = None
-        self.force_gate.last_ns = None
-        for link in self.master.links:      # the new run's cycles count from 0 again
-            link.heartbeat_cycle = 0 if link.heartbeat_cycle is not None else None
-            link.silent_since = None
-        return True
-
-    def wait_for_answer(self, ns, timeout) -> bool:
-        deadline = time.monotonic() + timeout
-        while self.force_ns != ns:
-            now = time.monotonic()
-            if now >= deadline or STOP.requested:
-                return False
-            wake = min(deadline, self.housekeeping(now))
-            if self.force_ns == ns:
-                break
-            self.forces_in.poll(max(0.0, wake - time.monotonic()))
-        return True
-
-    def run_realtime(self, n_samples):
-        master = self.master
-        # SYNC 0 waits for the drives' first answer (the plant may still be
-        # starting); the wall-clock schedule starts from it. A drive that
-        # booted again is brought up first: after SYNC 0 its bring-up would
-        # drop the TPDO it answered with.
-        for name in master.bring_up_rebooted():
-            self.get_logger().info('%s: back on the bus' % name)
-        master.sync(0)
-        if not self.wait_for_tpdos(first=True):
-            return
-        t0 = time.monotonic()
-        t0_wall = time.time()
-        k = 0
-        answered_ns = None
-        while not STOP.requested:
-            due = t0 + k * self.period
-            while True:     # at least once: composed, this serves the controller too
-                wake = min(due, self.housekeeping(time.monotonic()))
-                self.forces_in.poll(max(0.0, wake - time.monotonic()))
-                if time.monotonic() >= due:
-                    break
-            if k and self.force_ns != answered_ns:
-                self.missed += 1
-            for name in master.bring_up_rebooted():
-                self.get_logger().info('%s: back on the bus' % name)
-            self.k = k
-            if k:
-                master.sync(k)
-            master.collect(0.5 * self.period, min(BURST, 0.5 * self.period))
-            master.missing()
-            self.judge()
-            ns = int(round((t0_wall + k * self.period) * 1e9))
-            answered_ns = ns if self.publish(ns) else self.force_ns
-            if self.errors or self.force_is_stale(k, ns, self.force_ns):
-                master.command(None, withhold=True)
-            if n_samples is not None and k >= n_samples:
-                return
-            k += 1
-
     def close(self):
-        super().close()
-        self.master.close()
+        try:
+            self.stop_drives()      # (a way out before run's own: the drives first)
+        finally:
+            super().close()
+            self.master.close()
 
 
 @quiet_on_closed_pipe
