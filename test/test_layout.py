@@ -29,7 +29,6 @@ WHY = 'Why this long:'
 #: Modules over MODULE_LINES without a written reason, by path from the repository.
 LONG_MODULES = {
     'stewart63_ros/core/scenario.py': 'being split by job (parsing, running, verdicts)',
-    'stewart63_ros/core/supervisor.py': 'being split (the supervisor work)',
     'stewart63_ros/core/node_parameters.py': 'under change (the node parameters work)',
     'stewart63_ros/core/calibration.py': 'under change (the calibration work)',
     'stewart63_ros/core/reference.py': 'to split by job (parsing, sampling)',
@@ -40,8 +39,6 @@ LONG_MODULES = {
 }
 #: Classes over CLASS_LINES, as 'path:Class'.
 LONG_CLASSES = {
-    'stewart63_ros/core/supervisor.py:Supervisor': 'being split (the supervisor work)',
-    'stewart63_ros/nodes/canopen_bridge.py:BridgeNode': 'under change (the bus work)',
 }
 
 

@@ -68,6 +68,7 @@ class AssemblyWatch:
 
     @property
     def in_start_mode(self) -> bool:
+        """True while det J has the sign it had at the first sample."""
         return self.sign == self.start_sign
 
     def check(self, k: int, y: np.ndarray) -> str:

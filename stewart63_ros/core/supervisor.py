@@ -260,7 +260,7 @@ class Supervisor:
             return self.return_forces(ns, forces)
         return forces
 
-    def note_request(self, ns: int, forces) -> None:
+    def note_request(self, ns: int, forces: np.ndarray | None) -> None:
         """A request the controller sent for sample ``ns``: the latest, which
         a reset judges (``forces_stale``, ``bad_command``, ``force``,
         ``force_rate``). Tripped, the node hands over every request here
@@ -284,7 +284,7 @@ class Supervisor:
             return self.return_forces(ns, None)
         return self.last_forwarded
 
-    def return_forces(self, ns: int, request) -> np.ndarray:
+    def return_forces(self, ns: int, request: np.ndarray | None) -> np.ndarray:
         """The return's forces for sample ``ns``: ``GravityPD`` on its
         setpoint, blended into ``request`` (None: none came) at the hand-over."""
         back = self.returning

@@ -21,7 +21,7 @@ Found = tuple[str, str] | None
 PoseFunction = Callable[[np.ndarray], tuple]
 
 
-def legs(mask) -> str:
+def legs(mask: np.ndarray) -> str:
     """'1,3': the legs (1-based) where ``mask`` holds."""
     return ','.join(str(i + 1) for i in np.flatnonzero(mask))
 
@@ -82,7 +82,7 @@ def pose_cause(lim: Limits, pose: PoseFunction, lengths: np.ndarray) -> Found:
     return None
 
 
-def request_cause(lim: Limits, forces, last_forwarded: np.ndarray, period: float) -> Found:
+def request_cause(lim: Limits, forces: np.ndarray | None, last_forwarded: np.ndarray, period: float) -> Found:
     """A request that is not six finite forces (``bad_command``), a force
     above ``trip_force`` (``force``), or one changing from ``last_forwarded``
     faster than ``trip_force_rate`` over ``period`` [s] (``force_rate``)."""

@@ -25,8 +25,6 @@ import time
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rcl_interfaces.srv import SetParameters
-from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -35,6 +33,7 @@ from stewart63_ros import topics
 from stewart63_ros.core.stamps import NS_PER_S, SampleSpacing
 from stewart63_ros.core.supervisor import LIMIT_KEYS, limits_from_params, supervisor_from_params
 from stewart63_ros.exits import quiet_on_closed_pipe
+from stewart63_ros.nodes.supervisor_homing import SupervisorHoming
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode
 from stewart63_ros.runtime.checks import (
@@ -54,7 +53,7 @@ REQUEST_TOPIC = 'leg_forces_request'
 TRIP_TOPIC = 'trip_request'
 
 
-class SupervisorNode(RigNode):
+class SupervisorNode(SupervisorHoming, RigNode):
     def __init__(self, options):
         super().__init__('supervisor')
         self.lockstep = self.param('clock_mode') == 'lockstep'
@@ -108,9 +107,7 @@ class SupervisorNode(RigNode):
             # The node that owns the sensors' zero: the plant, or on the bus
             # the bridge (it writes the drives' home offset 0x607C).
             self.zero_node = self.param('homed_offset_node')
-            self.zero_peer = None   # that node, when composed with this one
-            self.zero_parameters = self.create_client(SetParameters, '%s/set_parameters' % (
-                topics.node_full_name(self.get_namespace(), self.zero_node)))
+            self.connect_zero_node()
             self.health.values['homed'] = 'false'
         self.health.values.update({'tripped': 'false', 'trips': 0,
                                    'rest_lengths': np.round(self.core.rest, 4).tolist()})
@@ -268,49 +265,6 @@ class SupervisorNode(RigNode):
             self.report()
         self.get_logger().info('~/reset: %s' % response.message)
         return response
-
-    # -- homing ------------------------------------------------------------------------
-    def home(self, ns: int):
-        """The homing's forces for sample ``ns``; once every leg is found, the
-        offsets are set (the ``homed_offset`` of the plant, or of the bridge:
-        the drives' home offsets) before this sample is answered, so its next
-        sample reads true."""
-        forces = self.core.homing_forces(ns)
-        zero = self.core.take_zero_to_set()
-        if zero is not None:
-            self.health.values['homing/offsets'] = np.round(zero, 6).tolist()
-            why = self.set_zero(zero)
-            if why:
-                self.core.trip_now('homing', why, ns)
-                return self.core.safe_forces(ns)
-            self.get_logger().info('homed: offsets %s m set on the %s'
-                                   % (np.round(zero, 6).tolist(), self.zero_node))
-        if self.core.homed:
-            self.health.values['homed'] = 'true'
-            self.report()
-        return forces
-
-    def set_zero(self, zero) -> str:
-        """``homed_offset`` of the plant (or bridge) of this namespace; '' or
-        why it failed."""
-        value = [float(v) for v in zero]
-        if self.zero_peer is not None:
-            # Composed with it (nodes/composed.py): its parameter service is
-            # served by its own executor, which nobody spins while this waits.
-            result = self.zero_peer.set_parameters([Parameter('homed_offset', value=value)])[0]
-            return '' if result.successful else 'the %s refused: %s' % (self.zero_node,
-                                                                        result.reason)
-        client = self.zero_parameters
-        if not client.wait_for_service(timeout_sec=5.0):
-            return '%s: no such service' % client.srv_name
-        future = client.call_async(SetParameters.Request(parameters=[Parameter(
-            'homed_offset', value=value).to_parameter_msg()]))
-        self.executor_.spin_until_future_complete(future, timeout_sec=10.0)
-        if not future.done():
-            return '%s: no answer within 10 s' % client.srv_name
-        result = future.result().results[0]
-        return '' if result.successful else 'the %s refused: %s' % (self.zero_node,
-                                                                    result.reason)
 
     # -- trips and answers -------------------------------------------------------------
     def request_trip(self, cause: str, detail: str) -> None:
