@@ -117,12 +117,15 @@ def _eval(z, t, par, dpar, patch, gamma, total_degree, h, jac, ht):
     """
     w = 1.0 - t if total_degree else 1.0
     tp = 0.0 if total_degree else t
-    e = z[:4]
-    g = z[4:]
+    e = (z[0], z[1], z[2], z[3])
+    g = (z[4], z[5], z[6], z[7])
     ee = e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3]
     for i in range(6):
-        d = par[i, 0:3] + tp * dpar[i, 0:3]
-        s = par[i, 3:6] + tp * dpar[i, 3:6]
+        # scalars, not slices: an array per leg and call would dominate the cost
+        d = (par[i, 0] + tp * dpar[i, 0], par[i, 1] + tp * dpar[i, 1],
+             par[i, 2] + tp * dpar[i, 2])
+        s = (par[i, 3] + tp * dpar[i, 3], par[i, 4] + tp * dpar[i, 4],
+             par[i, 5] + tp * dpar[i, 5])
         l2 = par[i, 6] + tp * dpar[i, 6]
         k0, k1, k2, k3 = _k_times(e, d, s)
         v0, v1, v2, v3 = k0 + 2 * g[0], k1 + 2 * g[1], k2 + 2 * g[2], k3 + 2 * g[3]
@@ -136,7 +139,8 @@ def _eval(z, t, par, dpar, patch, gamma, total_degree, h, jac, ht):
         if total_degree:
             ht[i] = -h[i] / w if w != 0 else -(v0 * v0 + v1 * v1 + v2 * v2 + v3 * v3 - l2 * ee)
         else:
-            m0, m1, m2, m3 = _k_times(e, dpar[i, 0:3], dpar[i, 3:6])
+            m0, m1, m2, m3 = _k_times(e, (dpar[i, 0], dpar[i, 1], dpar[i, 2]),
+                                      (dpar[i, 3], dpar[i, 4], dpar[i, 5]))
             ht[i] = 2 * (v0 * m0 + v1 * m1 + v2 * m2 + v3 * m3) - dpar[i, 6] * ee
     h[6] = w * (e[0] * g[0] + e[1] * g[1] + e[2] * g[2] + e[3] * g[3])
     for j in range(4):
@@ -226,6 +230,13 @@ def _track_paths(starts, par, dpar, patch, gamma, td, max_step, max_steps):
                 z = zc
                 t = t - dt if dt < t else 0.0
                 good += 1
+                # near the end with e.e -> 0: the pose runs off to infinity (a real
+                # pose has e.e = |e|^2); stop rather than halve the step for nothing
+                if t < 1e-3 and not td:
+                    ee = z[0] * z[0] + z[1] * z[1] + z[2] * z[2] + z[3] * z[3]
+                    if abs(ee) < 1e-6 * (abs(z[0]) ** 2 + abs(z[1]) ** 2 + abs(z[2]) ** 2
+                                         + abs(z[3]) ** 2):
+                        break
                 if good >= 3:
                     dt = min(2.0 * dt, max_step)
                     good = 0
