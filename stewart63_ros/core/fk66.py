@@ -383,6 +383,7 @@ class ForwardKinematics66:
         self.scale = float(max(self.size, np.ptp(self.base, axis=0).max()))
         self.reference = None if reference is None else (_arr(reference[0]),
                                                          _arr(reference[1]))
+        self.reruns = 0
 
     def check_lengths(self, lengths: ArrayLike) -> np.ndarray:
         """Six finite positive lengths as a float array; ValueError / NoAssemblyError if not."""
@@ -424,12 +425,28 @@ class ForwardKinematics66:
         target = _parameters(self.base / self.scale, self.legp / self.scale,
                              (lengths / self.scale) ** 2)
         dpar = np.ascontiguousarray(start.par - target)
-        for _ in range(3):
-            ends, _, done = _track_paths(start.solutions, target, dpar, start.patch, 0j, False,
+        #: how many times the last solve re-ran its paths (a jump, or a path lost midway)
+        self.reruns = 0
+        rng = np.random.default_rng(_SEED + 1)
+        ends, t_end, done = _track_paths(start.solutions, target, dpar, start.patch, 0j, False,
                                          max_step, 20000)
-            if not self._jumped(ends, done, target, dpar, start.patch):
+        while self.reruns < 3:
+            if self._jumped(ends, done, target, dpar, start.patch):
+                max_step /= 4.0     # two paths met at a regular point: one jumped
+            elif not np.any(t_end > 1e-2):
                 break
-            max_step /= 4.0     # two paths met at a regular point: one jumped
+            # else a path stopped midway: the straight line passed near a point where a
+            # solution meets infinity or the degenerate set e = 0. Go round it through
+            # a random complex midpoint (two segments), which moves every path.
+            self.reruns += 1
+            mid = target + 0.5 * dpar + 0.5 * (rng.standard_normal(target.shape)
+                                               + 1j * rng.standard_normal(target.shape))
+            mids, _, ok = _track_paths(start.solutions, mid, np.ascontiguousarray(start.par - mid),
+                                       start.patch, 0j, False, max_step, 20000)
+            if not ok.all():
+                continue
+            ends, t_end, done = _track_paths(mids, target, np.ascontiguousarray(mid - target),
+                                             start.patch, 0j, False, max_step, 20000)
         return ends, done
 
     @staticmethod
