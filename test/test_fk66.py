@@ -9,10 +9,10 @@ from stewart63_ros.core.fk import NoAssemblyError, _newton, _pose_distance
 from stewart63_ros.core.fk66 import GENERIC_MODES, FKTracker66, ForwardKinematics66
 
 
-def semi_regular(base_radius=0.5, plat_radius=0.3, base_gap=np.radians(12),
-                 plat_gap=np.radians(10)):
+def semi_regular(base_radius=0.5, plat_radius=0.3, base_gap_deg=12.0, plat_gap_deg=10.0):
     """A lab hexapod: joints in three close pairs on each side, each base
     pair's legs going to two different platform pairs (the usual zig-zag)."""
+    base_gap, plat_gap = np.radians(base_gap_deg), np.radians(plat_gap_deg)
     ang_b = [k * 2 * np.pi / 3 + s * base_gap / 2 for k in range(3) for s in (-1, 1)]
     ang_p = [k * 2 * np.pi / 3 - np.pi / 3 + s * plat_gap / 2 for k in range(3) for s in (1, -1)]
     base = np.c_[base_radius * np.cos(ang_b), base_radius * np.sin(ang_b), np.zeros(6)]
@@ -102,6 +102,20 @@ def test_brute_force_finds_no_mode_the_homotopy_missed(geometry, position, euler
         len(missed), missed)
     assert contains(modes, position, rotation, fk.size)
     assert len(found) >= 2      # the search did find something to compare
+
+
+def test_a_path_lost_midway_is_tracked_again_round_the_near_miss():
+    """Found by a sweep: on this geometry the straight parameter line passes so
+    near the degenerate set e = 0 that one path stops at t = 0.243; that path
+    carries the eighth of eight real modes. The re-run through a complex
+    midpoint must bring it back (the brute force finds 8)."""
+    fk = ForwardKinematics66(*general(297))
+    lengths = fk.lengths(*pose([0.040853038306200365, 0.02365456328821397, 0.5585143958414169],
+                               [0.13720098802496206, 0.23100506266908533, 0.27415975238756823]))
+    modes = fk.all_modes(lengths)
+    assert fk.reruns >= 1
+    assert len(modes) == 8
+    assert all(contains(modes, t, rot, fk.size) for t, rot in brute_force(fk, lengths, 4000))
 
 
 def test_generic_geometry_gives_forty_regular_complex_solutions():
