@@ -96,7 +96,7 @@ def test_brute_force_finds_no_mode_the_homotopy_missed(geometry, position, euler
     position, rotation = pose(position, euler)
     lengths = fk.lengths(position, rotation)
     modes = fk.all_modes(lengths)
-    found = brute_force(fk, lengths, 4000)
+    found = brute_force(fk, lengths, 20000)
     missed = [t for t, rot in found if not contains(modes, t, rot, fk.size)]
     assert not missed, 'brute force found %d modes the homotopy missed: %s' % (
         len(missed), missed)
@@ -155,7 +155,26 @@ def test_tracker_follows_a_moving_6_6_with_core_fk_kernels():
         s = k / 1000.0
         t = np.array([0.03 * np.sin(2 * s), 0.02 * np.sin(3 * s), 0.45 + 0.03 * np.sin(s)])
         rot = Rotation.from_euler('xyz', [0.1 * np.sin(2 * s), 0.05 * s, 0.2 * s]).as_matrix()
-        result = tracker.solve(fk.lengths(t, rot))
+        result = tracker.solve(fk.lengths(t, rot), rates=np.zeros(6))
+        assert np.allclose(result.velocity, 0.0) and np.allclose(result.omega, 0.0)
         assert not result.fallback and not result.singular and result.iterations <= 4
         worst = max(worst, np.abs(result.position - t).max(), np.abs(result.rotation - rot).max())
     assert worst < 1e-9
+
+
+@pytest.mark.slow
+def test_sweep_of_geometries_and_poses_against_brute_force():
+    """60 solves, semi-regular and random 6-6 alternately, at random poses: the
+    true pose is always a mode, the brute force never finds one more, and the
+    real count is even (non-real solutions come in conjugate pairs)."""
+    rng = np.random.default_rng(2026)
+    for k in range(60):
+        fk = ForwardKinematics66(*(semi_regular() if k % 2 else general(500 + k)))
+        position, rotation = pose([*rng.uniform(-0.05, 0.05, 2), rng.uniform(0.3, 0.6)],
+                                  rng.uniform(-0.3, 0.3, 3))
+        lengths = fk.lengths(position, rotation)
+        modes = fk.all_modes(lengths)
+        assert contains(modes, position, rotation, fk.size), k
+        assert len(modes) % 2 == 0, k
+        found = brute_force(fk, lengths, 5000, seed=k)
+        assert all(contains(modes, t, rot, fk.size) for t, rot in found), k

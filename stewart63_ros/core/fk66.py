@@ -255,7 +255,8 @@ def _track_paths(starts, par, dpar, patch, gamma, td, max_step, max_steps):
 
 @njit
 def _end_condition(z, par, dpar, patch):
-    """Condition number (1-norm estimate via the inverse's columns) of H_z at t = 0."""
+    """1-norm condition number of H_z at t = 0 (the inverse column by column):
+    large at a singular end point, where two paths may meet legitimately."""
     h = np.empty(8, np.complex128)
     jac = np.empty((8, 8), np.complex128)
     ht = np.empty(8, np.complex128)
@@ -288,7 +289,10 @@ def _parameters(base: np.ndarray, plat: np.ndarray, lengths2: np.ndarray) -> np.
 
 
 def _pose_of_study(z: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """(t, R) complex from Study parameters z, and |e.e| / |e|^2 (0 at infinity)."""
+    """(t, R) complex from Study parameters z, and |e.e| / |e|^2 (0 at infinity).
+
+    The matrix of a complex, unnormalised quaternion: core/rotation.py's
+    conversions take real unit quaternions (x, y, z, w)."""
     e, g = z[:4], z[4:]
     ee = e @ e
     size = np.sum(np.abs(e) ** 2)
@@ -321,7 +325,8 @@ class _StartSystem:
         found: list[np.ndarray] = []
         for attempt in range(6):
             gamma = complex(np.exp(2j * np.pi * rng.random()))
-            signs = np.array([[1.0] + [1.0 - 2.0 * ((k >> j) & 1) for j in range(7)]
+            # the 2^7 start points z = (1, +-1, ..., +-1) of G_j = z_{j+1}^2 - z_0^2
+            signs = np.array([[1.0] + [(-1.0) ** ((k >> j) & 1) for j in range(7)]
                               for k in range(128)], dtype=complex)
             starts = signs / (signs @ self.patch)[:, None]
             ends, _, done = _track_paths(starts, self.par, zero, self.patch, gamma, True,
@@ -549,8 +554,13 @@ class FKTracker66:
         self._prev = (self.position, self.rotation)
         self._moving = False
 
-    def solve(self, lengths: ArrayLike) -> FKResult:
-        """The pose for one sample of leg lengths L (6,) [m]."""
+    def solve(self, lengths: ArrayLike, rates: ArrayLike | None = None) -> FKResult:
+        """The pose for one sample of leg lengths L (6,) [m], with the twist
+        (``velocity``, ``omega``) when leg rates dL/dt (6,) [m/s] are given.
+
+        Raises:
+            ValueError: not six lengths; NoAssemblyError: no real mode.
+        """
         fk = self.fk
         lengths = _arr(lengths)
         if lengths.shape != (6,):
@@ -562,6 +572,8 @@ class FKTracker66:
             result = FKResult(t, rot, cond, cond > fk.cond_threshold, res, it)
         else:
             result = fk.nearest(lengths, t0, r0)
+        if rates is not None:
+            result.velocity, result.omega = fk.twist(result.position, result.rotation, rates)
         self._prev = (self.position, self.rotation)
         self.position, self.rotation = result.position, result.rotation
         self._moving = not result.fallback
