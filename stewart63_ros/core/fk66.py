@@ -24,8 +24,11 @@ cannot miss one (unlike Newton from random starts):
   a straight line; 40 paths, RK4 predictor and Newton corrector with step
   control. The line through complex parameters avoids the discriminant with
   probability one, so every isolated solution of the target ends a path.
-  Two paths ending on the same nonsingular point (a path jump) trigger a
-  re-run with smaller steps.
+  Safeguards: two paths ending on the same nonsingular point (a path jump)
+  re-run with smaller steps; a path stopping midway (t > 0.01: the line passed
+  near the degenerate set), or an odd number of real modes beside stopped
+  paths (non-real solutions come in conjugate pairs, so a real mode's path
+  may be lost), re-run the paths through a random complex midpoint.
 * End points with a real pose (imaginary part small) are polished by Newton on
   the six leg equations (``core/fk.py``'s kernel), deduplicated, and returned
   with the Jacobian's condition number and a ``singular`` flag.
@@ -418,12 +421,14 @@ class ForwardKinematics66:
         x = _twist(self.base, self.legp, _arr(position), _arr(rotation), _arr(rates))
         return x[:3], x[3:]
 
-    def complex_solutions(self, lengths: ArrayLike, max_step: float = 0.1
-                          ) -> tuple[np.ndarray, np.ndarray]:
+    def complex_solutions(self, lengths: ArrayLike, max_step: float = 0.1,
+                          detour: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """The 40 homotopy end points (Study parameters z (40, 8), complex) and
         whether each path reached the target (False: a singular or diverging end).
 
         Lengths are scaled by ``scale`` so the system is of order one.
+        ``detour``: go through a random complex midpoint from the start (a
+        different set of paths, to the same end points).
         """
         lengths = self.check_lengths(lengths)
         start = _StartSystem.get()
@@ -438,7 +443,7 @@ class ForwardKinematics66:
         while self.reruns < 3:
             if self._jumped(ends, done, target, dpar, start.patch):
                 max_step /= 4.0     # two paths met at a regular point: one jumped
-            elif not np.any(t_end > 1e-2):
+            elif not (np.any(t_end > 1e-2) or detour and self.reruns == 0):
                 break
             # else a path stopped midway: the straight line passed near a point where a
             # solution meets infinity or the degenerate set e = 0. Go round it through
@@ -484,7 +489,36 @@ class ForwardKinematics66:
             NoAssemblyError: no real mode fits the lengths.
         """
         lengths = self.check_lengths(lengths)
-        ends, _ = self.complex_solutions(lengths)
+        ends, done = self.complex_solutions(lengths)
+        ts, rots, iters, resid = self._real_poses(lengths, ends, imag_tol)
+        if len(ts) % 2 and not done.all():
+            # Non-real solutions come in conjugate pairs: an odd count of real
+            # ones beside lost paths hints that a real mode's path was lost near
+            # its end. Other paths, through a complex midpoint, settle it.
+            more, _ = self.complex_solutions(lengths, detour=True)
+            ts, rots, iters, resid = self._real_poses(lengths, np.vstack([ends, more]),
+                                                      imag_tol)
+        if not ts:
+            raise NoAssemblyError('no assembly mode: the six leg lengths %s m admit no real '
+                                  'pose' % np.round(lengths, 6).tolist())
+        if reference is None:
+            reference = self.reference
+        if reference is None:
+            reference = (self.base.mean(0) - self.legp.mean(0)
+                         + np.array([0.0, 0.0, lengths.mean()]), np.eye(3))
+        ref_t, ref_r = _arr(reference[0]), _arr(reference[1])
+        order = sorted(range(len(ts)),
+                       key=lambda k: _pose_distance(ts[k], rots[k], ref_t, ref_r, self.size))
+        out = []
+        for k in order:
+            cond = condition_number(self.jacobian(ts[k], rots[k]))
+            out.append(FKResult(ts[k], rots[k], cond, cond > self.cond_threshold, resid[k],
+                                iters[k], True))
+        return out
+
+    def _real_poses(self, lengths, ends, imag_tol):
+        """The distinct real poses among homotopy end points, polished by Newton
+        on the six leg equations: lists t, R, iterations, residual."""
         ts, rots, iters, resid = [], [], [], []
         for z in ends:
             t, rot, finite = _pose_of_study(z)
@@ -504,23 +538,7 @@ class ForwardKinematics66:
             rots.append(rr)
             iters.append(it)
             resid.append(res)
-        if not ts:
-            raise NoAssemblyError('no assembly mode: the six leg lengths %s m admit no real '
-                                  'pose' % np.round(lengths, 6).tolist())
-        if reference is None:
-            reference = self.reference
-        if reference is None:
-            reference = (self.base.mean(0) - self.legp.mean(0)
-                         + np.array([0.0, 0.0, lengths.mean()]), np.eye(3))
-        ref_t, ref_r = _arr(reference[0]), _arr(reference[1])
-        order = sorted(range(len(ts)),
-                       key=lambda k: _pose_distance(ts[k], rots[k], ref_t, ref_r, self.size))
-        out = []
-        for k in order:
-            cond = condition_number(self.jacobian(ts[k], rots[k]))
-            out.append(FKResult(ts[k], rots[k], cond, cond > self.cond_threshold, resid[k],
-                                iters[k], True))
-        return out
+        return ts, rots, iters, resid
 
     def nearest(self, lengths: ArrayLike, position: ArrayLike,
                 rotation: ArrayLike) -> FKResult:
