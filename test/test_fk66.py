@@ -178,3 +178,19 @@ def test_sweep_of_geometries_and_poses_against_brute_force():
         assert len(modes) % 2 == 0, k
         found = brute_force(fk, lengths, 5000, seed=k)
         assert all(contains(modes, t, rot, fk.size) for t, rot in found), k
+
+
+def test_at_and_near_a_singular_pose():
+    """A 90-degree twist about the vertical is singular for this hexapod (cond J ~
+    1e16): there the mode nearest the truth is flagged singular and fits the
+    lengths, though the lengths no longer pin the pose; 1e-3 rad away the true
+    pose is found exactly."""
+    fk = ForwardKinematics66(*semi_regular())
+    at = pose([0.0, 0.0, 0.45], [0.0, 0.0, np.pi / 2])
+    lengths = fk.lengths(*at)
+    modes = fk.all_modes(lengths, reference=at)
+    assert modes[0].singular
+    assert _pose_distance(modes[0].position, modes[0].rotation, *at, fk.size) < 1e-5
+    assert all(np.abs(fk.lengths(m.position, m.rotation) - lengths).max() < 1e-9 for m in modes)
+    near = pose([0.0, 0.0, 0.45], [0.0, 0.0, np.pi / 2 + 1e-3])
+    assert contains(fk.all_modes(fk.lengths(*near)), *near, fk.size)
