@@ -43,9 +43,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from stewart63_ros.core._jit import njit
-from stewart63_ros.core.fk import (
-    FKResult,
-    NoAssemblyError,
+from stewart63_ros.core.fk import FKResult, NoAssemblyError
+from stewart63_ros.core.fk_tracking import (
     _legs,
     _newton,
     _pose_distance,
@@ -53,12 +52,13 @@ from stewart63_ros.core.fk import (
     _twist,
     condition_number,
 )
+from stewart63_ros.core.node_parameters import DEFAULT_COND_THRESHOLD
 
 #: Complex solutions of the general 6-6 forward kinematics (Raghavan 1993; Lazard 1993).
 GENERIC_MODES = 40
 #: A Jacobian condition number above this flags a mode ``singular``
 #: (the fk node's default ``singularity_threshold``).
-COND_THRESHOLD = 1.0e4
+COND_THRESHOLD = DEFAULT_COND_THRESHOLD
 _SEED = 20260127
 
 
