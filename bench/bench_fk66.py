@@ -3,7 +3,7 @@
 Prints the time of ``all_modes`` (40 homotopy paths, median over poses and
 repeats, CPU time of this process and wall time: the machine may be shared) and
 of tracking (Newton from the last pose) per sample, on a semi-regular hexapod
-and on a random non-planar 6-6. Targets (issue 41): all modes <= 50 ms,
+and on a random non-planar 6-6. Targets: all modes <= 50 ms,
 tracking <= 20 us a sample.
 
     python bench/bench_fk66.py [--repeats N]

@@ -510,7 +510,8 @@ def test_every_key_the_code_reads_is_known():
     from stewart63_ros.core.params import known_keys
     examples = {'legpd_kp', 'legpd_kv', 'failing_after',     # the example laws' own keys
                 'fd_window', 'fd_threshold'}
-    examples |= {'plant', 'controller', 'fk', 'canopen_bridge'}   # node names (rig's extra, files)
+    # node names (rig's extra, files)
+    examples |= {'plant', 'controller', 'fk', 'canopen_bridge', 'supervisor'}
     missing = {k: where for k, where in parameters_read().items()
                if k not in known_keys() and k not in examples}
     assert missing == {}, 'declare these in core/node_parameters.py: %s' % missing

@@ -108,6 +108,19 @@ def main() -> None:
     holding_forces(dyn, task.initial_position, np.eye(3))
     workspace_map(mech, np.eye(3), 1.0)
     leg_lengths_of_states(dyn.base_points, dyn.leg_points, y[None, :])
+    # The general 6-6's forward kinematics (every mode by homotopy; tracking) on a
+    # small semi-regular hexapod: joints in three close pairs on each side.
+    # lazy: the kernels cost 692 ms; cli imports this for the notice
+    from stewart63_ros.core.fk66 import FKTracker66, ForwardKinematics66
+    angles = np.radians([k * 120 + s * 6 for k in range(3) for s in (-1, 1)])
+    base66 = np.c_[0.5 * np.cos(angles), 0.5 * np.sin(angles), np.zeros(6)]
+    plat66 = np.roll(np.c_[0.3 * np.cos(angles - np.pi / 3), 0.3 * np.sin(angles - np.pi / 3),
+                           np.zeros(6)], -1, axis=0)
+    fk66 = ForwardKinematics66(base66, plat66)
+    up = np.array([0.0, 0.0, 0.4])
+    lengths66 = fk66.lengths(up, np.eye(3))
+    fk66.all_modes(lengths66)
+    FKTracker66(fk66, up, np.eye(3)).solve(lengths66)
     print('numba kernels ready (%.1f s)' % (time.perf_counter() - start))
 
 

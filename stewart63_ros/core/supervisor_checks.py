@@ -82,7 +82,8 @@ def pose_cause(lim: Limits, pose: PoseFunction, lengths: np.ndarray) -> Found:
     return None
 
 
-def request_cause(lim: Limits, forces: np.ndarray | None, last_forwarded: np.ndarray, period: float) -> Found:
+def request_cause(lim: Limits, forces: np.ndarray | None, last_forwarded: np.ndarray,
+                  period: float) -> Found:
     """A request that is not six finite forces (``bad_command``), a force
     above ``trip_force`` (``force``), or one changing from ``last_forwarded``
     faster than ``trip_force_rate`` over ``period`` [s] (``force_rate``)."""
