@@ -43,7 +43,7 @@ VARIANTS = {'plain': [], 'compose': ['--compose'], 'supervisor': ['--supervisor'
 TIMEOUT = 180.0
 
 FLOOR_CHILD = r'''
-import sys, time
+import select, sys, time
 import rclpy
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
@@ -64,7 +64,8 @@ while time.monotonic() < deadline:
     if not said and len(heard) == len(others):
         print('HEARD %.6f' % time.time(), flush=True)
         said = True
-    if said and sys.stdin.readline() == '':
+    # on, publishing, until the parent closes stdin (the others have heard it)
+    if said and select.select([sys.stdin], [], [], 0)[0] and sys.stdin.readline() == '':
         break
 '''
 
