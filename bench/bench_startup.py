@@ -43,7 +43,7 @@ VARIANTS = {'plain': [], 'compose': ['--compose'], 'supervisor': ['--supervisor'
 TIMEOUT = 180.0
 
 FLOOR_CHILD = r'''
-import select, sys, time
+import os, select, sys, time
 import rclpy
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
@@ -67,6 +67,7 @@ while time.monotonic() < deadline:
     # on, publishing, until the parent closes stdin (the others have heard it)
     if said and select.select([sys.stdin], [], [], 0)[0] and sys.stdin.readline() == '':
         break
+os._exit(0)     # no teardown: the next round must not share the cores with it
 '''
 
 
