@@ -12,11 +12,13 @@
 The floor and the variants are taken in turn, ``--repeat`` rounds in one
 sitting (the machine's load moves): each figure is the median of its rounds,
 and each start-up is also given as a multiple of the floor's median.
-``--tree DIR`` runs the rig of another checkout (its ``stewart63_ros`` first
-on the path), e.g. the main branch, for a before / after in one sitting.
+``--tree DIR`` (repeatable) runs the rig of that checkout (its
+``stewart63_ros`` first on the path) instead of this one's; two of them,
+e.g. the main branch and this one, are taken in turn in each round: a before
+/ after in one sitting.
 
     bench_startup.py [--repeat R] [--duration S] [--variants plain,compose,...]
-                     [--tree DIR] [--json]
+                     [--tree DIR]... [--json]
 """
 from __future__ import annotations
 
@@ -111,8 +113,9 @@ def rig_once(variant: str, duration: float, work: Path, env: dict) -> dict:
     if options == ['--record']:
         options = ['--record', str(logs) + '.bag']
     started = time.monotonic()
+    # cwd: not a checkout (``python -m`` puts the cwd first on the path)
     out = subprocess.run(argv + options, capture_output=True, text=True, timeout=TIMEOUT,
-                         env=env)
+                         env=env, cwd=work)
     wall = time.monotonic() - started
     found = SUMMARY.search(out.stdout)
     result = {'code': out.returncode, 'command_s': wall}
@@ -127,38 +130,48 @@ def rig_once(variant: str, duration: float, work: Path, env: dict) -> dict:
     return result
 
 
-def measure(repeat: int, duration: float, variants: list[str], tree: str | None,
-            quiet: bool = False) -> dict:
+def tree_env(tree: str | None) -> dict:
+    """The environment that runs the rig of checkout ``tree`` (None: this one)."""
     env = dict(os.environ)
-    if tree:
-        env['PYTHONPATH'] = str(Path(tree).resolve()) + os.pathsep + env.get('PYTHONPATH', '')
+    root = Path(tree).resolve() if tree else HERE.parent
+    env['PYTHONPATH'] = str(root) + os.pathsep + env.get('PYTHONPATH', '')
+    return env
+
+
+def measure(repeat: int, duration: float, variants: list[str], trees: list,
+            quiet: bool = False) -> dict:
+    """``variants`` of each of ``trees`` (None: this checkout), labelled
+    ``variant`` (one tree) or ``variant@tree``."""
+    trees = trees or [None]
+    runs = [(v, t, v if len(trees) == 1 else '%s@%s' % (v, t)) for t in trees for v in variants]
     rounds: dict[str, list] = {'floor': []}
-    rounds.update({v: [] for v in variants})
+    rounds.update({label: [] for _, _, label in runs})
     with private_domain(), tempfile.TemporaryDirectory(prefix='bench_startup_') as tmp:
-        env.update({k: os.environ[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
         for k in range(repeat):
             rounds['floor'].append(floor_once())
-            for variant in variants:
-                rounds[variant].append(rig_once(variant, duration, Path(tmp), env))
+            for variant, tree, label in runs:
+                rounds[label].append(rig_once(variant, duration, Path(tmp), tree_env(tree)))
+            labels = [label for _, _, label in runs]
             if not quiet:
                 print('round %d: floor %.2f s; %s' % (k + 1, rounds['floor'][-1], '; '.join(
                     '%s %s' % (v, 'start-up %.2f s, stop %.2f s' % (
                         rounds[v][-1]['startup_s'], rounds[v][-1]['stop_s'])
                         if 'startup_s' in rounds[v][-1] else 'FAILED (exit %d)'
-                        % rounds[v][-1]['code']) for v in variants)), flush=True)
+                        % rounds[v][-1]['code']) for v in labels)), flush=True)
     floor = statistics.median(rounds['floor'])
     result = {'floor_s': floor, 'floor_rounds_s': rounds['floor'], 'rounds': repeat,
               'load_average': os.getloadavg()}
-    for variant in variants:
-        runs = rounds[variant]
+    for _, _, label in runs:
+        done = rounds[label]
         good = [r for r in runs if 'startup_s' in r]
-        figures = {'exit_codes': [r['code'] for r in runs]}
+        figures = {'exit_codes': [r['code'] for r in done]}
         if good:
             for key in ('startup_s', 'stop_s', 'run_s', 'command_s'):
                 figures[key] = statistics.median(r[key] for r in good)
             figures['startup_over_floor'] = figures['startup_s'] / floor
-        figures['errors'] = [r['error'] for r in runs if 'error' in r]
-        result[variant] = figures
+        figures['errors'] = [r['error'] for r in done if 'error' in r]
+        result[label] = figures
+    result['labels'] = [label for _, _, label in runs]
     return result
 
 
@@ -169,7 +182,8 @@ def main(argv=None):
                         help='simulated seconds of each rig run')
     parser.add_argument('--variants', default=','.join(VARIANTS),
                         help='comma-separated, of %s' % ','.join(VARIANTS))
-    parser.add_argument('--tree', help='run the rig of this checkout (default: this one)')
+    parser.add_argument('--tree', action='append', default=[],
+                        help='run the rig of this checkout (default: this one); repeatable')
     parser.add_argument('--json', action='store_true', help='print the figures as JSON')
     args = parser.parse_args(argv)
     variants = [v for v in args.variants.split(',') if v]
@@ -185,14 +199,14 @@ def main(argv=None):
     print('floor: three bare rclpy processes until each hears both others: %.2f s '
           '(median of %d: %s)' % (result['floor_s'], args.repeat,
                                   ', '.join('%.2f' % f for f in result['floor_rounds_s'])))
-    print('%-11s %9s %9s %7s %8s %10s  exits' % ('rig', 'start-up', 'x floor', 'stop',
+    print('%-24s %9s %9s %7s %8s %10s  exits' % ('rig', 'start-up', 'x floor', 'stop',
                                                  'run', 'command'))
-    for variant in variants:
+    for variant in result['labels']:
         f = result[variant]
         if 'startup_s' not in f:
-            print('%-11s FAILED every run: %s' % (variant, f['errors'][:1]))
+            print('%-24s FAILED every run: %s' % (variant, f['errors'][:1]))
             continue
-        print('%-11s %8.2fs %8.1fx %6.2fs %7.2fs %9.2fs  %s' % (
+        print('%-24s %8.2fs %8.1fx %6.2fs %7.2fs %9.2fs  %s' % (
             variant, f['startup_s'], f['startup_over_floor'], f['stop_s'], f['run_s'],
             f['command_s'], ' '.join(map(str, f['exit_codes']))))
     print('load average %s before, %s after' % (

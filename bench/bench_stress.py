@@ -64,8 +64,9 @@ def one_run(k: int, duration: float, work: Path, env: dict) -> dict:
             '--duration', '%g' % duration, '--log-dir', str(logs)]
     started = time.monotonic()
     try:
+        # cwd: not a checkout (``python -m`` puts the cwd first on the path)
         out = subprocess.run(argv, capture_output=True, text=True, timeout=RUN_TIMEOUT,
-                             env=env)
+                             env=env, cwd=work)
         code, text = out.returncode, out.stdout + out.stderr
     except subprocess.TimeoutExpired as exc:
         code, text = 'timeout', '%s%s' % (exc.stdout or '', exc.stderr or '')
@@ -94,8 +95,8 @@ def stream(runs: list[int], duration: float, work: Path, tree: str | None, resul
            keep: Path, lock: threading.Lock, quiet: bool, until: float) -> None:
     domain, fd = lease_domain()
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    if tree:
-        env['PYTHONPATH'] = str(Path(tree).resolve()) + os.pathsep + env.get('PYTHONPATH', '')
+    root = Path(tree).resolve() if tree else HERE.parent
+    env['PYTHONPATH'] = str(root) + os.pathsep + env.get('PYTHONPATH', '')
     try:
         for k in runs:
             if time.monotonic() >= until:
