@@ -163,7 +163,7 @@ def measure(repeat: int, duration: float, variants: list[str], trees: list,
               'load_average': os.getloadavg()}
     for _, _, label in runs:
         done = rounds[label]
-        good = [r for r in runs if 'startup_s' in r]
+        good = [r for r in done if 'startup_s' in r]
         figures = {'exit_codes': [r['code'] for r in done]}
         if good:
             for key in ('startup_s', 'stop_s', 'run_s', 'command_s'):
