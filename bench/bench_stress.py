@@ -14,7 +14,7 @@ deleted).
     bench_stress.py [--runs N] [--streams K] [--duration S] [--max-wall S]
                     [--tree DIR] [--keep-dir DIR] [--json]
 
-The target (issue 39): 1000 runs, every one exit 0, nothing left running.
+The target: 1000 runs, every one exit 0, nothing left running.
 """
 from __future__ import annotations
 
