@@ -41,7 +41,7 @@ $(STAMP): setup.py package.xml Makefile
 	$(BIN)/python -c 'import rclpy, sensor_msgs.msg, std_srvs.srv, stewart63_ros'
 	touch $(STAMP)
 
-$(KERNELS): $(STAMP) $(wildcard stewart63_ros/core/*.py)
+$(KERNELS): $(STAMP) $(wildcard stewart63_ros/core/*.py stewart63_ros/core/*/*.py)
 	$(BIN)/python -m stewart63_ros.core.precompile
 	touch $(KERNELS)
 

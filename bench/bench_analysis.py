@@ -22,8 +22,8 @@ import time
 
 import numpy as np
 
-from stewart63_ros.core import linear, modal, sweep, sweep_plan
-from stewart63_ros.core.params import load_setup
+from stewart63_ros.core.analysis import linear, modal, sweep, sweep_plan
+from stewart63_ros.core.plumbing.params import load_setup
 from stewart63_ros.paths import default_params_path
 
 

@@ -36,14 +36,14 @@ import numpy as np
 from bench_loop import private_domain
 
 from stewart63_ros.canbus.master import Master
-from stewart63_ros.core.bus import load_bus_config
+from stewart63_ros.core.machine.bus import load_bus_config
 from stewart63_ros.paths import default_params_path
 from stewart63_ros.tools.rig import Rig
 
 DEVICES = textwrap.dedent('''
     import sys, time
     import numpy as np
-    from stewart63_ros.core.bus import load_bus_config
+    from stewart63_ros.core.machine.bus import load_bus_config
     from stewart63_ros.canbus.devices import DeviceSet
     config = load_bus_config(None, channels=sys.argv[1:3])
     devices = DeviceSet(config)

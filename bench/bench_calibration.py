@@ -17,9 +17,9 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from stewart63_ros.core import calibration as cal  # noqa: E402
-from stewart63_ros.core import calibration_plan as cp  # noqa: E402
-from stewart63_ros.core.params import load_setup  # noqa: E402
+from stewart63_ros.core.machine import calibration as cal  # noqa: E402
+from stewart63_ros.core.machine import calibration_plan as cp  # noqa: E402
+from stewart63_ros.core.plumbing.params import load_setup  # noqa: E402
 
 
 def measure(poses: int = 100, repeat: int = 5) -> dict:

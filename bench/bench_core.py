@@ -10,10 +10,10 @@ import time
 
 import numpy as np
 
-from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.laws import PDController
-from stewart63_ros.core.params import load_setup
-from stewart63_ros.core.simulate import initial_state, run_continuous, run_sampled
+from stewart63_ros.core.controllers.laws import PDController
+from stewart63_ros.core.controllers.simulate import initial_state, run_continuous, run_sampled
+from stewart63_ros.core.mechanics.dynamics import Dynamics
+from stewart63_ros.core.plumbing.params import load_setup
 
 
 def per_call(func, repeat=20000):

@@ -10,10 +10,10 @@ import time
 
 import numpy as np
 
-from stewart63_ros.core.fk import FKTracker, ForwardKinematics
-from stewart63_ros.core.kinematics import leg_lengths
-from stewart63_ros.core.params import load_setup
-from stewart63_ros.core.rotation import rotation_from_euler
+from stewart63_ros.core.mechanics.fk import FKTracker, ForwardKinematics
+from stewart63_ros.core.mechanics.kinematics import leg_lengths
+from stewart63_ros.core.mechanics.rotation import rotation_from_euler
+from stewart63_ros.core.plumbing.params import load_setup
 
 
 def timings(func, count):

@@ -1,4 +1,4 @@
-"""Forward kinematics of a 6-6 (core/fk66.py): all assembly modes, and tracking.
+"""Forward kinematics of a 6-6 (core/mechanics/fk66.py): all assembly modes, and tracking.
 
 Prints the time of ``all_modes`` (40 homotopy paths, median over poses and
 repeats, CPU time of this process and wall time: the machine may be shared) and
@@ -17,7 +17,7 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from stewart63_ros.core.fk66 import FKTracker66, ForwardKinematics66, _StartSystem
+from stewart63_ros.core.mechanics.fk66 import FKTracker66, ForwardKinematics66, _StartSystem
 
 
 def semi_regular():

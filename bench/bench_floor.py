@@ -42,11 +42,11 @@ from geometry_msgs.msg import PoseStamped, TwistStamped
 from sensor_msgs.msg import JointState
 
 from stewart63_ros import topics
-from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.fk import FKTracker
-from stewart63_ros.core.laws import Controller
-from stewart63_ros.core.params import load_setup
-from stewart63_ros.core.simulate import initial_state, substeps_for
+from stewart63_ros.core.controllers.laws import Controller
+from stewart63_ros.core.controllers.simulate import initial_state, substeps_for
+from stewart63_ros.core.mechanics.dynamics import Dynamics
+from stewart63_ros.core.mechanics.fk import FKTracker
+from stewart63_ros.core.plumbing.params import load_setup
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.rclpy_internals import WaitAny, raw_publisher, take, take_with_info
 

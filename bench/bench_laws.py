@@ -14,11 +14,11 @@ import time
 
 import numpy as np
 
-from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.laws import Controller
-from stewart63_ros.core.params import load_setup
-from stewart63_ros.core.reference import Reference
-from stewart63_ros.core.simulate import run_sampled
+from stewart63_ros.core.controllers.laws import Controller
+from stewart63_ros.core.controllers.reference import Reference
+from stewart63_ros.core.controllers.simulate import run_sampled
+from stewart63_ros.core.mechanics.dynamics import Dynamics
+from stewart63_ros.core.plumbing.params import load_setup
 
 CASES = (('pd_setpoint', 'pd', False), ('pd_reference', 'pd', True),
          ('pd_gravity', 'pd_gravity', True), ('computed_torque', 'computed_torque', True),

@@ -24,7 +24,7 @@ import statistics
 import tempfile
 import time
 
-from stewart63_ros.core.params import default_params_path
+from stewart63_ros.core.plumbing.params import default_params_path
 from stewart63_ros.paths import try_lock_domain
 from stewart63_ros.tools.rig import Rig, control_params
 

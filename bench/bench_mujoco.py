@@ -18,9 +18,9 @@ import time
 
 import numpy as np
 
-from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.params import load_setup
-from stewart63_ros.core.simulate import run_continuous
+from stewart63_ros.core.controllers.simulate import run_continuous
+from stewart63_ros.core.mechanics.dynamics import Dynamics
+from stewart63_ros.core.plumbing.params import load_setup
 from stewart63_ros.mujoco_model import MujocoPlatform, Settings
 
 DURATION = 10.0

@@ -6,7 +6,8 @@ expectations each, on local worker processes after the kernels are loaded
 (``tools.scenario.run_all``, as ``scenario run --jobs N``); target < 10 s
 wall. Also the CPU time of one such scenario, run serially (a loaded
 machine stretches the wall time, not this), and with the supervisor in the
-loop (a ``no_trip`` expectation: ``core.supervisor.run_supervised``). The rig figure: 10 lockstep
+loop (a ``no_trip`` expectation: ``core.machine.supervisor.run_supervised``). The rig figure: 10
+lockstep
 scenarios (the paper's, ``--rig-duration`` s each), each starting `rig` on
 its own leased ROS domain, ``--rig-jobs`` at a time (``--domain``: one
 after the other on that id). Prints wall times and scenarios per second; never asserts.
@@ -22,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart63_ros.core.scenario import Expectation, load_scenarios
+from stewart63_ros.core.scenarios.scenario import Expectation, load_scenarios
 from stewart63_ros.tools.scenario import run_all
 
 EXPECT = """    expect:

@@ -1,6 +1,6 @@
 """The supervisor's cost: prints figures, asserts nothing.
 
-- per sample, in-process (core/supervisor.py): ``on_sample`` + ``on_request``
+- per sample, in-process (core/machine/supervisor.py): ``on_sample`` + ``on_request``
   of an untripped supervisor on a moving platform (forward kinematics for
   the pose box, the tracking check), and the safe action's forces once
   tripped (the descent: forward kinematics and the gravity model);
@@ -22,8 +22,8 @@ import time
 import numpy as np
 from bench_loop import PAIR, private_domain
 
-from stewart63_ros.core.params import default_params_path, load_setup
-from stewart63_ros.core.supervisor import run_supervised, supervisor_from_params
+from stewart63_ros.core.machine.supervisor import run_supervised, supervisor_from_params
+from stewart63_ros.core.plumbing.params import default_params_path, load_setup
 from stewart63_ros.tools.rig import Rig
 
 

@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart63_ros.core.stamps import stamp_ns
-from stewart63_ros.core.trajectory import COLUMNS
+from stewart63_ros.core.plumbing.stamps import stamp_ns
+from stewart63_ros.core.plumbing.trajectory import COLUMNS
 
 #: Key of ``metadata.yaml``'s ``custom_data`` holding the namespace a bag was
 #: recorded in (``/`` when none): ``play --namespace`` re-roots topics from it.
@@ -366,11 +366,11 @@ def trajectory_from_bag(bag_dir, *, relative_time: bool = True,
     NaN (a controller running slower than the sensor answers only some samples);
     with ``hold_forces`` each F row instead holds the last force received
     (zero-order hold, as the plant applies it).
-    θ = ``core.rotation.euler_from_quaternion(q)`` (R = Rz·Ry·Rx). ``t`` is the
+    θ = ``core.mechanics.rotation.euler_from_quaternion(q)`` (R = Rz·Ry·Rx). ``t`` is the
     stamp in seconds, from the first row's stamp when ``relative_time``.
     """
-    # lazy: core.rotation costs 649 ms (numba, scipy); plot needs no core
-    from stewart63_ros.core.rotation import euler_from_quaternion
+    # lazy: core.mechanics.rotation costs 649 ms (numba, scipy); plot needs no core
+    from stewart63_ros.core.mechanics.rotation import euler_from_quaternion
 
     if run is None:
         runs = bag_runs(bag_dir)
@@ -492,8 +492,8 @@ def reference_points_from_bag(bag_dir) -> dict[str, np.ndarray | None]:
     Raises:
         BagError: not a bag, none of the topics, both, a bad message.
     """
-    # lazy: core.reference costs 570 ms (numba); plot needs no core
-    from stewart63_ros.core.reference import (
+    # lazy: core.controllers.reference costs 570 ms (numba); plot needs no core
+    from stewart63_ros.core.controllers.reference import (
         MessageError,
         message_quaternion,
         trajectory_points,
@@ -550,7 +550,7 @@ def reference_points_from_bag(bag_dir) -> dict[str, np.ndarray | None]:
 
 def reference_from_bag(mech, bag_dir, max_leg_speed: float = 0.0,
                        max_leg_acceleration: float = 0.0):
-    """A checked ``core.reference.Reference`` from a topic file
+    """A checked ``core.controllers.reference.Reference`` from a topic file
     (:func:`reference_points_from_bag`), interpolated as a reference CSV is
     (clamped cubic through the poses; Hermite where velocities are given).
 
@@ -558,8 +558,8 @@ def reference_from_bag(mech, bag_dir, max_leg_speed: float = 0.0,
         ReferenceError: the bag cannot be read, or its motion is refused
             (``Reference.check``), naming the bag.
     """
-    # lazy: core.reference costs 570 ms (numba); plot needs no core
-    from stewart63_ros.core.reference import Reference, ReferenceError
+    # lazy: core.controllers.reference costs 570 ms (numba); plot needs no core
+    from stewart63_ros.core.controllers.reference import Reference, ReferenceError
     try:
         points = reference_points_from_bag(bag_dir)
     except BagError as exc:

@@ -40,14 +40,14 @@ import dataclasses
 
 import numpy as np
 
-from stewart63_ros.core.legs import LEG_VERTEX
-from stewart63_ros.core.rotation import (
+from stewart63_ros.core.mechanics.rotation import (
     euler_rate_matrix,
     quaternion_from_rotation,
     rotation_from_euler,
     rotation_from_quaternion,
 )
-from stewart63_ros.core.setup import Setup, Task
+from stewart63_ros.core.mechanics.setup import Setup, Task
+from stewart63_ros.core.plumbing.legs import LEG_VERTEX
 
 #: Axial moment of inertia of each leg part in the MuJoCo model [kg m^2].
 AXIAL_INERTIA = 1e-9

@@ -12,7 +12,7 @@ from pathlib import Path
 #: --mode``, the launch files' ``clock_mode:=``), written once. The packaged
 #: file sets the same for every node (its ``/**`` section), so that a plant,
 #: controller and fk each started by hand with it agree. A node given no
-#: ``clock_mode`` runs in the declared default (core/node_parameters.py),
+#: ``clock_mode`` runs in the declared default (core/plumbing/node_parameters.py),
 #: ``realtime``: alone, it runs; in lockstep it would wait for a controller.
 RIG_CLOCK_MODE = 'lockstep'
 

@@ -51,8 +51,8 @@ def load(source: Any, base: str | os.PathLike) -> list:
     Raises:
         ScenarioError: a bad scenario (its key named).
     """
-    # lazy: core.scenario costs 129 ms; pytest loads this plugin always
-    from stewart63_ros.core.scenario import load_scenarios, scenarios_from_dict
+    # lazy: core.scenarios.scenario costs 129 ms; pytest loads this plugin always
+    from stewart63_ros.core.scenarios.scenario import load_scenarios, scenarios_from_dict
     items = source if isinstance(source, (list, tuple)) else [source]
     out = []
     for item in items:
@@ -71,7 +71,7 @@ _SESSION_OUTCOMES: list = []
 def run_scenarios(request: Any) -> Callable[..., list]:
     """A function that runs scenarios and, by default, fails the test on a failed verdict."""
     # lazy: tools.scenario costs 139 ms; pytest loads this plugin always
-    from stewart63_ros.core.scenario import ScenarioError
+    from stewart63_ros.core.scenarios.scenario import ScenarioError
     from stewart63_ros.tools.scenario import failure_message, run_all
     base = Path(str(request.node.fspath)).parent
 

@@ -30,14 +30,14 @@ def default_params_file() -> Path:
 @pytest.fixture(scope='session')
 def default_mech(default_params_file):
     """The default mechanism (validated)."""
-    from stewart63_ros.core.params import load_mechanism
+    from stewart63_ros.core.plumbing.params import load_mechanism
     return load_mechanism(default_params_file)
 
 
 @pytest.fixture(scope='session')
 def default_setup(default_params_file):
     """The default setup (validated): machine, gains, task, settings."""
-    from stewart63_ros.core.params import load_setup
+    from stewart63_ros.core.plumbing.params import load_setup
     return load_setup(default_params_file)
 
 
@@ -56,5 +56,5 @@ def mech(default_mech):
 @pytest.fixture(scope='module')
 def dyn(mech):
     """The dynamics of ``mech`` (eq. 38), one per test module."""
-    from stewart63_ros.core.dynamics import Dynamics
+    from stewart63_ros.core.mechanics.dynamics import Dynamics
     return Dynamics(mech)

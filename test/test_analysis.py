@@ -33,11 +33,12 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
-from stewart63_ros.core import dopri, equilibrium, linear, modal
-from stewart63_ros.core.dynamics import NO_WRENCH, Dynamics, derivative_pd
-from stewart63_ros.core.kinematics import jacobian, leg_lengths
-from stewart63_ros.core.rotation import rotation_from_euler
-from stewart63_ros.core.workspace import workspace_map
+from stewart63_ros.core.analysis import equilibrium, linear, modal
+from stewart63_ros.core.analysis.workspace import workspace_map
+from stewart63_ros.core.mechanics import dopri
+from stewart63_ros.core.mechanics.dynamics import NO_WRENCH, Dynamics, derivative_pd
+from stewart63_ros.core.mechanics.kinematics import jacobian, leg_lengths
+from stewart63_ros.core.mechanics.rotation import rotation_from_euler
 from stewart63_ros.tools import analyze
 
 #: An uneven direction for the steps: every leg, different amounts and signs.
@@ -343,7 +344,7 @@ def test_the_memory_bound_of_a_workspace_grid_holds(default_setup, default_mech)
     traced), and ``check_grid_fits`` refuses what would not fit."""
     import tracemalloc
 
-    from stewart63_ros.core import workspace
+    from stewart63_ros.core.analysis import workspace
     pos, rot = equilibrium.setpoint_pose(default_setup)
     workspace_map(default_mech, rot, 0.3, through=pos)      # compiled outside the trace
     tracemalloc.start()

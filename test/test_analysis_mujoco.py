@@ -35,7 +35,7 @@ if os.environ.get('STEWART63_REQUIRE_MUJOCO'):
 else:
     mujoco = pytest.importorskip('mujoco', reason='MuJoCo is the optional [bench] extra')
 
-from stewart63_ros.core import linear, modal  # noqa: E402
+from stewart63_ros.core.analysis import linear, modal  # noqa: E402
 from stewart63_ros.mujoco_model import MujocoPlatform, Settings  # noqa: E402
 
 TIMESTEPS = (2e-4, 1e-4)

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stewart63_ros.core.kinematics import leg_lengths
-from stewart63_ros.core.params import load_mechanism
-from stewart63_ros.core.trajectory import COLUMNS, write_csv
+from stewart63_ros.core.mechanics.kinematics import leg_lengths
+from stewart63_ros.core.plumbing.params import load_mechanism
+from stewart63_ros.core.plumbing.trajectory import COLUMNS, write_csv
 
 REPO = Path(__file__).resolve().parents[1]
 #: every test here spawns a process (view, rig, plot, a browser)

@@ -23,7 +23,7 @@ from ros_harness import PYTHON, RosTest, lease_domain_id, stop, wait_line, wait_
 
 from stewart63_ros import bagio
 from stewart63_ros.bagio import BagError
-from stewart63_ros.core.trajectory import COLUMNS
+from stewart63_ros.core.plumbing.trajectory import COLUMNS
 
 HERE = Path(__file__).resolve().parent
 #: Node processes over DDS: `make test-fast` leaves this file out.

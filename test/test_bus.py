@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stewart63_ros.core import bus as corebus
-from stewart63_ros.core.bus import (
+from stewart63_ros.core.machine import bus as corebus
+from stewart63_ros.core.machine.bus import (
     FAULT,
     OPERATION_ENABLED,
     SWITCH_ON_DISABLED,
@@ -35,7 +35,7 @@ from stewart63_ros.core.bus import (
     load_bus_config,
     next_controlword,
 )
-from stewart63_ros.core.faults import FaultError, FaultModel, parse_fault
+from stewart63_ros.core.machine.faults import FaultError, FaultModel, parse_fault
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / 'config' / 'canopen.yaml'

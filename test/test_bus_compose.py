@@ -32,11 +32,11 @@ from test_bus_rig import final_error
 from test_rig import PARAMS, by_stamp, final_published_counts
 
 from stewart63_ros import bagio
-from stewart63_ros.core.bus import OverTheBus, load_bus_config
-from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.laws import PDController
-from stewart63_ros.core.params import load_mechanism
-from stewart63_ros.core.simulate import run_sampled
+from stewart63_ros.core.controllers.laws import PDController
+from stewart63_ros.core.controllers.simulate import run_sampled
+from stewart63_ros.core.machine.bus import OverTheBus, load_bus_config
+from stewart63_ros.core.mechanics.dynamics import Dynamics
+from stewart63_ros.core.plumbing.params import load_mechanism
 from stewart63_ros.nodes.composed import hosting_problem
 from stewart63_ros.tools.rig import Rig, plant_params_problem
 

@@ -1,10 +1,10 @@
-"""The device config file's keys (core/bus.py ``load_bus_config``): a key the
+"""The device config file's keys (core/machine/bus.py ``load_bus_config``): a key the
 bridge does not read is refused in one line naming it and a close match."""
 from __future__ import annotations
 
 import pytest
 
-from stewart63_ros.core.bus import BusConfigError, default_bus_config_path, load_bus_config
+from stewart63_ros.core.machine.bus import BusConfigError, default_bus_config_path, load_bus_config
 
 CONFIG = default_bus_config_path()
 EDS = CONFIG.with_name('stewart63_drive.eds')

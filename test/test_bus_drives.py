@@ -42,7 +42,7 @@ from cia402_drive import (
 from test_bus import CONFIG, channels
 
 from stewart63_ros.canbus.busload import WARN_POINTS, WireLoad, known_cob_ids
-from stewart63_ros.core.bus import load_bus_config
+from stewart63_ros.core.machine.bus import load_bus_config
 
 EDS = Path(__file__).resolve().with_name('cia402_drive.eds')
 RATE = 100.0

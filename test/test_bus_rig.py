@@ -3,7 +3,7 @@
 - lockstep: controller -> canopen_bridge -> bus -> the plant as drives ->
   bridge -> controller reproduces, sample for sample, the offline run whose
   controller reads the drives' counts and acts through their per mille
-  torque (``core.bus.OverTheBus``); the bag holds every message; the final
+  torque (``core.machine.bus.OverTheBus``); the bag holds every message; the final
   error differs from the direct loop's by what the torque resolution gives;
 - lockstep with every bus fault: each named ERROR on /diagnostics within
   three periods of its start, torque withheld, every process alive, the
@@ -21,11 +21,11 @@ from ros_harness import rig_env, run_to_end
 from test_rig import PARAMS, assert_every_status_is_in_the_bag, by_stamp, final_published_counts
 
 from stewart63_ros import bagio
-from stewart63_ros.core.bus import OverTheBus, load_bus_config
-from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.laws import PDController
-from stewart63_ros.core.params import load_mechanism, load_setup
-from stewart63_ros.core.simulate import run_sampled
+from stewart63_ros.core.controllers.laws import PDController
+from stewart63_ros.core.controllers.simulate import run_sampled
+from stewart63_ros.core.machine.bus import OverTheBus, load_bus_config
+from stewart63_ros.core.mechanics.dynamics import Dynamics
+from stewart63_ros.core.plumbing.params import load_mechanism, load_setup
 from stewart63_ros.tools.rig import Rig
 
 pytestmark = [pytest.mark.dds, pytest.mark.slow]

@@ -23,7 +23,7 @@ from sensor_msgs.msg import JointState
 from test_bus import CONFIG, channels
 
 from stewart63_ros import topics
-from stewart63_ros.core.bus import OPERATION_ENABLED, READY_TO_SWITCH_ON, load_bus_config
+from stewart63_ros.core.machine.bus import OPERATION_ENABLED, READY_TO_SWITCH_ON, load_bus_config
 
 pytestmark = [pytest.mark.dds, pytest.mark.slow]
 RATE = 100.0

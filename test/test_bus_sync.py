@@ -22,7 +22,7 @@ import pytest
 from test_bus import CONFIG, Bench, bench, channels  # noqa: F401 - the fixture
 
 from stewart63_ros.canbus.sync import Schedule, SyncWindows
-from stewart63_ros.core.bus import (
+from stewart63_ros.core.machine.bus import (
     FAULT,
     FAULT_REACTION_ACTIVE,
     OPERATION_ENABLED,

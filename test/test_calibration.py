@@ -1,4 +1,4 @@
-"""Calibration (core/calibration.py, core/calibration_plan.py, `calibrate`):
+"""Calibration (core/machine/calibration.py, core/machine/calibration_plan.py, `calibrate`):
 the model's Jacobians against finite differences, recovery of a machine
 built off its drawing within the reported uncertainty, that uncertainty
 against a Monte-Carlo spread, the refusals, and the plant's simulated
@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stewart63_ros.core import calibration as cal
-from stewart63_ros.core import calibration_plan as cp
-from stewart63_ros.core.params import ParameterError, load_setup
-from stewart63_ros.core.sensor import SensorModel, TrackerModel
+from stewart63_ros.core.controllers.sensor import SensorModel, TrackerModel
+from stewart63_ros.core.machine import calibration as cal
+from stewart63_ros.core.machine import calibration_plan as cp
+from stewart63_ros.core.plumbing.params import ParameterError, load_setup
 from stewart63_ros.tools import calibrate
 
 NOISE = cal.NoiseModel(1e-4, 1e-4, 1e-5)
@@ -83,7 +83,7 @@ def test_parameter_and_pose_jacobians_match_finite_differences(setup, mech, trut
 
 
 def test_readings_of_the_drawing_are_the_inverse_kinematics_plus_offset(setup, mech):
-    from stewart63_ros.core.kinematics import leg_lengths
+    from stewart63_ros.core.mechanics.kinematics import leg_lengths
     offset = [0.001, -0.002, 0.003, 0.0, 0.004, -0.005]
     drawn = mech.replace(leg_length_offset=offset)
     positions, rotations = random_poses(setup, 3, 2)
@@ -193,7 +193,7 @@ def test_level_poses_are_refused_naming_what_they_leave_unseen(setup, mech, trut
 
 def test_poses_at_one_height_turning_only_about_z_are_refused(setup, mech, truth):
     rng = np.random.default_rng(3)
-    from stewart63_ros.core.equilibrium import setpoint_pose
+    from stewart63_ros.core.analysis.equilibrium import setpoint_pose
     centre, _ = setpoint_pose(setup)
     positions = centre + np.column_stack([rng.uniform(-0.2, 0.2, (30, 2)), np.zeros(30)])
     rotations = Rotation.from_euler('z', rng.uniform(-0.3, 0.3, (30, 1))).as_matrix()
@@ -318,7 +318,7 @@ def test_an_impossible_calibration_is_never_written(setup, tmp_path, mech, truth
 
 
 def test_plan_writes_poses_and_a_reference_the_rig_accepts(tmp_path, mech):
-    from stewart63_ros.core.reference import load_reference
+    from stewart63_ros.core.controllers.reference import load_reference
     assert calibrate.main(['plan', '--poses', '12', '--out', str(tmp_path / 'plan'),
                            '--hold', '0.5', '--move', '0.5', '--leg-speed', '0.4',
                            '--seed', '2']) == 0
@@ -401,7 +401,7 @@ def test_plan_stays_inside_the_supervisors_limits_with_a_margin(tmp_path, setup,
     supervised run tripped pose_box); a tighter file's limits are kept too."""
     import yaml
 
-    from stewart63_ros.core.reference import R_LEN, R_POS, R_RATE, R_ROT, load_reference
+    from stewart63_ros.core.controllers.reference import R_LEN, R_POS, R_RATE, R_ROT, load_reference
     doc = yaml.safe_load(open(calibrate.default_params_path()))
     doc['/**/supervisor'] = {'ros__parameters': {'trip_tilt': 0.3,
                                                  'pose_box': [-0.2, -0.25, 0.5, 0.3, 0.3, 1.5]}}

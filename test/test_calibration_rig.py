@@ -39,7 +39,10 @@ def poses_by_stamp(bag, topic):
 
 def fk_error(bag):
     """Largest distance of fk's platform_pose from the plant's ground truth [m]."""
-    from stewart63_ros.core.rotation import rotation_angle_between, rotation_from_quaternion
+    from stewart63_ros.core.mechanics.rotation import (
+        rotation_angle_between,
+        rotation_from_quaternion,
+    )
     truth = poses_by_stamp(bag, 'ground_truth/pose')
     fk = poses_by_stamp(bag, 'platform_pose')
     common = sorted(set(truth) & set(fk))

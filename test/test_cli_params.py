@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stewart63_ros.core.trajectory import COLUMNS, write_csv
+from stewart63_ros.core.plumbing.trajectory import COLUMNS, write_csv
 
 REPO = Path(__file__).resolve().parents[1]
 HINT = 'sensor_rat: unknown parameter (did you mean sensor_rate?)'

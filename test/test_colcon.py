@@ -144,7 +144,7 @@ def test_installed_package_is_the_one_imported(workspace):
     prefix = workspace['prefix']
     probe = ('import stewart63_ros, sys\n'
              'from ament_index_python.packages import get_package_prefix\n'
-             'from stewart63_ros.core.params import default_params_path, load_mechanism\n'
+             'from stewart63_ros.core.plumbing.params import default_params_path, load_mechanism\n'
              'print(stewart63_ros.__file__)\n'
              'print(get_package_prefix("stewart63_ros"))\n'
              'print(default_params_path())\n'

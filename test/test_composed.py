@@ -30,9 +30,9 @@ from test_rig import (
     warm_kernels,  # noqa: F401 (a fixture)
 )
 
-from stewart63_ros.core.dynamics import POS, Dynamics
-from stewart63_ros.core.params import load_mechanism
-from stewart63_ros.core.simulate import run_sampled, sensor_reading
+from stewart63_ros.core.controllers.simulate import run_sampled, sensor_reading
+from stewart63_ros.core.mechanics.dynamics import POS, Dynamics
+from stewart63_ros.core.plumbing.params import load_mechanism
 from stewart63_ros.tools.rig import Rig
 
 REPO = Path(__file__).resolve().parents[1]

@@ -23,10 +23,10 @@ import numpy as np
 import pytest
 from ros_harness import rig_env, run_to_end, wait_matched
 
-from stewart63_ros.core.control import pd_forces
-from stewart63_ros.core.kinematics import LegState, leg_lengths
-from stewart63_ros.core.params import load_mechanism, load_setup
-from stewart63_ros.core.rotation import quaternion_from_euler, rotation_from_euler
+from stewart63_ros.core.controllers.control import pd_forces
+from stewart63_ros.core.mechanics.kinematics import LegState, leg_lengths
+from stewart63_ros.core.mechanics.rotation import quaternion_from_euler, rotation_from_euler
+from stewart63_ros.core.plumbing.params import load_mechanism, load_setup
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / 'config' / 'stewart63.yaml'
@@ -236,7 +236,7 @@ def trajectory_msg(times, poses, stamp_ns=0):
 
 
 def test_pose_trajectory_is_followed_and_a_bad_one_refused(setup, ros, mech):
-    from stewart63_ros.core.reference import R_LEN, R_RATE, Reference
+    from stewart63_ros.core.controllers.reference import R_LEN, R_RATE, Reference
     probe = Probe(ros, mech)
     probe.start()
     assert wait_matched(probe.pub_trajectory, 1, 20)
@@ -307,15 +307,15 @@ LOCKSTEP_DURATION = 1.5       # s: the tracking error counts from 1 s
 def test_lockstep_rig_with_a_reference_equals_sim(setup, ros, monkeypatch, tmp_path, mech, law):
     from test_laws import six_axis_reference
 
-    from stewart63_ros.core.reference import tracking_errors, write_reference_csv
-    from stewart63_ros.core.simulate import run_sampled, sensor_reading
+    from stewart63_ros.core.controllers.reference import tracking_errors, write_reference_csv
+    from stewart63_ros.core.controllers.simulate import run_sampled, sensor_reading
     from stewart63_ros.tools.rig import Rig, control_params
     from stewart63_ros.tools.sim import make_controller
     ref_csv = tmp_path / 'reference.csv'
     write_reference_csv(ref_csv, *six_axis_reference(setup, duration=3.0))
     controller, reference = make_controller(PARAMS, law, ref_csv)
     offline = run_sampled(setup, LOCKSTEP_DURATION, 1000.0, controller=controller)
-    from stewart63_ros.core.dynamics import Dynamics
+    from stewart63_ros.core.mechanics.dynamics import Dynamics
     final, _ = sensor_reading(Dynamics(mech), offline.states[-1])
     expected = tracking_errors(mech, reference, offline.times, offline.states)
 

@@ -78,7 +78,7 @@ def problems(source: str, module: str) -> list[str]:
 
 
 def core_modules() -> list[Path]:
-    return sorted(CORE.glob('*.py'))
+    return sorted(CORE.rglob('*.py'))
 
 
 def test_the_scan_finds_what_it_looks_for():

@@ -1,7 +1,7 @@
 """The Newton-Euler dynamics against independent references.
 
 References built here, from the model as documented (docs/interface.md) and not
-from ``stewart63_ros.core.dynamics``:
+from ``stewart63_ros.core.mechanics.dynamics``:
 
 * kinetic and potential energy of platform, cylinders and pistons, written
   from the leg geometry (and, for the kinetic energy, a second time by finite
@@ -16,8 +16,8 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
-from stewart63_ros.core import kinematics as kin
-from stewart63_ros.core.dynamics import Dynamics
+from stewart63_ros.core.mechanics import kinematics as kin
+from stewart63_ros.core.mechanics.dynamics import Dynamics
 
 # Legs 2k-1 and 2k meet at vertex p_k (docs/interface.md).
 VERTEX_OF_LEG = [0, 0, 1, 1, 2, 2]

@@ -1,4 +1,4 @@
-"""Faults injected on purpose (core/faults.py), offline: no DDS.
+"""Faults injected on purpose (core/machine/faults.py), offline: no DDS.
 
 - the syntax ``KIND:LEG[:VALUE][@T_START[-T_END]]``: every kind parses, a bad
   string is refused with one message naming it and why;
@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stewart63_ros.core.dynamics import POS
-from stewart63_ros.core.faults import (
+from stewart63_ros.core.controllers.simulate import run_sampled
+from stewart63_ros.core.machine.faults import (
     KINDS,
     FaultError,
     FaultModel,
@@ -30,8 +30,8 @@ from stewart63_ros.core.faults import (
     parse_fault,
     parse_faults,
 )
-from stewart63_ros.core.params import unknown_keys
-from stewart63_ros.core.simulate import run_sampled
+from stewart63_ros.core.mechanics.dynamics import POS
+from stewart63_ros.core.plumbing.params import unknown_keys
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / 'config' / 'stewart63.yaml'
@@ -385,7 +385,7 @@ DETECTOR = 'stewart63_ros.examples.fault_detector:CheckedPD'
 
 
 def test_the_example_detector_trips_on_a_stuck_sensor_only(setup, mech):
-    from stewart63_ros.core.laws import Controller, LawError
+    from stewart63_ros.core.controllers.laws import Controller, LawError
     clean = run_sampled(setup, DURATION, RATE, controller=Controller(setup, {}, law=DETECTOR),
                         faults=[])
     pd = run_sampled(setup, DURATION, RATE)

@@ -23,8 +23,8 @@ from pathlib import Path
 
 from ros_harness import rig_env, run_to_end
 
-from stewart63_ros.core.faults import BUS_PREFIX
-from stewart63_ros.core.faults import KINDS as ALL_KINDS
+from stewart63_ros.core.machine.faults import BUS_PREFIX
+from stewart63_ros.core.machine.faults import KINDS as ALL_KINDS
 from stewart63_ros.tools.rig import Rig
 
 REPO = Path(__file__).resolve().parents[1]

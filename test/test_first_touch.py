@@ -485,7 +485,7 @@ def test_fk_solve_names_lengths_outside_the_stroke():
 
 def test_known_keys_come_from_one_place():
     """Every key of the packaged file and of docs/interface.md's node keys is known."""
-    from stewart63_ros.core.params import file_parameters, known_keys, unknown_keys
+    from stewart63_ros.core.plumbing.params import file_parameters, known_keys, unknown_keys
     assert unknown_keys(file_parameters(PARAMS)) == []
     text = (REPO / 'docs' / 'interface.md').read_text()
     section = text[text.index('### Node-specific keys'):text.index('## Frames')]
@@ -504,18 +504,18 @@ def test_known_keys_come_from_one_place():
 
 
 def test_every_key_the_code_reads_is_known():
-    """The declarations (core/node_parameters.py) and Mechanism cover every
+    """The declarations (core/plumbing/node_parameters.py) and Mechanism cover every
     parameter the code reads (found as docs/interface.md's test finds them)."""
     from test_interface_doc import parameters_read
 
-    from stewart63_ros.core.params import known_keys
+    from stewart63_ros.core.plumbing.params import known_keys
     examples = {'legpd_kp', 'legpd_kv', 'failing_after',     # the example laws' own keys
                 'fd_window', 'fd_threshold'}
     # node names (rig's extra, files)
     examples |= {'plant', 'controller', 'fk', 'canopen_bridge', 'supervisor'}
     missing = {k: where for k, where in parameters_read().items()
                if k not in known_keys() and k not in examples}
-    assert missing == {}, 'declare these in core/node_parameters.py: %s' % missing
+    assert missing == {}, 'declare these in core/plumbing/node_parameters.py: %s' % missing
 
 
 # -- 7. the README's examples ---------------------------------------------------------

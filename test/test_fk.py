@@ -1,4 +1,4 @@
-"""Forward kinematics (stewart63_ros.core.fk) against independent references.
+"""Forward kinematics (stewart63_ros.core.mechanics.fk) against independent references.
 
 References: inverse kinematics (kinematics.leg_lengths), a brute-force
 multi-start Newton on a different formulation (the nine vertex coordinates,
@@ -16,18 +16,18 @@ from scipy.integrate import solve_ivp
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
-from stewart63_ros.core import rotation as rotation_mod
-from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.fk import (
+from stewart63_ros.core.mechanics import rotation as rotation_mod
+from stewart63_ros.core.mechanics.dynamics import Dynamics
+from stewart63_ros.core.mechanics.fk import (
     FKResult,
     FKTracker,
     ForwardKinematics,
     NoAssemblyError,
 )
-from stewart63_ros.core.fk_modes import real_angles
-from stewart63_ros.core.fk_tracking import condition_number
-from stewart63_ros.core.kinematics import jacobian, leg_lengths, leg_rates
-from stewart63_ros.core.rotation import rotation_from_euler
+from stewart63_ros.core.mechanics.fk_modes import real_angles
+from stewart63_ros.core.mechanics.fk_tracking import condition_number
+from stewart63_ros.core.mechanics.kinematics import jacobian, leg_lengths, leg_rates
+from stewart63_ros.core.mechanics.rotation import rotation_from_euler
 from stewart63_ros.tools import fk_solve
 
 PAIR = np.array([0, 0, 1, 1, 2, 2])   # leg -> platform vertex

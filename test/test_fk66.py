@@ -1,12 +1,12 @@
-"""Forward kinematics of the 6-6 (core/fk66.py): every assembly mode, checked
+"""Forward kinematics of the 6-6 (core/mechanics/fk66.py): every assembly mode, checked
 against the true pose, the lengths, and a brute-force search that shares
 nothing with the homotopy but the leg equations."""
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stewart63_ros.core.fk import NoAssemblyError, _newton, _pose_distance
-from stewart63_ros.core.fk66 import GENERIC_MODES, FKTracker66, ForwardKinematics66
+from stewart63_ros.core.mechanics.fk import NoAssemblyError, _newton, _pose_distance
+from stewart63_ros.core.mechanics.fk66 import GENERIC_MODES, FKTracker66, ForwardKinematics66
 
 
 def semi_regular(base_radius=0.5, plat_radius=0.3, base_gap_deg=12.0, plat_gap_deg=10.0):

@@ -195,15 +195,15 @@ def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
 
 def test_the_graph_sees_function_level_and_type_hint_imports(tmp_path):
     edges = graph()
-    params = edges['stewart63_ros.core.params']
-    assert 'stewart63_ros.core.laws' in params     # in a function
-    assert 'stewart63_ros.core.errors' in params
+    params = edges['stewart63_ros.core.plumbing.params']
+    assert 'stewart63_ros.core.controllers.laws' in params     # in a function
+    assert 'stewart63_ros.core.plumbing.errors' in params
     assert cycles({'a': {'b'}, 'b': {'c'}, 'c': {'a'}, 'd': {'a'}}) == [['a', 'b', 'c']]
     hinted = tmp_path / 'm.py'
     hinted.write_text('from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n'
-                      '    from stewart63_ros.core.params import Mechanism\n')
+                      '    from stewart63_ros.core.plumbing.params import Mechanism\n')
     assert imported(hinted, 'stewart63_ros.core.m', modules()) == {
-        'stewart63_ros.core.params'}
+        'stewart63_ros.core.plumbing.params'}
 
 
 def test_no_import_cycle_in_the_package():
@@ -218,9 +218,9 @@ def up_a_floor(edges: dict[str, set[str]]) -> list[str]:
 
 
 def test_the_floor_rule_sees_an_import_up_a_floor():
-    assert up_a_floor({'stewart63_ros.core.laws': {'stewart63_ros.runtime.wire'}}) == [
-        'stewart63_ros.core.laws (%s) imports stewart63_ros.runtime.wire (runtime)'
-        % label('stewart63_ros.core.laws')]
+    assert up_a_floor({'stewart63_ros.core.controllers.laws': {'stewart63_ros.runtime.wire'}}) == [
+        'stewart63_ros.core.controllers.laws (%s) imports stewart63_ros.runtime.wire (runtime)'
+        % label('stewart63_ros.core.controllers.laws')]
     assert up_a_floor({'stewart63_ros.runtime.base': {'stewart63_ros.nodes.plant',
                                                       'stewart63_ros.recording.recorder'}}) == [
         'stewart63_ros.runtime.base (runtime) imports stewart63_ros.nodes.plant (nodes)',
@@ -233,10 +233,10 @@ def test_the_floor_rule_sees_an_import_up_a_floor():
     assert up_a_floor({'stewart63_ros.nodes.composed': {'stewart63_ros.recording.recorder',
                                                         'stewart63_ros.tools.rig'}}) == [
         'stewart63_ros.nodes.composed (nodes) imports stewart63_ros.tools.rig (tools)']
-    assert up_a_floor({'stewart63_ros.core.mechanism': {
-        'stewart63_ros.core.params'}}) != []
+    assert up_a_floor({'stewart63_ros.core.mechanics.mechanism': {
+        'stewart63_ros.core.plumbing.params'}}) != []
     assert up_a_floor({'stewart63_ros.tools.rig': {'stewart63_ros.runtime.wire',
-                                                   'stewart63_ros.core.legs'}}) == []
+                                                   'stewart63_ros.core.plumbing.legs'}}) == []
     # The domain packages' floors, whatever the tree (names of the packaged core).
     assert up_a_floor({'stewart63_ros.core.mechanics.dynamics': {
         'stewart63_ros.core.controllers.laws', 'stewart63_ros.core.controllers.control',
@@ -290,10 +290,10 @@ def test_every_module_imports(name):
 def test_rotations_go_through_core_rotation():
     """One place for the orientation convention: scipy's Rotation (and its
     Euler angles), and the hand-written quaternion <-> matrix conversions of
-    the compiled paths, only in core/rotation.py."""
+    the compiled paths, only in core/mechanics/rotation.py."""
     offenders = []
     for name, path in modules().items():
-        if name == 'stewart63_ros.core.rotation':
+        if name == 'stewart63_ros.core.mechanics.rotation':
             continue
         for number, line in enumerate(path.read_text().splitlines(), 1):
             if any(word in line for word in ('scipy.spatial.transform', '.from_euler(',
@@ -324,7 +324,7 @@ def test_package_xml_lists_every_ros_package_imported():
 def test_one_list_of_the_rigs_nodes():
     """rig, composed and the parameter declarations name the same nodes: the
     leaf node_names holds the list (rig imports it before its stop handlers)."""
-    from stewart63_ros.core import node_names, node_parameters
+    from stewart63_ros.core.plumbing import node_names, node_parameters
     from stewart63_ros.nodes import composed
     from stewart63_ros.tools import rig
     assert rig.NODES is composed.NODE_NAMES is node_names.NODES

@@ -10,16 +10,16 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from stewart63_ros.core.dynamics import QUAT, Dynamics
-from stewart63_ros.core.laws import PDController
-from stewart63_ros.core.params import load_mechanism, load_setup
-from stewart63_ros.core.simulate import (
+from stewart63_ros.core.controllers.laws import PDController
+from stewart63_ros.core.controllers.simulate import (
     initial_state,
     run_continuous,
     run_sampled,
     sensor_reading,
     substeps_for,
 )
+from stewart63_ros.core.mechanics.dynamics import QUAT, Dynamics
+from stewart63_ros.core.plumbing.params import load_mechanism, load_setup
 
 RTOL, ATOL = 1e-8, 1e-10
 DURATION, OUTPUT_RATE = 10.0, 100.0      # the paper's scenario
@@ -170,6 +170,6 @@ def test_the_step_control_constants_are_scipys():
     """dopri's step control matches solve_ivp's only with scipy's constants."""
     from scipy.integrate._ivp import rk
 
-    from stewart63_ros.core import dopri
+    from stewart63_ros.core.mechanics import dopri
     assert (dopri.SAFETY, dopri.MIN_FACTOR, dopri.MAX_FACTOR) == \
         (rk.SAFETY, rk.MIN_FACTOR, rk.MAX_FACTOR)

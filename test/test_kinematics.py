@@ -1,6 +1,6 @@
 """Kinematics against independent references.
 
-Every quantity of ``stewart63_ros.core.kinematics`` (and the orientation
+Every quantity of ``stewart63_ros.core.mechanics.kinematics`` (and the orientation
 conventions of ``rotation``) is checked against something computed here from
 first principles: leg vectors from the documented formula, rates and the
 Jacobian from central finite differences of the pose moved along a twist,
@@ -12,8 +12,8 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
-from stewart63_ros.core import kinematics as kin
-from stewart63_ros.core import rotation as rotmod
+from stewart63_ros.core.mechanics import kinematics as kin
+from stewart63_ros.core.mechanics import rotation as rotmod
 
 # Legs 2k-1 and 2k meet at vertex p_k (docs/interface.md).
 VERTEX_OF_LEG = [0, 0, 1, 1, 2, 2]

@@ -16,11 +16,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stewart63_ros.core.dynamics import POS, QUAT
-from stewart63_ros.core.kinematics import jacobian, leg_lengths
-from stewart63_ros.core.laws import Controller, LawError, PDGravityLaw
-from stewart63_ros.core.params import ParameterError
-from stewart63_ros.core.reference import (
+from stewart63_ros.core.controllers.laws import Controller, LawError, PDGravityLaw
+from stewart63_ros.core.controllers.reference import (
     R_ACC,
     R_ALPHA,
     R_LEN,
@@ -35,8 +32,11 @@ from stewart63_ros.core.reference import (
     tracking_errors,
     write_reference_csv,
 )
-from stewart63_ros.core.rotation import quaternion_from_euler, rotation_from_euler
-from stewart63_ros.core.simulate import initial_state, run_continuous, run_sampled
+from stewart63_ros.core.controllers.simulate import initial_state, run_continuous, run_sampled
+from stewart63_ros.core.mechanics.dynamics import POS, QUAT
+from stewart63_ros.core.mechanics.kinematics import jacobian, leg_lengths
+from stewart63_ros.core.mechanics.rotation import quaternion_from_euler, rotation_from_euler
+from stewart63_ros.core.plumbing.params import ParameterError
 
 RATE = 1000.0
 

@@ -28,12 +28,12 @@ WHY = 'Why this long:'
 
 #: Modules over MODULE_LINES without a written reason, by path from the repository.
 LONG_MODULES = {
-    'stewart63_ros/core/scenario.py': 'being split by job (parsing, running, verdicts)',
-    'stewart63_ros/core/node_parameters.py': 'under change (the node parameters work)',
-    'stewart63_ros/core/calibration.py': 'under change (the calibration work)',
-    'stewart63_ros/core/reference.py': 'to split by job (parsing, sampling)',
+    'stewart63_ros/core/scenarios/scenario.py': 'being split by job (parsing, running, verdicts)',
+    'stewart63_ros/core/plumbing/node_parameters.py': 'under change (the node parameters work)',
+    'stewart63_ros/core/machine/calibration.py': 'under change (the calibration work)',
+    'stewart63_ros/core/controllers/reference.py': 'to split by job (parsing, sampling)',
     'stewart63_ros/tools/rig.py': 'under change (the rig work)',
-    'stewart63_ros/tools/scenario.py': 'to split with core/scenario.py',
+    'stewart63_ros/tools/scenario.py': 'to split with core/scenarios/scenario.py',
     'stewart63_ros/tools/view.py': 'to split by job (the server, the scene)',
     'stewart63_ros/bagio.py': 'to split by job (reading, writing, repairing bags)',
 }

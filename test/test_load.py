@@ -39,8 +39,8 @@ from test_rig import (
     rig_command,
 )
 
-from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.simulate import run_sampled, sensor_reading
+from stewart63_ros.core.controllers.simulate import run_sampled, sensor_reading
+from stewart63_ros.core.mechanics.dynamics import Dynamics
 from stewart63_ros.recording.recorder import header_stamp_ns
 from stewart63_ros.runtime.checks import SkipCounter
 from stewart63_ros.runtime.launcher import signals_deferred

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stewart63_ros.core import markers as M
-from stewart63_ros.core.params import load_mechanism
+from stewart63_ros.core.mechanics import markers as M
+from stewart63_ros.core.plumbing.params import load_mechanism
 
 PARAMS = Path(__file__).resolve().parents[1] / "config" / "stewart63.yaml"
 

@@ -29,8 +29,8 @@ if os.environ.get('STEWART63_REQUIRE_MUJOCO'):
 else:
     pytest.importorskip('mujoco', reason='MuJoCo is the optional [bench] extra')
 
-from stewart63_ros.core.dynamics import POS, QUAT, Dynamics  # noqa: E402
-from stewart63_ros.core.simulate import run_continuous  # noqa: E402
+from stewart63_ros.core.controllers.simulate import run_continuous  # noqa: E402
+from stewart63_ros.core.mechanics.dynamics import POS, QUAT, Dynamics  # noqa: E402
 from stewart63_ros.mujoco_model import MujocoPlatform, Settings, build_xml  # noqa: E402
 
 pytestmark = pytest.mark.slow      # seconds of simulation at tight tolerances, twice

@@ -28,14 +28,14 @@ import numpy as np
 import pytest
 from ros_harness import PYTHON, REPO, RosTest, lease_domain_id, wait_matched, wait_until
 
-from stewart63_ros.core.control import pd_forces
-from stewart63_ros.core.kinematics import LegState, leg_lengths
-from stewart63_ros.core.params import load_mechanism, load_setup
-from stewart63_ros.core.rotation import (
+from stewart63_ros.core.controllers.control import pd_forces
+from stewart63_ros.core.mechanics.kinematics import LegState, leg_lengths
+from stewart63_ros.core.mechanics.rotation import (
     euler_rate_matrix,
     quaternion_from_euler,
     rotation_from_euler,
 )
+from stewart63_ros.core.plumbing.params import load_mechanism, load_setup
 
 PARAMS = REPO / 'config' / 'stewart63.yaml'
 #: Node processes over DDS: `make test-fast` leaves this file out.

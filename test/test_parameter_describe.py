@@ -11,7 +11,7 @@ CI). What they must show:
   and each row of the node-specific table that names the node or "all"),
   given in the file or not, with its value (``faults`` an empty string list,
   not "not set");
-- for each key its one declaration (core/node_parameters.py): the unit in
+- for each key its one declaration (core/plumbing/node_parameters.py): the unit in
   its description, its inclusive range, ``read_only`` for a key fixed at
   start-up, which rcl then refuses to set, with a reason;
 - the packaged file's ``clock_mode`` on all three nodes.
@@ -166,7 +166,7 @@ def _range(descriptor):
 ])
 def test_ros2_param_describe_shows_unit_range_and_read_only(nodes, kind, key, type_, unit,
                                                               range_, read_only):
-    from stewart63_ros.core.node_parameters import describe
+    from stewart63_ros.core.plumbing.node_parameters import describe
     d = nodes[kind].describe(key)[key]
     expected = describe(key, kind)
     # kp, ct_kp, ct_kd changeable at run time take integer lists too (dynamic typing)

@@ -1,4 +1,4 @@
-"""The node parameters are declared once (core/node_parameters.py): the
+"""The node parameters are declared once (core/plumbing/node_parameters.py): the
 interface page's table, the known keys, the checks and the run-time changes
 all follow the declarations.
 
@@ -14,14 +14,14 @@ from pathlib import Path
 
 import pytest
 
-from stewart63_ros.core import node_parameters as declared
-from stewart63_ros.core.errors import ParameterError
-from stewart63_ros.core.params import default_params_path, file_parameters, known_keys
+from stewart63_ros.core.plumbing import node_parameters as declared
+from stewart63_ros.core.plumbing.errors import ParameterError
+from stewart63_ros.core.plumbing.params import default_params_path, file_parameters, known_keys
 
 REPO = Path(__file__).resolve().parents[1]
 DOC = REPO / 'docs' / 'interface.md'
-BEGIN = '<!-- generated from core/node_parameters.py'
-MODEL_BEGIN = '<!-- generated from core/node_parameters.py MODEL'
+BEGIN = '<!-- generated from core/plumbing/node_parameters.py'
+MODEL_BEGIN = '<!-- generated from core/plumbing/node_parameters.py MODEL'
 END = '<!-- end of the generated table -->'
 
 
@@ -50,7 +50,7 @@ def test_the_interface_page_shows_the_declared_table():
     text = DOC.read_text()
     start, end = page_table(text)
     assert text[start:end] == expected_table(), (
-        'docs/interface.md differs from core/node_parameters.py: run '
+        'docs/interface.md differs from core/plumbing/node_parameters.py: run '
         'python test/test_parameter_table.py --write')
 
 
@@ -58,18 +58,18 @@ def test_the_interface_pages_model_table_is_the_declared_one():
     text = DOC.read_text()
     start, end = page_table(text, MODEL_BEGIN)
     assert text[start:end] == declared.model_markdown_table(), (
-        'docs/interface.md differs from core/node_parameters.py: run '
+        'docs/interface.md differs from core/plumbing/node_parameters.py: run '
         'python test/test_parameter_table.py --write')
 
 
 def test_the_model_declarations_are_the_mechanisms_fields():
     """``MODEL`` declares the machine's fields (but for the end stops and sensor
     zeros, declared with the nodes' keys), then the gains, then the task, in
-    the order of their dataclasses (core/setup.py)."""
+    the order of their dataclasses (core/mechanics/setup.py)."""
     import dataclasses
 
-    from stewart63_ros.core.mechanism import Mechanism
-    from stewart63_ros.core.setup import Gains, Task
+    from stewart63_ros.core.mechanics.mechanism import Mechanism
+    from stewart63_ros.core.mechanics.setup import Gains, Task
     machine = [f.name for f in dataclasses.fields(Mechanism) if f.name not in declared.BY_NAME]
     assert [m.name for m in declared.MODEL] == machine + [
         f.name for part in (Gains, Task) for f in dataclasses.fields(part)]
@@ -114,7 +114,7 @@ def test_each_declaration_gives_what_ros2_param_describe_shows():
 
 
 def test_every_declared_key_is_known_and_its_default_passes_its_check():
-    from stewart63_ros.core.node_names import ALL_NODES
+    from stewart63_ros.core.plumbing.node_names import ALL_NODES
     for d in declared.DECLARED:
         assert d.name in known_keys()
         assert d.nodes and set(d.nodes) <= {*ALL_NODES, 'sim'}, d.name
@@ -149,8 +149,8 @@ def test_read_gives_the_default_the_given_value_and_a_dependent_default():
 def _tunable_keys() -> set[str]:
     """The keys the nodes let change at run time: ``self.tunable('x', ...)``
     calls, and the controller's ``for name in LAW_PARAMETERS`` loop."""
-    from stewart63_ros.core.laws import LAW_PARAMETERS
-    from stewart63_ros.core.supervisor import LIMIT_KEYS
+    from stewart63_ros.core.controllers.laws import LAW_PARAMETERS
+    from stewart63_ros.core.machine.supervisor import LIMIT_KEYS
     keys = set()
     for path in [path for package in ('nodes', 'runtime', 'recording')
                  for path in (REPO / 'stewart63_ros' / package).glob('*.py')]:
@@ -177,11 +177,11 @@ def test_the_keys_declared_changeable_at_run_time_are_the_ones_the_nodes_let_cha
 def test_the_model_table_lists_exactly_the_mechanisms_keys():
     """The model's keys are the machine's (``Mechanism``, but for the end stops
     and sensor zeros declared with the nodes' keys), the gains and the task
-    (core/setup.py); the page's model table has one row each."""
+    (core/mechanics/setup.py); the page's model table has one row each."""
     import re
 
-    from stewart63_ros.core.mechanism import MECHANISM_KEYS
-    from stewart63_ros.core.setup import GAIN_KEYS, TASK_KEYS
+    from stewart63_ros.core.mechanics.mechanism import MECHANISM_KEYS
+    from stewart63_ros.core.mechanics.setup import GAIN_KEYS, TASK_KEYS
     text = DOC.read_text()
     section = text[text.index('### The model (shared keys)'):text.index('### Node-specific keys')]
     rows = re.findall(r'^\| `([a-z_]+)` \|', section, re.M)

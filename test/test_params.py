@@ -14,7 +14,7 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from stewart63_ros.core.params import (
+from stewart63_ros.core.plumbing.params import (
     ParameterError,
     default_params_path,
     load_mechanism,

@@ -29,8 +29,8 @@ import numpy as np
 import pytest
 
 from stewart63_ros import bagio
-from stewart63_ros.core.kinematics import leg_lengths
-from stewart63_ros.core.params import LEG_NAMES, load_setup
+from stewart63_ros.core.mechanics.kinematics import leg_lengths
+from stewart63_ros.core.plumbing.params import LEG_NAMES, load_setup
 
 REPO = Path(__file__).resolve().parents[1]
 SETUP = load_setup(REPO / 'config' / 'stewart63.yaml')

@@ -25,9 +25,9 @@ from ros_harness import PYTHON, rig_env, run_to_end, wait_line, wait_until
 
 from stewart63_ros import bagio
 from stewart63_ros.bagio import header_stamp_ns as stamp_ns
-from stewart63_ros.core.dynamics import POS, Dynamics
-from stewart63_ros.core.params import load_mechanism
-from stewart63_ros.core.simulate import run_sampled, sensor_reading
+from stewart63_ros.core.controllers.simulate import run_sampled, sensor_reading
+from stewart63_ros.core.mechanics.dynamics import POS, Dynamics
+from stewart63_ros.core.plumbing.params import load_mechanism
 from stewart63_ros.tools.rig import Rig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -53,9 +53,9 @@ def warm_kernels(setup, mech):
     """Compile the numba kernels here, once, into the on-disk cache, so the
     nodes (three processes) load them instead of each compiling for tens of
     seconds (on a fresh checkout or after the core changed)."""
-    from stewart63_ros.core.fk import FKTracker
-    from stewart63_ros.core.kinematics import leg_lengths
-    from stewart63_ros.core.rotation import rotation_from_euler
+    from stewart63_ros.core.mechanics.fk import FKTracker
+    from stewart63_ros.core.mechanics.kinematics import leg_lengths
+    from stewart63_ros.core.mechanics.rotation import rotation_from_euler
     tracker = FKTracker(mech)
     rot = rotation_from_euler(setup.task.initial_orientation)
     lengths = leg_lengths(mech, setup.task.initial_position, rot)

@@ -1,4 +1,5 @@
-"""Scenario files, verdicts, JUnit XML and the report (core/scenario.py, tools/scenario.py).
+"""Scenario files, verdicts, JUnit XML and the report (core/scenarios/scenario.py,
+tools/scenario.py).
 
 The measured values are checked against the simulation's own results
 computed here another way (``simulate.run_sampled`` and ``Result``'s
@@ -13,9 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.params import load_setup
-from stewart63_ros.core.scenario import (
+from stewart63_ros.core.controllers.simulate import run_sampled
+from stewart63_ros.core.mechanics.dynamics import Dynamics
+from stewart63_ros.core.plumbing.params import load_setup
+from stewart63_ros.core.scenarios.scenario import (
     ScenarioError,
     evaluate,
     load_scenarios,
@@ -23,7 +25,6 @@ from stewart63_ros.core.scenario import (
     scenarios_from_dict,
     wrench_samples,
 )
-from stewart63_ros.core.simulate import run_sampled
 from stewart63_ros.tools import scenario as tool
 
 REPO = Path(__file__).resolve().parents[1]
@@ -443,7 +444,7 @@ def test_a_lab_runs_scenarios_from_its_own_pytest_file(tmp_path):
 
 def test_scenario_errors_are_scenarioerror():
     with pytest.raises(ScenarioError, match='matrix'):
-        from stewart63_ros.core.scenario import scenario_from_dict
+        from stewart63_ros.core.scenarios.scenario import scenario_from_dict
         scenario_from_dict({'name': 'a', 'matrix': {'duration': [1]}, 'expect': {}})
 
 
@@ -555,12 +556,12 @@ def test_trip_expectations_give_cause_sample_and_latency_beside_the_bound(tmp_pa
 
 
 def test_sim_runs_the_supervisor_as_run_supervised_does(tmp_path):
-    """A scenario's supervised run is core.supervisor.run_supervised with the
+    """A scenario's supervised run is core.machine.supervisor.run_supervised with the
     limits of its params, sample for sample; the limits take effect."""
-    from stewart63_ros.core.faults import FaultModel, parse_faults
-    from stewart63_ros.core.laws import Controller
-    from stewart63_ros.core.reference import Reference
-    from stewart63_ros.core.supervisor import Supervisor, limits_from_params, run_supervised
+    from stewart63_ros.core.controllers.laws import Controller
+    from stewart63_ros.core.controllers.reference import Reference
+    from stewart63_ros.core.machine.faults import FaultModel, parse_faults
+    from stewart63_ros.core.machine.supervisor import Supervisor, limits_from_params, run_supervised
     scenario, = scenarios_from_dict({
         'name': 'push', 'duration': 2.5, 'faults': ['actuator_weak:leg_1:0.5@1.0'],
         'wrench': [{'from': 1.5, 'force': [200.0, 0, 0]}],
@@ -570,7 +571,7 @@ def test_sim_runs_the_supervisor_as_run_supervised_does(tmp_path):
     setup = load_setup()
     mech, start = setup.mechanism, (setup.task.initial_position, setup.task.initial_rotation)
     params = {'pose_box': [-0.02, -0.3, 0.5, 0.02, 0.3, 1.6]}
-    from stewart63_ros.core.fk import FKTracker
+    from stewart63_ros.core.mechanics.fk import FKTracker
     tracker = FKTracker(mech, *start)
 
     def pose(lengths):
@@ -633,7 +634,7 @@ def write_reference_bag(path, times, poses, *topics):
 
 @pytest.mark.parametrize('topic', ['pose_trajectory', 'pose_setpoint'])
 def test_a_topic_file_reference_gives_the_csvs_verdicts_and_values(tmp_path, topic):
-    from stewart63_ros.core.reference import read_reference_csv
+    from stewart63_ros.core.controllers.reference import read_reference_csv
     times, poses = read_reference_csv(SIX_AXIS)
     write_reference_bag(tmp_path / 'motion', times, poses, topic)
     doc = {'name': 'track', 'duration': 4.0, 'control_law': 'pd_gravity',
@@ -662,7 +663,7 @@ def test_a_topic_file_reference_gives_the_csvs_verdicts_and_values(tmp_path, top
 ])
 def test_a_topic_file_it_cannot_follow_is_one_line_and_exit_2(tmp_path, capsys, folder,
                                                               expected):
-    from stewart63_ros.core.reference import read_reference_csv
+    from stewart63_ros.core.controllers.reference import read_reference_csv
     times, poses = read_reference_csv(SIX_AXIS)
     write_reference_bag(tmp_path / 'both', times, poses, 'pose_setpoint', 'pose_trajectory')
     (tmp_path / 'empty').mkdir()
@@ -678,12 +679,12 @@ def test_a_topic_file_it_cannot_follow_is_one_line_and_exit_2(tmp_path, capsys, 
 
 
 def test_trajectory_poses_turn_twists_into_euler_rates():
-    """core.reference.trajectory_poses (the controller's and the topic file's
+    """core.controllers.reference.trajectory_poses (the controller's and the topic file's
     conversion) against finite differences of scipy's rotations: omega from
     R(t + h) R(t)^T, theta's rates from theta(t +- h), 2 pi jumps unwrapped."""
     from scipy.spatial.transform import Rotation
 
-    from stewart63_ros.core.reference import trajectory_poses
+    from stewart63_ros.core.controllers.reference import trajectory_poses
 
     def theta(t):       # R = Rz Ry Rx; theta_z passes pi (a jump in the quaternion's Euler angles)
         return np.array([0.2 * np.sin(t), 0.1 * t - 0.05 * t ** 2, 2.8 + 0.4 * t])

@@ -1,4 +1,4 @@
-"""One parameter model (core/setup.py, docs/design.md "One parameter model"):
+"""One parameter model (core/mechanics/setup.py, docs/design.md "One parameter model"):
 the ``Mechanism`` is the machine alone; gains, task and settings sit beside it
 in a ``Setup``, and every declared key lives in exactly one of the four."""
 from __future__ import annotations
@@ -8,14 +8,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.errors import ParameterError
-from stewart63_ros.core.fk import ForwardKinematics
-from stewart63_ros.core.kinematics import leg_lengths
-from stewart63_ros.core.mechanism import MECHANISM_KEYS, Mechanism, validated
-from stewart63_ros.core.node_parameters import DECLARED, MODEL, default
-from stewart63_ros.core.params import file_parameters, setup_from_params
-from stewart63_ros.core.setup import GAIN_KEYS, TASK_KEYS, Setup
+from stewart63_ros.core.mechanics.dynamics import Dynamics
+from stewart63_ros.core.mechanics.fk import ForwardKinematics
+from stewart63_ros.core.mechanics.kinematics import leg_lengths
+from stewart63_ros.core.mechanics.mechanism import MECHANISM_KEYS, Mechanism, validated
+from stewart63_ros.core.mechanics.setup import GAIN_KEYS, TASK_KEYS, Setup
+from stewart63_ros.core.plumbing.errors import ParameterError
+from stewart63_ros.core.plumbing.node_parameters import DECLARED, MODEL, default
+from stewart63_ros.core.plumbing.params import file_parameters, setup_from_params
 
 
 def _packaged_with_every_key(path) -> dict:

@@ -29,8 +29,8 @@ from ros_harness import logs_of, rig_env, run_to_end
 
 from stewart63_ros import bagio
 from stewart63_ros.bagio import header_stamp_ns as stamp_ns
-from stewart63_ros.core.params import load_mechanism
-from stewart63_ros.core.simulate import run_sampled
+from stewart63_ros.core.controllers.simulate import run_sampled
+from stewart63_ros.core.plumbing.params import load_mechanism
 from stewart63_ros.tools.rig import Rig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -68,7 +68,7 @@ def nan_equal(a, b, atol) -> bool:
 
 # -- every kind on the rig ---------------------------------------------------------------
 def test_every_fault_kind_on_the_lockstep_rig_is_sims(setup, ros, monkeypatch, tmp_path, mech):
-    from stewart63_ros.core.dynamics import POS
+    from stewart63_ros.core.mechanics.dynamics import POS
     rig_env(ros, monkeypatch)
     bag = tmp_path / 'bag'
     rig = Rig(PARAMS, mode='lockstep', duration=RIG_DURATION, record=bag,
@@ -388,7 +388,7 @@ def test_the_example_fault_detector_trips_on_the_rig(setup, ros, monkeypatch, tm
     plant = rig.summary()
     assert plant['force_timeouts'] > 0 and plant['faults'][0]['active_from_s'] == 0.1
     # It tripped where sim's run with the same law and fault trips.
-    from stewart63_ros.core.laws import Controller, LawError
+    from stewart63_ros.core.controllers.laws import Controller, LawError
     with pytest.raises(LawError) as info:
         run_sampled(setup, 0.3, RATE, controller=Controller(
             setup, {}, law='stewart63_ros.examples.fault_detector:CheckedPD'),

@@ -337,9 +337,9 @@ def test_four_rigs_in_four_namespaces_each_equal_sim_sample_for_sample(setup, ro
     recorder), under /r1 .. /r4: each bag equals the offline sampled run, no
     cross-talk, no collision reported."""
     from stewart63_ros import bagio
-    from stewart63_ros.core.dynamics import Dynamics
-    from stewart63_ros.core.params import load_mechanism
-    from stewart63_ros.core.simulate import run_sampled, sensor_reading
+    from stewart63_ros.core.controllers.simulate import run_sampled, sensor_reading
+    from stewart63_ros.core.mechanics.dynamics import Dynamics
+    from stewart63_ros.core.plumbing.params import load_mechanism
     duration, names = 0.3, ['r1', 'r2', 'r3', 'r4']
     rigs = {ns: ros.spawn(exe('rig') + [
         '--mode', 'lockstep', '--duration', str(duration), '--compose', '--namespace', '/' + ns,

@@ -1,11 +1,11 @@
-"""core/stamps.py: the sample spacing check (a node given another rate than
+"""core/plumbing/stamps.py: the sample spacing check (a node given another rate than
 the plant's), on stamps as the plant makes them: exact in lockstep, to a few
 hundred ns in realtime, with missed cycles and a new run."""
 from __future__ import annotations
 
 import numpy as np
 
-from stewart63_ros.core.stamps import SampleSpacing
+from stewart63_ros.core.plumbing.stamps import SampleSpacing
 
 MS = 1_000_000
 

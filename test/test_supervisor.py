@@ -1,12 +1,11 @@
-"""The supervisor's trip logic (core/supervisor.py), in the closed loop with
+"""The supervisor's trip logic (core/machine/supervisor.py), in the closed loop with
 the plant's dynamics and fault model, sample for sample as a lockstep rig
 with ``rig --supervisor`` runs it (no DDS here; test_supervisor_dds.py runs
 the node)."""
 import numpy as np
 import pytest
 
-from stewart63_ros.core.params import ParameterError
-from stewart63_ros.core.supervisor import (
+from stewart63_ros.core.machine.supervisor import (
     CAUSES,
     DESCEND,
     HOLD,
@@ -17,6 +16,7 @@ from stewart63_ros.core.supervisor import (
     run_supervised,
     supervisor_from_params,
 )
+from stewart63_ros.core.plumbing.params import ParameterError
 
 RATE = 1000.0
 
@@ -57,7 +57,7 @@ def first(flags) -> int:
 
 def true_rates(mech, out) -> np.ndarray:
     """The legs' true rates (N, 6) [m/s] from the plant's states (eq. (13))."""
-    from stewart63_ros.core.dynamics import Dynamics
+    from stewart63_ros.core.mechanics.dynamics import Dynamics
     dyn = Dynamics(mech)
     return np.array([dyn.lengths_and_rates(y)[1] for y in out['states']])
 
@@ -67,7 +67,7 @@ def true_tilt(out) -> np.ndarray:
     from the forward kinematics the supervisor uses."""
     from scipy.spatial.transform import Rotation
 
-    from stewart63_ros.core.simulate import QUAT
+    from stewart63_ros.core.controllers.simulate import QUAT
     z_axis = Rotation.from_quat(out['states'][:, QUAT]).as_matrix()[:, 2, 2]
     return np.arccos(np.clip(z_axis, -1.0, 1.0))
 
@@ -84,7 +84,7 @@ def estop_at(sup, k, controller):
 
 def run_case(setup, params, case):
     """One closed loop of 1.1 s with the trip ``case``; (supervisor, out)."""
-    from stewart63_ros.core.laws import Controller
+    from stewart63_ros.core.controllers.laws import Controller
     faults, overrides, law = {
         'sensor_stuck': (['sensor_stuck:all@0'], {}, None),
         'actuator_dead': (['actuator_dead:leg_1@0.5'], {}, None),
@@ -189,7 +189,7 @@ def test_every_cause_reports_its_sample_and_its_latency_in_samples(setup, mech, 
         overrides.update(trip_tracking_time=0.1)
         kwargs['lengths'] = lambda k: setpoint + 0.06
     elif cause == 'pose_box':           # the platform 15 cm along x, past a 10 cm box
-        from stewart63_ros.core.kinematics import leg_lengths
+        from stewart63_ros.core.mechanics.kinematics import leg_lengths
         overrides['pose_box'] = [-0.1, -0.1, 0.5, 0.1, 0.1, 1.6]
         aside = leg_lengths(mech, np.array([0.15, 0.01, 1.07]), np.eye(3))
         kwargs['lengths'] = lambda k: aside if k >= 100 else setpoint
@@ -241,7 +241,7 @@ def test_a_nan_request_trips_and_holds_the_last_good_lengths(setup, mech, params
     assert sup.trip.cause == 'bad_command' and sup.trip.action == HOLD
     # eq. (40) towards the last good lengths (those of this sample: it was
     # good), plus what holds the platform against gravity there
-    from stewart63_ros.core.laws import PDGravityLaw
+    from stewart63_ros.core.controllers.laws import PDGravityLaw
     gravity = PDGravityLaw(mech, setup.to_params())
     hold = lengths + 0.01
     position, rotation, _ = gravity.estimator(hold, np.zeros(6))
@@ -278,7 +278,7 @@ def test_the_descent_ends_at_rest_inside_the_soft_stroke(setup, mech, params, tr
                 return sup.safe_forces(int(round(t * 1e9)))
             return self.controller.forces(t, lengths, rates)
 
-    from stewart63_ros.core.laws import Controller
+    from stewart63_ros.core.controllers.laws import Controller
     descent = Descent(np.full(6, 1.9), sup.rest, limits.descent_speed)   # ~ its duration
     out = run_supervised(setup, sup, trip_at + descent.duration + 1.5, RATE,
                          controller=EstopAt(Controller(setup)))
@@ -366,7 +366,7 @@ def test_homing_recovers_the_hidden_offsets_within_the_sensor_resolution(setup, 
     quantised at 0.1 mm: the homing drives every leg to its upper end stop
     (the plant's dynamics, its end-stop spring), finds each offset, sets it,
     brings the legs back; only then do the controller's forces go through."""
-    from stewart63_ros.core.sensor import SensorModel
+    from stewart63_ros.core.controllers.sensor import SensorModel
     resolution = 1e-4
     hidden = np.array([3.0, -2.0, 5.0, 0.0, -4.0, 1.2]) * 1e-3
     sup = supervisor_from_params(setup, dict(params, homing=True, homing_speed=0.2), RATE)
@@ -416,7 +416,7 @@ def live(sup, setup, ks, lengths=None, rates=None, request=None):
 #: cause -> (limits, the stream while the cause holds (from sample 100 on),
 #: the stream once it is gone): each a dict of live()'s lengths/rates/request
 def reset_cases(setup, mech):
-    from stewart63_ros.core.kinematics import leg_lengths
+    from stewart63_ros.core.mechanics.kinematics import leg_lengths
     setpoint = np.array(setup.task.setpoint_lengths, float)
     zero = {'request': lambda k: np.zeros(6)}
     leg3_short = setpoint - np.where(np.arange(6) == 2, 0.4, 0.0)
@@ -522,7 +522,7 @@ def test_estop_descent_reset_and_return_ten_times_never_trip_with_the_packaged_l
     estops; no leg ever faster than return_speed (the plant's truth, with
     the 2 % a PD tracking a profile overshoots); every return ends on the
     setpoint with the controller's own forces."""
-    from stewart63_ros.core.laws import Controller
+    from stewart63_ros.core.controllers.laws import Controller
     sup = supervisor_from_params(setup, params, RATE)
     assert sup.limits.leg_speed == 0.5 and sup.limits.return_speed == 0.2   # packaged
     cycles = Cycles(sup, Controller(setup), 10)
@@ -553,17 +553,17 @@ NO_MOTION_CHECKS = {'trip_leg_speed': 0.0, 'trip_tilt': 0.0, 'pose_box': [],
 
 def test_a_crossing_into_another_assembly_mode_is_named_and_the_supervisor_trips_before(
         setup, mech, params):
-    """The plant's truth (core/assembly.py, as the plant node and sim run it):
+    """The plant's truth (core/mechanics/assembly.py, as the plant node and sim run it):
     det J changes sign on one sample; the supervisor, its singularity check
     on the readings' pose (trip_condition, packaged 100), trips before it."""
-    from stewart63_ros.core.assembly import crossings
-    from stewart63_ros.core.dynamics import Dynamics
-    from stewart63_ros.core.simulate import run_sampled
+    from stewart63_ros.core.controllers.simulate import run_sampled
+    from stewart63_ros.core.mechanics.assembly import crossings
+    from stewart63_ros.core.mechanics.dynamics import Dynamics
     dyn = Dynamics(mech)
     base_plat = dyn.kernel_args()[1:3]
     free = run_sampled(setup, 1.2, RATE, dyn=dyn)
     assert crossings(*base_plat, free.states, RATE) == []       # the healthy run: none
-    from stewart63_ros.core.faults import FaultModel, parse_faults
+    from stewart63_ros.core.machine.faults import FaultModel, parse_faults
     fallen = run_sampled(setup, 1.2, RATE, dyn=dyn,
                          faults=FaultModel(parse_faults(DEAD_THEN_BACK), RATE))
     notes = crossings(*base_plat, fallen.states, RATE)
@@ -610,7 +610,7 @@ def test_a_run_that_starts_with_the_return_never_rises_faster_than_return_speed(
 def test_a_singularity_trip_is_refused_while_the_pose_is_near_one(setup, mech, params):
     """The reset rule for ``singularity``: refused while the condition number
     of the readings' pose is above trip_condition, accepted below it."""
-    from stewart63_ros.core.reference import Reference
+    from stewart63_ros.core.controllers.reference import Reference
     condition = [10.0]
     start = (setup.task.initial_position, setup.task.initial_rotation)
     sup = supervisor_from_params(setup, params, RATE)

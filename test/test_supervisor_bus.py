@@ -29,12 +29,12 @@ import pytest
 from ros_harness import logs_of, rig_env
 from scipy.spatial.transform import Rotation
 
-from stewart63_ros.core.bus import load_bus_config
-from stewart63_ros.core.fk import ForwardKinematics
-from stewart63_ros.core.kinematics import leg_lengths
-from stewart63_ros.core.params import load_mechanism, load_setup
-from stewart63_ros.core.rotation import euler_from_matrix, rotation_from_euler
-from stewart63_ros.core.supervisor import run_supervised, supervisor_from_params
+from stewart63_ros.core.machine.bus import load_bus_config
+from stewart63_ros.core.machine.supervisor import run_supervised, supervisor_from_params
+from stewart63_ros.core.mechanics.fk import ForwardKinematics
+from stewart63_ros.core.mechanics.kinematics import leg_lengths
+from stewart63_ros.core.mechanics.rotation import euler_from_matrix, rotation_from_euler
+from stewart63_ros.core.plumbing.params import load_mechanism, load_setup
 from stewart63_ros.tools.rig import Rig
 
 pytestmark = [pytest.mark.dds, pytest.mark.slow]

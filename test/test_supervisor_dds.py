@@ -3,7 +3,7 @@
 Lockstep: recorded runs, one a trip cause (a sensor stuck, a dead actuator,
 a dropout, the example law's fault detector; and a homing), whose trip (and
 every force sent) must be the core's closed loop's, sample for sample
-(core/supervisor.py ``run_supervised``; test_supervisor.py runs the core
+(core/machine/supervisor.py ``run_supervised``; test_supervisor.py runs the core
 twice: the same every run); one interactive run that trips on ~/estop at a
 sample of the test's choosing (the plant paused), a fault, an ERROR of a
 node of the rig and a user's request, refuses a reset while the cause
@@ -25,8 +25,8 @@ import pytest
 from ros_harness import logs_of, rig_env, run_to_end
 
 from stewart63_ros import bagio
-from stewart63_ros.core.params import load_mechanism
-from stewart63_ros.core.supervisor import run_supervised, supervisor_from_params
+from stewart63_ros.core.machine.supervisor import run_supervised, supervisor_from_params
+from stewart63_ros.core.plumbing.params import load_mechanism
 from stewart63_ros.tools.rig import Rig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -45,9 +45,9 @@ def level_of(status) -> int:
 
 
 def core_run(faults, duration, law=None, homing=False, limits=None):
-    from stewart63_ros.core.laws import Controller
-    from stewart63_ros.core.params import load_setup, setup_from_params
-    from stewart63_ros.core.sensor import SensorModel
+    from stewart63_ros.core.controllers.laws import Controller
+    from stewart63_ros.core.controllers.sensor import SensorModel
+    from stewart63_ros.core.plumbing.params import load_setup, setup_from_params
     params = load_setup(PARAMS).to_params()
     sensor = offset = None
     if homing:
@@ -65,7 +65,7 @@ def homing_params() -> dict:
     """Node sections for a homing run: the platform 0.45 m higher than the
     file's start (nearer the upper end stops), held there by the controller;
     hidden sensor offsets; readings quantised at 0.1 mm."""
-    from stewart63_ros.core.kinematics import leg_lengths
+    from stewart63_ros.core.mechanics.kinematics import leg_lengths
     mech = load_mechanism(PARAMS)
     position = [0.01, 0.01, 1.45]
     setpoint = leg_lengths(mech, np.array(position), np.eye(3)).round(4).tolist()
@@ -565,12 +565,12 @@ def test_the_plant_names_a_crossing_into_another_assembly_mode(ros, monkeypatch,
     """A lockstep rig (no supervisor) whose leg 1 is dead from 0.5 to 1.0 s:
     the platform falls and swings through a singular pose. The plant says
     ERROR on /diagnostics naming the sample, the one sim's loop names
-    (core/assembly.py on run_sampled's states)."""
-    from stewart63_ros.core.assembly import crossings
-    from stewart63_ros.core.dynamics import Dynamics
-    from stewart63_ros.core.faults import FaultModel, parse_faults
-    from stewart63_ros.core.params import load_setup
-    from stewart63_ros.core.simulate import run_sampled
+    (core/mechanics/assembly.py on run_sampled's states)."""
+    from stewart63_ros.core.controllers.simulate import run_sampled
+    from stewart63_ros.core.machine.faults import FaultModel, parse_faults
+    from stewart63_ros.core.mechanics.assembly import crossings
+    from stewart63_ros.core.mechanics.dynamics import Dynamics
+    from stewart63_ros.core.plumbing.params import load_setup
     fault = ['actuator_dead:leg_1@0.5-1.0']
     setup = load_setup(PARAMS)
     dyn = Dynamics(setup.mechanism)

@@ -20,11 +20,11 @@ import json
 import numpy as np
 import pytest
 
-from stewart63_ros.core import sweep, sweep_plan, sweep_report
-from stewart63_ros.core.control import pd_law
-from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.params import load_setup
-from stewart63_ros.core.simulate import run_continuous, run_sampled
+from stewart63_ros.core.analysis import sweep, sweep_plan, sweep_report
+from stewart63_ros.core.controllers.control import pd_law
+from stewart63_ros.core.controllers.simulate import run_continuous, run_sampled
+from stewart63_ros.core.mechanics.dynamics import Dynamics
+from stewart63_ros.core.plumbing.params import load_setup
 from stewart63_ros.tools import sim
 from stewart63_ros.tools import sweep as sweep_tool
 

@@ -138,8 +138,8 @@ def write_bag(path, with_poses=True, duration=2.0, rise=0.15):
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     from stewart63_ros.bagio import typestore
-    from stewart63_ros.core.kinematics import leg_lengths
-    from stewart63_ros.core.params import LEG_NAMES, load_mechanism
+    from stewart63_ros.core.mechanics.kinematics import leg_lengths
+    from stewart63_ros.core.plumbing.params import LEG_NAMES, load_mechanism
     mech = load_mechanism(REPO / 'config' / 'stewart63.yaml')
     ts = typestore()
     T = ts.types

@@ -17,7 +17,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from stewart63_ros import topics
-from stewart63_ros.core.params import load_setup
+from stewart63_ros.core.plumbing.params import load_setup
 from stewart63_ros.nodes.controller import ControllerNode
 from stewart63_ros.runtime.parameters import set_arguments
 from stewart63_ros.runtime.rclpy_internals import WaitAny

@@ -1,6 +1,6 @@
 """The bus load as the wire carries it, beside the load the configuration plans.
 
-``config.loads(rate)`` (core/bus.py) is the plan: a SYNC, each drive's RPDO
+``config.loads(rate)`` (core/machine/bus.py) is the plan: a SYNC, each drive's RPDO
 and TPDO per cycle, the heartbeats. It cannot see a frame nobody planned: a
 PDO a drive shipped with and nobody switched off, another master, a node id
 not in the config. ``WireLoad`` counts what is on each bus: every frame the
@@ -30,7 +30,7 @@ import threading
 import time
 
 from stewart63_ros.canbus.pdo import bridge_cob_ids
-from stewart63_ros.core.bus import BusConfig, frame_bits
+from stewart63_ros.core.machine.bus import BusConfig, frame_bits
 
 #: points of bus load the measured figure may exceed the planned one by
 #: before a WARN (a TPDO2 on a state change, an SDO, jitter in the window)

@@ -26,7 +26,7 @@ import select
 import struct
 import time
 
-from stewart63_ros.core.bus import frame_bits
+from stewart63_ros.core.machine.bus import frame_bits
 
 #: s: a frame's stamp further than this from the wall clock is not a reception time
 STAMP_TRUST = 10.0

@@ -7,7 +7,7 @@ value types come from the EDS through the ``canopen`` library), PDOs
 following the mapping the master wrote by SDO (RPDO1 applied on arrival;
 TPDO1 at each SYNC, a synchronous transmission type; TPDO2 when its values
 change, types 254/255), a heartbeat producer (0x1017), EMCY, and the CiA 402
-state machine (core/bus.py, ``Cia402Drive``): a drive not in OPERATION
+state machine (core/machine/bus.py, ``Cia402Drive``): a drive not in OPERATION
 ENABLED with mode 10 applies no torque. Its position actual value is its
 encoder's count less the home offset 0x607C a homing wrote (the supervisor's
 homing, through the bridge's ``homed_offset``); power-on resets it to 0.
@@ -19,7 +19,7 @@ the state at sample *k*, in its own loop, with heartbeats in the run's time
 the buses itself, in the plant's thread: deterministic, and no thread hop
 per frame (its cost per sample: bench/bench_bus.py, docs/performance.md).
 
-Bus faults (core/faults.py, ``bus_*``) act here, on the device's side:
+Bus faults (core/machine/faults.py, ``bus_*``) act here, on the device's side:
 ``bus_no_boot`` (the device is off: no boot-up, hears nothing; boots when the
 fault ends), ``bus_heartbeat_lost`` (a pulled cable: the device neither
 sends nor hears; having lost its master it disables its power stage, as a
@@ -38,7 +38,7 @@ import time
 
 import can
 
-from stewart63_ros.core.bus import (
+from stewart63_ros.core.machine.bus import (
     FAULT,
     HOME_OFFSET,
     MODE_CST,
@@ -288,7 +288,7 @@ class DeviceSet:
     """The six drives on their buses, served from the plant's loop.
 
     Args:
-        config: the device config file (core/bus.py, ``load_bus_config``).
+        config: the device config file (core/machine/bus.py, ``load_bus_config``).
         booted: the legs (0-based) to power on now (the others stay off:
             ``bus_no_boot`` at the run's start).
     """

@@ -28,7 +28,7 @@ frames of two senders may interleave differently at two readers (a CAN bus
 orders them once, by arbitration). A bus that closes is dropped by its peers
 (a pulled cable: silence). Classic CAN frames only (up to 8 data bytes); no
 bit timing is modelled: a frame takes as long as a socket write takes (a few
-microseconds), so the bus load is computed, not felt (core/bus.py, docs/bus.md).
+microseconds), so the bus load is computed, not felt (core/machine/bus.py, docs/bus.md).
 """
 from __future__ import annotations
 

@@ -27,7 +27,7 @@ from stewart63_ros.canbus.cycle import SETTLE_POLL, CycleSide
 from stewart63_ros.canbus.devices import PDO_CODES, open_bus
 from stewart63_ros.canbus.pdo import configure_pdos
 from stewart63_ros.canbus.sync import SyncWindows
-from stewart63_ros.core.bus import (
+from stewart63_ros.core.machine.bus import (
     CW_DISABLE_OPERATION,
     CW_ENABLE,
     CW_SHUTDOWN,
@@ -134,7 +134,7 @@ class Master(CycleSide):
     """The master of the legs' buses (see the module's doc).
 
     Args:
-        config: the device config (core/bus.py).
+        config: the device config (core/machine/bus.py).
         rate: the sample rate [Hz]: the SYNC rate.
         log: ``log(text)`` for what the master does (the node's logger).
 

@@ -3,7 +3,7 @@
 This module is where a lab adds its own drive: a host side (``ODriveLegs``:
 what the bridge's master does for CANopen, for ODrives) and a device side
 (``FakeODrive``: what the plant's drives do, for tests), on any python-can
-bus. The leg's scaling is the same ``core.bus.LegDrive`` as for CANopen; an
+bus. The leg's scaling is the same ``core.machine.bus.LegDrive`` as for CANopen; an
 ODrive counts motor turns, so a leg's length is
 ``offset_m + direction * turns * lead_m / gear_ratio`` and its torque
 ``direction * F * lead_m / (2 pi gear_ratio efficiency)`` newton-metres.
@@ -28,7 +28,7 @@ import struct
 
 import can
 
-from stewart63_ros.core.bus import LegDrive
+from stewart63_ros.core.machine.bus import LegDrive
 
 HEARTBEAT, SET_AXIS_STATE, ENCODER_ESTIMATES = 0x01, 0x07, 0x09
 SET_CONTROLLER_MODE, SET_INPUT_TORQUE = 0x0B, 0x0E

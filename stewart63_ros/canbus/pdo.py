@@ -28,7 +28,7 @@ from __future__ import annotations
 import dataclasses
 import struct
 
-from stewart63_ros.core.bus import RPDO1, TPDO1, TPDO2, BusConfigError, LegDrive
+from stewart63_ros.core.machine.bus import RPDO1, TPDO1, TPDO2, BusConfigError, LegDrive
 
 #: COB-ID bit 31: the PDO does not exist (is off)
 PDO_INVALID = 1 << 31

@@ -42,10 +42,10 @@ def kernel_cache_cold() -> bool:
     internals; where the cache lives elsewhere than beside the modules or in
     NUMBA_CACHE_DIR it errs on "cold"."""
     core = Path(__file__).resolve().parent
-    places = [core / '__pycache__']
+    places = [core]
     if os.environ.get('NUMBA_CACHE_DIR'):
         places.append(Path(os.environ['NUMBA_CACHE_DIR']))
-    for source in sorted(core.glob('*.py')):
+    for source in sorted(core.rglob('*.py')):
         if '\n@njit' not in source.read_text():    # no compiled kernel here
             continue
         index = [p for place in places if place.is_dir()
@@ -66,11 +66,11 @@ def main() -> None:
     start = time.perf_counter()
     clear_cache()
     # lazy: the kernels cost 692 ms; cli imports this for the notice
-    from stewart63_ros.core.dynamics import Dynamics
-    from stewart63_ros.core.fk import FKTracker
-    from stewart63_ros.core.laws import PDController
-    from stewart63_ros.core.params import load_setup
-    from stewart63_ros.core.simulate import initial_state, run_continuous, run_sampled
+    from stewart63_ros.core.controllers.laws import PDController
+    from stewart63_ros.core.controllers.simulate import initial_state, run_continuous, run_sampled
+    from stewart63_ros.core.mechanics.dynamics import Dynamics
+    from stewart63_ros.core.mechanics.fk import FKTracker
+    from stewart63_ros.core.plumbing.params import load_setup
     setup = load_setup()
     mech, task = setup.mechanism, setup.task
     dyn = Dynamics(mech)
@@ -86,15 +86,15 @@ def main() -> None:
     tracker.solve(lengths, rates)
     tracker.fk.all_modes(lengths)
     # lazy: the kernels cost 692 ms; cli imports this for the notice
-    from stewart63_ros.core.assembly import jacobian_determinant
+    from stewart63_ros.core.mechanics.assembly import jacobian_determinant
     jacobian_determinant(*dyn.kernel_args()[1:3], y)
     # The compiled closed loops: scipy's RK45 (dopri), its output samples, the sampled loop.
     run_continuous(setup, 0.02, dyn=dyn)
     run_sampled(setup, 0.002, 1000.0, dyn=dyn)
     # The control laws and the reference motions.
     # lazy: the kernels cost 692 ms; cli imports this for the notice
-    from stewart63_ros.core.laws import LAWS, Controller
-    from stewart63_ros.core.reference import Reference
+    from stewart63_ros.core.controllers.laws import LAWS, Controller
+    from stewart63_ros.core.controllers.reference import Reference
     ref = Reference.from_poses(mech, [0.0, 0.5, 1.0], np.zeros((3, 6)) + np.concatenate(
         [task.initial_position, task.initial_orientation]))
     ref.check(1.0, 1.0)
@@ -102,16 +102,16 @@ def main() -> None:
         Controller(setup, law=name, reference=ref)(lengths, rates, 0.25)
     # The analysis: holding forces, the workspace grid, a sweep run's leg lengths.
     # lazy: the kernels cost 692 ms; cli imports this for the notice
-    from stewart63_ros.core.equilibrium import holding_forces
-    from stewart63_ros.core.sweep import leg_lengths_of_states
-    from stewart63_ros.core.workspace import workspace_map
+    from stewart63_ros.core.analysis.equilibrium import holding_forces
+    from stewart63_ros.core.analysis.sweep import leg_lengths_of_states
+    from stewart63_ros.core.analysis.workspace import workspace_map
     holding_forces(dyn, task.initial_position, np.eye(3))
     workspace_map(mech, np.eye(3), 1.0)
     leg_lengths_of_states(dyn.base_points, dyn.leg_points, y[None, :])
     # The general 6-6's forward kinematics (every mode by homotopy; tracking) on a
     # small semi-regular hexapod: joints in three close pairs on each side.
     # lazy: the kernels cost 692 ms; cli imports this for the notice
-    from stewart63_ros.core.fk66 import FKTracker66, ForwardKinematics66
+    from stewart63_ros.core.mechanics.fk66 import FKTracker66, ForwardKinematics66
     angles = np.radians([k * 120 + s * 6 for k in range(3) for s in (-1, 1)])
     base66 = np.c_[0.5 * np.cos(angles), 0.5 * np.sin(angles), np.zeros(6)]
     plat66 = np.roll(np.c_[0.3 * np.cos(angles - np.pi / 3), 0.3 * np.sin(angles - np.pi / 3),

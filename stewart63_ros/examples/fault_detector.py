@@ -33,7 +33,7 @@ from collections import deque
 
 import numpy as np
 
-from stewart63_ros.core.params import LEG_NAMES
+from stewart63_ros.core.plumbing.params import LEG_NAMES
 
 
 class SensorFault(RuntimeError):

@@ -47,8 +47,8 @@ from sensor_msgs.msg import JointState
 from stewart63_ros import topics
 from stewart63_ros.canbus.busload import WARNING_PREFIX, WireLoad
 from stewart63_ros.canbus.master import Master
-from stewart63_ros.core.bus import BusConfigError, BusLoadError, load_bus_config
-from stewart63_ros.core.errors import ParameterError
+from stewart63_ros.core.machine.bus import BusConfigError, BusLoadError, load_bus_config
+from stewart63_ros.core.plumbing.errors import ParameterError
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.nodes.bridge_cycles import CONTROLLER_LOST_MIN, BridgeCycles
 from stewart63_ros.runtime import wire

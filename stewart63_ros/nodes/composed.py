@@ -30,8 +30,8 @@ from __future__ import annotations
 import sys
 import time
 
-from stewart63_ros.core.node_names import ALL_NODES
-from stewart63_ros.core.node_names import NODES as NODE_NAMES
+from stewart63_ros.core.plumbing.node_names import ALL_NODES
+from stewart63_ros.core.plumbing.node_names import NODES as NODE_NAMES
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.runtime.launcher import STOP, run
 

@@ -36,10 +36,8 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from stewart63_ros import topics
-from stewart63_ros.core.kinematics import leg_lengths
-from stewart63_ros.core.laws import LAW_PARAMETERS, LAWS, Controller, LawError
-from stewart63_ros.core.params import ParameterError
-from stewart63_ros.core.reference import (
+from stewart63_ros.core.controllers.laws import LAW_PARAMETERS, LAWS, Controller, LawError
+from stewart63_ros.core.controllers.reference import (
     MessageError,
     Reference,
     ReferenceError,
@@ -50,7 +48,9 @@ from stewart63_ros.core.reference import (
     trajectory_points,
     trajectory_poses,
 )
-from stewart63_ros.core.rotation import rotation_from_quaternion
+from stewart63_ros.core.mechanics.kinematics import leg_lengths
+from stewart63_ros.core.mechanics.rotation import rotation_from_quaternion
+from stewart63_ros.core.plumbing.params import ParameterError
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode
@@ -81,7 +81,7 @@ def _unit_quaternion(q, field):
 def reference_from_trajectory(mech, msg, max_leg_speed=0.0, max_leg_acceleration=0.0):
     """(Reference, start stamp in ns or None for "the next sample") from a
     ``MultiDOFJointTrajectory`` of the one joint ``platform``
-    (``core.reference.trajectory_points``); Rejected otherwise.
+    (``core.controllers.reference.trajectory_points``); Rejected otherwise.
 
     Velocities and accelerations are used when every point has them (quintic
     Hermite pieces with both, cubic Hermite with velocities only), otherwise

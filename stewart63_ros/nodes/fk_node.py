@@ -22,8 +22,8 @@ from geometry_msgs.msg import PoseStamped, TwistStamped
 from sensor_msgs.msg import JointState
 
 from stewart63_ros import topics
-from stewart63_ros.core.fk import FKTracker, NoAssemblyError
-from stewart63_ros.core.kinematics import leg_lengths
+from stewart63_ros.core.mechanics.fk import FKTracker, NoAssemblyError
+from stewart63_ros.core.mechanics.kinematics import leg_lengths
 from stewart63_ros.nodes.markers import MarkerPublisher
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode

@@ -4,7 +4,7 @@ A ``MarkerPublisher`` lives in the ``fk`` node, which already has the newest
 measured leg lengths and the pose estimated from them at every sample. The
 sample path only stores references to them (no work); a timer of the node,
 at ``marker_rate`` Hz (default 30, 0 turns markers off), draws the newest
-state once (``core.markers.Scene``) and publishes it. It publishes only when a
+state once (``core.mechanics.markers.Scene``) and publishes it. It publishes only when a
 new sample came since the last array, so marker stamps (the sample's stamp)
 strictly increase, in simulated or recorded time alike.
 
@@ -29,10 +29,10 @@ from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
 from stewart63_ros import topics
-from stewart63_ros.core import markers as shapes_mod
-from stewart63_ros.core.fk import NoAssemblyError
-from stewart63_ros.core.kinematics import leg_lengths
-from stewart63_ros.core.rotation import quaternion_from_rotation, rotation_from_quaternion
+from stewart63_ros.core.mechanics import markers as shapes_mod
+from stewart63_ros.core.mechanics.fk import NoAssemblyError
+from stewart63_ros.core.mechanics.kinematics import leg_lengths
+from stewart63_ros.core.mechanics.rotation import quaternion_from_rotation, rotation_from_quaternion
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.commands import CommandInput
 
@@ -93,7 +93,7 @@ class MarkerTemplate:
 
     Like the 1 kHz messages (runtime/wire.py): the array is built and
     serialized once by rclpy with distinct sentinels in every number that
-    changes (``core.markers.flatten`` order: poses, scales, points as
+    changes (``core.mechanics.markers.flatten`` order: poses, scales, points as
     float64, colours as float32, each marker's stamp); the sentinels found in
     the bytes give the offsets, and a frame is numpy stores into them. A
     rosidl MarkerArray of 24 markers costs milliseconds to fill and

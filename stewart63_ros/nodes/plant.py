@@ -33,10 +33,10 @@ from geometry_msgs.msg import WrenchStamped
 from sensor_msgs.msg import JointState
 
 from stewart63_ros import topics
-from stewart63_ros.core.assembly import AssemblyWatch
-from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.sensor import SensorModel, TrackerModel
-from stewart63_ros.core.simulate import initial_state, substeps_for
+from stewart63_ros.core.controllers.sensor import SensorModel, TrackerModel
+from stewart63_ros.core.controllers.simulate import initial_state, substeps_for
+from stewart63_ros.core.mechanics.assembly import AssemblyWatch
+from stewart63_ros.core.mechanics.dynamics import Dynamics
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.nodes.plant_bus import PlantBus
 from stewart63_ros.nodes.plant_control import PlantControl
@@ -362,7 +362,7 @@ class PlantNode(PlantBus, PlantControl, RigNode):
 
     def watch_assembly(self) -> None:
         """ERROR on /diagnostics, naming the sample, while the platform is in
-        another assembly mode than at the run's start (core/assembly.py)."""
+        another assembly mode than at the run's start (core/mechanics/assembly.py)."""
         if self.k == 0:         # (each run: a reset starts from the initial state)
             self.assembly = AssemblyWatch(*self.dyn.kernel_args()[1:3], self.rate)
         note = self.assembly.check(self.k, self.y)

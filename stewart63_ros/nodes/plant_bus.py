@@ -26,8 +26,8 @@ import time
 
 import numpy as np
 
-from stewart63_ros.core.bus import BusConfigError, load_bus_config
-from stewart63_ros.core.errors import ParameterError
+from stewart63_ros.core.machine.bus import BusConfigError, load_bus_config
+from stewart63_ros.core.plumbing.errors import ParameterError
 from stewart63_ros.runtime.launcher import STOP
 
 #: s: how often the bus is served before the loop starts (SDO answers of the bring-up)

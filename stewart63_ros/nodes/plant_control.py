@@ -1,7 +1,7 @@
 """The plant's faults and simulation control (pause, step, reset): the node's side.
 
 ``PlantControl`` is mixed into ``PlantNode``; the fault logic itself is the
-core's (core/faults.py), shared with ``sim``. What this adds to the node:
+core's (core/machine/faults.py), shared with ``sim``. What this adds to the node:
 
 - the parameter ``faults`` (a list of fault strings), also changed at run
   time (``ros2 param set /plant faults "[...]"``): a bad string refuses the
@@ -27,10 +27,10 @@ import time
 import numpy as np
 from std_srvs.srv import SetBool, Trigger
 
-from stewart63_ros.core.errors import ParameterError
-from stewart63_ros.core.faults import FaultError, FaultModel
-from stewart63_ros.core.sensor import SensorModel
-from stewart63_ros.core.simulate import initial_state
+from stewart63_ros.core.controllers.sensor import SensorModel
+from stewart63_ros.core.controllers.simulate import initial_state
+from stewart63_ros.core.machine.faults import FaultError, FaultModel
+from stewart63_ros.core.plumbing.errors import ParameterError
 from stewart63_ros.runtime.checks import RESTART_PAUSE, StaleForce
 from stewart63_ros.runtime.launcher import STOP
 

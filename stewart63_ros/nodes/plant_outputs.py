@@ -16,7 +16,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
 from stewart63_ros import topics
-from stewart63_ros.core.dynamics import OMEGA, POS, QUAT, VEL
+from stewart63_ros.core.mechanics.dynamics import OMEGA, POS, QUAT, VEL
 from stewart63_ros.runtime import wire
 
 

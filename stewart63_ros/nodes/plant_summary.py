@@ -10,15 +10,15 @@ import time
 
 import numpy as np
 
-from stewart63_ros.core.dynamics import POS, QUAT
-from stewart63_ros.core.params import ParameterError
-from stewart63_ros.core.reference import (
+from stewart63_ros.core.controllers.reference import (
     ReferenceError,
     accumulate_tracking,
     load_reference,
     tracking_summary,
 )
-from stewart63_ros.core.rotation import matrix_from_quaternion
+from stewart63_ros.core.mechanics.dynamics import POS, QUAT
+from stewart63_ros.core.mechanics.rotation import matrix_from_quaternion
+from stewart63_ros.core.plumbing.params import ParameterError
 
 #: The tracking error in the summary counts samples from this time [s] on.
 TRACKING_FROM = 1.0

@@ -4,7 +4,7 @@ With ``rig --supervisor`` the controller's ``leg_forces`` is remapped to
 ``leg_forces_request``; the supervisor answers every ``leg_lengths`` sample
 on ``leg_forces``, stamped with it: the controller's request forwarded while
 no limit is crossed, else the safe action of the trip's cause (zero force,
-hold, or a descent to the rest pose): core/supervisor.py, docs/supervisor.md.
+hold, or a descent to the rest pose): core/machine/supervisor.py, docs/supervisor.md.
 
 A trip latches: ERROR on /diagnostics naming the cause, the sample and the
 safe action (and in the node's summary), until ``~/reset``
@@ -30,8 +30,12 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from stewart63_ros import topics
-from stewart63_ros.core.stamps import NS_PER_S, SampleSpacing
-from stewart63_ros.core.supervisor import LIMIT_KEYS, limits_from_params, supervisor_from_params
+from stewart63_ros.core.machine.supervisor import (
+    LIMIT_KEYS,
+    limits_from_params,
+    supervisor_from_params,
+)
+from stewart63_ros.core.plumbing.stamps import NS_PER_S, SampleSpacing
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.nodes.supervisor_homing import SupervisorHoming
 from stewart63_ros.runtime import wire

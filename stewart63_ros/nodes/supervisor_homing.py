@@ -1,7 +1,7 @@
 """The supervisor's homing (nodes/supervisor.py): the forces that find each
 leg's zero, and setting the offsets found on the node that owns the sensors'
 zero (the plant, or on the bus the bridge). A part of ``SupervisorNode``,
-apart by job; core/supervisor_motion.py computes the homing itself."""
+apart by job; core/machine/supervisor_motion.py computes the homing itself."""
 from __future__ import annotations
 
 import numpy as np

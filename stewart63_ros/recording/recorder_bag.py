@@ -20,7 +20,7 @@ from rosbags.rosbag2.errors import WriterError
 from rosbags.rosbag2.writer import CompressionMode
 
 from stewart63_ros.bagio import NAMESPACE_KEY, BagError, typestore
-from stewart63_ros.core.stamps import ns_of
+from stewart63_ros.core.plumbing.stamps import ns_of
 
 
 def qos_to_rosbags(profile):

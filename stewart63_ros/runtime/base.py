@@ -9,10 +9,10 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from stewart63_ros import topics
-from stewart63_ros.core.node_parameters import BY_NAME as DECLARED
-from stewart63_ros.core.node_parameters import NODE_KEYS, describe, node_keys
-from stewart63_ros.core.node_parameters import read as read_declared
-from stewart63_ros.core.params import ParameterError, setup_from_params, unknown_keys
+from stewart63_ros.core.plumbing.node_parameters import BY_NAME as DECLARED
+from stewart63_ros.core.plumbing.node_parameters import NODE_KEYS, describe, node_keys
+from stewart63_ros.core.plumbing.node_parameters import read as read_declared
+from stewart63_ros.core.plumbing.params import ParameterError, setup_from_params, unknown_keys
 from stewart63_ros.core.precompile import COMPILE_NOTICE, kernel_cache_cold
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.checks import Rejected, SkipCounter, source_of
@@ -58,7 +58,7 @@ class RigNode(HotLoop, Node):
         self.kind = name                      # 'plant', 'controller', 'fk' (whatever remapped)
         self.params = params
         self._check_unknown_keys()
-        #: the machine, gains, task and settings of its parameters (core/setup.py)
+        #: the machine, gains, task and settings of its parameters (core/mechanics/setup.py)
         self.setup = setup_from_params(self.params)
         self.mech = self.setup.mechanism
         for key in NODE_KEYS[name]:           # every key it reads passes its check first
@@ -112,14 +112,15 @@ class RigNode(HotLoop, Node):
 
         ``apply(value)`` puts the new value into effect at once, or raises
         ``ParameterError`` with the reason: the change is then refused and
-        nothing changes. A declared key (core/node_parameters.py) must be
+        nothing changes. A declared key (core/plumbing/node_parameters.py) must be
         declared changeable at run time on this node, so that the interface
         page says so and its descriptor is not read-only (rcl refuses a set
         of a read-only one before this node sees it); ``apply`` gets its
         value as its declaration's check returns it.
         """
         if name in node_keys(self.kind) and describe(name, self.kind).read_only:
-            raise ValueError('%s is declared fixed at start-up on the %s (core/node_parameters.py)'
+            raise ValueError('%s is declared fixed at start-up on the %s '
+                             '(core/plumbing/node_parameters.py)'
                              % (name, self.kind))
         self._tunable[name] = apply
 
@@ -165,7 +166,7 @@ class RigNode(HotLoop, Node):
             self.get_logger().warning('%s; ignored' % problem)
 
     def param(self, name: str):
-        """The value of the declared key ``name`` (core/node_parameters.py):
+        """The value of the declared key ``name`` (core/plumbing/node_parameters.py):
         as given, or its default; checked (ParameterError: exit 2)."""
         return read_declared(self.params, name)
 

@@ -11,8 +11,8 @@ import time
 import numpy as np
 from builtin_interfaces.msg import Time
 
-from stewart63_ros.core.params import LEG_NAMES
-from stewart63_ros.core.stamps import stamp_ns
+from stewart63_ros.core.plumbing.params import LEG_NAMES
+from stewart63_ros.core.plumbing.stamps import stamp_ns
 
 
 class Rejected(ValueError):

@@ -13,7 +13,7 @@ from stewart63_ros.runtime import handshake
 from stewart63_ros.runtime.rclpy_internals import raw_publisher
 
 if TYPE_CHECKING:
-    # Only a hint: checks imports core.params (scipy, a fifth of a second),
+    # Only a hint: checks imports core.plumbing.params (scipy, a fifth of a second),
     # which the recorder, publishing through StatusPublisher, does not need
     # before it is ready.
     from stewart63_ros.runtime.checks import Rejected

@@ -10,7 +10,7 @@ import signal
 import sys
 import time
 
-from stewart63_ros.core.errors import ParameterError
+from stewart63_ros.core.plumbing.errors import ParameterError
 from stewart63_ros.middleware import use_rig_profile
 from stewart63_ros.runtime.realtime import reduce_timer_slack
 

@@ -32,7 +32,7 @@ import time
 from builtin_interfaces.msg import Time
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from stewart63_ros.core.stamps import stamp_ns
+from stewart63_ros.core.plumbing.stamps import stamp_ns
 from stewart63_ros.runtime.launcher import STOP
 
 #: A peer's progress topic, private to the peer's node: ``/<ns>/<node>/lockstep_progress``.

@@ -12,7 +12,7 @@ user expects rather than rcl's (where a file's ``/**/plant:`` entry beats a
 
 The result is also what the node declares as its ROS parameters, so
 ``ros2 param get`` shows what the node runs with. Every key the node reads
-(the model's and its own, core/node_parameters.py) is declared, given or not
+(the model's and its own, core/plumbing/node_parameters.py) is declared, given or not
 (with its default), with a ``ParameterDescriptor`` made from its one
 declaration: ``ros2 param list`` shows every key, ``ros2 param describe`` its
 meaning and unit, its range, and ``read_only`` for a key fixed at start-up
@@ -28,8 +28,18 @@ import yaml
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.parameter import Parameter
 
-from stewart63_ros.core.node_parameters import NODE_KEYS, default, describe, node_keys, ros_value
-from stewart63_ros.core.params import ParameterError, default_params_path, read_parameter_file
+from stewart63_ros.core.plumbing.node_parameters import (
+    NODE_KEYS,
+    default,
+    describe,
+    node_keys,
+    ros_value,
+)
+from stewart63_ros.core.plumbing.params import (
+    ParameterError,
+    default_params_path,
+    read_parameter_file,
+)
 from stewart63_ros.runtime.ros_args import WITH_VALUE, split_ros_args
 
 _argv: list[str] | None = None
@@ -123,14 +133,14 @@ def ros_parameters(params: dict) -> list:
     return out
 
 
-#: core/node_parameters.py's type names -> rclpy's parameter types
+#: core/plumbing/node_parameters.py's type names -> rclpy's parameter types
 _TYPES = {'double': 'DOUBLE', 'integer': 'INTEGER', 'bool': 'BOOL', 'string': 'STRING',
           'double_array': 'DOUBLE_ARRAY', 'string_array': 'STRING_ARRAY'}
 
 
 def descriptor(name: str, node: str, writable: bool = False):
     """The rcl_interfaces ParameterDescriptor of key ``name`` on ``node``
-    (core/node_parameters.describe: description with unit, range, read-only;
+    (core/plumbing/node_parameters.describe: description with unit, range, read-only;
     ``writable``: not read-only whatever the declaration says)."""
     d = describe(name, node)
     out = ParameterDescriptor(name=name, description=d.description,

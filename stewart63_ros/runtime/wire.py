@@ -29,8 +29,8 @@ from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
-from stewart63_ros.core.params import LEG_NAMES
-from stewart63_ros.core.stamps import ns_of
+from stewart63_ros.core.plumbing.params import LEG_NAMES
+from stewart63_ros.core.plumbing.stamps import ns_of
 from stewart63_ros.runtime.checks import Rejected, StampGate, leg_vector
 
 #: Plain CDR, little endian (the 4-byte encapsulation header).

@@ -23,20 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart63_ros.core import equilibrium, modal
-from stewart63_ros.core.equilibrium import DEFAULT_MAX_CONDITION, AnalysisError
-from stewart63_ros.core.laws import law_class
-from stewart63_ros.core.linear import linearize
-from stewart63_ros.core.modal import frequency_table, strongest_couplings
-from stewart63_ros.core.node_parameters import read as read_declared
-from stewart63_ros.core.params import (
-    ParameterError,
-    default_params_path,
-    load_setup,
-    read_parameter_file,
-)
-from stewart63_ros.core.rotation import euler_from_matrix, rotation_from_euler
-from stewart63_ros.core.workspace import (
+from stewart63_ros.core.analysis import equilibrium, modal
+from stewart63_ros.core.analysis.equilibrium import DEFAULT_MAX_CONDITION, AnalysisError
+from stewart63_ros.core.analysis.linear import linearize
+from stewart63_ros.core.analysis.modal import frequency_table, strongest_couplings
+from stewart63_ros.core.analysis.workspace import (
     DEFAULT_STEP,
     REASONS,
     GridTooLarge,
@@ -44,6 +35,15 @@ from stewart63_ros.core.workspace import (
     grid_axes,
     human_bytes,
     workspace_map,
+)
+from stewart63_ros.core.controllers.laws import law_class
+from stewart63_ros.core.mechanics.rotation import euler_from_matrix, rotation_from_euler
+from stewart63_ros.core.plumbing.node_parameters import read as read_declared
+from stewart63_ros.core.plumbing.params import (
+    ParameterError,
+    default_params_path,
+    load_setup,
+    read_parameter_file,
 )
 from stewart63_ros.tools.cli import (
     STRICT_HELP,

@@ -1,7 +1,7 @@
 """``plot --animate``: a run as an animation, the platform in 3D beside the leg lengths.
 
 Drawn with matplotlib from the same shapes as the ``markers`` topic
-(core/markers.py): base, U-joints, each leg's cylinder and piston (the piston
+(core/mechanics/markers.py): base, U-joints, each leg's cylinder and piston (the piston
 coloured by its force), the platform triangle; beside it the six leg lengths
 against time with a cursor. GIF through Pillow (matplotlib's ``pillow``
 writer, always there), MP4 through ffmpeg where it is installed.
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart63_ros.core import markers
+from stewart63_ros.core.mechanics import markers
 
 #: frames at most: a longer run is played faster (the title says how much)
 MAX_FRAMES = 300
@@ -26,10 +26,10 @@ class Animator:
         matplotlib.use('Agg')
         import matplotlib.pyplot as plt  # lazy: pyplot costs 794 ms; only a figure needs it
 
-        # lazy: mplot3d, core.rotation cost 1186 ms; only --animate needs them
+        # lazy: mplot3d, core.mechanics.rotation cost 1186 ms; only --animate needs them
         from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-        from stewart63_ros.core.rotation import rotation_from_euler
+        from stewart63_ros.core.mechanics.rotation import rotation_from_euler
         self.plt = plt
         self.mech = mech
         self.scene = markers.Scene(mech)

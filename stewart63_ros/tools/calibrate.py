@@ -37,18 +37,18 @@ import numpy as np  # noqa: E402
 import yaml
 
 from stewart63_ros import bagio
-from stewart63_ros.core import calibration as cal
-from stewart63_ros.core import calibration_plan as cp
-from stewart63_ros.core.params import (  # noqa: E402
+from stewart63_ros.core.controllers.reference import Reference, ReferenceError, write_reference_csv
+from stewart63_ros.core.controllers.sensor import TrackerModel
+from stewart63_ros.core.machine import calibration as cal
+from stewart63_ros.core.machine import calibration_plan as cp
+from stewart63_ros.core.machine.supervisor import limits_from_params
+from stewart63_ros.core.mechanics.rotation import euler_from_matrix
+from stewart63_ros.core.plumbing.params import (  # noqa: E402
     ParameterError,
     default_params_path,
     load_mechanism,
     read_parameter_file,
 )
-from stewart63_ros.core.reference import Reference, ReferenceError, write_reference_csv
-from stewart63_ros.core.rotation import euler_from_matrix
-from stewart63_ros.core.sensor import TrackerModel
-from stewart63_ros.core.supervisor import limits_from_params
 from stewart63_ros.tools.cli import (
     load_checked,
     quiet_on_closed_pipe,  # noqa: E402

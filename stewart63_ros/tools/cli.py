@@ -18,8 +18,8 @@ def load_checked(prog: str, path=None, node_name=None, strict=False):
     ``mechanism``, ``gains``, ``task``, ``settings``), or
     None after a one-line error on stderr (the caller exits 2). Every key no
     executable reads is named first: a warning, an error with ``strict``."""
-    # lazy: core.params costs 715 ms (numba); plot, record import cli
-    from stewart63_ros.core.params import (
+    # lazy: core.plumbing.params costs 715 ms (numba); plot, record import cli
+    from stewart63_ros.core.plumbing.params import (
         ParameterError,
         default_params_path,
         file_parameters,

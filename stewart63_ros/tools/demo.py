@@ -16,7 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-from stewart63_ros.core.params import default_params_path
+from stewart63_ros.core.plumbing.params import default_params_path
 from stewart63_ros.paths import RIG_CLOCK_MODE
 from stewart63_ros.tools import plot, rig
 

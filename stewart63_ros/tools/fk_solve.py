@@ -17,7 +17,7 @@ import math
 import os
 import sys
 
-from stewart63_ros.core.fk import ForwardKinematics, NoAssemblyError
+from stewart63_ros.core.mechanics.fk import ForwardKinematics, NoAssemblyError
 from stewart63_ros.tools.cli import STRICT_HELP, announce_compile, load_checked
 
 

@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart63_ros.core.faults import interval_from_status
-from stewart63_ros.core.trajectory import read_csv
+from stewart63_ros.core.machine.faults import interval_from_status
+from stewart63_ros.core.plumbing.trajectory import read_csv
 from stewart63_ros.tools.animate import Animator
 from stewart63_ros.tools.cli import load_checked, quiet_on_closed_pipe
 
@@ -263,8 +263,8 @@ def main(argv=None) -> int:
         runs = source_runs(source, args.run)
         drawn = [(run, load_columns(source, run), load_faults(source, run)) for run in runs]
         if args.reference or ref_path.is_file():
-            # lazy: core.reference costs 570 ms (numba); only --reference
-            from stewart63_ros.core.reference import CSV_COLUMNS, read_reference_csv
+            # lazy: core.controllers.reference costs 570 ms (numba); only --reference
+            from stewart63_ros.core.controllers.reference import CSV_COLUMNS, read_reference_csv
             times, poses = read_reference_csv(ref_path)
             reference = dict(zip(CSV_COLUMNS, np.column_stack([times, poses]).T))
     except (ValueError, OSError, BagError) as exc:  # TrajectoryError, BagError, ReferenceError

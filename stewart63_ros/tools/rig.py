@@ -46,8 +46,8 @@ from pathlib import Path
 # Light imports only up to main's first line, which installs the stop
 # handlers: a Ctrl-C while numpy and scipy load (a third of a second) could
 # otherwise be swallowed by a library's bare ``except`` and never stop the rig.
-from stewart63_ros.core.errors import ParameterError
-from stewart63_ros.core.node_names import NODES
+from stewart63_ros.core.plumbing.errors import ParameterError
+from stewart63_ros.core.plumbing.node_names import NODES
 from stewart63_ros.paths import RIG_CLOCK_MODE, default_params_path
 from stewart63_ros.runtime.launcher import (
     StopSignals,
@@ -182,9 +182,9 @@ class Rig:
         if self.supervisor:
             doc['/**/supervisor']['ros__parameters']['homed_offset_node'] = 'canopen_bridge'
         plant['io'] = 'canopen'
-        # lazy: core.params costs 715 ms (numba); --help answers without it
-        from stewart63_ros.core.bus import load_bus_config
-        from stewart63_ros.core.params import file_parameters
+        # lazy: core.plumbing.params costs 715 ms (numba); --help answers without it
+        from stewart63_ros.core.machine.bus import load_bus_config
+        from stewart63_ros.core.plumbing.params import file_parameters
         config_file = file_parameters(self.params).get('bus_config') or None
         buses = load_bus_config(config_file).buses
         if all(bus.interface == 's63hub' for bus in buses):
@@ -448,7 +448,7 @@ def supervised(doc: dict, plant: dict, shared: dict, log_dir: Path) -> None:
     force once its newest answers a sample older than ``stale_forces_ms``
     (the supervisor's default: the plant fails safe when the supervisor dies)."""
     # lazy: numpy costs 50 ms; --help answers without it
-    from stewart63_ros.core.node_parameters import default
+    from stewart63_ros.core.plumbing.node_parameters import default
     plant['lengths_subscribers'] += 1
     plant['lengths_peers'] = plant['lengths_peers'] + ['supervisor']
     plant['answer_every_sample'] = True
@@ -589,7 +589,7 @@ def main(argv=None) -> int:
         parser.error('--fault acts in the plant: it needs plant in --nodes')
     if 'plant' in nodes_arg(args.nodes):
         # lazy: tools.sim costs 1092 ms (numba); only --fault needs it
-        from stewart63_ros.core.faults import FaultError
+        from stewart63_ros.core.machine.faults import FaultError
         from stewart63_ros.tools.sim import fault_list
         try:     # the file's faults and --fault's: fail here, with the reason, not in the plant
             faults = fault_list(params, args.fault)
@@ -608,7 +608,7 @@ def main(argv=None) -> int:
     extra = {}
     if args.control_law or args.reference:
         # lazy: tools.sim costs 1092 ms (numba); only --reference
-        from stewart63_ros.core.reference import ReferenceError
+        from stewart63_ros.core.controllers.reference import ReferenceError
         from stewart63_ros.tools.sim import make_controller
         try:     # fail here, with the reason, not in the controller
             make_controller(params, args.control_law, args.reference)
@@ -644,9 +644,9 @@ def main(argv=None) -> int:
         parser.error('--bus canopen starts the bridge beside the plant: it needs plant in '
                      '--nodes')
     if args.bus:
-        # lazy: core.params costs 715 ms (numba); --help answers without it
-        from stewart63_ros.core.bus import BusConfigError, load_bus_config
-        from stewart63_ros.core.params import file_parameters
+        # lazy: core.plumbing.params costs 715 ms (numba); --help answers without it
+        from stewart63_ros.core.machine.bus import BusConfigError, load_bus_config
+        from stewart63_ros.core.plumbing.params import file_parameters
         try:     # fail here, with the reason, not in two processes
             load_bus_config(file_parameters(params).get('bus_config') or None)
         except BusConfigError as exc:
@@ -723,10 +723,10 @@ def supervisor_problem(params, extra: dict) -> str:
     limits, its homing (``homing_direction: retract`` on a machine whose legs
     cannot all be at their lower stops), its reference. Checked before anything
     starts: one line, exit 2 (it was the supervisor's log tail and exit 1)."""
-    # lazy: core.supervisor costs 1092 ms (numba, as tools.sim); --help answers without it
-    from stewart63_ros.core.node_parameters import read as read_declared
-    from stewart63_ros.core.params import read_parameter_file, setup_from_params
-    from stewart63_ros.core.supervisor import supervisor_from_params
+    # lazy: core.machine.supervisor costs 1092 ms (numba, as tools.sim); --help answers without it
+    from stewart63_ros.core.machine.supervisor import supervisor_from_params
+    from stewart63_ros.core.plumbing.node_parameters import read as read_declared
+    from stewart63_ros.core.plumbing.params import read_parameter_file, setup_from_params
     try:
         values = dict(read_parameter_file(params, 'supervisor'), **extra)
         setup = setup_from_params(values)
@@ -762,8 +762,8 @@ def plant_params_problem(args, params) -> str:
                 '(with --bus canopen the plant runs in its own process, and takes it)')
     if 'plant' not in nodes_arg(args.nodes):
         return 'it is the plant\'s file: it needs plant in --nodes'
-    # lazy: core.params costs 715 ms (numba); --help answers
-    from stewart63_ros.core.params import read_parameter_file, setup_from_params
+    # lazy: core.plumbing.params costs 715 ms (numba); --help answers
+    from stewart63_ros.core.plumbing.params import read_parameter_file, setup_from_params
     try:
         merged = read_parameter_file(params, 'plant')
         merged.update(read_parameter_file(args.plant_params, 'plant', allow_empty=True))
@@ -783,8 +783,8 @@ def sample_rates(params, plant_params=None) -> dict:
     """The ``sensor_rate`` [Hz] the parameter files give each node that has
     one in a rig (the plant's after its ``plant_params``); None where the
     files set none."""
-    # lazy: core.params costs 715 ms (numba); --help answers without it
-    from stewart63_ros.core.params import read_parameter_file
+    # lazy: core.plumbing.params costs 715 ms (numba); --help answers without it
+    from stewart63_ros.core.plumbing.params import read_parameter_file
     plant = read_parameter_file(params, 'plant', allow_empty=True)
     if plant_params:
         plant.update(read_parameter_file(plant_params, 'plant', allow_empty=True))
@@ -799,8 +799,9 @@ def two_rates(params, plant_params, followers) -> str:
     samples) a ``sensor_rate`` other than the plant's; '' when they agree."""
     if not followers:
         return ''
-    # lazy: core.node_parameters costs 715 ms (numba, with core.params); --help answers
-    from stewart63_ros.core.node_parameters import BY_NAME
+    # lazy: core.plumbing.node_parameters costs 715 ms (numba, with core.plumbing.params); --help
+    # answers
+    from stewart63_ros.core.plumbing.node_parameters import BY_NAME
     rates = sample_rates(params, plant_params)
     plant_rate = rates['plant'] if rates['plant'] is not None else BY_NAME[
         'sensor_rate'].default

@@ -125,15 +125,15 @@ def trace_from_rig(scenario, bag: Path, summary: dict, trips: list | None = None
     import numpy as np
 
     from stewart63_ros.bagio import header_stamp_ns, read_messages
-    from stewart63_ros.core.dynamics import Dynamics
-    from stewart63_ros.core.scenario import (
+    from stewart63_ros.core.analysis.sweep import leg_lengths_of_states
+    from stewart63_ros.core.mechanics.dynamics import Dynamics
+    from stewart63_ros.core.scenarios.scenario import (
         Trace,
         TripRecord,
         build_controller,
         build_plant,
         reference_lengths,
     )
-    from stewart63_ros.core.sweep import leg_lengths_of_states
     lengths_msgs, poses, forces = {}, {}, {}
     for topic, _, msg in read_messages(bag, ['leg_lengths', 'leg_forces', 'ground_truth/pose']):
         stamp = header_stamp_ns(msg)
@@ -201,7 +201,7 @@ def rig_reference(reference: str, workdir: Path) -> str:
         return reference
     # lazy: bagio costs 197 ms; only a rig run needs it
     from stewart63_ros.bagio import reference_points_from_bag
-    from stewart63_ros.core.reference import write_reference_csv
+    from stewart63_ros.core.controllers.reference import write_reference_csv
     points = reference_points_from_bag(reference)
     path = workdir / 'reference.csv'
     write_reference_csv(path, points['times'], points['poses'])
@@ -263,9 +263,14 @@ def run_rig(scenario, workdir: Path, domain: int | None = None):
 # -- running --------------------------------------------------------------------
 def run_one(scenario, keep_trace: bool = True, domain: int | None = None) -> Outcome:
     """One scenario, its verdicts (a run that fails: every verdict fails, with the reason)."""
-    # lazy: core.laws costs 926 ms (numba); --help answers
-    from stewart63_ros.core.laws import LawError
-    from stewart63_ros.core.scenario import ScenarioError, evaluate, failed_run_verdicts, run_sim
+    # lazy: core.controllers.laws costs 926 ms (numba); --help answers
+    from stewart63_ros.core.controllers.laws import LawError
+    from stewart63_ros.core.scenarios.scenario import (
+        ScenarioError,
+        evaluate,
+        failed_run_verdicts,
+        run_sim,
+    )
     start = time.perf_counter()
     try:
         if scenario.run == 'sim':
@@ -288,8 +293,8 @@ def run_chunk(scenarios: Sequence, keep_trace: bool = True) -> list[Outcome]:
 
 def warm_up(scenarios: Sequence) -> None:
     """Load (or compile) the kernels the sim scenarios use, before forking workers."""
-    # lazy: core.scenario costs 129 ms; --help answers without it
-    from stewart63_ros.core.scenario import run_sim
+    # lazy: core.scenarios.scenario costs 129 ms; --help answers without it
+    from stewart63_ros.core.scenarios.scenario import run_sim
     seen = set()
     for s in scenarios:
         key = (s.run, s.control_law, bool(s.faults), bool(s.wrench), bool(s.reference))
@@ -526,8 +531,8 @@ def write_report(outcomes: Sequence[Outcome], out: Path, figures: bool = True,
 def load_files(paths: Iterable[str]) -> list:
     """Every scenario of the files, in order (ScenarioError for a bad file; two
     scenarios of one name refused)."""
-    # lazy: core.scenario costs 129 ms; --help answers without it
-    from stewart63_ros.core.scenario import ScenarioError, load_scenarios
+    # lazy: core.scenarios.scenario costs 129 ms; --help answers without it
+    from stewart63_ros.core.scenarios.scenario import ScenarioError, load_scenarios
     out = []
     for path in paths:
         out.extend(load_scenarios(path))
@@ -566,8 +571,8 @@ def main(argv=None) -> int:
     # from here when called in a process that was running before.
     begun = time.perf_counter() - (process_age() if argv is None else 0.0)
     args = build_parser().parse_args(argv)
-    # lazy: core.scenario costs 129 ms; --help answers without it
-    from stewart63_ros.core.scenario import ScenarioError
+    # lazy: core.scenarios.scenario costs 129 ms; --help answers without it
+    from stewart63_ros.core.scenarios.scenario import ScenarioError
     if args.jobs < 1:
         return _fail('--jobs must be at least 1, got %d' % args.jobs)
     if args.domain is not None and not 0 <= args.domain <= 232:

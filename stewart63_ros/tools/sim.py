@@ -24,26 +24,26 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart63_ros.core.assembly import crossings
-from stewart63_ros.core.dynamics import Dynamics
-from stewart63_ros.core.faults import FaultError, FaultModel, parse_fault, parse_faults
-from stewart63_ros.core.laws import Controller, LawError
-from stewart63_ros.core.node_parameters import read as read_declared
-from stewart63_ros.core.params import (
-    ParameterError,
-    default_params_path,
-    load_setup,
-    read_parameter_file,
-)
-from stewart63_ros.core.reference import (
+from stewart63_ros.core.controllers.laws import Controller, LawError
+from stewart63_ros.core.controllers.reference import (
     CSV_COLUMNS,
     ReferenceError,
     load_reference,
     tracking_errors,
     write_reference_csv,
 )
-from stewart63_ros.core.simulate import run_continuous, run_sampled
-from stewart63_ros.core.trajectory import COLUMNS, write_csv
+from stewart63_ros.core.controllers.simulate import run_continuous, run_sampled
+from stewart63_ros.core.machine.faults import FaultError, FaultModel, parse_fault, parse_faults
+from stewart63_ros.core.mechanics.assembly import crossings
+from stewart63_ros.core.mechanics.dynamics import Dynamics
+from stewart63_ros.core.plumbing.node_parameters import read as read_declared
+from stewart63_ros.core.plumbing.params import (
+    ParameterError,
+    default_params_path,
+    load_setup,
+    read_parameter_file,
+)
+from stewart63_ros.core.plumbing.trajectory import COLUMNS, write_csv
 from stewart63_ros.tools.cli import (
     STRICT_HELP,
     add_control_options,

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart63_ros.core.params import ParameterError, default_params_path
+from stewart63_ros.core.plumbing.params import ParameterError, default_params_path
 from stewart63_ros.tools.cli import (
     STRICT_HELP,
     add_control_options,
@@ -145,8 +145,8 @@ def draw_sweep(plan, rows, path: Path, title: str) -> Path:
 @quiet_on_closed_pipe
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    # lazy: core.sweep costs 692 ms (scipy.optimize); --help answers
-    from stewart63_ros.core import sweep, sweep_plan, sweep_report
+    # lazy: core.analysis.sweep costs 692 ms (scipy.optimize); --help answers
+    from stewart63_ros.core.analysis import sweep, sweep_plan, sweep_report
     if args.runs < 1:
         return _fail('--runs must be at least 1, got %d' % args.runs)
     if not (np.isfinite(args.duration) and args.duration > 0):

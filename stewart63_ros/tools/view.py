@@ -4,7 +4,7 @@
 
 Serves ``http://localhost:P/`` (default port 8080) with viser: a page the
 package serves itself, no network needed. The scene is the one of the
-``markers`` topic (core/markers.py): base, U-joints, legs coloured by force,
+``markers`` topic (core/mechanics/markers.py): base, U-joints, legs coloured by force,
 platform, setpoint ghost.
 
 Live (no BAG): follows ``platform_pose``, ``leg_lengths`` and ``leg_forces``
@@ -36,15 +36,15 @@ import numpy as np
 
 from stewart63_ros import bagio
 from stewart63_ros.bagio import BagError
-from stewart63_ros.core import markers as shapes_mod
-from stewart63_ros.core.fk import ForwardKinematics, NoAssemblyError
-from stewart63_ros.core.kinematics import leg_lengths
-from stewart63_ros.core.params import LEG_NAMES
-from stewart63_ros.core.rotation import (
+from stewart63_ros.core.mechanics import markers as shapes_mod
+from stewart63_ros.core.mechanics.fk import ForwardKinematics, NoAssemblyError
+from stewart63_ros.core.mechanics.kinematics import leg_lengths
+from stewart63_ros.core.mechanics.rotation import (
     quaternion_from_rotation,
     rotation_from_euler,
     rotation_from_quaternion,
 )
+from stewart63_ros.core.plumbing.params import LEG_NAMES
 from stewart63_ros.middleware import use_rig_profile
 from stewart63_ros.runtime.launcher import StopSignals, dump_stacks_on_sigusr1
 from stewart63_ros.tools.cli import load_checked, quiet_on_closed_pipe
