@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stewart63_ros.core.mechanics.fk import NoAssemblyError, _newton, _pose_distance
+from stewart63_ros.core.mechanics.fk import NoAssemblyError
 from stewart63_ros.core.mechanics.fk66 import GENERIC_MODES, FKTracker66, ForwardKinematics66
+from stewart63_ros.core.mechanics.fk_tracking import _newton, _pose_distance
 
 
 def semi_regular(base_radius=0.5, plat_radius=0.3, base_gap_deg=12.0, plat_gap_deg=10.0):
