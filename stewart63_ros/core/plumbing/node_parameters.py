@@ -1,5 +1,9 @@
 """Every parameter a node reads besides the model, declared once.
 
+Why this long: it is the one table of every key (its declarations, each a
+few lines of unit, range and doc); split, a reader would look in several places
+for one key, which is what this module exists to prevent.
+
 A declaration (``Declared``) holds what a user needs to know of a key: the
 nodes that read it, its default, unit, range, whether it may change while the
 node runs, one line of doc, and the check that turns a value as given into
