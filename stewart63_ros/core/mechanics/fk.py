@@ -65,6 +65,24 @@ class NoAssemblyError(ValueError):
     """Leg lengths for which the platform cannot be assembled."""
 
 
+def checked_lengths(lengths: ArrayLike) -> np.ndarray:
+    """Six finite positive leg lengths as a float array (6,) (the 6-3's and
+    the 6-6's solvers both check their input here).
+
+    Raises:
+        ValueError: not six finite numbers.
+        NoAssemblyError: a length that is not positive.
+    """
+    lengths = _arr(lengths)
+    if lengths.shape != (6,) or not np.all(np.isfinite(lengths)):
+        raise ValueError('leg lengths must be 6 finite numbers, got %r' % (lengths,))
+    bad = np.flatnonzero(lengths <= 0)
+    if bad.size:
+        raise NoAssemblyError('leg_%d length %g m is not positive'
+                              % (bad[0] + 1, lengths[bad[0]]))
+    return lengths
+
+
 class FKResult:
     """One pose from the leg lengths.
 
@@ -171,14 +189,7 @@ class ForwardKinematics:
             ValueError: not six finite numbers.
             NoAssemblyError: a length that is not positive.
         """
-        lengths = _arr(lengths)
-        if lengths.shape != (6,) or not np.all(np.isfinite(lengths)):
-            raise ValueError('leg lengths must be 6 finite numbers, got %r' % (lengths,))
-        bad = np.flatnonzero(lengths <= 0)
-        if bad.size:
-            raise NoAssemblyError('leg_%d length %g m is not positive'
-                                  % (bad[0] + 1, lengths[bad[0]]))
-        return lengths
+        return checked_lengths(lengths)
 
     def jacobian(self, position: ArrayLike, rotation: ArrayLike) -> np.ndarray:
         """6x6 J, row i = [s_i, q_i x s_i]: dL/dt = J [v; omega].

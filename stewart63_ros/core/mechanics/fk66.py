@@ -42,7 +42,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from stewart63_ros.core.mechanics.fk import FKResult, NoAssemblyError
+from stewart63_ros.core.mechanics.fk import FKResult, NoAssemblyError, checked_lengths
 from stewart63_ros.core.mechanics.fk_tracking import (
     _legs,
     _newton,
@@ -395,14 +395,7 @@ class ForwardKinematics66:
 
     def check_lengths(self, lengths: ArrayLike) -> np.ndarray:
         """Six finite positive lengths as a float array; ValueError / NoAssemblyError if not."""
-        lengths = _arr(lengths)
-        if lengths.shape != (6,) or not np.all(np.isfinite(lengths)):
-            raise ValueError('leg lengths must be 6 finite numbers, got %r' % (lengths,))
-        bad = np.flatnonzero(lengths <= 0)
-        if bad.size:
-            raise NoAssemblyError('leg_%d length %g m is not positive'
-                                  % (bad[0] + 1, lengths[bad[0]]))
-        return lengths
+        return checked_lengths(lengths)
 
     def lengths(self, position: ArrayLike, rotation: ArrayLike) -> np.ndarray:
         """L_i = |t + R p_i - b_i| (eqs. 2, 5) at the pose t (3,), R (3, 3)."""
