@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from stewart63_ros.core.plumbing.errors import ParameterError
-from stewart63_ros.core.plumbing.legs import LEG_VERTEX
+from stewart63_ros.core.plumbing.legs import LEG_VERTEX, SIX_JOINTS
 from stewart63_ros.core.plumbing.node_parameters import read as read_declared
 
 
@@ -87,15 +87,18 @@ def _frozen(arr) -> np.ndarray:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Mechanism:
-    """A validated 6-3 platform: the machine, and nothing a run chooses.
+    """A validated platform, a 6-3 or a 6-6: the machine, and nothing a run chooses.
 
-    Arrays are read-only. Leg i (0-based) meets vertex ``LEG_VERTEX[i]``.
+    Arrays are read-only. ``platform_points`` holds 3 vertices (a 6-3, the
+    paper's: leg i, 0-based, meets vertex ``LEG_VERTEX[i]``) or 6 joints (a 6-6:
+    leg i at joint i); ``leg_platform_points`` is always the (6, 3) point of each
+    leg, and the dynamics and kinematics read only it.
     Every field is a key of the parameter file, declared (unit, range, words)
     in core/plumbing/node_parameters.py: the model's keys in ``MODEL``, the end stops
     and the sensors' zero offsets in ``DECLARED``.
     """
     base_points: np.ndarray          # (6, 3) b_i, base frame
-    platform_points: np.ndarray      # (3, 3) p_k, platform frame
+    platform_points: np.ndarray      # (3, 3) p_k of a 6-3, or (6, 3) p_i of a 6-6; platform frame
     platform_mass: float
     platform_com: np.ndarray         # (3,)
     platform_inertia: np.ndarray     # (3, 3) about the COM, platform frame
@@ -116,9 +119,21 @@ class Mechanism:
     leg_length_offset: np.ndarray    # (6,) o_i [m]: a sensor reads L_i + o_i
 
     @property
+    def layout(self) -> str:
+        """'6-3' (three platform vertices, legs in pairs) or '6-6' (six joints)."""
+        return '6-3' if len(self.platform_points) == 3 else '6-6'
+
+    @property
+    def leg_vertex(self) -> np.ndarray:
+        """(6,) the row of ``platform_points`` each leg meets: ``LEG_VERTEX``
+        for a 6-3, 0 … 5 for a 6-6."""
+        return LEG_VERTEX if len(self.platform_points) == 3 else SIX_JOINTS
+
+    @property
     def leg_platform_points(self) -> np.ndarray:
-        """(6, 3): the platform vertex of each leg, platform frame (p_k repeated)."""
-        return self.platform_points[LEG_VERTEX]
+        """(6, 3): the platform joint of each leg, platform frame (a 6-3's p_k
+        repeated for its two legs)."""
+        return self.platform_points[self.leg_vertex]
 
     def leg_vectors(self, position: ArrayLike, rot: np.ndarray) -> np.ndarray:
         """S_i = R p_i + t - b_i, eq. (2) (``kinematics.leg_vectors`` is this).
@@ -225,7 +240,7 @@ def validated(params: Mapping[str, Any]) -> Mechanism:
             named in the error.
     """
     base = _vector(params, 'base_points', 18).reshape(6, 3)
-    plat = _vector(params, 'platform_points', 9).reshape(3, 3)
+    plat = _platform_points(params)
     _check_geometry(base, plat)
 
     inertia6 = _vector(params, 'platform_inertia', 6)
@@ -279,6 +294,16 @@ def validated(params: Mapping[str, Any]) -> Mechanism:
     return mech
 
 
+def _platform_points(params: Mapping[str, Any]) -> np.ndarray:
+    """(3, 3) for 9 numbers (a 6-3), (6, 3) for 18 (a 6-6)."""
+    value = params.get('platform_points')
+    size = np.size(value) if isinstance(value, (list, tuple, np.ndarray)) else 9
+    if size not in (9, 18):
+        raise ParameterError('platform_points', 'expected 9 numbers (a 6-3: p_1 … p_3) or 18 '
+                             '(a 6-6: p_1 … p_6), got %d' % size)
+    return _vector(params, 'platform_points', size).reshape(-1, 3)
+
+
 def _check_geometry(base: np.ndarray, plat: np.ndarray) -> None:
     for i in range(6):
         for j in range(i + 1, 6):
@@ -286,14 +311,21 @@ def _check_geometry(base: np.ndarray, plat: np.ndarray) -> None:
                 pair = (i // 2 == j // 2)
                 raise ParameterError('base_points', '%s b_%d and b_%d coincide'
                                      % ('the pair' if pair else 'points', i + 1, j + 1))
-    for i in range(3):
-        for j in range(i + 1, 3):
+    # A 6-6's joints are six: two that coincide make it a different mechanism
+    # (write a 6-3, or a 6-4, which the rig does not model), so refuse them.
+    legs = ('legs %d and %d' if len(plat) == 6 else 'legs %d, %d')
+    for i in range(len(plat)):
+        for j in range(i + 1, len(plat)):
             if np.linalg.norm(plat[i] - plat[j]) < 1e-6:
-                raise ParameterError('platform_points', 'p_%d and p_%d coincide' % (i + 1, j + 1))
-    normal = np.cross(plat[1] - plat[0], plat[2] - plat[0])
-    scale = max(np.linalg.norm(plat[1] - plat[0]), np.linalg.norm(plat[2] - plat[0])) ** 2
-    if np.linalg.norm(normal) < 1e-9 * scale:
-        raise ParameterError('platform_points', 'the three vertices are collinear')
+                which = (legs % (i + 1, j + 1) if len(plat) == 6 else
+                         'legs %d, %d and %d, %d' % (2 * i + 1, 2 * i + 2, 2 * j + 1, 2 * j + 2))
+                raise ParameterError('platform_points', 'p_%d and p_%d coincide (%s)'
+                                     % (i + 1, j + 1, which))
+    centred_plat = plat - plat.mean(axis=0)
+    sv_plat = np.linalg.svd(centred_plat, compute_uv=False)
+    if sv_plat[1] < 1e-9 * max(sv_plat[0], 1e-12):
+        raise ParameterError('platform_points', 'the %s are collinear'
+                             % ('three vertices' if len(plat) == 3 else 'six joints'))
     # The base points must span a plane; six points on one line leave the
     # platform free to rotate about that line.
     centred = base - base.mean(axis=0)

@@ -539,6 +539,8 @@ class ModelKey:
     Attributes:
         name: the key (the field's name).
         size: 1 for a number, n for a list of n numbers.
+        other_size: another list length the key takes (``platform_points``:
+            9 for a 6-3, 18 for a 6-6); 0 for none.
         unit: the unit of each number.
         packaged: the packaged file's value, in words.
         doc: meaning and checks, one line.
@@ -553,13 +555,20 @@ class ModelKey:
     doc: str
     bound: str = ''
     runtime: tuple[str, ...] = ()
+    other_size: int = 0
+
+    @property
+    def sizes_text(self) -> str:
+        """'9 or 18' for a key of two lengths, '6' for one."""
+        return '%d or %d' % (self.size, self.other_size) if self.other_size else str(self.size)
 
 
 MODEL: tuple[ModelKey, ...] = (
     ModelKey('base_points', 18, 'm', 'see the file', 'b_1 … b_6, base frame; no two '
              'coincide; not all on one line'),
-    ModelKey('platform_points', 9, 'm', '0.5 m circle at 0°, 120°, 240°', 'p_1 … p_3, '
-             'platform frame; legs 2k−1 and 2k meet at p_k; not coincident, not collinear'),
+    ModelKey('platform_points', 9, 'm', '0.5 m circle at 0°, 120°, 240°', '9 numbers, a 6-3: '
+             'p_1 … p_3, legs 2k−1 and 2k meet at p_k; or 18, a 6-6: p_1 … p_6, leg i at p_i; '
+             'platform frame; no two coincide, not all on one line', other_size=18),
     ModelKey('platform_mass', 1, 'kg', '15.0', 'the platform\'s mass; > 0', 'positive'),
     ModelKey('platform_com', 3, 'm', '[0, 0, 0]', 'platform frame'),
     ModelKey('platform_inertia', 6, 'kg m²', '[0.95, 0.95, 1.875, 0, 0, 0]', 'Ixx, Iyy, Izz, '
@@ -683,7 +692,7 @@ def describe(name: str, node: str) -> Description:
         return Description(
             name, 'double_array' if array else 'double',
             '%s [%s]' % (_plain(model.doc), model.unit),
-            '%d numbers' % model.size if array else {'positive': '> 0', 'nonnegative': '≥ 0'}
+            '%s numbers' % model.sizes_text if array else {'positive': '> 0', 'nonnegative': '≥ 0'}
             .get(model.bound, ''), node not in model.runtime, array and node in model.runtime,
             getattr(bound, 'ros_range', None))
     d = BY_NAME[name]
@@ -803,6 +812,6 @@ def model_markdown_table() -> str:
     """
     rows = ['| key | type, unit | packaged value | range and checks |', '|---|---|---|---|']
     for m in MODEL:
-        kind = 'double' if m.size == 1 else 'double[%d]' % m.size
+        kind = 'double' if m.size == 1 else 'double[%s]' % m.sizes_text
         rows.append('| `%s` | %s [%s] | %s | %s |' % (m.name, kind, m.unit, m.packaged, m.doc))
     return '\n'.join(rows) + '\n'
