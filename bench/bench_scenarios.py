@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart63_ros.core.scenarios.scenario import Expectation, load_scenarios
+from stewart63_ros.core.scenarios.parsing import load_scenarios
+from stewart63_ros.core.scenarios.scenario import Expectation
 from stewart63_ros.tools.scenario import run_all
 
 EXPECT = """    expect:

@@ -51,8 +51,8 @@ def load(source: Any, base: str | os.PathLike) -> list:
     Raises:
         ScenarioError: a bad scenario (its key named).
     """
-    # lazy: core.scenarios.scenario costs 129 ms; pytest loads this plugin always
-    from stewart63_ros.core.scenarios.scenario import load_scenarios, scenarios_from_dict
+    # lazy: core.scenarios costs 129 ms; pytest loads this plugin always
+    from stewart63_ros.core.scenarios.parsing import load_scenarios, scenarios_from_dict
     items = source if isinstance(source, (list, tuple)) else [source]
     out = []
     for item in items:

@@ -1,4 +1,4 @@
-"""Scenario files, verdicts, JUnit XML and the report (core/scenarios/scenario.py,
+"""Scenario files, verdicts, JUnit XML and the report (core/scenarios/,
 tools/scenario.py).
 
 The measured values are checked against the simulation's own results
@@ -17,14 +17,10 @@ import pytest
 from stewart63_ros.core.controllers.simulate import run_sampled
 from stewart63_ros.core.mechanics.dynamics import Dynamics
 from stewart63_ros.core.plumbing.params import load_setup
-from stewart63_ros.core.scenarios.scenario import (
-    ScenarioError,
-    evaluate,
-    load_scenarios,
-    run_sim,
-    scenarios_from_dict,
-    wrench_samples,
-)
+from stewart63_ros.core.scenarios.parsing import load_scenarios, scenarios_from_dict
+from stewart63_ros.core.scenarios.running import run_sim, wrench_samples
+from stewart63_ros.core.scenarios.scenario import ScenarioError
+from stewart63_ros.core.scenarios.verdicts import evaluate
 from stewart63_ros.tools import scenario as tool
 
 REPO = Path(__file__).resolve().parents[1]
@@ -444,7 +440,7 @@ def test_a_lab_runs_scenarios_from_its_own_pytest_file(tmp_path):
 
 def test_scenario_errors_are_scenarioerror():
     with pytest.raises(ScenarioError, match='matrix'):
-        from stewart63_ros.core.scenarios.scenario import scenario_from_dict
+        from stewart63_ros.core.scenarios.parsing import scenario_from_dict
         scenario_from_dict({'name': 'a', 'matrix': {'duration': [1]}, 'expect': {}})
 
 

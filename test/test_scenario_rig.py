@@ -7,12 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart63_ros.core.scenarios.scenario import (
-    evaluate,
-    load_scenarios,
-    run_sim,
-    scenarios_from_dict,
-)
+from stewart63_ros.core.scenarios.parsing import load_scenarios, scenarios_from_dict
+from stewart63_ros.core.scenarios.running import run_sim
+from stewart63_ros.core.scenarios.verdicts import evaluate
 from stewart63_ros.tools import scenario as tool
 
 REPO = Path(__file__).resolve().parents[1]

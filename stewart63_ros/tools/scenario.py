@@ -127,13 +127,12 @@ def trace_from_rig(scenario, bag: Path, summary: dict, trips: list | None = None
     from stewart63_ros.bagio import header_stamp_ns, read_messages
     from stewart63_ros.core.analysis.sweep import leg_lengths_of_states
     from stewart63_ros.core.mechanics.dynamics import Dynamics
-    from stewart63_ros.core.scenarios.scenario import (
-        Trace,
-        TripRecord,
+    from stewart63_ros.core.scenarios.running import (
         build_controller,
         build_plant,
         reference_lengths,
     )
+    from stewart63_ros.core.scenarios.scenario import Trace, TripRecord
     lengths_msgs, poses, forces = {}, {}, {}
     for topic, _, msg in read_messages(bag, ['leg_lengths', 'leg_forces', 'ground_truth/pose']):
         stamp = header_stamp_ns(msg)
@@ -265,12 +264,9 @@ def run_one(scenario, keep_trace: bool = True, domain: int | None = None) -> Out
     """One scenario, its verdicts (a run that fails: every verdict fails, with the reason)."""
     # lazy: core.controllers.laws costs 926 ms (numba); --help answers
     from stewart63_ros.core.controllers.laws import LawError
-    from stewart63_ros.core.scenarios.scenario import (
-        ScenarioError,
-        evaluate,
-        failed_run_verdicts,
-        run_sim,
-    )
+    from stewart63_ros.core.scenarios.running import run_sim
+    from stewart63_ros.core.scenarios.scenario import ScenarioError
+    from stewart63_ros.core.scenarios.verdicts import evaluate, failed_run_verdicts
     start = time.perf_counter()
     try:
         if scenario.run == 'sim':
@@ -294,7 +290,7 @@ def run_chunk(scenarios: Sequence, keep_trace: bool = True) -> list[Outcome]:
 def warm_up(scenarios: Sequence) -> None:
     """Load (or compile) the kernels the sim scenarios use, before forking workers."""
     # lazy: core.scenarios.scenario costs 129 ms; --help answers without it
-    from stewart63_ros.core.scenarios.scenario import run_sim
+    from stewart63_ros.core.scenarios.running import run_sim
     seen = set()
     for s in scenarios:
         key = (s.run, s.control_law, bool(s.faults), bool(s.wrench), bool(s.reference))
@@ -532,7 +528,8 @@ def load_files(paths: Iterable[str]) -> list:
     """Every scenario of the files, in order (ScenarioError for a bad file; two
     scenarios of one name refused)."""
     # lazy: core.scenarios.scenario costs 129 ms; --help answers without it
-    from stewart63_ros.core.scenarios.scenario import ScenarioError, load_scenarios
+    from stewart63_ros.core.scenarios.parsing import load_scenarios
+    from stewart63_ros.core.scenarios.scenario import ScenarioError
     out = []
     for path in paths:
         out.extend(load_scenarios(path))
