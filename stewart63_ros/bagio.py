@@ -493,8 +493,8 @@ def reference_points_from_bag(bag_dir) -> dict[str, np.ndarray | None]:
         BagError: not a bag, none of the topics, both, a bad message.
     """
     # lazy: core.controllers.reference costs 570 ms (numba); plot needs no core
-    from stewart63_ros.core.controllers.reference import (
-        MessageError,
+    from stewart63_ros.core.controllers.reference import MessageError
+    from stewart63_ros.core.controllers.reference_files import (
         message_quaternion,
         trajectory_points,
         trajectory_poses,

@@ -318,7 +318,7 @@ def test_an_impossible_calibration_is_never_written(setup, tmp_path, mech, truth
 
 
 def test_plan_writes_poses_and_a_reference_the_rig_accepts(tmp_path, mech):
-    from stewart63_ros.core.controllers.reference import load_reference
+    from stewart63_ros.core.controllers.reference_files import load_reference
     assert calibrate.main(['plan', '--poses', '12', '--out', str(tmp_path / 'plan'),
                            '--hold', '0.5', '--move', '0.5', '--leg-speed', '0.4',
                            '--seed', '2']) == 0
@@ -401,7 +401,8 @@ def test_plan_stays_inside_the_supervisors_limits_with_a_margin(tmp_path, setup,
     supervised run tripped pose_box); a tighter file's limits are kept too."""
     import yaml
 
-    from stewart63_ros.core.controllers.reference import R_LEN, R_POS, R_RATE, R_ROT, load_reference
+    from stewart63_ros.core.controllers.reference import R_LEN, R_POS, R_RATE, R_ROT
+    from stewart63_ros.core.controllers.reference_files import load_reference
     doc = yaml.safe_load(open(calibrate.default_params_path()))
     doc['/**/supervisor'] = {'ros__parameters': {'trip_tilt': 0.3,
                                                  'pose_box': [-0.2, -0.25, 0.5, 0.3, 0.3, 1.5]}}

@@ -307,8 +307,9 @@ LOCKSTEP_DURATION = 1.5       # s: the tracking error counts from 1 s
 def test_lockstep_rig_with_a_reference_equals_sim(setup, ros, monkeypatch, tmp_path, mech, law):
     from test_laws import six_axis_reference
 
-    from stewart63_ros.core.controllers.reference import tracking_errors, write_reference_csv
+    from stewart63_ros.core.controllers.reference_files import write_reference_csv
     from stewart63_ros.core.controllers.simulate import run_sampled, sensor_reading
+    from stewart63_ros.core.controllers.tracking import tracking_errors
     from stewart63_ros.tools.rig import Rig, control_params
     from stewart63_ros.tools.sim import make_controller
     ref_csv = tmp_path / 'reference.csv'

@@ -28,11 +28,10 @@ from stewart63_ros.core.controllers.reference import (
     R_VEL,
     Reference,
     ReferenceError,
-    load_reference,
-    tracking_errors,
-    write_reference_csv,
 )
+from stewart63_ros.core.controllers.reference_files import load_reference, write_reference_csv
 from stewart63_ros.core.controllers.simulate import initial_state, run_continuous, run_sampled
+from stewart63_ros.core.controllers.tracking import tracking_errors
 from stewart63_ros.core.mechanics.dynamics import POS, QUAT
 from stewart63_ros.core.mechanics.kinematics import jacobian, leg_lengths
 from stewart63_ros.core.mechanics.rotation import quaternion_from_euler, rotation_from_euler

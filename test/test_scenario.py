@@ -630,7 +630,7 @@ def write_reference_bag(path, times, poses, *topics):
 
 @pytest.mark.parametrize('topic', ['pose_trajectory', 'pose_setpoint'])
 def test_a_topic_file_reference_gives_the_csvs_verdicts_and_values(tmp_path, topic):
-    from stewart63_ros.core.controllers.reference import read_reference_csv
+    from stewart63_ros.core.controllers.reference_files import read_reference_csv
     times, poses = read_reference_csv(SIX_AXIS)
     write_reference_bag(tmp_path / 'motion', times, poses, topic)
     doc = {'name': 'track', 'duration': 4.0, 'control_law': 'pd_gravity',
@@ -659,7 +659,7 @@ def test_a_topic_file_reference_gives_the_csvs_verdicts_and_values(tmp_path, top
 ])
 def test_a_topic_file_it_cannot_follow_is_one_line_and_exit_2(tmp_path, capsys, folder,
                                                               expected):
-    from stewart63_ros.core.controllers.reference import read_reference_csv
+    from stewart63_ros.core.controllers.reference_files import read_reference_csv
     times, poses = read_reference_csv(SIX_AXIS)
     write_reference_bag(tmp_path / 'both', times, poses, 'pose_setpoint', 'pose_trajectory')
     (tmp_path / 'empty').mkdir()
@@ -680,7 +680,7 @@ def test_trajectory_poses_turn_twists_into_euler_rates():
     R(t + h) R(t)^T, theta's rates from theta(t +- h), 2 pi jumps unwrapped."""
     from scipy.spatial.transform import Rotation
 
-    from stewart63_ros.core.controllers.reference import trajectory_poses
+    from stewart63_ros.core.controllers.reference_files import trajectory_poses
 
     def theta(t):       # R = Rz Ry Rx; theta_z passes pi (a jump in the quaternion's Euler angles)
         return np.array([0.2 * np.sin(t), 0.1 * t - 0.05 * t ** 2, 2.8 + 0.4 * t])

@@ -37,17 +37,14 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from stewart63_ros import topics
 from stewart63_ros.core.controllers.laws import LAW_PARAMETERS, LAWS, Controller, LawError
-from stewart63_ros.core.controllers.reference import (
-    MessageError,
-    Reference,
-    ReferenceError,
-    accumulate_tracking,
+from stewart63_ros.core.controllers.reference import MessageError, Reference, ReferenceError
+from stewart63_ros.core.controllers.reference_files import (
     load_reference,
     message_quaternion,
-    tracking_summary,
     trajectory_points,
     trajectory_poses,
 )
+from stewart63_ros.core.controllers.tracking import accumulate_tracking, tracking_summary
 from stewart63_ros.core.mechanics.kinematics import leg_lengths
 from stewart63_ros.core.mechanics.rotation import rotation_from_quaternion
 from stewart63_ros.core.plumbing.params import ParameterError

@@ -10,12 +10,9 @@ import time
 
 import numpy as np
 
-from stewart63_ros.core.controllers.reference import (
-    ReferenceError,
-    accumulate_tracking,
-    load_reference,
-    tracking_summary,
-)
+from stewart63_ros.core.controllers.reference import ReferenceError
+from stewart63_ros.core.controllers.reference_files import load_reference
+from stewart63_ros.core.controllers.tracking import accumulate_tracking, tracking_summary
 from stewart63_ros.core.mechanics.dynamics import POS, QUAT
 from stewart63_ros.core.mechanics.rotation import matrix_from_quaternion
 from stewart63_ros.core.plumbing.params import ParameterError

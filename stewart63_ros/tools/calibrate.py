@@ -37,7 +37,8 @@ import numpy as np  # noqa: E402
 import yaml
 
 from stewart63_ros import bagio
-from stewart63_ros.core.controllers.reference import Reference, ReferenceError, write_reference_csv
+from stewart63_ros.core.controllers.reference import Reference, ReferenceError
+from stewart63_ros.core.controllers.reference_files import write_reference_csv
 from stewart63_ros.core.controllers.sensor import TrackerModel
 from stewart63_ros.core.machine import calibration as cal
 from stewart63_ros.core.machine import calibration_plan as cp

@@ -264,7 +264,8 @@ def main(argv=None) -> int:
         drawn = [(run, load_columns(source, run), load_faults(source, run)) for run in runs]
         if args.reference or ref_path.is_file():
             # lazy: core.controllers.reference costs 570 ms (numba); only --reference
-            from stewart63_ros.core.controllers.reference import CSV_COLUMNS, read_reference_csv
+            from stewart63_ros.core.controllers.reference import CSV_COLUMNS
+            from stewart63_ros.core.controllers.reference_files import read_reference_csv
             times, poses = read_reference_csv(ref_path)
             reference = dict(zip(CSV_COLUMNS, np.column_stack([times, poses]).T))
     except (ValueError, OSError, BagError) as exc:  # TrajectoryError, BagError, ReferenceError

@@ -25,14 +25,10 @@ from pathlib import Path
 import numpy as np
 
 from stewart63_ros.core.controllers.laws import Controller, LawError
-from stewart63_ros.core.controllers.reference import (
-    CSV_COLUMNS,
-    ReferenceError,
-    load_reference,
-    tracking_errors,
-    write_reference_csv,
-)
+from stewart63_ros.core.controllers.reference import CSV_COLUMNS, ReferenceError
+from stewart63_ros.core.controllers.reference_files import load_reference, write_reference_csv
 from stewart63_ros.core.controllers.simulate import run_continuous, run_sampled
+from stewart63_ros.core.controllers.tracking import tracking_errors
 from stewart63_ros.core.machine.faults import FaultError, FaultModel, parse_fault, parse_faults
 from stewart63_ros.core.mechanics.assembly import crossings
 from stewart63_ros.core.mechanics.dynamics import Dynamics

@@ -63,8 +63,8 @@ from stewart63_ros.core.controllers.reference import (
     SAMPLE_SIZE,
     Reference,
     ReferenceSample,
-    rotation_error,
 )
+from stewart63_ros.core.controllers.tracking import rotation_error
 from stewart63_ros.core.mechanics.dynamics import Dynamics, inverse_dynamics_forces
 from stewart63_ros.core.mechanics.fk import ForwardKinematics
 from stewart63_ros.core.mechanics.fk_tracking import pose_and_twist

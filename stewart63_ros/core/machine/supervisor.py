@@ -45,12 +45,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from stewart63_ros.core.controllers.laws import Controller, LawError
-from stewart63_ros.core.controllers.reference import (
-    R_LEN,
-    Reference,
-    ReferenceError,
-    load_reference,
-)
+from stewart63_ros.core.controllers.reference import R_LEN, Reference, ReferenceError
+from stewart63_ros.core.controllers.reference_files import load_reference
 from stewart63_ros.core.machine.faults import FaultModel, parse_faults
 from stewart63_ros.core.machine.supervisor_checks import (
     PoseFunction,

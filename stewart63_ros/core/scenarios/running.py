@@ -96,7 +96,8 @@ def build_controller(scenario: Scenario) -> tuple[Any, Any]:
     """
     # lazy: core.controllers.laws costs 926 ms (numba); scenario --help, pytest
     from stewart63_ros.core.controllers.laws import Controller
-    from stewart63_ros.core.controllers.reference import ReferenceError, load_reference
+    from stewart63_ros.core.controllers.reference import ReferenceError
+    from stewart63_ros.core.controllers.reference_files import load_reference
     from stewart63_ros.core.plumbing.params import setup_from_params
     params = node_parameters(scenario, 'controller')
     try:
@@ -329,9 +330,8 @@ def reference_lengths(scenario: Scenario, reference: Any, times: np.ndarray) -> 
     if reference is None:
         setup = build_controller_setup(scenario)
         return np.tile(np.asarray(setup.task.setpoint_lengths, float), (len(times), 1))
-    from stewart63_ros.core.controllers.reference import (
-        R_LEN,  # lazy: core.controllers.reference costs 570 ms (numba)
-    )
+    # lazy: core.controllers.reference costs 570 ms (numba)
+    from stewart63_ros.core.controllers.reference import R_LEN
     return reference.sample_many(times)[:, R_LEN]
 
 
