@@ -17,9 +17,7 @@ own floor or those below:
    ``scenarios`` on top, and ``precompile`` (which calls every kernel) above
    all. A module of floor 0 imports nothing of the package but floor 0.
    A few modules sit on another floor than their package's, each with its
-   reason (``CORE_FLOORS``). While the core is one flat folder (a branch
-   from before the move into packages), its leaf modules (``FLAT_LEAVES``)
-   are floor 0 and the rest floor 1.
+   reason (``CORE_FLOORS``).
 2. the runtime (``stewart63_ros.runtime``): the rclpy machinery under the
    nodes; it imports neither the recorder nor a node.
 3. recording (``stewart63_ros.recording``): the recorder, on the runtime; it
@@ -74,16 +72,8 @@ CORE_FLOORS = {
     'plumbing.params': 2,
 }
 #: Before the core is in packages (a branch from before the move): its leaf modules.
-FLAT_LEAVES = frozenset('stewart63_ros.core.' + m for m in (
-    '_jit', 'errors', 'legs', 'rotation', 'linalg', 'control', 'mechanism', 'setup', 'faults',
-    'node_names', 'node_parameters', 'stamps', 'trajectory'))
 CORE = 'stewart63_ros.core'
 FLOOR_NAMES = ('', 'core', 'runtime', 'recording', 'nodes', 'tools')
-
-
-def packaged() -> bool:
-    """True once the core is in its domain packages."""
-    return (PACKAGE / 'core' / 'mechanics').is_dir()
 
 
 def core_floor(name: str) -> int | None:
@@ -96,8 +86,6 @@ def core_floor(name: str) -> int | None:
         key = '.'.join(parts[:size])
         if len(parts) >= size and key in CORE_FLOORS:
             return CORE_FLOORS[key]
-    if not packaged() and len(parts) == 1:
-        return 0 if name in FLAT_LEAVES else 1
     return None
 
 
@@ -264,9 +252,6 @@ def test_every_core_module_has_a_floor():
     """Each module of the core is in a package of the floor table (or is one the
     table names), and every package and module the table names exists."""
     known = modules()
-    if not packaged():
-        assert FLAT_LEAVES <= set(known)
-        return
     unplaced = sorted(name for name in known
                       if name.startswith(CORE + '.') and core_floor(name) is None)
     assert unplaced == [], 'put these in a package of CORE_FLOORS: %s' % unplaced
