@@ -21,7 +21,7 @@ import stream_publisher as SP
 from mcap.reader import make_reader
 from ros_harness import PYTHON, RosTest, lease_domain_id, stop, wait_line, wait_matched, wait_until
 
-from stewart63_ros import bagio
+from stewart63_ros import bagio, bagrepair, bagruns
 from stewart63_ros.bagio import BagError
 from stewart63_ros.core.plumbing.trajectory import COLUMNS
 
@@ -199,7 +199,7 @@ def test_metadata_lists_topics_and_offered_qos(recorded):
 
 
 def test_trajectory_from_bag(recorded):
-    cols = bagio.trajectory_from_bag(recorded['bag'])
+    cols = bagruns.trajectory_from_bag(recorded['bag'])
     assert list(cols) == list(COLUMNS)
     k = np.arange(N)
     assert all(len(v) == N for v in cols.values())
@@ -211,7 +211,7 @@ def test_trajectory_from_bag(recorded):
         assert np.allclose(cols[f'L{i + 1}'], 1.6 + 0.001 * i + 1e-6 * k)
         assert np.allclose(cols[f'Ldot{i + 1}'], 0.01 * i - 1e-5 * k)
         assert np.allclose(cols[f'F{i + 1}'], 100.0 * i + 0.5 * k)
-    held = bagio.trajectory_from_bag(recorded['bag'], hold_forces=True)
+    held = bagruns.trajectory_from_bag(recorded['bag'], hold_forces=True)
     assert all(np.array_equal(held[c], cols[c]) for c in cols)   # nothing to hold here
 
 
@@ -255,7 +255,7 @@ def test_hard_kill_then_recover(ros, tmp_path):
         assert x['topic_metadata']['offered_qos_profiles'], x
     # a second recovery would overwrite the kept original: refused
     with pytest.raises(BagError, match='exists already'):
-        bagio.recover_bag(bag)
+        bagrepair.recover_bag(bag)
 
 
 # ------------------------------------------------------------------ play
@@ -542,7 +542,7 @@ def test_bad_inputs_give_one_line_errors_and_touch_nothing(recorded, ros, tmp_pa
         with pytest.raises(BagError):
             list(bagio.read_messages(path))
         with pytest.raises(BagError):
-            bagio.trajectory_from_bag(path)
+            bagruns.trajectory_from_bag(path)
     procs = {kind: ros.spawn(cli('play') + [str(path), '--wait-subscribers', '0'],
                              name=f'play-{kind}') for kind, path in bad.items()}
     # a topic the bag does not have

@@ -7,7 +7,8 @@ The floors (docs/design.md), lowest first; a module imports only from its
 own floor or those below:
 
 1. the core (``stewart63_ros.core``, no ROS) and the package's ROS-free
-   modules beside it (paths, topics, exits, bagio, middleware, mujoco_model).
+   modules beside it (paths, topics, exits, bagio, bagruns, bagrepair, middleware,
+   mujoco_model).
    Inside the core, floors by domain package (``CORE_FLOORS``), lowest first:
    ``plumbing`` (names, errors, the declaration of every key), ``mechanics``
    (the mechanism, kinematics, fk, dynamics), ``controllers`` (eq. (40), the

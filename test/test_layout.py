@@ -32,7 +32,6 @@ LONG_MODULES = {
     'stewart63_ros/tools/rig.py': 'under change (the rig work)',
     'stewart63_ros/tools/scenario.py': 'to split with core/scenarios/scenario.py',
     'stewart63_ros/tools/view.py': 'to split by job (the server, the scene)',
-    'stewart63_ros/bagio.py': 'to split by job (reading, writing, repairing bags)',
 }
 #: Classes over CLASS_LINES, as 'path:Class'.
 LONG_CLASSES = {

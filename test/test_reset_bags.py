@@ -9,7 +9,7 @@ with ``run`` and ``run_number`` and each fault's state. A reset: the status
 run from sample 0, its stamps from 0 again in lockstep and going on in
 realtime.
 
-- ``bagio.bag_runs`` finds the runs; ``trajectory_from_bag`` reads one
+- ``bagruns.bag_runs`` finds the runs; ``trajectory_from_bag`` reads one
   (default the last), never a sample of another;
 - ``plot`` draws the last run to figure.png and run 1 to figure_run1.png,
   each titled with its run, faults shaded per run; ``--run 1`` draws run 1
@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stewart63_ros import bagio
+from stewart63_ros import bagio, bagruns
 from stewart63_ros.core.mechanics.kinematics import leg_lengths
 from stewart63_ros.core.plumbing.params import LEG_NAMES, load_setup
 
@@ -114,12 +114,12 @@ def reset_bag(request, tmp_path):
 
 
 def test_the_runs_of_a_bag_are_found_and_read_apart(reset_bag):
-    runs = bagio.bag_runs(reset_bag)
+    runs = bagruns.bag_runs(reset_bag)
     assert [(r.index, r.number, r.samples, r.count) for r in runs] == [(1, 1, 61, 2),
                                                                       (2, 2, 31, 2)]
     assert [r.name for r in runs] == ['run 1', 'run 2']
-    last = bagio.trajectory_from_bag(reset_bag)     # the default: the last run only
-    first = bagio.trajectory_from_bag(reset_bag, run=runs[0])
+    last = bagruns.trajectory_from_bag(reset_bag)     # the default: the last run only
+    first = bagruns.trajectory_from_bag(reset_bag, run=runs[0])
     for cols, seconds, top, force in ((first, 0.6, 1.2, 100.0), (last, 0.3, 1.1, 200.0)):
         n = int(round(seconds * RATE)) + 1
         assert np.allclose(cols['t'], np.arange(n) / RATE, atol=1e-9)
@@ -127,10 +127,10 @@ def test_the_runs_of_a_bag_are_found_and_read_apart(reset_bag):
         assert cols['z'][0] == pytest.approx(1.0) and cols['z'][-1] == pytest.approx(top)
         assert np.all(np.diff(cols['z']) > 0)
         assert np.all(cols['F1'] == force)
-    assert np.array_equal(bagio.trajectory_from_bag(reset_bag, run=runs[1])['z'], last['z'])
-    assert bagio.select_run(runs, 1) is runs[0]
+    assert np.array_equal(bagruns.trajectory_from_bag(reset_bag, run=runs[1])['z'], last['z'])
+    assert bagruns.select_run(runs, 1) is runs[0]
     with pytest.raises(bagio.BagError, match='no run 3 in the bag'):
-        bagio.select_run(runs, 3)
+        bagruns.select_run(runs, 3)
 
 
 def test_plot_of_a_reset_bag_draws_each_run_on_its_own(reset_bag, tmp_path, monkeypatch):
@@ -195,7 +195,7 @@ def test_animation_of_a_dropout_draws_the_legs_with_gaps(tmp_path):
     from stewart63_ros.tools.animate import Animator
     bag = write_reset_bag(tmp_path / 'bag', 'lockstep', runs=((1.0, 1.1),),
                           dropout=range(40, 46))
-    columns = bagio.trajectory_from_bag(bag)
+    columns = bagruns.trajectory_from_bag(bag)
     assert np.isnan(columns['L5'][40:46]).all()
     with warnings.catch_warnings():
         warnings.simplefilter('error')      # no "No artists with labels" and the like

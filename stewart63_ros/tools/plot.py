@@ -14,7 +14,7 @@ dashed against the actual motion and a fourth panel shows the error.
 beside the leg lengths (tools/animate.py). Faulted intervals are shaded: from
 ``faults.json`` beside a trajectory (``sim --fault``) or from the plant's
 statuses on a bag's /diagnostics (docs/faults.md). A bag that spans a reset
-holds several runs (``bagio.bag_runs``): each is drawn on its own, the last
+holds several runs (``bagruns.bag_runs``): each is drawn on its own, the last
 to --out (figure.png), each earlier run N beside it (figure_runN.png);
 ``--run N`` draws only run N.
 """
@@ -141,9 +141,9 @@ def load_faults(source, run=None) -> list | None:
         path = (source if source.is_dir() else source.parent) / 'faults.json'
         return json.loads(path.read_text()) if path.is_file() else None
     # lazy: bagio costs 197 ms (tempfile, csv); plot --help needs no bag
-    from stewart63_ros import bagio
+    from stewart63_ros import bagio, bagruns
     if run is None:
-        runs = bagio.bag_runs(source)
+        runs = bagruns.bag_runs(source)
         run = runs[-1] if runs else None
     found: dict = {}
     number = None if run is None or run.number is None else str(run.number)
@@ -179,14 +179,14 @@ def load_columns(source, run=None) -> dict:
             source = source / 'trajectory.csv'
         else:
             # lazy: bagio costs 197 ms (tempfile, csv); plot --help needs no bag
-            from stewart63_ros.bagio import trajectory_from_bag
+            from stewart63_ros.bagruns import trajectory_from_bag
             return trajectory_from_bag(source, run=run)
     return read_csv(source)
 
 
 def source_runs(source, number=None) -> list:
     """The runs to draw of a source: [None] for a trajectory; for a bag, each
-    run it holds (``bagio.bag_runs``: a reset starts a new one), or only run
+    run it holds (``bagruns.bag_runs``: a reset starts a new one), or only run
     ``number`` (``--run``). Raises BagError for a run the bag does not hold."""
     if not is_bag(source):
         if number is not None:
@@ -195,10 +195,10 @@ def source_runs(source, number=None) -> list:
             raise BagError('--run is for a bag; %s is a trajectory of one run' % source)
         return [None]
     # lazy: bagio costs 197 ms (tempfile, csv); plot --help needs no bag
-    from stewart63_ros import bagio
-    runs = bagio.bag_runs(source)
+    from stewart63_ros import bagruns
+    runs = bagruns.bag_runs(source)
     if number is not None or not runs:
-        return [bagio.select_run(runs, number)]
+        return [bagruns.select_run(runs, number)]
     return runs
 
 

@@ -112,7 +112,7 @@ def main(argv=None) -> int:
 
     if args.recover:
         # lazy: bagio costs 197 ms; --help answers without it
-        from stewart63_ros.bagio import recover_bag
+        from stewart63_ros.bagrepair import recover_bag
         try:
             counts = recover_bag(bag)
         except BagError as exc:

@@ -199,7 +199,7 @@ def rig_reference(reference: str, workdir: Path) -> str:
     if not os.path.isdir(reference):
         return reference
     # lazy: bagio costs 197 ms; only a rig run needs it
-    from stewart63_ros.bagio import reference_points_from_bag
+    from stewart63_ros.bagruns import reference_points_from_bag
     from stewart63_ros.core.controllers.reference_files import write_reference_csv
     points = reference_points_from_bag(reference)
     path = workdir / 'reference.csv'

@@ -34,7 +34,7 @@ import time
 
 import numpy as np
 
-from stewart63_ros import bagio
+from stewart63_ros import bagio, bagruns
 from stewart63_ros.bagio import BagError
 from stewart63_ros.core.mechanics import markers as shapes_mod
 from stewart63_ros.core.mechanics.fk import ForwardKinematics, NoAssemblyError
@@ -368,14 +368,14 @@ def run_lines(values: dict) -> list:
 # ------------------------------------------------------------------ bag
 class BagRun:
     """A recorded run: poses, lengths, forces and the ghost against time. A bag
-    that spans a reset holds several runs (``bagio.bag_runs``): one of them,
+    that spans a reset holds several runs (``bagruns.bag_runs``): one of them,
     ``number`` (``--run``; default the last), never several joined."""
 
     def __init__(self, bag, setup, number=None):
-        runs = bagio.bag_runs(bag)
-        self.run = bagio.select_run(runs, number) if runs else None
+        runs = bagruns.bag_runs(bag)
+        self.run = bagruns.select_run(runs, number) if runs else None
         self.others = [r for r in runs if r is not self.run]
-        cols = bagio.trajectory_from_bag(bag, hold_forces=True, run=self.run)
+        cols = bagruns.trajectory_from_bag(bag, hold_forces=True, run=self.run)
         t = cols['t']
         have = np.all(np.isfinite(np.column_stack([cols[c] for c in (
             'x', 'y', 'z', 'theta_x', 'theta_y', 'theta_z')])), axis=1) if len(t) else \

@@ -345,7 +345,8 @@ def parse_scenario(doc: Any, where: str, base: Path, source: str = '') -> Scenar
         raise ScenarioError('%s.expect: a scenario needs at least one expectation' % where)
     if reference is not None and run != 'sim' and os.path.isdir(reference):
         # lazy: bagio costs 197 ms; only a reference from a bag needs it
-        from stewart63_ros.bagio import BagError, reference_points_from_bag
+        from stewart63_ros.bagio import BagError
+        from stewart63_ros.bagruns import reference_points_from_bag
         try:
             with_rates = reference_points_from_bag(reference)['rates'] is not None
         except BagError as exc:

@@ -109,7 +109,7 @@ def build_controller(scenario: Scenario) -> tuple[Any, Any]:
             if os.path.isdir(scenario.reference):
                 # a topic file: read with the package's bag I/O (rosbags, no ROS)
                 # lazy: bagio costs 197 ms; only a reference from a bag needs it
-                from stewart63_ros.bagio import reference_from_bag
+                from stewart63_ros.bagruns import reference_from_bag
                 reference = reference_from_bag(setup.mechanism, scenario.reference, *limits)
             else:
                 reference = load_reference(setup.mechanism, scenario.reference, *limits)
