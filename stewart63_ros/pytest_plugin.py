@@ -72,7 +72,8 @@ def run_scenarios(request: Any) -> Callable[..., list]:
     """A function that runs scenarios and, by default, fails the test on a failed verdict."""
     # lazy: tools.scenario costs 139 ms; pytest loads this plugin always
     from stewart63_ros.core.scenarios.scenario import ScenarioError
-    from stewart63_ros.tools.scenario import failure_message, run_all
+    from stewart63_ros.tools.scenario import run_all
+    from stewart63_ros.tools.scenario_report import failure_message
     base = Path(str(request.node.fspath)).parent
 
     def run(source: Any, jobs: int = 1, check: bool = True) -> Sequence:
@@ -95,5 +96,5 @@ def pytest_sessionfinish(session: Any) -> None:
     path = session.config.getoption('--scenario-junit', default=None)
     if path and _SESSION_OUTCOMES:
         # lazy: tools.scenario costs 139 ms; pytest loads this plugin always
-        from stewart63_ros.tools.scenario import write_junit
+        from stewart63_ros.tools.scenario_report import write_junit
         write_junit(_SESSION_OUTCOMES, Path(path))
