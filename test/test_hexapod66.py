@@ -10,7 +10,6 @@ against brute force in test/test_fk66.py.
 """
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 
@@ -163,21 +162,6 @@ def test_tracking_a_6_6_follows_it_and_flags_the_singularity(mech66):
         flagged.append(result.singular)
     assert not any(flagged[:60]) and flagged[-1]
     assert result.condition > 150.0
-
-
-def test_fk_cli_solves_a_6_6(tmp_path, capsys):
-    """``fk --solve --all --params config/hexapod66.yaml``: every mode as JSON,
-    the one nearest the file's start first (the setpoint's pose: 0.34 m to -x,
-    7.6 deg about y)."""
-    from stewart63_ros.tools import fk_solve
-    assert fk_solve.main(['--solve', '1.9', '1.9', '1.6', '1.6', '1.6', '1.6', '--params',
-                          str(HEXAPOD66), '--all']) == 0
-    out = json.loads(capsys.readouterr().out)
-    assert out['count'] == len(out['modes']) >= 2
-    first = out['modes'][0]
-    np.testing.assert_allclose(first['position'], [-0.34376, 0.0, 1.44572], atol=1e-4)
-    assert np.degrees(first['theta'][1]) == pytest.approx(-7.585, abs=1e-2)
-    assert not first['singular']
 
 
 # -- the plant's path --
