@@ -241,6 +241,9 @@ def main(argv=None) -> int:
     if results.get('sim_paper_10s_s') and results.get('mujoco_paper_10s_s'):
         print('our core is %.1fx faster than MuJoCo at <= 1e-6 m on the paper scenario'
               % (results['mujoco_paper_10s_s'] / results['sim_paper_10s_s']))
+    if results.get('sim66_paper_10s_s_vs_mujoco') and results.get('mujoco66_paper_10s_s'):
+        print('on the packaged 6-6: %.1fx faster than MuJoCo at <= 1e-6 m'
+              % (results['mujoco66_paper_10s_s'] / results['sim66_paper_10s_s_vs_mujoco']))
     if 'rt_priority_loop_missed_fraction' in results:
         print('with realtime_priority 10: p99 %.0f us, missed fraction %.4f'
               % (results['rt_priority_loop_latency_p99_us'],
