@@ -1,6 +1,10 @@
-"""Forward kinematics of the 6-3 platform: the pose from six leg lengths.
+"""Forward kinematics of the platform, a 6-3 or a 6-6: the pose from six leg lengths.
 
-Two solvers, one model (eqs. 2-5: S_i = t + R p_k - b_i, L_i = |S_i|):
+Two solvers, one model (eqs. 2-5: S_i = t + R p_k - b_i, L_i = |S_i|). For a
+6-6 (``Mechanism.layout``) ``ForwardKinematics`` hands ``all_modes`` to
+core/mechanics/fk66.py (a 40-path homotopy); tracking is the same Newton
+kernel for both, as it takes one platform point per leg. What follows is the
+6-3's:
 
 * ``ForwardKinematics.all_modes`` finds every real assembly mode (up to 16).
   Legs 2k-1 and 2k meet at vertex P_k, so P_k lies on a circle about the base
@@ -40,17 +44,18 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
+from stewart63_ros.core.mechanics.fk66 import ForwardKinematics66
 from stewart63_ros.core.mechanics.fk_modes import SIDES, _circles, _mode_vertices, _polish_modes
 from stewart63_ros.core.mechanics.fk_tracking import (
+    FKResult,
+    NoAssemblyError,
+    _arr,
     _legs,
     _pose_distance,
     _track,
     _twist,
+    checked_lengths,
     condition_number,
-)
-from stewart63_ros.core.mechanics.rotation import (
-    euler_from_matrix,
-    quaternion_of_matrix,
 )
 from stewart63_ros.core.plumbing.node_parameters import DEFAULT_COND_THRESHOLD
 
@@ -61,81 +66,8 @@ if TYPE_CHECKING:
 PAIRS = ((0, 1), (2, 3), (4, 5))
 
 
-class NoAssemblyError(ValueError):
-    """Leg lengths for which the platform cannot be assembled."""
-
-
-def checked_lengths(lengths: ArrayLike) -> np.ndarray:
-    """Six finite positive leg lengths as a float array (6,) (the 6-3's and
-    the 6-6's solvers both check their input here).
-
-    Raises:
-        ValueError: not six finite numbers.
-        NoAssemblyError: a length that is not positive.
-    """
-    lengths = _arr(lengths)
-    if lengths.shape != (6,) or not np.all(np.isfinite(lengths)):
-        raise ValueError('leg lengths must be 6 finite numbers, got %r' % (lengths,))
-    bad = np.flatnonzero(lengths <= 0)
-    if bad.size:
-        raise NoAssemblyError('leg_%d length %g m is not positive'
-                              % (bad[0] + 1, lengths[bad[0]]))
-    return lengths
-
-
-class FKResult:
-    """One pose from the leg lengths.
-
-    position (3,) and rotation (3, 3) (platform -> base); ``condition`` the
-    2-norm condition number of the Jacobian there, ``singular`` whether it is
-    above the threshold; ``residual`` max |L_i(pose) - L_i| [m]; ``iterations``
-    of Newton; ``fallback`` True when the all-modes solver chose the branch;
-    ``velocity``, ``omega`` the twist (base frame) when leg rates were given.
-
-    Args:
-        position: t (3,) [m]; rotation: R (3, 3).
-        condition, singular, residual, iterations, fallback: as the attributes.
-    """
-
-    __slots__ = ('position', 'rotation', 'condition', 'singular', 'residual',
-                 'iterations', 'fallback', 'velocity', 'omega')
-
-    def __init__(self, position: np.ndarray, rotation: np.ndarray, condition: float,
-                 singular: bool, residual: float, iterations: int = 0,
-                 fallback: bool = False) -> None:
-        self.position = position
-        self.rotation = rotation
-        self.condition = float(condition)
-        self.singular = bool(singular)
-        self.residual = float(residual)
-        self.iterations = int(iterations)
-        self.fallback = fallback
-        self.velocity = self.omega = None
-
-    @property
-    def theta(self) -> np.ndarray:
-        """(theta_x, theta_y, theta_z), R = Rz Ry Rx (docs/interface.md)."""
-        return euler_from_matrix(self.rotation)
-
-    @property
-    def quaternion(self) -> np.ndarray:
-        """(x, y, z, w) with w >= 0."""
-        return quaternion_of_matrix(self.rotation)
-
-    def __repr__(self) -> str:
-        return ('FKResult(position=%s, theta=%s, condition=%.3g%s)'
-                % (np.round(self.position, 6).tolist(), np.round(self.theta, 6).tolist(),
-                   self.condition, ', SINGULAR' if self.singular else ''))
-
-
-def _arr(x) -> np.ndarray:
-    """A writable C-contiguous float64 copy: numba compiles (and caches) one
-    variant per layout and read-only flag, so every kernel sees one kind."""
-    return np.array(x, dtype=np.float64, order='C')
-
-
 class ForwardKinematics:
-    """Forward kinematics of one mechanism; constants gathered once here.
+    """Forward kinematics of one mechanism, a 6-3 or a 6-6; constants gathered once here.
 
     Args:
         mech: the mechanism.
@@ -156,6 +88,15 @@ class ForwardKinematics:
         # Poses are compared by |dt| + size * (rotation angle).
         self.size = float(np.max(np.linalg.norm(self.plat - self.plat.mean(0), axis=1)))
         self.scale = float(max(self.size, np.ptp(self.base, axis=0).max()))
+        if start is None:
+            start = mech.neutral_pose()
+        self.reference = (_arr(start[0]), _arr(start[1]))
+        self.layout = mech.layout
+        self._six = None
+        if self.layout == '6-6':
+            self._six = ForwardKinematics66(self.base, self.legp, self.cond_threshold,
+                                            reference=self.reference)
+            return
         self.sides = np.array([np.linalg.norm(self.plat[i] - self.plat[j]) for i, j in SIDES])
         # Circle axes u_k and reference directions e1_k, e2_k. e2_k is the
         # base-plane normal made orthogonal to u_k: for coplanar base points
@@ -177,9 +118,6 @@ class ForwardKinematics:
             e2.append(v)
         self.axis, self.e1, self.e2 = np.array(axis), np.array(e1), np.array(e2)
         self.pair_distance = np.linalg.norm(self.base[1::2] - self.base[0::2], axis=1)
-        if start is None:
-            start = mech.neutral_pose()
-        self.reference = (_arr(start[0]), _arr(start[1]))
 
     # -- small helpers --------------------------------------------------------
     def check_lengths(self, lengths: ArrayLike) -> np.ndarray:
@@ -244,7 +182,10 @@ class ForwardKinematics:
 
         Raises:
             NoAssemblyError: a leg pair cannot meet.
+            ValueError: the mechanism is a 6-6 (its legs meet no common vertex).
         """
+        if self._six is not None:
+            raise ValueError('circles: a 6-6 has no leg pairs meeting at a vertex')
         return self._circles(self.check_lengths(lengths))
 
     def _circles(self, lengths):
@@ -276,6 +217,10 @@ class ForwardKinematics:
         Raises:
             NoAssemblyError: a leg pair cannot meet, or no mode exists.
         """
+        if self._six is not None:     # a 6-6: every one of the 40 complex modes (fk66)
+            self._six.cond_threshold = self.cond_threshold
+            return self._six.all_modes(lengths, self.reference if reference is None
+                                       else reference)
         lengths = self.check_lengths(lengths)
         centre, radius = self._circles(lengths)
         candidates = _mode_vertices(centre, radius, self.e1, self.e2, self.sides)
