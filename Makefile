@@ -20,6 +20,8 @@ TEST_DEPS  := pytest pytest-xdist ruff colcon-core colcon-ros colcon-package-inf
               xmlschema junitparser
 
 DEMO_OUT ?= out/demo
+# The packaged machine of `make demo`: 6-3 (the paper's) or 6-6 (config/hexapod66.yaml).
+GEOMETRY ?= 6-3
 
 .PHONY: demo test test-fast test-stress lint bench bench-view venv clean
 
@@ -46,7 +48,7 @@ $(KERNELS): $(STAMP) $(wildcard stewart63_ros/core/*.py stewart63_ros/core/*/*.p
 	touch $(KERNELS)
 
 demo: $(KERNELS)
-	$(BIN)/python -m stewart63_ros.tools.demo --out $(DEMO_OUT)
+	$(BIN)/python -m stewart63_ros.tools.demo --out $(DEMO_OUT) --geometry $(GEOMETRY)
 
 # The MuJoCo agreement test must run here, not skip: make installed the extra.
 # Two workers (pytest-xdist): most DDS tests wait on discovery and on the

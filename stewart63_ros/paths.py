@@ -17,6 +17,23 @@ from pathlib import Path
 RIG_CLOCK_MODE = 'lockstep'
 
 
+#: The packaged parameter file of each geometry (docs/geometry.md).
+PACKAGED_GEOMETRIES = {'6-3': 'stewart63.yaml', '6-6': 'hexapod66.yaml'}
+
+
+def packaged_params_path(geometry: str) -> Path:
+    """The packaged parameter file of ``geometry`` ('6-3': the paper's,
+    config/stewart63.yaml; '6-6': config/hexapod66.yaml), beside the default.
+
+    Raises:
+        ValueError: a geometry not packaged.
+    """
+    if geometry not in PACKAGED_GEOMETRIES:
+        raise ValueError('geometry %r: packaged are %s'
+                         % (geometry, ', '.join(PACKAGED_GEOMETRIES)))
+    return default_params_path().parent / PACKAGED_GEOMETRIES[geometry]
+
+
 def default_params_path() -> Path:
     """Where the packaged ``config/stewart63.yaml`` is, installed or in a checkout."""
     candidates = []

@@ -196,3 +196,19 @@ def test_sim_runs_the_packaged_6_6(tmp_path, capsys):
     assert 'positioning_error_percent' in printed
     assert re.search(r'^endstop_samples\s+0$', printed, re.M), printed
     assert (out / 'trajectory.csv').is_file()
+
+
+def test_make_demo_runs_the_packaged_6_6(ros, tmp_path):
+    """``make demo GEOMETRY=6-6``: the demo's whole rig (composed, recorded,
+    its figure drawn) on config/hexapod66.yaml; 0.5 s here."""
+    import subprocess
+
+    from ros_harness import PYTHON, child_env
+    done = subprocess.run([PYTHON, '-m', 'stewart63_ros.tools.demo', '--geometry', '6-6',
+                           '--duration', '0.5', '--out', str(tmp_path)],
+                          env=child_env(ros.domain_id), capture_output=True, text=True,
+                          timeout=240)
+    assert done.returncode == 0, (done.stdout, done.stderr)
+    assert 'on the 6-6, hexapod66.yaml' in done.stdout, done.stdout
+    figure = next(tmp_path.glob('run-*/figure.png'))
+    assert figure.stat().st_size > 10_000

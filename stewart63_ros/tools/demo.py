@@ -16,8 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-from stewart63_ros.core.plumbing.params import default_params_path
-from stewart63_ros.paths import RIG_CLOCK_MODE
+from stewart63_ros.paths import PACKAGED_GEOMETRIES, RIG_CLOCK_MODE, packaged_params_path
 from stewart63_ros.tools import plot, rig
 
 
@@ -28,17 +27,21 @@ def main(argv=None) -> int:
     parser.add_argument('--mode', choices=('lockstep', 'realtime'), default=RIG_CLOCK_MODE)
     parser.add_argument('--separate', action='store_true',
                         help='one process per node instead of one for all (slower)')
+    parser.add_argument('--geometry', choices=tuple(PACKAGED_GEOMETRIES), default='6-3',
+                        help="the packaged machine: 6-3, the paper's (config/stewart63.yaml), or "
+                        '6-6, a lab hexapod (config/hexapod66.yaml); `make demo GEOMETRY=6-6`')
     args = parser.parse_args(argv)
+    params = packaged_params_path(args.geometry)
     run_dir = Path(args.out) / time.strftime('run-%Y%m%d-%H%M%S')
     run_dir.mkdir(parents=True, exist_ok=False)
     bag = run_dir / 'bag'
     # A domain of its own, so the demo does not talk to another rig on this host.
     os.environ.setdefault('ROS_DOMAIN_ID', str(random.randint(120, 200)))
-    print('demo: rig (%s, %s, %g s of the paper scenario), recording into %s'
+    print('demo: rig (%s, %s, %g s of the paper scenario on the %s, %s), recording into %s'
           % (args.mode, 'separate processes' if args.separate else 'nodes composed in one '
-             'process', args.duration, bag), flush=True)
+             'process', args.duration, args.geometry, params.name, bag), flush=True)
     started = time.monotonic()
-    code = rig.main(['--params', str(default_params_path()), '--mode', args.mode,
+    code = rig.main(['--params', str(params), '--mode', args.mode,
                      '--duration', str(args.duration), '--record', str(bag),
                      '--log-dir', str(run_dir / 'logs')]
                     + ([] if args.separate else ['--compose']))
