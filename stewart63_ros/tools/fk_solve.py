@@ -53,8 +53,8 @@ def add_solve_options(parser: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog='fk', description='Forward kinematics of the 6-3 platform from six leg lengths '
-        '(no ROS needed). Prints JSON on stdout.')
+        prog='fk', description='Forward kinematics of the platform (a 6-3 or a 6-6) from six '
+        'leg lengths (no ROS needed). Prints JSON on stdout.')
     parser.add_argument('--solve', nargs=6, type=_length, required=True, metavar='L',
                         help='the six leg lengths L1 .. L6 [m]')
     parser.add_argument('--params', metavar='FILE', default=None,

@@ -1,6 +1,10 @@
-"""Forward kinematics of the 6-3 platform: the pose from six leg lengths.
+"""Forward kinematics of the platform, a 6-3 or a 6-6: the pose from six leg lengths.
 
-Two solvers, one model (eqs. 2-5: S_i = t + R p_k - b_i, L_i = |S_i|):
+Two solvers, one model (eqs. 2-5: S_i = t + R p_k - b_i, L_i = |S_i|). For a
+6-6 (``Mechanism.layout``) ``ForwardKinematics`` hands ``all_modes`` to
+core/mechanics/fk66.py (a 40-path homotopy); tracking is the same Newton
+kernel for both, as it takes one platform point per leg. What follows is the
+6-3's:
 
 * ``ForwardKinematics.all_modes`` finds every real assembly mode (up to 16).
   Legs 2k-1 and 2k meet at vertex P_k, so P_k lies on a circle about the base
@@ -135,7 +139,7 @@ def _arr(x) -> np.ndarray:
 
 
 class ForwardKinematics:
-    """Forward kinematics of one mechanism; constants gathered once here.
+    """Forward kinematics of one mechanism, a 6-3 or a 6-6; constants gathered once here.
 
     Args:
         mech: the mechanism.
@@ -156,6 +160,17 @@ class ForwardKinematics:
         # Poses are compared by |dt| + size * (rotation angle).
         self.size = float(np.max(np.linalg.norm(self.plat - self.plat.mean(0), axis=1)))
         self.scale = float(max(self.size, np.ptp(self.base, axis=0).max()))
+        if start is None:
+            start = mech.neutral_pose()
+        self.reference = (_arr(start[0]), _arr(start[1]))
+        self.layout = mech.layout
+        self._six = None
+        if self.layout == '6-6':
+            # lazy: fk66 imports this module's FKResult
+            from stewart63_ros.core.mechanics.fk66 import ForwardKinematics66
+            self._six = ForwardKinematics66(self.base, self.legp, self.cond_threshold,
+                                            reference=self.reference)
+            return
         self.sides = np.array([np.linalg.norm(self.plat[i] - self.plat[j]) for i, j in SIDES])
         # Circle axes u_k and reference directions e1_k, e2_k. e2_k is the
         # base-plane normal made orthogonal to u_k: for coplanar base points
@@ -177,9 +192,6 @@ class ForwardKinematics:
             e2.append(v)
         self.axis, self.e1, self.e2 = np.array(axis), np.array(e1), np.array(e2)
         self.pair_distance = np.linalg.norm(self.base[1::2] - self.base[0::2], axis=1)
-        if start is None:
-            start = mech.neutral_pose()
-        self.reference = (_arr(start[0]), _arr(start[1]))
 
     # -- small helpers --------------------------------------------------------
     def check_lengths(self, lengths: ArrayLike) -> np.ndarray:
@@ -244,7 +256,10 @@ class ForwardKinematics:
 
         Raises:
             NoAssemblyError: a leg pair cannot meet.
+            ValueError: the mechanism is a 6-6 (its legs meet no common vertex).
         """
+        if self._six is not None:
+            raise ValueError('circles: a 6-6 has no leg pairs meeting at a vertex')
         return self._circles(self.check_lengths(lengths))
 
     def _circles(self, lengths):
@@ -276,6 +291,10 @@ class ForwardKinematics:
         Raises:
             NoAssemblyError: a leg pair cannot meet, or no mode exists.
         """
+        if self._six is not None:     # a 6-6: every one of the 40 complex modes (fk66)
+            self._six.cond_threshold = self.cond_threshold
+            return self._six.all_modes(lengths, self.reference if reference is None
+                                       else reference)
         lengths = self.check_lengths(lengths)
         centre, radius = self._circles(lengths)
         candidates = _mode_vertices(centre, radius, self.e1, self.e2, self.sides)
