@@ -41,6 +41,11 @@ FIGURES = {
     'mujoco_paper_10s_s': ('s', None, '<', 'the same in MuJoCo, at the step it needs for 1e-6 m'),
     'fk_track_us': ('us', 20.0, '<', 'FK tracking solve, pose + twist (fk node)'),
     'fk_all_modes_us': ('us', 1000.0, '<', 'FK, every assembly mode'),
+    'mujoco66_paper_10s_s': ('s', None, '<', 'the packaged 6-6 (config/hexapod66.yaml) in '
+                             'MuJoCo, at the step it needs for 1e-6 m'),
+    'sim66_paper_10s_s_vs_mujoco': ('s', None, '<', '  the same, our core (RK45, rtol 1e-8)'),
+    'fk66_track_us': ('us', 20.0, '<', 'FK tracking solve on the 6-6, pose + twist (fk node)'),
+    'fk66_all_modes_us': ('us', 50000.0, '<', '  the 6-6, every assembly mode (40 paths)'),
     'loop_latency_p50_us': ('us', 1000.0, '<',
                             'realtime 1 kHz rig: sample stamp -> force received'),
     'loop_latency_p99_us': ('us', 1000.0, '<', '  the same, 99th percentile'),
@@ -94,6 +99,16 @@ OPTIONAL = {'scenario_lockstep_10_s'}
 MAY_LACK = {'bus_rt_separate_sync_rpdo_p50_us', 'bus_rt_separate_sync_rpdo_p99_us',
             'bus_rt_composed_sync_rpdo_p50_us', 'bus_rt_composed_sync_rpdo_p99_us',
             'bus_load_measured_percent'}
+
+
+def hexapod66(repeat, count) -> dict:
+    """bench_mujoco and bench_fk on config/hexapod66.yaml ('66' keys)."""
+    params = HERE.parent / 'config' / 'hexapod66.yaml'
+    out = bench_mujoco.measure(repeat=repeat, params=params)
+    fk = bench_fk.measure(params, count=count, all_modes_count=40)
+    return {'mujoco66_paper_10s_s': out['mujoco_paper_10s_s'],
+            'sim66_paper_10s_s_vs_mujoco': out['sim_paper_10s_s_vs_mujoco'],
+            'fk66_track_us': fk['fk_track_us'], 'fk66_all_modes_us': fk['fk_all_modes_us']}
 
 
 def computed_torque_loop(duration, repeat) -> dict:
@@ -173,6 +188,8 @@ def main(argv=None) -> int:
         ('physics core', lambda: bench_core.measure(repeat=repeat)),
         ('MuJoCo side by side', lambda: bench_mujoco.measure(repeat=repeat)),
         ('forward kinematics', lambda: bench_fk.measure(count=2000 if args.quick else 5000)),
+        ('the packaged 6-6: MuJoCo side by side, forward kinematics',
+         lambda: hexapod66(repeat, 2000 if args.quick else 5000)),
         ('control laws, per sample as the controller runs them',
          lambda: bench_laws.measure(count=2000 if args.quick else 5000)),
         ('analysis: a 1000-run sweep, analyze modes',

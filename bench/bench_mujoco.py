@@ -8,7 +8,9 @@ integrators are first order: 2e-4 and 5e-4 m at a 2 ms step) at the largest
 timestep that divides the 10 ms output period and keeps its error under
 1e-6 m; that run's wall time is ``mujoco_paper_10s_s``.
 
-Run: .venv/bin/python bench/bench_mujoco.py [--repeat N]
+Run: .venv/bin/python bench/bench_mujoco.py [--repeat N] [--params FILE]
+(``--params config/hexapod66.yaml``: the packaged 6-6, each leg at its own
+platform joint in both engines)
 """
 from __future__ import annotations
 
@@ -41,8 +43,8 @@ def _median_wall(func, repeat):
     return statistics.median(walls)
 
 
-def measure(repeat: int = 5, verbose: bool = True) -> dict:
-    setup = load_setup()
+def measure(repeat: int = 5, verbose: bool = True, params=None) -> dict:
+    setup = load_setup(params)
     mech = setup.mechanism
     dyn = Dynamics(mech)
     reference = _lengths(dyn, run_continuous(setup, DURATION, dyn=dyn, rtol=1e-11,
@@ -61,8 +63,8 @@ def measure(repeat: int = 5, verbose: bool = True) -> dict:
         if error <= TOLERANCE and chosen is None:
             chosen = (dt, error, wall)
     if verbose:
-        print('paper scenario, %g s simulated, continuous PD; error = max |L - L_ref| [m]'
-              % DURATION)
+        print('paper scenario on the %s, %g s simulated, continuous PD; error = max '
+              '|L - L_ref| [m]' % (mech.layout, DURATION))
         print('%-30s %10s %12s %10s %9s' % ('engine', 'step', 'error', 'wall s', 'x realtime'))
         import mujoco  # lazy: optional (the bench extra): mujoco costs 240 ms
         print('%-30s %10s %12.2e %10.4f %9.0f' % ('ours (RK45, rtol 1e-8)', 'adaptive',
@@ -83,7 +85,9 @@ def measure(repeat: int = 5, verbose: bool = True) -> dict:
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--repeat', type=int, default=5)
-    measure(parser.parse_args().repeat)
+    parser.add_argument('--params', default=None, help='parameter file (default: the 6-3)')
+    args = parser.parse_args()
+    measure(args.repeat, params=args.params)
 
 
 if __name__ == '__main__':

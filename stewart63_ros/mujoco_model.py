@@ -1,4 +1,4 @@
-"""The same 6-3 mechanism as a MuJoCo model, built from the same parameter file.
+"""The same mechanism, a 6-3 or a 6-6, as a MuJoCo model, built from the same parameter file.
 
 A second, independent engine for ``make bench``: it solves the
 closed chains with constraints instead of our reduced Newton-Euler model, so
@@ -16,8 +16,9 @@ The model (docs/interface.md, "Frames and conventions"), mapped onto MuJoCo elem
   fixed in the base and perpendicular to the initial leg, the second
   perpendicular to both), and a piston body on a slide along the leg; the
   slide's coordinate *is* L_i (``ref`` = initial length);
-- the piston tips are tied to the platform vertices by ``connect`` equality
-  constraints (legs 2k-1, 2k at p_k), with tight solver settings;
+- the piston tips are tied to the platform joints by ``connect`` equality
+  constraints (``Mechanism.leg_platform_points``: legs 2k-1, 2k at p_k of a
+  6-3, leg i at p_i of a 6-6), with tight solver settings;
 - C_p: damping of the slide joint (exactly -C_p dL/dt);
 - C_u: the moment -C_u W_i with W_i the leg's angular velocity *across* the
   leg (eq. 14). Plain damping on the two hinges would also damp the spin a
@@ -47,7 +48,6 @@ from stewart63_ros.core.mechanics.rotation import (
     rotation_from_quaternion,
 )
 from stewart63_ros.core.mechanics.setup import Setup, Task
-from stewart63_ros.core.plumbing.legs import LEG_VERTEX
 
 #: Axial moment of inertia of each leg part in the MuJoCo model [kg m^2].
 AXIAL_INERTIA = 1e-9
@@ -98,7 +98,7 @@ def build_xml(setup: Setup, settings: Settings | None = None) -> str:
     st = settings or Settings()
     mech, gains = setup.mechanism, setup.gains
     t0, rot0, _, _ = initial_pose(setup.task)
-    vertices = np.asarray(mech.platform_points, float)
+    joints = np.asarray(mech.leg_platform_points, float)
     base = np.asarray(mech.base_points, float)
     inertia = np.asarray(mech.platform_inertia, float)
     full = [inertia[0, 0], inertia[1, 1], inertia[2, 2],
@@ -106,8 +106,7 @@ def build_xml(setup: Setup, settings: Settings | None = None) -> str:
     it_d, it_u = mech.leg_lower_inertia[1], mech.leg_upper_inertia[1]
     legs, equalities, actuators = [], [], []
     for i in range(6):
-        k = LEG_VERTEX[i]
-        S = t0 + rot0 @ vertices[k] - base[i]
+        S = t0 + rot0 @ joints[i] - base[i]
         length = np.linalg.norm(S)
         frame = _leg_frame(S / length)
         n = i + 1
@@ -194,7 +193,7 @@ class MujocoPlatform:
         # at the reference pose are the leg frame's y and z axes.
         base = np.asarray(self.mech.base_points, float)
         for i in range(6):
-            q = rot0 @ self.mech.platform_points[LEG_VERTEX[i]]
+            q = rot0 @ self.mech.leg_platform_points[i]
             S = t0 + q - base[i]
             length = np.linalg.norm(S)
             s = S / length

@@ -10,7 +10,13 @@ from ``stewart63_ros.core.mechanics.dynamics``:
 * Lagrange's equations in q = (t, theta), by numerical differentiation of the
   energies written here;
 * the static virtual-work answer J^T F = -wrench for massless legs.
+
+The energy balances and Lagrange's equations run on both geometries: the
+paper's 6-3 and the packaged 6-6 (config/hexapod66.yaml, leg i at its own
+platform joint p_i).
 """
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
@@ -19,8 +25,15 @@ from scipy.spatial.transform import Rotation
 from stewart63_ros.core.mechanics import kinematics as kin
 from stewart63_ros.core.mechanics.dynamics import Dynamics
 
-# Legs 2k-1 and 2k meet at vertex p_k (docs/interface.md).
+# A 6-3: legs 2k-1 and 2k meet at vertex p_k; a 6-6: leg i at p_i (docs/geometry.md).
 VERTEX_OF_LEG = [0, 0, 1, 1, 2, 2]
+HEXAPOD66 = Path(__file__).resolve().parents[1] / 'config' / 'hexapod66.yaml'
+
+
+def platform_joints(mech):
+    """(6, 3) the platform point of each leg, platform frame, from the file's rule."""
+    points = np.asarray(mech.platform_points)
+    return points[VERTEX_OF_LEG] if len(points) == 3 else points
 
 
 # -- independent model ------------------------------------------------------------------
@@ -45,7 +58,7 @@ def euler_rates_to_omega(theta):
 
 def legs_of(mech, t, rot, v, omega):
     """(S, L, s, Ldot, W) of every leg, eqs. 2-5, 13, 14."""
-    q = np.asarray(mech.platform_points)[VERTEX_OF_LEG] @ rot.T
+    q = platform_joints(mech) @ rot.T
     S = t + q - np.asarray(mech.base_points)
     L = np.linalg.norm(S, axis=1)
     s = S / L[:, None]
@@ -128,6 +141,22 @@ def rich_mech(default_mech):
         leg_lower_com=0.42, leg_upper_com=0.28,
         leg_lower_inertia=[0.003, 0.17], leg_upper_inertia=[0.0007, 0.05],
         piston_damping=60.0, ujoint_damping=0.8)
+
+
+@pytest.fixture(scope='module', params=['6-3', '6-6'])
+def any_rich_mech(request, rich_mech):
+    """``rich_mech``, and the same changes on the packaged 6-6."""
+    if request.param == '6-3':
+        return rich_mech
+    from stewart63_ros.core.plumbing.params import load_mechanism
+    mech = load_mechanism(HEXAPOD66).replace(
+        platform_com=[0.04, -0.03, 0.06],
+        platform_inertia=[1.35, 1.50, 2.70, -0.06, 0.04, 0.09],
+        leg_lower_com=0.42, leg_upper_com=0.28,
+        leg_lower_inertia=[0.003, 0.17], leg_upper_inertia=[0.0007, 0.05],
+        piston_damping=60.0, ujoint_damping=0.8)
+    assert mech.layout == '6-6'
+    return mech
 
 
 @pytest.fixture
@@ -215,8 +244,8 @@ def _check_energies_along(dyn, states):
     return np.array(total)
 
 
-def test_energy_conserved_without_gravity(rich_mech, rng):
-    mech = rich_mech.replace(gravity=[0.0, 0.0, 0.0], piston_damping=0.0, ujoint_damping=0.0)
+def test_energy_conserved_without_gravity(any_rich_mech, rng):
+    mech = any_rich_mech.replace(gravity=[0.0, 0.0, 0.0], piston_damping=0.0, ujoint_damping=0.0)
     dyn = Dynamics(mech)
     t, _, rot = random_pose(rng, mech, spread=0.3)
     y0 = make_state(t, rot, rng.normal(0, 0.06, 3), rng.normal(0, 0.25, 3))
@@ -230,8 +259,8 @@ def test_energy_conserved_without_gravity(rich_mech, rng):
     assert np.max(np.abs(L1 - L0)) > 0.02
 
 
-def test_energy_conserved_while_falling(rich_mech, rng):
-    mech = rich_mech.replace(piston_damping=0.0, ujoint_damping=0.0)
+def test_energy_conserved_while_falling(any_rich_mech, rng):
+    mech = any_rich_mech.replace(piston_damping=0.0, ujoint_damping=0.0)
     dyn = Dynamics(mech)
     t, _, rot = random_pose(rng, mech, spread=0.3)
     y0 = make_state(t, rot, rng.normal(0, 0.05, 3), rng.normal(0, 0.2, 3))
@@ -243,9 +272,9 @@ def test_energy_conserved_while_falling(rich_mech, rng):
     np.testing.assert_allclose(energy - energy[0], 0.0, atol=1e-8 * kinetic_end)
 
 
-def test_energy_lost_equals_integrated_dissipation(rich_mech, rng):
-    dyn = Dynamics(rich_mech)
-    t, _, rot = random_pose(rng, rich_mech, spread=0.3)
+def test_energy_lost_equals_integrated_dissipation(any_rich_mech, rng):
+    dyn = Dynamics(any_rich_mech)
+    t, _, rot = random_pose(rng, any_rich_mech, spread=0.3)
     y0 = make_state(t, rot, rng.normal(0, 0.1, 3), rng.normal(0, 0.4, 3))
     states = _free_motion(dyn, y0, 0.5)
     energy = _check_energies_along(dyn, states)
@@ -255,10 +284,10 @@ def test_energy_lost_equals_integrated_dissipation(rich_mech, rng):
     np.testing.assert_allclose(lost, dissipated, rtol=0, atol=1e-6 * dissipated[-1])
 
 
-def test_work_energy_balance_with_forces_and_wrench(rich_mech, rng):
+def test_work_energy_balance_with_forces_and_wrench(any_rich_mech, rng):
     """dE/dt = F . dL/dt + (R F_ext) . v + (R M_ext) . omega - dissipation."""
-    dyn = Dynamics(rich_mech)
-    t, _, rot = random_pose(rng, rich_mech, spread=0.3)
+    dyn = Dynamics(any_rich_mech)
+    t, _, rot = random_pose(rng, any_rich_mech, spread=0.3)
     y0 = make_state(t, rot, rng.normal(0, 0.1, 3), rng.normal(0, 0.4, 3))
     forces = 50.0 + rng.uniform(-60, 60, 6)
     wrench = (rng.normal(0, 20, 3), rng.normal(0, 5, 3))
@@ -336,16 +365,16 @@ def lagrange_accelerations(mech, q, qd, forces, wrench, h=1e-5):
     return np.linalg.solve(M, Q - dV_dq + dT_dq - mdot_qd)
 
 
-def test_newton_euler_matches_lagrange(rich_mech, rng):
-    dyn = Dynamics(rich_mech)
+def test_newton_euler_matches_lagrange(any_rich_mech, rng):
+    dyn = Dynamics(any_rich_mech)
     h = 1e-6
     for _ in range(8):
-        t, theta, rot = random_pose(rng, rich_mech)
+        t, theta, rot = random_pose(rng, any_rich_mech)
         t_dot, theta_dot = rng.normal(0, 0.5, 3), rng.normal(0, 1.0, 3)
         forces = rng.uniform(-300, 600, 6)
         wrench = (rng.normal(0, 30, 3), rng.normal(0, 10, 3))
         q, qd = np.concatenate([t, theta]), np.concatenate([t_dot, theta_dot])
-        qdd_ref = lagrange_accelerations(rich_mech, q, qd, forces, wrench)
+        qdd_ref = lagrange_accelerations(any_rich_mech, q, qd, forces, wrench)
 
         E = euler_rates_to_omega(theta)
         omega = E @ theta_dot

@@ -28,6 +28,7 @@ from stewart63_ros.core.mechanics.fk_modes import real_angles
 from stewart63_ros.core.mechanics.fk_tracking import condition_number
 from stewart63_ros.core.mechanics.kinematics import jacobian, leg_lengths, leg_rates
 from stewart63_ros.core.mechanics.rotation import rotation_from_euler
+from stewart63_ros.core.plumbing.params import load_mechanism
 from stewart63_ros.tools import fk_solve
 
 PAIR = np.array([0, 0, 1, 1, 2, 2])   # leg -> platform vertex
@@ -426,12 +427,21 @@ def test_cli_prints_the_nearest_pose(default_setup, default_mech, capsys):
         np.linalg.cond(jacobian(default_mech, rot, out['position'])), rel=1e-9)
 
 
-def test_cli_all_modes(default_params_file, capsys):
-    argv = ['--solve', '1.9', '1.9', '1.6', '1.6', '1.6', '1.6', '--all',
-            '--params', str(default_params_file)]
+@pytest.mark.parametrize('name, count', [('stewart63.yaml', 8), ('hexapod66.yaml', 12)])
+def test_cli_all_modes(default_params_file, capsys, name, count):
+    """Both packaged geometries: the 6-3's 8 real modes (by its degree-16
+    polynomial), the 6-6's 12 (by fk66's 40-path homotopy), each fitting the
+    lengths."""
+    path = default_params_file.parent / name
+    argv = ['--solve', '1.9', '1.9', '1.6', '1.6', '1.6', '1.6', '--all', '--params', str(path)]
     assert fk_solve.main(argv) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out['count'] == len(out['modes']) == 8
+    assert out['count'] == len(out['modes']) == count
+    mech = load_mechanism(path)
+    for mode in out['modes']:
+        np.testing.assert_allclose(leg_lengths(mech, mode['position'],
+                                               rotation_from_euler(mode['theta'])),
+                                   [1.9, 1.9, 1.6, 1.6, 1.6, 1.6], atol=1e-9)
 
 
 def test_cli_no_assembly_exits_2_with_one_line(capsys):

@@ -1,10 +1,12 @@
-"""Newton-Euler dynamics of the 6-3 platform with massive legs (paper eqs. 8-38).
+"""Newton-Euler dynamics of the platform, a 6-3 or a 6-6, with massive legs (paper eqs. 8-38).
 
 Model (docs/interface.md): each leg is a cylinder (mass m_d, centre of mass
 l_d from b_i) on a universal joint at b_i and a piston (mass m_u, centre of
 mass l_u from the platform vertex) sliding in it; both are axisymmetric and
 spin-free, so they share the angular velocity W_i = s_i x dS_i/dt / L_i
-(eq. 14). The pair of legs 2k-1, 2k meets at vertex k through spherical joints.
+(eq. 14). Leg i meets the platform at its joint p_i (``Mechanism.leg_platform_points``):
+on the paper's 6-3 the pair of legs 2k-1, 2k meets at vertex k through
+spherical joints, on a 6-6 each leg has its own; nothing below depends on which.
 Piston force F_i acts along s_i; friction is -C_p dL_i/dt along the leg and
 the moment -C_u W_i on the leg at the universal joint.
 

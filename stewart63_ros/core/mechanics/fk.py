@@ -44,17 +44,18 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
+from stewart63_ros.core.mechanics.fk66 import ForwardKinematics66
 from stewart63_ros.core.mechanics.fk_modes import SIDES, _circles, _mode_vertices, _polish_modes
 from stewart63_ros.core.mechanics.fk_tracking import (
+    FKResult,
+    NoAssemblyError,
+    _arr,
     _legs,
     _pose_distance,
     _track,
     _twist,
+    checked_lengths,
     condition_number,
-)
-from stewart63_ros.core.mechanics.rotation import (
-    euler_from_matrix,
-    quaternion_of_matrix,
 )
 from stewart63_ros.core.plumbing.node_parameters import DEFAULT_COND_THRESHOLD
 
@@ -63,79 +64,6 @@ if TYPE_CHECKING:
 
 #: Pair k's legs (0-based): legs 2k and 2k+1 meet at vertex k.
 PAIRS = ((0, 1), (2, 3), (4, 5))
-
-
-class NoAssemblyError(ValueError):
-    """Leg lengths for which the platform cannot be assembled."""
-
-
-def checked_lengths(lengths: ArrayLike) -> np.ndarray:
-    """Six finite positive leg lengths as a float array (6,) (the 6-3's and
-    the 6-6's solvers both check their input here).
-
-    Raises:
-        ValueError: not six finite numbers.
-        NoAssemblyError: a length that is not positive.
-    """
-    lengths = _arr(lengths)
-    if lengths.shape != (6,) or not np.all(np.isfinite(lengths)):
-        raise ValueError('leg lengths must be 6 finite numbers, got %r' % (lengths,))
-    bad = np.flatnonzero(lengths <= 0)
-    if bad.size:
-        raise NoAssemblyError('leg_%d length %g m is not positive'
-                              % (bad[0] + 1, lengths[bad[0]]))
-    return lengths
-
-
-class FKResult:
-    """One pose from the leg lengths.
-
-    position (3,) and rotation (3, 3) (platform -> base); ``condition`` the
-    2-norm condition number of the Jacobian there, ``singular`` whether it is
-    above the threshold; ``residual`` max |L_i(pose) - L_i| [m]; ``iterations``
-    of Newton; ``fallback`` True when the all-modes solver chose the branch;
-    ``velocity``, ``omega`` the twist (base frame) when leg rates were given.
-
-    Args:
-        position: t (3,) [m]; rotation: R (3, 3).
-        condition, singular, residual, iterations, fallback: as the attributes.
-    """
-
-    __slots__ = ('position', 'rotation', 'condition', 'singular', 'residual',
-                 'iterations', 'fallback', 'velocity', 'omega')
-
-    def __init__(self, position: np.ndarray, rotation: np.ndarray, condition: float,
-                 singular: bool, residual: float, iterations: int = 0,
-                 fallback: bool = False) -> None:
-        self.position = position
-        self.rotation = rotation
-        self.condition = float(condition)
-        self.singular = bool(singular)
-        self.residual = float(residual)
-        self.iterations = int(iterations)
-        self.fallback = fallback
-        self.velocity = self.omega = None
-
-    @property
-    def theta(self) -> np.ndarray:
-        """(theta_x, theta_y, theta_z), R = Rz Ry Rx (docs/interface.md)."""
-        return euler_from_matrix(self.rotation)
-
-    @property
-    def quaternion(self) -> np.ndarray:
-        """(x, y, z, w) with w >= 0."""
-        return quaternion_of_matrix(self.rotation)
-
-    def __repr__(self) -> str:
-        return ('FKResult(position=%s, theta=%s, condition=%.3g%s)'
-                % (np.round(self.position, 6).tolist(), np.round(self.theta, 6).tolist(),
-                   self.condition, ', SINGULAR' if self.singular else ''))
-
-
-def _arr(x) -> np.ndarray:
-    """A writable C-contiguous float64 copy: numba compiles (and caches) one
-    variant per layout and read-only flag, so every kernel sees one kind."""
-    return np.array(x, dtype=np.float64, order='C')
 
 
 class ForwardKinematics:
@@ -166,8 +94,6 @@ class ForwardKinematics:
         self.layout = mech.layout
         self._six = None
         if self.layout == '6-6':
-            # lazy: fk66 imports this module's FKResult
-            from stewart63_ros.core.mechanics.fk66 import ForwardKinematics66
             self._six = ForwardKinematics66(self.base, self.legp, self.cond_threshold,
                                             reference=self.reference)
             return

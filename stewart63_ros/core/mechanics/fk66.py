@@ -42,13 +42,15 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from stewart63_ros.core.mechanics.fk import FKResult, NoAssemblyError, checked_lengths
 from stewart63_ros.core.mechanics.fk_tracking import (
+    FKResult,
+    NoAssemblyError,
     _legs,
     _newton,
     _pose_distance,
     _track,
     _twist,
+    checked_lengths,
     condition_number,
 )
 from stewart63_ros.core.plumbing._jit import njit

@@ -6,7 +6,9 @@ updated on SO(3) by a rotation vector (``_newton``); one tracking step with
 its distance moved and condition number (``_track``, ``FKTracker``'s); the
 pose and twist from lengths and rates (``pose_and_twist``, the laws'). The
 all-modes solver (``fk_modes``) polishes its modes with the same Newton.
-The classes around these kernels are ``fk``'s.
+The classes around these kernels are ``fk``'s (and ``fk66``'s); their result
+(``FKResult``), error and input check live here, where both solvers reach
+them without importing each other.
 
 The hot loops are numba kernels written with scalar loops: numba's array
 expressions and ``@`` (a BLAS call) are slow at 3x3 and 6x6, and slow to
@@ -15,10 +17,87 @@ compile.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from stewart63_ros.core.mechanics.kinematics import leg_kernel
 from stewart63_ros.core.mechanics.linalg import solve_linear
+from stewart63_ros.core.mechanics.rotation import euler_from_matrix, quaternion_of_matrix
 from stewart63_ros.core.plumbing._jit import njit
+
+
+class NoAssemblyError(ValueError):
+    """Leg lengths for which the platform cannot be assembled."""
+
+
+def checked_lengths(lengths: ArrayLike) -> np.ndarray:
+    """Six finite positive leg lengths as a float array (6,) (the 6-3's and
+    the 6-6's solvers both check their input here).
+
+    Raises:
+        ValueError: not six finite numbers.
+        NoAssemblyError: a length that is not positive.
+    """
+    lengths = _arr(lengths)
+    if lengths.shape != (6,) or not np.all(np.isfinite(lengths)):
+        raise ValueError('leg lengths must be 6 finite numbers, got %r' % (lengths,))
+    bad = np.flatnonzero(lengths <= 0)
+    if bad.size:
+        raise NoAssemblyError('leg_%d length %g m is not positive'
+                              % (bad[0] + 1, lengths[bad[0]]))
+    return lengths
+
+
+class FKResult:
+    """One pose from the leg lengths.
+
+    position (3,) and rotation (3, 3) (platform -> base); ``condition`` the
+    2-norm condition number of the Jacobian there, ``singular`` whether it is
+    above the threshold; ``residual`` max |L_i(pose) - L_i| [m]; ``iterations``
+    of Newton; ``fallback`` True when the all-modes solver chose the branch;
+    ``velocity``, ``omega`` the twist (base frame) when leg rates were given.
+
+    Args:
+        position: t (3,) [m]; rotation: R (3, 3).
+        condition, singular, residual, iterations, fallback: as the attributes.
+    """
+
+    __slots__ = ('position', 'rotation', 'condition', 'singular', 'residual',
+                 'iterations', 'fallback', 'velocity', 'omega')
+
+    def __init__(self, position: np.ndarray, rotation: np.ndarray, condition: float,
+                 singular: bool, residual: float, iterations: int = 0,
+                 fallback: bool = False) -> None:
+        self.position = position
+        self.rotation = rotation
+        self.condition = float(condition)
+        self.singular = bool(singular)
+        self.residual = float(residual)
+        self.iterations = int(iterations)
+        self.fallback = fallback
+        self.velocity = self.omega = None
+
+    @property
+    def theta(self) -> np.ndarray:
+        """(theta_x, theta_y, theta_z), R = Rz Ry Rx (docs/interface.md)."""
+        return euler_from_matrix(self.rotation)
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        """(x, y, z, w) with w >= 0."""
+        return quaternion_of_matrix(self.rotation)
+
+    def __repr__(self) -> str:
+        return ('FKResult(position=%s, theta=%s, condition=%.3g%s)'
+                % (np.round(self.position, 6).tolist(), np.round(self.theta, 6).tolist(),
+                   self.condition, ', SINGULAR' if self.singular else ''))
+
+
+def _arr(x) -> np.ndarray:
+    """A writable C-contiguous float64 copy: numba compiles (and caches) one
+    variant per layout and read-only flag, so every kernel sees one kind."""
+    return np.array(x, dtype=np.float64, order='C')
+
+
 
 
 @njit

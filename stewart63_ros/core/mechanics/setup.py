@@ -35,7 +35,7 @@ from stewart63_ros.core.mechanics.mechanism import (
 )
 from stewart63_ros.core.mechanics.rotation import rotation_from_euler
 from stewart63_ros.core.plumbing.errors import ParameterError
-from stewart63_ros.core.plumbing.node_parameters import gain_vector
+from stewart63_ros.core.plumbing.node_parameters import DEFAULT_COND_THRESHOLD, gain_vector
 from stewart63_ros.core.plumbing.node_parameters import read as read_declared
 
 
@@ -210,7 +210,9 @@ def task_from_params(mech: Mechanism, params: Mapping[str, Any]) -> Task:
 
     Raises:
         ParameterError: a key missing or out of its range; the initial pose
-            or the setpoint puts a leg outside the stroke (eq. (5)).
+            or the setpoint puts legs outside the stroke (eq. (5), every such
+            leg named); the initial pose is singular (``START_COND_LIMIT``,
+            the legs named).
     """
     task = Task(setpoint_lengths=_vector(params, 'setpoint_lengths', 6),
                 initial_position=_vector(params, 'initial_position', 3),
@@ -219,17 +221,46 @@ def task_from_params(mech: Mechanism, params: Mapping[str, Any]) -> Task:
                 initial_orientation_rate=_vector(params, 'initial_orientation_rate', 3))
     if np.any(task.setpoint_lengths <= 0):
         raise ParameterError('setpoint_lengths', 'lengths must be > 0')
-    lengths = np.linalg.norm(mech.leg_vectors(task.initial_position, task.initial_rotation),
-                             axis=1)  # eq. (5)
+    legs = mech.leg_vectors(task.initial_position, task.initial_rotation)
+    lengths = np.linalg.norm(legs, axis=1)  # eq. (5)
     for key, values in (('initial_position', lengths),
                         ('setpoint_lengths', task.setpoint_lengths)):
         bad = np.flatnonzero((values < mech.leg_length_min) | (values > mech.leg_length_max))
-        if bad.size:
-            i = int(bad[0])
+        if bad.size:     # every leg named: on a 6-6 a bad start often strands several
             raise ParameterError(
-                key, 'leg_%d length %.4f m is outside the stroke [leg_length_min %g, '
-                'leg_length_max %g]' % (i + 1, values[i], mech.leg_length_min, mech.leg_length_max))
+                key, '%s %s outside the stroke [leg_length_min %g, leg_length_max %g]' % (
+                    ', '.join('leg_%d length %.4f m' % (i + 1, values[i]) for i in bad),
+                    'is' if bad.size == 1 else 'are', mech.leg_length_min, mech.leg_length_max))
+    _check_not_singular(mech, task, legs, lengths)
     return task
+
+
+#: A start pose whose Jacobian's condition number exceeds this is refused
+#: (the fk node's default ``singularity_threshold``).
+START_COND_LIMIT = DEFAULT_COND_THRESHOLD
+
+
+def _check_not_singular(mech: Mechanism, task: Task, legs: np.ndarray,
+                        lengths: np.ndarray) -> None:
+    """Refuse a start pose at (or next to) a singularity of J, row i = [s_i, q_i x s_i]
+    (eq. 13): there the legs cannot hold the platform (J^T F = wrench has no
+    bounded answer), the dynamics' J^T solve blows up and the forward kinematics
+    cannot tell its branches apart. The legs named carry the left null vector
+    w of J (J^T w ~ 0: forces in them that no wrench balances)."""
+    s = legs / lengths[:, None]
+    q = mech.leg_platform_points @ task.initial_rotation.T      # R p_i, base frame
+    jac = np.hstack([s, np.cross(q, s)])
+    sv = np.linalg.svd(jac, compute_uv=False)
+    cond = np.inf if sv[-1] <= 0 else sv[0] / sv[-1]
+    if cond <= START_COND_LIMIT:
+        return
+    w = np.linalg.svd(jac.T)[2][-1]       # J^T w = sigma_min w' : the weakest leg forces
+    named = np.flatnonzero(np.abs(w) > 0.1 * np.abs(w).max()) + 1
+    raise ParameterError('initial_position', 'the start pose is singular (Jacobian condition '
+                         'number %.3g > %g): legs %s can pull against each other with no '
+                         'wrench on the platform, which they cannot hold there; start the '
+                         'platform elsewhere or change the geometry'
+                         % (cond, START_COND_LIMIT, ', '.join(str(i) for i in named)))
 
 
 def validated_setup(params: Mapping[str, Any]) -> Setup:
