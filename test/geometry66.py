@@ -1,4 +1,4 @@
-"""A 6-6 test geometry for the tests of the mechanism's consumers (issue 41, point 4).
+"""A 6-6 test geometry for the tests of the mechanism's consumers.
 
 The packaged 6-3 with each platform vertex p_k split into two joints, one per
 leg of its pair, ``split`` metres apart along the vertex circle's tangent

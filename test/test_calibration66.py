@@ -1,4 +1,4 @@
-"""Calibration of a 6-6 (issue 41): 18 platform coordinates, 42 parameters.
+"""Calibration of a 6-6: 18 platform coordinates, 42 parameters.
 
 - the Jacobian of a 6-6's model against finite differences;
 - a simulated 6-6 built off its drawing (points 5 mm, offsets 10 mm) is

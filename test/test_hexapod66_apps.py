@@ -1,4 +1,4 @@
-"""Everything that knows the mechanism, on a 6-6 (issue 41, point 4), in the core:
+"""Everything that knows the mechanism, on a 6-6, in the core:
 each once, cheaply, against what does not share its arithmetic.
 
 The 6-6 is test/geometry66.py's: the packaged 6-3 with each vertex split into
