@@ -306,6 +306,28 @@ def test_markers_draw_six_platform_joints_and_the_legs_end_on_them(setup, mech):
     assert tri63.plate_faces.tolist() == [[0, 1, 2]]
 
 
+def test_the_fk_nodes_marker_bytes_of_a_6_6_are_the_message_built_field_by_field(setup, mech):
+    """The serialized template the fk node fills (24 markers, a 6-6's longer
+    point lists) decodes to the MarkerArray rclpy builds from the same shapes."""
+    from rclpy.serialization import deserialize_message, serialize_message
+    from visualization_msgs.msg import MarkerArray
+
+    from stewart63_ros.nodes.markers import MarkerArrayBuilder, MarkerTemplate
+    scene = M.Scene(mech)
+    template = MarkerTemplate(scene.shapes(setup.task.initial_position, np.eye(3)))
+    rot = Rotation.from_euler('xyz', [0.02, 0.04, -0.1]).as_matrix()
+    t = np.array([0.03, 0.0, 1.1])
+    shapes = scene.shapes(t, rot, None, np.array([100.0, -200, 3000, 0, 0, 5]), (t, rot))
+    got = deserialize_message(template.fill(1234, 5678, *M.flatten(shapes)), MarkerArray)
+    want = deserialize_message(serialize_message(MarkerArrayBuilder().build(shapes, 1234, 5678)),
+                               MarkerArray)
+    assert len(got.markers) == len(want.markers) == len(shapes)
+    for a, b in zip(got.markers, want.markers):
+        assert a == b, (a.ns, a.id)
+    joints = {m.ns: m for m in got.markers}['platform_joints']
+    assert len(joints.points) == 6
+
+
 def test_the_views_ghost_pose_is_read_back_from_a_6_6_plate(mech):
     from stewart63_ros.tools.view import _pose_from_vertices
     rot = Rotation.from_euler('xyz', [0.2, -0.1, 0.4]).as_matrix()
