@@ -131,7 +131,8 @@ BASE, PLATFORM, OFFSETS = slice(0, 18), slice(18, 27), slice(27, 33)
 #: A singular value below this times the largest: not seen by the data at all.
 STRUCTURAL_RTOL = 1.0e-7
 #: The fewest poses ``fit`` accepts: 60 readings for 33 parameters, so that the
-#: noise estimate rests on at least 27 degrees of freedom (±14 % in sigma).
+#: noise estimate rests on at least 27 degrees of freedom (±14 % in sigma; a
+#: 6-6's 42 parameters leave 18, ±17 %).
 MIN_POSES = 10
 #: A fit whose estimate moves a parameter more than this many tolerances from
 #: the drawing diverged: the data are not of this machine (a bad row pulled it).
@@ -701,10 +702,10 @@ def fit(mech: Mechanism, meas: Measurements, noise: NoiseModel | None = None,
 
     Raises:
         CalibrationError: a 6-6 drawing fitted as a 6-3, too few poses, poses
-            that leave a combination unidentifiable (named), a fit that does not converge, diverges
-            (a parameter more than ``DIVERGED`` tolerances from the drawing) or
-            leaves the readings more than ``tolerance`` RMS from the model,
-            naming the rows it predicts worst.
+            that leave a combination unidentifiable (named), a fit that does
+            not converge, diverges (a parameter more than ``DIVERGED``
+            tolerances from the drawing) or leaves the readings more than
+            ``tolerance`` RMS from the model, naming the rows it predicts worst.
     """
     # lazy: scipy.optimize costs 968 ms; only a fit needs it
     from scipy.optimize import least_squares
