@@ -66,16 +66,17 @@ def private_domain():
 EXTRA_PARAMS = {}
 
 
-def run(mode, duration, nodes, realtime_priority=0, compose=False, record=False):
+def run(mode, duration, nodes, realtime_priority=0, compose=False, record=False, params=None):
     """One rig run; the plant's summary (plus total_wall_s), or None if it failed.
     ``compose``: the nodes in one process (``rig --compose``); ``record``:
-    recording every topic into a bag in a temporary folder."""
+    recording every topic into a bag in a temporary folder; ``params``: the
+    parameter file (default: the packaged 6-3)."""
     extra = {'realtime_priority': realtime_priority} if realtime_priority else {}
     if EXTRA_PARAMS:
         extra['extra_params'] = EXTRA_PARAMS
     log_dir = tempfile.mkdtemp(prefix='bench_loop_')
     bag = os.path.join(log_dir, 'bag') if record else None
-    rig = Rig(default_params_path(), mode, duration, nodes=nodes, log_dir=log_dir,
+    rig = Rig(params or default_params_path(), mode, duration, nodes=nodes, log_dir=log_dir,
               record=bag, compose=compose, **extra)
     start = time.monotonic()
     try:
@@ -174,6 +175,19 @@ def measure(duration: float = 5.0, repeat: int = 3, realtime_priority: int = 0) 
               _fmt(result['loop_latency_p99_us']), _fmt(result['loop_missed_fraction'], '%.4f'),
               _fmt(result['lockstep_samples_per_s'], '%.0f')), flush=True)
     return result
+
+
+def measure_lockstep(params, duration: float = 5.0, repeat: int = 3) -> dict:
+    """lockstep_samples_per_s of the full rig on another parameter file (the
+    packaged 6-6: bench_all.py), median of ``repeat`` runs."""
+    runs = []
+    with private_domain():
+        for _ in range(repeat):
+            s = run('lockstep', duration, FULL, params=params)
+            if s:
+                runs.append(lockstep_figures(s))
+                print_lockstep(FULL, runs[-1])
+    return {'lockstep_samples_per_s': _median(runs, 'samples_per_s')}
 
 
 def measure_variants(duration: float = 5.0, repeat: int = 3) -> dict:

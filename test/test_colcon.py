@@ -132,8 +132,9 @@ def test_install_layout(workspace):
     share = prefix / 'share'
     assert (share / PACKAGE / 'package.xml').read_text() == (REPO / 'package.xml').read_text()
     assert (share / 'ament_index' / 'resource_index' / 'packages' / PACKAGE).is_file()
-    config = share / PACKAGE / 'config' / 'stewart63.yaml'
-    assert config.read_text() == (REPO / 'config' / 'stewart63.yaml').read_text()
+    for name in ('stewart63.yaml', 'hexapod66.yaml'):    # the packaged 6-3 and 6-6
+        config = share / PACKAGE / 'config' / name
+        assert config.read_text() == (REPO / 'config' / name).read_text()
     assert (prefix / 'lib' / PY / 'site-packages' / PACKAGE / '__init__.py').is_file()
     for launch in sorted((REPO / 'launch').glob('*.launch.py')):
         assert (share / PACKAGE / 'launch' / launch.name).is_file(), launch.name

@@ -6,7 +6,8 @@ and faults per leg, ``sim``). Core-level and in-process: cheap.
 
 The 6-6's dynamics are checked in test/test_dynamics.py (energy balances,
 Lagrange) and test/test_mujoco.py (10 s against MuJoCo); its all-modes solver
-against brute force in test/test_fk66.py.
+against brute force in test/test_fk66.py; its install beside the 6-3's file in
+test/test_colcon.py.
 """
 from __future__ import annotations
 
@@ -78,12 +79,6 @@ def test_the_packaged_6_6_passes_the_parameter_files_checks(setup66):
     # the paper's scenario and gains, as the 6-3 runs them
     np.testing.assert_array_equal(setup66.task.setpoint_lengths, [1.9, 1.9, 1.6, 1.6, 1.6, 1.6])
     np.testing.assert_array_equal(setup66.gains.kp, [4000.0] * 6)
-
-
-def test_the_packaged_6_6_is_installed_beside_the_6_3():
-    """setup.py installs every config/*.yaml to share/stewart63_ros/config."""
-    text = (REPO / 'setup.py').read_text()
-    assert "glob('config/*.yaml')" in text
 
 
 # -- refusals at load --

@@ -600,7 +600,7 @@ MODEL: tuple[ModelKey, ...] = (
              runtime=('controller',)),
     ModelKey('setpoint_lengths', 6, 'm', '[1.9, 1.9, 1.6, 1.6, 1.6, 1.6]', '(L_i)_0; > 0'),
     ModelKey('initial_position', 3, 'm', '[0.01, 0.01, 1.0]', 't_0, base frame; every leg '
-             'within the stroke'),
+             'within the stroke; not a singular pose (Jacobian condition number ≤ 10⁴)'),
     ModelKey('initial_velocity', 3, 'm/s', '[0.01, 0.01, 0.01]', 'dt_0/dt'),
     ModelKey('initial_orientation', 3, 'rad', '[0.01, 0.01, 0.01]', 'θ_0 (see '
              '[conventions](#frames-and-conventions))'),
