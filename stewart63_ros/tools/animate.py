@@ -2,7 +2,7 @@
 
 Drawn with matplotlib from the same shapes as the ``markers`` topic
 (core/mechanics/markers.py): base, U-joints, each leg's cylinder and piston (the piston
-coloured by its force), the platform triangle; beside it the six leg lengths
+coloured by its force), the platform plate; beside it the six leg lengths
 against time with a cursor. GIF through Pillow (matplotlib's ``pillow``
 writer, always there), MP4 through ffmpeg where it is installed.
 """
@@ -115,7 +115,10 @@ class Animator:
             status = shapes[('leg_status', i)]
             self.rod_lines[i].set_color(status.color[:3] if status.color[3] > 0
                                         else rod.color[:3])
-        self.plate.set_verts([shapes[('platform', 0)].points[:3]])
+        # the plate's outline: a 6-3's triangle, a 6-6's hexagon (its joints in turn)
+        faces = self.scene.plate_faces
+        ring = np.concatenate([faces[:, 0][:1], faces[:, 1], faces[-1:, 2]])
+        self.plate.set_verts([shapes[('platform_joints', 0)].points[ring]])
         self.cursor.set_xdata([self.t[k], self.t[k]])
         self.text.set_text('t = %.2f s   z = %.3f m' % (self.t[k], self.position[k][2]))
         return self.cyl_lines + self.rod_lines + [self.plate, self.cursor, self.text]

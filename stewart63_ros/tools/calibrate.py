@@ -1,11 +1,16 @@
 """`calibrate`: identify the machine's geometry and sensor offsets; plan the poses.
 
     calibrate plan --params P --poses N --out DIR [--seed S] [--hold S] [--move S]
-        [--leg-speed V] [--candidates K] [--tracker-noise POS ANG]
+        [--leg-speed V] [--candidates K] [--tracker-noise POS ANG] [--geometry G]
     calibrate fit --measurements F --params P --out DIR [--holdout SHARE]
         [--tolerance M] [--tracker-noise POS ANG] [--reading-noise M]
-        [--tracker-topic T] [--stamp-tolerance S] [--still V]
+        [--tracker-topic T] [--stamp-tolerance S] [--still V] [--geometry G]
     calibrate machine --params P --out FILE [--seed S] [--points M] [--offsets M]
+        [--geometry G]
+
+``--geometry 6-6`` on a 6-3's file identifies six platform joints (its
+pairs allowed to come apart: 42 parameters instead of 33) and writes 18
+numbers; the default is the file's own layout.
 
 ``plan`` writes DIR/poses.csv (the poses, and when the reference holds
 each), DIR/reference.csv (``t,x,y,z,theta_x,theta_y,theta_z`` for ``rig
@@ -226,15 +231,17 @@ def run_fit(args, mech, params_path: Path) -> int:
     rows = np.flatnonzero(~held_mask) + 1        # each fitted pose's row in the file
     started = time.perf_counter()
     try:
-        result = cal.fit(mech, fitted, noise, args.tolerance, rows=rows)
+        result = cal.fit(mech, fitted, noise, args.tolerance, rows=rows, geometry=args.geometry)
     except cal.CalibrationError as exc:
         raise InputError('%s: %s' % (path, str(exc).replace('rows', what + 's', 1))) from None
     try:
         calibrated = cal.mechanism_with(mech, result.estimate)
         cal.check_assembles(calibrated, meas)
     except ParameterError as exc:
-        raise InputError('the calibrated mechanism is impossible, nothing written: %s'
-                         % exc) from None
+        together = ' (a 6-3 fitted as a 6-6 whose pair stayed together: fit it without '\
+            '--geometry 6-6)' if 'coincide' in str(exc) and args.geometry == '6-6' else ''
+        raise InputError('the calibrated mechanism is impossible, nothing written: %s%s'
+                         % (exc, together)) from None
     fit_seconds = time.perf_counter() - started
     held_out = None
     if held.count:
@@ -259,10 +266,13 @@ def run_fit(args, mech, params_path: Path) -> int:
                          % exc) from None
     (out / 'report.json').write_text(json.dumps(finite_or_none(report), indent=1,
                                                 allow_nan=False))
-    print('calibrate: %d poses: %d fitted, %d held out; fitted in %.2f s; reading RMS %.4g m '
-          '-> %.4g m (noise scale %.3g)' % (meas.count, fitted.count, held.count, fit_seconds,
-                                             result.rms_before, result.rms_after,
-                                             result.noise_scale))
+    print('calibrate: %d poses: %d fitted, %d held out; a %s, %d parameters, fitted in '
+          '%.2f s; reading RMS %.4g m -> %.4g m (noise scale %.3g)'
+          % (meas.count, fitted.count, held.count, result.geometry, result.estimate.size,
+             fit_seconds, result.rms_before, result.rms_after, result.noise_scale))
+    for pair in report['pair_separations'] or ():
+        print('calibrate: the joints of legs %d and %d came %.4g m apart (std %.3g m)'
+              % (*pair['legs'], pair['separation_m'], pair['std_m']))
     if held_out:
         before, after = held_out['before'], held_out['after']
         print('calibrate: held-out fk error: position RMS %s -> %s, angle RMS %s -> %s%s' % (
@@ -314,10 +324,11 @@ def run_plan(args, setup, params_path: Path) -> int:
                              'm/s, and a plan keeps its legs under %g m/s (%g of it)'
                              % (args.leg_speed, limits.leg_speed / cp.SPEED_SHARE,
                                 limits.leg_speed, cp.SPEED_SHARE))
-        plan = cp.plan(setup, args.poses, args.seed, noise, args.candidates, limits=limits)
+        plan = cp.plan(setup, args.poses, args.seed, noise, args.candidates, limits=limits,
+                       geometry=args.geometry)
         times, rows = cp.reference_rows(setup, plan.positions, plan.rotations, args.hold,
                                         args.move, args.leg_speed, limits=limits)
-    except cp.PlanError as exc:
+    except (cp.PlanError, cal.CalibrationError) as exc:
         raise InputError(exc) from None
     try:
         Reference.from_poses(setup.mechanism, times, rows).check(max_leg_speed=limits.leg_speed)
@@ -351,11 +362,16 @@ def run_plan(args, setup, params_path: Path) -> int:
 
 def run_machine(args, mech, params_path: Path) -> int:
     """A machine built off its drawing: every point moved by up to --points,
-    every offset up to --offsets (uniform, seeded)."""
+    every offset up to --offsets (uniform, seeded); with --geometry 6-6 a 6-3's
+    pair joints each moved on their own (the machine a 6-6 file describes)."""
     rng = np.random.default_rng(args.seed)
-    theta = cal.parameter_vector(mech)
-    theta[:27] += rng.uniform(-args.points, args.points, 27)
-    theta[27:] += rng.uniform(-args.offsets, args.offsets, 6)
+    try:
+        theta = cal.parameter_vector(mech, args.geometry)
+    except cal.CalibrationError as exc:
+        raise InputError(exc) from None
+    points = theta.size - 6
+    theta[:points] += rng.uniform(-args.points, args.points, points)
+    theta[points:] += rng.uniform(-args.offsets, args.offsets, 6)
     try:
         machine = cal.mechanism_with(mech, theta)
     except ParameterError as exc:
@@ -391,6 +407,10 @@ def build_parser() -> argparse.ArgumentParser:
                            metavar=('POS', 'ANG'),
                            help="the tracker's standard deviations per axis: position [m] "
                            'and angle [rad] (default 1e-4 1e-4)')
+        p.add_argument('--geometry', choices=cal.GEOMETRIES, default=None,
+                       help="the layout to identify: 6-3 (three platform vertices) or 6-6 "
+                       "(six joints; of a 6-3's file: its pairs allowed to come apart, 18 "
+                       "numbers written). Default: the file's own")
 
     fit = sub.add_parser('fit', help='identify base points, platform points and offsets')
     common(fit)

@@ -82,8 +82,9 @@ class ViewScene:
         for i, p in enumerate(mech.base_points):
             sc.add_icosphere('/ujoint_%d' % (i + 1), radius=self.scene.joint_d / 2,
                              color=rgb(by[('ujoints', 0)].color), position=tuple(p))
+        # a 6-3's triangle and three vertices, a 6-6's hexagon and six joints
         plat = np.asarray(mech.platform_points, dtype=float)
-        faces = np.array([[0, 1, 2]])
+        faces = self.scene.plate_faces
         # Hidden until the first state: a page with no rig shows the base only.
         self.platform = sc.add_frame('/platform', show_axes=True, axes_length=0.25,
                                      axes_radius=0.01, visible=False)
@@ -401,18 +402,20 @@ class BagRun:
 
     def _ghosts(self, bag, setup, cols):
         """Ghost poses against time from the bag's markers (their 'ghost'
-        triangle), else one from its setpoints, else the parameter file's."""
+        plate), else one from its setpoints, else the parameter file's."""
         mech = setup.mechanism
+        # the plate's first winding: its joints, face by face (markers.Scene)
+        joints = shapes_mod.plate_faces(mech.platform_points).ravel()
         t0 = None
         times, poses = [], []
         try:
             for _, _, msg in bagio.read_messages(bag, ['markers'], run=self.run):
                 for m in msg.markers:
-                    if m.ns == 'ghost' and m.color.a > 0 and len(m.points) >= 3:
-                        verts = np.array([[p.x, p.y, p.z] for p in m.points[:3]])
+                    if m.ns == 'ghost' and m.color.a > 0 and len(m.points) >= joints.size:
+                        verts = np.array([[p.x, p.y, p.z] for p in m.points[:joints.size]])
                         stamp = m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec
                         times.append(stamp)
-                        poses.append(_pose_from_vertices(verts, mech))
+                        poses.append(_pose_from_vertices(verts, mech, joints))
         except bagio.BagError:
             pass
         if times:
@@ -455,9 +458,12 @@ class BagRun:
         return self.ghost[max(k, 0)]
 
 
-def _pose_from_vertices(verts, mech):
-    """(t, R) with R p_k + t = v_k (least squares: Kabsch)."""
+def _pose_from_vertices(verts, mech, joints=None):
+    """(t, R) with R p_k + t = v_k (least squares: Kabsch); ``joints``: the row of
+    ``platform_points`` of each v_k (default: all, in order)."""
     plat = np.asarray(mech.platform_points, dtype=float)
+    if joints is not None:
+        plat = plat[joints]
     pc, vc = plat.mean(axis=0), verts.mean(axis=0)
     u, _, vt = np.linalg.svd((plat - pc).T @ (verts - vc))
     d = np.sign(np.linalg.det(vt.T @ u.T))

@@ -4,13 +4,17 @@ The model (docs/calibration.md). A tracker registered to the base and the
 platform frames measures the platform pose (t_n, R_n); at the same moment the
 six length sensors read
 
-    reading_ni = |t_n + R_n p_k - b_i| + o_i,     k the vertex of leg i,     (1)
+    reading_ni = |t_n + R_n p_k - b_i| + o_i,     k the joint of leg i,     (1)
 
 eq. (5) plus ``leg_length_offset`` o_i (a sensor reads the true length plus
-its zero offset). The 33 parameters are the base points b_i (18), the
-platform points p_k (9) and the offsets o_i (6), all in metres, so the
-Jacobian needs no column scaling: a singular value compares metres of
-reading with metres of parameter.
+its zero offset). The parameters are the base points b_i (18), the
+platform points (a 6-3's three vertices p_k, 9, k = ``LEG_VERTEX[i]``; a
+6-6's six joints p_i, 18, k = i) and the offsets o_i (6): 33 for a 6-3, 42
+for a 6-6, all in metres, so the Jacobian needs no column scaling: a
+singular value compares metres of reading with metres of parameter. The
+parameter vector's length says which (``platform_rows``): a 6-3 drawing
+fitted as a 6-6 (``parameter_vector(mech, '6-6')``) starts with each
+vertex as two coincident joints, which the fit may pull apart.
 
 Noise and weights. The tracker's errors sit in the pose, so the six
 residuals of one pose are correlated: a pose error (dt, dphi) moves reading i
@@ -31,13 +35,16 @@ the squared fraction of residuals inside, with his small-sample factor K:
 for clean data exactly the least-squares one.
 
 Identifiability. The tracker fixes both frames, so no gauge freedom
-remains: every one of the 33 parameters is a physical distance in a frame the
-tracker defines. What the poses may leave undetermined is read from the
-singular value decomposition of the whitened Jacobian at the drawing:
+remains: every one of the 33 (42) parameters is a physical distance in a frame
+the tracker defines, and none is fixed by convention. (A 6-6's legs share no
+parameter: each leg's seven, b_i, p_i and o_i, are seen by its own readings
+only.) What the poses may leave undetermined is read from the singular value
+decomposition of the whitened Jacobian at the drawing:
 
 - a singular value below ``STRUCTURAL_RTOL`` times the largest: a
   combination the poses cannot see at all (all poses level: a vertex and
-  its two base points moving together). ``fit`` refuses, naming it;
+  its two base points moving together; a 6-6: each joint with its base
+  point, 18 combinations instead of 9). ``fit`` refuses, naming it;
 - a combination whose standard deviation (noise / singular value) would
   exceed ``tolerance`` (how far the machine may be from its drawing): the
   data know it worse than the drawing does. It is held at the drawing's
@@ -65,18 +72,67 @@ from stewart63_ros.core.plumbing.params import Mechanism, ParameterError
 
 #: The parameter file's key of the sensors' zero offsets (6 numbers, metres).
 OFFSET_KEY = 'leg_length_offset'
-#: The parameters' names, in the order of the parameter vector.
-PARAMETER_NAMES: tuple[str, ...] = tuple(
-    ['b_%d.%s' % (i + 1, a) for i in range(6) for a in 'xyz']
-    + ['p_%d.%s' % (k + 1, a) for k in range(3) for a in 'xyz']
-    + ['offset_%d' % (i + 1) for i in range(6)])
+#: The layouts a fit takes (``mechanism.Mechanism.layout``).
+GEOMETRIES = ('6-3', '6-6')
+
+
+def parameter_names(geometry: str = '6-3') -> tuple[str, ...]:
+    """The parameters' names, in the order of the parameter vector.
+
+    Args:
+        geometry: '6-3' (platform points p_1 … p_3) or '6-6' (p_1 … p_6).
+
+    Returns:
+        33 names for a 6-3, 42 for a 6-6.
+    """
+    rows = _rows_of(geometry)
+    return tuple(['b_%d.%s' % (i + 1, a) for i in range(6) for a in 'xyz']
+                 + ['p_%d.%s' % (k + 1, a) for k in range(rows) for a in 'xyz']
+                 + ['offset_%d' % (i + 1) for i in range(6)])
+
+
+def _rows_of(geometry: str) -> int:
+    if geometry not in GEOMETRIES:
+        raise CalibrationError('geometry must be one of %s, got %r' % (GEOMETRIES, geometry))
+    return 3 if geometry == '6-3' else 6
+
+
+def platform_rows(theta: ArrayLike) -> int:
+    """3 (a 6-3's parameter vector, 33 numbers) or 6 (a 6-6's, 42)."""
+    size = np.shape(theta)[-1]
+    if size not in (33, 42):
+        raise CalibrationError('a parameter vector holds 33 numbers (a 6-3) or 42 (a 6-6), '
+                               'not %d' % size)
+    return (size - 24) // 3
+
+
+def geometry_of(theta: ArrayLike) -> str:
+    """'6-3' or '6-6': the layout of a parameter vector (its length)."""
+    return '6-3' if platform_rows(theta) == 3 else '6-6'
+
+
+def _split(theta):
+    """(base (6, 3), platform (3 or 6, 3), offsets (6,)) of a parameter vector."""
+    rows = platform_rows(theta)
+    return (theta[:18].reshape(6, 3), theta[18:18 + 3 * rows].reshape(rows, 3),
+            theta[18 + 3 * rows:])
+
+
+def _leg_joint(rows: int) -> np.ndarray:
+    """The platform point of each leg: ``LEG_VERTEX`` (a 6-3) or leg i's own (a 6-6)."""
+    return LEG_VERTEX if rows == 3 else np.arange(6)
+
+
+#: The 6-3's names, count and slices (the 6-6's: ``parameter_names('6-6')``).
+PARAMETER_NAMES: tuple[str, ...] = parameter_names('6-3')
 N_PARAMETERS = len(PARAMETER_NAMES)
-#: Slices of the parameter vector.
+#: Slices of a 6-3's parameter vector.
 BASE, PLATFORM, OFFSETS = slice(0, 18), slice(18, 27), slice(27, 33)
 #: A singular value below this times the largest: not seen by the data at all.
 STRUCTURAL_RTOL = 1.0e-7
 #: The fewest poses ``fit`` accepts: 60 readings for 33 parameters, so that the
-#: noise estimate rests on at least 27 degrees of freedom (±14 % in sigma).
+#: noise estimate rests on at least 27 degrees of freedom (±14 % in sigma; a
+#: 6-6's 42 parameters leave 18, ±17 %).
 MIN_POSES = 10
 #: A fit whose estimate moves a parameter more than this many tolerances from
 #: the drawing diverged: the data are not of this machine (a bad row pulled it).
@@ -239,7 +295,7 @@ def worst_rows(theta: ArrayLike, meas: Measurements, count: int = 3,
     """The rows whose readings the parameters ``theta`` predict worst.
 
     Args:
-        theta: (33,) parameters; meas: the measurements.
+        theta: (33,) or (42,) parameters; meas: the measurements.
         count: how many rows.
         rows: (N,) the row number of each pose (default 1, 2, ...).
 
@@ -252,17 +308,29 @@ def worst_rows(theta: ArrayLike, meas: Measurements, count: int = 3,
 
 
 # -- the model -----------------------------------------------------------------
-def parameter_vector(mech: Mechanism) -> np.ndarray:
-    """The 33 parameters of a mechanism: b (18), p (9), offsets (6) [m].
+def parameter_vector(mech: Mechanism, geometry: str | None = None) -> np.ndarray:
+    """The parameters of a mechanism: b (18), p (9 or 18), offsets (6) [m].
 
     Args:
         mech: the mechanism (its ``leg_length_offset``).
+        geometry: the layout to fit (default: the mechanism's own). '6-6' of
+            a 6-3 gives each leg its own joint, the pair's two at their
+            vertex, free to come apart in a fit; '6-3' of a 6-6 is refused
+            (its joints cannot be merged without a choice the data should make).
 
     Returns:
-        (33,) the parameter vector, ordered as ``PARAMETER_NAMES``.
+        (33,) or (42,) the parameter vector, ordered as ``parameter_names(geometry)``.
+
+    Raises:
+        CalibrationError: a 6-6 asked to be fitted as a 6-3, or an unknown geometry.
     """
-    return np.concatenate([np.ravel(mech.base_points), np.ravel(mech.platform_points),
-                           mech.leg_length_offset])
+    geometry = geometry or mech.layout
+    _rows_of(geometry)
+    if geometry == '6-3' and mech.layout == '6-6':
+        raise CalibrationError('a 6-6 cannot be fitted as a 6-3 (its six platform joints '
+                               'are not three vertices): fit it as a 6-6')
+    plat = mech.platform_points if geometry == mech.layout else mech.leg_platform_points
+    return np.concatenate([np.ravel(mech.base_points), np.ravel(plat), mech.leg_length_offset])
 
 
 def mechanism_with(mech: Mechanism, theta: ArrayLike) -> Mechanism:
@@ -270,7 +338,7 @@ def mechanism_with(mech: Mechanism, theta: ArrayLike) -> Mechanism:
 
     Args:
         mech: the mechanism to start from (masses, stroke, ... are kept).
-        theta: (33,) parameters.
+        theta: (33,) or (42,) parameters: the new mechanism is a 6-3 or a 6-6.
 
     Returns:
         The new mechanism.
@@ -279,15 +347,15 @@ def mechanism_with(mech: Mechanism, theta: ArrayLike) -> Mechanism:
         ParameterError: the parameters describe an impossible mechanism
             (``mechanism.validated`` names the key).
     """
-    theta = np.asarray(theta, dtype=float)
-    return mech.replace(base_points=theta[BASE], platform_points=theta[PLATFORM],
-                        **{OFFSET_KEY: theta[OFFSETS].tolist()})
+    base, plat, offsets = _split(np.asarray(theta, dtype=float))
+    return mech.replace(base_points=base, platform_points=plat,
+                        **{OFFSET_KEY: offsets.tolist()})
 
 
 def _legs(theta, meas):
-    """Leg vectors S (N, 6, 3) and the vertices q = R p_k (N, 6, 3), base frame."""
-    base = theta[BASE].reshape(6, 3)
-    plat = theta[PLATFORM].reshape(3, 3)[LEG_VERTEX]
+    """Leg vectors S (N, 6, 3) and the joints q = R p_k (N, 6, 3), base frame."""
+    base, plat, _ = _split(theta)
+    plat = plat[_leg_joint(len(plat))]
     q = np.einsum('nab,ib->nia', meas.rotations, plat)
     legs = meas.positions[:, None, :] + q - base[None]
     return legs, q
@@ -297,7 +365,7 @@ def predict_readings(theta: ArrayLike, meas: Measurements) -> np.ndarray:
     """Readings the model (1) predicts at the measured poses.
 
     Args:
-        theta: (33,) parameters.
+        theta: (33,) or (42,) parameters.
         meas: the poses (their readings are not used).
 
     Returns:
@@ -305,30 +373,32 @@ def predict_readings(theta: ArrayLike, meas: Measurements) -> np.ndarray:
     """
     theta = np.asarray(theta, dtype=float)
     legs, _ = _legs(theta, meas)
-    return np.linalg.norm(legs, axis=2) + theta[OFFSETS]
+    return np.linalg.norm(legs, axis=2) + _split(theta)[2]
 
 
 def parameter_jacobian(theta: ArrayLike, meas: Measurements) -> np.ndarray:
     """d reading / d parameters, analytic: -s_i for b_i, R^T s_i for p_k, 1 for o_i.
 
     Args:
-        theta: (33,) parameters.
+        theta: (P,) parameters (33: a 6-3, 42: a 6-6).
         meas: the poses.
 
     Returns:
-        (N, 6, 33) the Jacobian, pose by pose, leg by leg (s_i = S_i / L_i).
+        (N, 6, P) the Jacobian, pose by pose, leg by leg (s_i = S_i / L_i).
     """
     theta = np.asarray(theta, dtype=float)
+    rows = platform_rows(theta)
     legs, _ = _legs(theta, meas)
     unit = legs / np.linalg.norm(legs, axis=2, keepdims=True)
     n = meas.count
-    jac = np.zeros((n, 6, N_PARAMETERS))
+    jac = np.zeros((n, 6, theta.size))
     through = np.einsum('nba,nib->nia', meas.rotations, unit)      # R^T s_i
+    offsets = 18 + 3 * rows
     for i in range(6):
         jac[:, i, 3 * i:3 * i + 3] = -unit[:, i]
-        k = LEG_VERTEX[i]
+        k = _leg_joint(rows)[i]
         jac[:, i, 18 + 3 * k:18 + 3 * k + 3] = through[:, i]
-        jac[:, i, 27 + i] = 1.0
+        jac[:, i, offsets + i] = 1.0
     return jac
 
 
@@ -337,7 +407,7 @@ def pose_jacobian(theta: ArrayLike, meas: Measurements) -> np.ndarray:
     as t + dt, exp([dphi]x) R (dphi in the base frame, as the tracker's noise).
 
     Args:
-        theta: (33,) parameters.
+        theta: (33,) or (42,) parameters.
         meas: the poses.
 
     Returns:
@@ -354,7 +424,7 @@ def whitening(theta: ArrayLike, meas: Measurements, noise: NoiseModel) -> np.nda
     Sigma = sp^2 G_t G_t^T + sa^2 G_r G_r^T + sr^2 I (G = ``pose_jacobian``).
 
     Args:
-        theta: (33,) the parameters the weights are computed at.
+        theta: (33,) or (42,) the parameters the weights are computed at.
         meas: the poses.
         noise: the measurement noise.
 
@@ -374,7 +444,7 @@ def describe_direction(vector: ArrayLike, share: float = 0.1) -> str:
     """A combination of parameters in words: its largest components, signed.
 
     Args:
-        vector: (33,) a unit direction in parameter space.
+        vector: (P,) a unit direction in parameter space (33: a 6-3, 42: a 6-6).
         share: components below this (in absolute value) are left out.
 
     Returns:
@@ -383,7 +453,8 @@ def describe_direction(vector: ArrayLike, share: float = 0.1) -> str:
     vector = np.asarray(vector, dtype=float)
     vector = vector * (1 if vector[np.argmax(np.abs(vector))] > 0 else -1)
     order = np.argsort(-np.abs(vector))
-    parts = ['%+.2f %s' % (vector[j], PARAMETER_NAMES[j]) for j in order
+    names = parameter_names(geometry_of(vector))
+    parts = ['%+.2f %s' % (vector[j], names[j]) for j in order
              if abs(vector[j]) >= share]
     return ' '.join(parts)
 
@@ -396,7 +467,7 @@ def parameter_groups(directions: np.ndarray, share: float = 0.05) -> list[dict]:
     of its parameters the directions hold.
 
     Args:
-        directions: (33, h) orthonormal columns.
+        directions: (P, h) orthonormal columns.
         share: a parameter whose diagonal of the projector is below this is left out.
 
     Returns:
@@ -404,7 +475,8 @@ def parameter_groups(directions: np.ndarray, share: float = 0.05) -> list[dict]:
     """
     proj = directions @ directions.T
     diag = np.diag(proj)
-    involved = [j for j in range(N_PARAMETERS) if diag[j] >= share]
+    names = parameter_names(geometry_of(np.zeros(len(directions))))
+    involved = [j for j in range(len(directions)) if diag[j] >= share]
     groups: list[list[int]] = []
     seen: set[int] = set()
     for j in involved:
@@ -420,12 +492,12 @@ def parameter_groups(directions: np.ndarray, share: float = 0.05) -> list[dict]:
                     seen.add(b)
                     todo.append(b)
         groups.append(sorted(group))
-    out = [{'parameters': [PARAMETER_NAMES[j] for j in g],
+    out = [{'parameters': [names[j] for j in g],
             'count': int(round(np.trace(proj[np.ix_(g, g)])))} for g in groups]
     return sorted(out, key=lambda g: -len(g['parameters']))
 
 
-def _pose_cause(meas: Measurements) -> str:
+def _pose_cause(meas: Measurements, geometry: str = '6-3') -> str:
     """Why poses may leave parameters unseen, in words ('' if nothing obvious)."""
     rotvec = rotvec_from_rotation(meas.rotations)
     tilt = np.linalg.norm(rotvec[:, :2], axis=1)
@@ -433,8 +505,10 @@ def _pose_cause(meas: Measurements) -> str:
     angles = np.ptp(rotvec, axis=0)
     causes = []
     if np.all(angles < 1e-6):
-        causes.append('every pose has the same orientation (each vertex and its two base '
-                      'points can move together): tilt and turn the platform')
+        causes.append('every pose has the same orientation (%s can move together): tilt '
+                      'and turn the platform' % ('each vertex and its two base points'
+                                                 if geometry == '6-3' else
+                                                 'each platform joint and its base point'))
     elif np.all(tilt < 1e-6):
         causes.append('every pose is level: tilt the platform')
     if heights < 1e-6:
@@ -447,9 +521,10 @@ class Identifiability:
     """What a set of poses can determine (the SVD of the whitened Jacobian).
 
     Attributes:
-        singular_values: (33,) of the whitened Jacobian [1/m], descending.
-        directions: (33, 33) right singular vectors, as columns.
-        predicted_std: (33,) noise / singular value per direction [m], for
+        singular_values: (P,) of the whitened Jacobian [1/m], descending (P: 33
+            for a 6-3, 42 for a 6-6).
+        directions: (P, P) right singular vectors, as columns.
+        predicted_std: (P,) noise / singular value per direction [m], for
             the stated noise (inf for a structural null direction).
         structural: indices of the directions the data cannot see at all.
     """
@@ -475,7 +550,7 @@ def identifiability(theta: ArrayLike, meas: Measurements, noise: NoiseModel) -> 
     """The SVD of the whitened identification Jacobian at ``theta``.
 
     Args:
-        theta: (33,) parameters (the drawing's).
+        theta: (33,) or (42,) parameters (the drawing's).
         meas: the poses.
         noise: the measurement noise (the whitening).
 
@@ -483,10 +558,11 @@ def identifiability(theta: ArrayLike, meas: Measurements, noise: NoiseModel) -> 
         The analysis.
     """
     jac = _whitened_jacobian(theta, meas, whitening(theta, meas, noise))
+    count = jac.shape[1]
     _, sv, vt = np.linalg.svd(jac, full_matrices=False)
-    if sv.size < N_PARAMETERS:
-        sv = np.concatenate([sv, np.zeros(N_PARAMETERS - sv.size)])
-        vt = np.linalg.svd(np.vstack([jac, np.zeros((N_PARAMETERS, N_PARAMETERS))]))[2]
+    if sv.size < count:
+        sv = np.concatenate([sv, np.zeros(count - sv.size)])
+        vt = np.linalg.svd(np.vstack([jac, np.zeros((count, count))]))[2]
     structural = np.flatnonzero(sv <= STRUCTURAL_RTOL * sv[0])
     with np.errstate(divide='ignore'):
         std = np.where(sv > STRUCTURAL_RTOL * sv[0], 1.0 / np.maximum(sv, 1e-300), np.inf)
@@ -495,7 +571,7 @@ def identifiability(theta: ArrayLike, meas: Measurements, noise: NoiseModel) -> 
 
 def _whitened_jacobian(theta, meas, white):
     return np.einsum('nij,njp->nip', white, parameter_jacobian(theta, meas)).reshape(
-        -1, N_PARAMETERS)
+        -1, np.size(theta))
 
 
 def _whitened_residuals(theta, meas, white):
@@ -509,10 +585,10 @@ class Fit:
     """A calibration's result.
 
     Attributes:
-        nominal: (33,) the drawing's parameters.
-        estimate: (33,) the fitted ones.
-        covariance: (33, 33) of the estimate [m^2] (zero along held directions).
-        held: (33, h) the directions held at the drawing (orthonormal columns).
+        nominal: (P,) the drawing's parameters (P: 33 for a 6-3, 42 for a 6-6).
+        estimate: (P,) the fitted ones.
+        covariance: (P, P) of the estimate [m^2] (zero along held directions).
+        held: (P, h) the directions held at the drawing (orthonormal columns).
         held_std: (h,) each held direction's standard deviation from the data
             [m], as judged against the tolerance.
         analysis: the identifiability of the poses fitted.
@@ -538,8 +614,18 @@ class Fit:
 
     @property
     def std(self) -> np.ndarray:
-        """(33,) standard deviation of each parameter [m]."""
+        """(P,) standard deviation of each parameter [m]."""
         return np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+
+    @property
+    def geometry(self) -> str:
+        """'6-3' or '6-6': the layout fitted."""
+        return geometry_of(self.estimate)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The parameters' names (``parameter_names``)."""
+        return parameter_names(self.geometry)
 
 
 def _check_structural(analysis: Identifiability, meas: Measurements) -> None:
@@ -547,7 +633,7 @@ def _check_structural(analysis: Identifiability, meas: Measurements) -> None:
         return
     groups = parameter_groups(analysis.directions[:, analysis.structural])
     named = '; '.join('%d of {%s}' % (g['count'], ', '.join(g['parameters'])) for g in groups)
-    cause = _pose_cause(meas)
+    cause = _pose_cause(meas, geometry_of(analysis.singular_values))
     raise CalibrationError('these poses leave %d combination%s unidentifiable: %s%s'
                            % (analysis.structural.size,
                               '' if analysis.structural.size == 1 else 's', named,
@@ -580,7 +666,8 @@ def _check_converged(solution, nominal, estimate, meas, tolerance, rows) -> None
         why = 'did not converge (%s)' % solution.message
     elif change[worst] > DIVERGED * tolerance:
         why = ('diverged: %s moved %.4g m from the drawing, more than %d x the tolerance %g m'
-               % (PARAMETER_NAMES[worst], change[worst], DIVERGED, tolerance))
+               % (parameter_names(geometry_of(nominal))[worst], change[worst], DIVERGED,
+                  tolerance))
     elif rms > tolerance:
         why = ('leaves the readings %.4g m RMS from the model, more than the tolerance %g m: '
                'these are not readings of this machine at these poses' % (rms, tolerance))
@@ -591,7 +678,8 @@ def _check_converged(solution, nominal, estimate, meas, tolerance, rows) -> None
 
 
 def fit(mech: Mechanism, meas: Measurements, noise: NoiseModel | None = None,
-        tolerance: float = DEFAULT_TOLERANCE, rows: ArrayLike | None = None) -> Fit:
+        tolerance: float = DEFAULT_TOLERANCE, rows: ArrayLike | None = None,
+        geometry: str | None = None) -> Fit:
     """Identify base points, platform points and offsets from measurements.
 
     Steps (module doc): refuse poses that leave a combination unseen; a
@@ -606,27 +694,30 @@ def fit(mech: Mechanism, meas: Measurements, noise: NoiseModel | None = None,
             0.1 mrad, 0.01 mm).
         tolerance: [m], see ``Identifiability.weak``.
         rows: (N,) the row number of each pose, for the messages (default 1, 2, ...).
+        geometry: the layout to fit (``parameter_vector``; default the drawing's):
+            '6-6' of a 6-3 drawing lets each vertex's two joints come apart.
 
     Returns:
         The fit.
 
     Raises:
-        CalibrationError: too few poses, poses that leave a combination
-            unidentifiable (named), a fit that does not converge, diverges
-            (a parameter more than ``DIVERGED`` tolerances from the drawing) or
-            leaves the readings more than ``tolerance`` RMS from the model,
-            naming the rows it predicts worst.
+        CalibrationError: a 6-6 drawing fitted as a 6-3, too few poses, poses
+            that leave a combination unidentifiable (named), a fit that does
+            not converge, diverges (a parameter more than ``DIVERGED``
+            tolerances from the drawing) or leaves the readings more than
+            ``tolerance`` RMS from the model, naming the rows it predicts worst.
     """
     # lazy: scipy.optimize costs 968 ms; only a fit needs it
     from scipy.optimize import least_squares
     noise = noise or NoiseModel()
+    nominal = parameter_vector(mech, geometry)
+    count = nominal.size
     if meas.count < MIN_POSES:
-        raise CalibrationError('%d poses: the fit needs at least %d (33 parameters, 6 readings '
+        raise CalibrationError('%d poses: the fit needs at least %d (%d parameters, 6 readings '
                                'a pose, and degrees of freedom left to estimate the noise)'
-                               % (meas.count, MIN_POSES))
+                               % (meas.count, MIN_POSES, count))
     if not (np.isfinite(tolerance) and tolerance > 0):
         raise CalibrationError('tolerance must be a positive number, got %r' % (tolerance,))
-    nominal = parameter_vector(mech)
     white = whitening(nominal, meas, noise)
     analysis = identifiability(nominal, meas, noise)
     _check_structural(analysis, meas)
@@ -641,15 +732,14 @@ def fit(mech: Mechanism, meas: Measurements, noise: NoiseModel | None = None,
                              method='trf', x_scale='jac', xtol=1e-12, ftol=1e-12, gtol=1e-12,
                              max_nfev=200)
 
-    full = np.eye(N_PARAMETERS)
-    first = solve(full, np.zeros(N_PARAMETERS), 'linear', 1.0)
+    first = solve(np.eye(count), np.zeros(count), 'linear', 1.0)
     m = meas.count * 6
     # The noise from the first pass, robust to a few outliers (MAD), with
     # the degrees of freedom the parameters took.
-    mad = 1.4826 * float(np.median(np.abs(first.fun))) * np.sqrt(m / (m - N_PARAMETERS))
+    mad = 1.4826 * float(np.median(np.abs(first.fun))) * np.sqrt(m / (m - count))
     scale = max(mad, 1e-12)
     weak = analysis.weak(tolerance, scale)
-    keep = np.setdiff1d(np.arange(N_PARAMETERS), weak)
+    keep = np.setdiff1d(np.arange(count), weak)
     basis = analysis.directions[:, keep]
     held = analysis.directions[:, weak]
     start = basis.T @ first.x
@@ -762,23 +852,59 @@ def holdout_split(count: int, fraction: float, blocks: int = 25) -> np.ndarray:
     return mask
 
 
+def pair_separations(fit_result: Fit) -> list[dict] | None:
+    """How far a 6-3's pairs came apart, when a 6-3 drawing was fitted as a 6-6.
+
+    For each vertex k, d = p_{2k} - p_{2k-1} (the joints of legs 2k-1 and 2k):
+    its length and that length's standard deviation (g^T C g, g = d / |d| on
+    the two joints' coordinates). A separation within two or three standard
+    deviations of zero is the data saying the pair is one joint.
+
+    Args:
+        fit_result: the fit.
+
+    Returns:
+        [{'legs': [2k-1, 2k], 'separation_m', 'std_m'}] for k = 1..3, or None
+        unless the fit is a 6-6 whose drawing had each pair's joints together.
+    """
+    f = fit_result
+    if f.geometry != '6-6':
+        return None
+    nominal = _split(f.nominal)[1]
+    if np.max(np.linalg.norm(nominal[1::2] - nominal[0::2], axis=1)) > 0:
+        return None
+    plat = _split(f.estimate)[1]
+    out = []
+    for k in range(3):
+        d = plat[2 * k + 1] - plat[2 * k]
+        size = float(np.linalg.norm(d))
+        grad = np.zeros(f.estimate.size)
+        unit = d / size if size > 0 else np.zeros(3)
+        grad[18 + 6 * k:21 + 6 * k], grad[21 + 6 * k:24 + 6 * k] = -unit, unit
+        out.append({'legs': [2 * k + 1, 2 * k + 2], 'separation_m': size,
+                    'std_m': float(np.sqrt(max(grad @ f.covariance @ grad, 0.0)))})
+    return out
+
+
 def report(fit_result: Fit, held_out: dict | None = None,
-           names: Sequence[str] = PARAMETER_NAMES) -> dict:
+           names: Sequence[str] | None = None) -> dict:
     """The report's JSON content (docs/calibration.md, "The report").
 
     Args:
         fit_result: the fit.
         held_out: {'before': pose_errors, 'after': pose_errors} or None.
-        names: the parameters' names.
+        names: the parameters' names (default the fit's: ``Fit.names``).
 
     Returns:
         A JSON-ready dict.
     """
     f = fit_result
+    names = f.names if names is None else names
     std = f.std
-    held_share = np.sum(f.held ** 2, axis=1) if f.held.size else np.zeros(N_PARAMETERS)
+    held_share = np.sum(f.held ** 2, axis=1) if f.held.size else np.zeros(f.estimate.size)
     analysis = f.analysis
     return {
+        'geometry': f.geometry,
         'parameters': {name: {'estimate': float(f.estimate[j]), 'nominal': float(f.nominal[j]),
                               'change': float(f.estimate[j] - f.nominal[j]),
                               'std': float(std[j]), 'held_share': float(held_share[j])}
@@ -794,4 +920,5 @@ def report(fit_result: Fit, held_out: dict | None = None,
         'singular_values': analysis.singular_values.tolist(),
         'direction_std_m': (analysis.predicted_std * f.noise_scale).tolist(),
         'held_out': held_out,
+        'pair_separations': pair_separations(f),
     }

@@ -242,10 +242,11 @@ def candidate_poses(setup: Setup, count: int, rng: np.random.Generator,
                     % (len(positions), count, half.tolist()))
 
 
-def _blocks(mech, positions, rotations, noise):
-    """The whitened Jacobian block (6, 33) of every candidate."""
+def _blocks(mech, positions, rotations, noise, geometry=None):
+    """The whitened Jacobian block (6, P) of every candidate (P: 33 for a 6-3, 42 for a
+    6-6: the parameters of the fit the poses are for, ``cal.parameter_vector``)."""
     meas = cal.Measurements(positions, rotations, np.zeros((len(positions), 6)))
-    theta = cal.parameter_vector(mech)
+    theta = cal.parameter_vector(mech, geometry)
     white = cal.whitening(theta, meas, noise)
     return np.einsum('nij,njp->nip', white, cal.parameter_jacobian(theta, meas))
 
@@ -254,7 +255,7 @@ def indices(blocks: np.ndarray, chosen: ArrayLike) -> tuple[float, float]:
     """O1 and O3 of a design.
 
     Args:
-        blocks: (K, 6, 33) whitened Jacobian blocks of the candidates.
+        blocks: (K, 6, P) whitened Jacobian blocks of the candidates.
         chosen: the candidates in the design.
 
     Returns:
@@ -272,7 +273,7 @@ def choose(blocks: np.ndarray, count: int, rounds: int = 300, screened: int = 30
     """A design of ``count`` candidates: greedy in O1, then exchanges in O3.
 
     Args:
-        blocks: (K, 6, 33) whitened Jacobian blocks.
+        blocks: (K, 6, P) whitened Jacobian blocks.
         count: poses wanted (at most K).
         rounds: exchange rounds at most.
         screened: exchanges evaluated exactly per round (the best by the
@@ -350,7 +351,7 @@ def tour(mech: Mechanism, positions: np.ndarray, rotations: np.ndarray,
 def plan(setup: Setup, count: int, seed: int = 0, noise: cal.NoiseModel | None = None,
          candidates: int = 1500, half_range: ArrayLike = DEFAULT_RANGE,
          max_condition: float = 100.0, force_share: float = 0.5,
-         limits: PlanLimits | None = None) -> Plan:
+         limits: PlanLimits | None = None, geometry: str | None = None) -> Plan:
     """Choose ``count`` poses that make the identification well conditioned.
 
     Args:
@@ -360,6 +361,8 @@ def plan(setup: Setup, count: int, seed: int = 0, noise: cal.NoiseModel | None =
         noise: the tracker's noise (the whitening; default ``NoiseModel()``).
         candidates: how many feasible candidates to choose from.
         half_range, max_condition, force_share, limits: as ``candidate_poses``.
+        geometry: the layout the fit will identify (default the drawing's):
+            '6-6' of a 6-3 plans for the pairs' joints apart (42 parameters).
 
     Returns:
         The plan, in visiting order from the initial pose.
@@ -377,7 +380,7 @@ def plan(setup: Setup, count: int, seed: int = 0, noise: cal.NoiseModel | None =
     mech = setup.mechanism
     positions, rotations = candidate_poses(setup, candidates, rng, half_range, max_condition,
                                            force_share, limits)
-    blocks = _blocks(mech, positions, rotations, noise)
+    blocks = _blocks(mech, positions, rotations, noise, geometry)
     chosen = choose(blocks, count)
     o1, o3 = indices(blocks, chosen)
     start = (np.asarray(setup.task.initial_position), setup.task.initial_rotation)

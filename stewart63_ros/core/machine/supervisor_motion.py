@@ -137,9 +137,32 @@ def check_homing(mech: Mechanism, direction: str) -> None:
     try:
         ForwardKinematics(mech).all_modes(np.full(6, stop))
     except NoAssemblyError as exc:
+        # a 6-3's fk names its pair itself ('cannot meet'); a 6-6's says only 'no pose'
+        pair = _pair_apart(mech, stop) if mech.layout == '6-6' else ''
         raise ParameterError('homing_direction', '%s: the legs cannot all be at their %s '
-                             'end stops (%g m): %s' % (direction, 'upper' if direction ==
-                                                      'extend' else 'lower', stop, exc)) from None
+                             'end stops (%g m): %s%s' % (
+                                 direction, 'upper' if direction == 'extend' else 'lower',
+                                 stop, exc, '; ' + pair if pair else '')) from None
+
+
+def _pair_apart(mech: Mechanism, length: float) -> str:
+    """Two legs that cannot both be ``length`` long, in words ('' if every two can).
+
+    Legs i and j at length L put their platform joints, |p_i - p_j| apart on
+    the rigid platform, within 2 L + |b_i - b_j| and beyond |b_i - b_j| - 2 L
+    of each other: a necessary condition of any pose (a 6-3's pair, p_i =
+    p_j, is the fk's own 'cannot meet'; a 6-6's close pair is named here).
+    """
+    plat = mech.leg_platform_points
+    for i in range(6):
+        for j in range(i + 1, 6):
+            joints = float(np.linalg.norm(plat[i] - plat[j]))
+            bases = float(np.linalg.norm(mech.base_points[i] - mech.base_points[j]))
+            if joints < bases - 2 * length or joints > bases + 2 * length:
+                return ('legs %d and %d cannot both be %g m long: their base points are '
+                        '%.4g m apart, their platform joints %.4g m'
+                        % (i + 1, j + 1, length, bases, joints))
+    return ''
 
 
 

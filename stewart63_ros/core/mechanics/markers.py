@@ -2,17 +2,19 @@
 
 Pure numpy, no ROS. ``Scene(mech).shapes(...)`` turns one state of the rig
 (pose, measured leg lengths, piston forces, setpoint pose) into a list of
-``Shape``: the base plate and its six U-joints, the platform triangle and
-its three joints, each leg as a cylinder (on the U-joint) plus a piston rod
+``Shape``: the base plate and its six U-joints, the platform plate and its
+joints (a 6-3: a triangle and its three vertices; a 6-6: the hexagon of its
+six joints, ``Scene.plate_faces``), each leg as a cylinder (on the U-joint) plus a piston rod
 (to the platform), a status sphere per leg (end stop, force saturation) and
 the setpoint pose as a translucent ghost. ``nodes/markers.py`` turns them
 into ``visualization_msgs/MarkerArray``, the ``view`` page and
 ``plot --animate`` draw the same shapes.
 
 Leg geometry (eqs. 1, 2, 4): the leg direction is s_i = S_i / |S_i| with
-S_i = t + R p_k - b_i from the pose; each leg is drawn from b_i along s_i to
+S_i = t + R p_k - b_i from the pose (p_k the joint of leg i:
+``Mechanism.leg_vertex``); each leg is drawn from b_i along s_i to
 b_i + L_i s_i, L_i the *measured* length. With the pose from forward
-kinematics of the same lengths the tip is the platform vertex; a
+kinematics of the same lengths the tip is the platform joint; a
 difference between the two (a pose from elsewhere) shows as a gap.
 
 Colours: a leg's piston is grey at zero force, red as the force pushes
@@ -143,16 +145,20 @@ class Scene:
         #: the rest of the longest with an overlap kept inside the body.
         self.body = 0.55 * mech.leg_length_min
         self.rod = mech.leg_length_max - 0.5 * self.body
+        #: the plate's triangles, rows of indices into ``platform_points``
+        self.plate_faces = plate_faces(plat)
+        self._leg_joint = np.asarray(mech.leg_vertex)
 
     # ------------------------------------------------------------- geometry
     def vertices(self, position: ArrayLike, rot: ArrayLike) -> np.ndarray:
-        """The three platform vertices t + R p_k, base frame (eq. 1).
+        """The platform's joints t + R p_k, base frame (eq. 1): a 6-3's three
+        vertices, a 6-6's six joints.
 
         Args:
             position: t (3,) [m]; rot: R (3, 3).
 
         Returns:
-            (3, 3) one vertex per row [m].
+            (3, 3) or (6, 3), one joint per row [m].
         """
         return np.asarray(position, dtype=float) + np.asarray(self.mech.platform_points) @ \
             np.asarray(rot, dtype=float).T
@@ -171,7 +177,7 @@ class Scene:
         """
         mech = self.mech
         base = np.asarray(mech.base_points, dtype=float)
-        verts = self.vertices(position, rot)[[0, 0, 1, 1, 2, 2]]
+        verts = self.vertices(position, rot)[self._leg_joint]
         S = verts - base                                    # eq. (2)
         L_pose = np.linalg.norm(S, axis=1)
         s = S / L_pose[:, None]
@@ -205,7 +211,7 @@ class Scene:
                          (self.joint_d,) * 3, points=base.copy()))
         verts = self.vertices(position, rot)
         out.append(Shape('platform', 0, TRIANGLE_LIST, (0.20, 0.65, 0.35, 1.0),
-                         points=_two_sided(verts)))
+                         points=self._two_sided(verts)))
         out.append(Shape('platform_joints', 0, SPHERE_LIST, (0.1, 0.3, 0.15, 1.0),
                          (self.joint_d,) * 3, points=verts))
         lengths_v = None if lengths is None else np.asarray(lengths, dtype=float)
@@ -245,8 +251,9 @@ class Scene:
         base, s, tip = self.legs(position, rot, lengths)
         verts = self.vertices(position, rot)
         o = self._offsets
-        f8[o['platform']:o['platform'] + 18] = _two_sided(verts).ravel()
-        f8[o['platform_joints']:o['platform_joints'] + 9] = verts.ravel()
+        plate = self._two_sided(verts).ravel()
+        f8[o['platform']:o['platform'] + plate.size] = plate
+        f8[o['platform_joints']:o['platform_joints'] + verts.size] = verts.ravel()
         L = np.linalg.norm(tip - base, axis=1)
         body_end = base + np.minimum(self.body, L)[:, None] * s
         rod_start = base + np.maximum(L - self.rod, 0.0)[:, None] * s
@@ -304,8 +311,14 @@ class Scene:
             self._ghost_key = self._ghost_flat = False
         return self._static[0].copy(), self._static[1].copy()
 
+    def _two_sided(self, verts) -> np.ndarray:
+        """The plate's triangles in both windings, so that it shows from below too."""
+        faces = self.plate_faces
+        order = np.concatenate([faces.ravel(), faces[:, [0, 2, 1]].ravel()])
+        return np.asarray(verts, dtype=float)[order]
+
     def ghost_shapes(self, ghost: tuple[ArrayLike, ArrayLike] | None) -> list[Shape]:
-        """The setpoint pose: a translucent triangle and thin legs to it.
+        """The setpoint pose: a translucent plate and thin legs to it.
 
         Args:
             ghost: (position (3,), rot (3, 3)); None: both shapes hidden.
@@ -314,7 +327,7 @@ class Scene:
             The two shapes ``ghost`` and ``ghost_legs``.
         """
         if ghost is None:
-            points = np.zeros((6, 3))
+            points = np.zeros((6 * len(self.plate_faces), 3))
             return [Shape('ghost', 0, TRIANGLE_LIST, HIDDEN, points=points),
                     Shape('ghost_legs', 0, LINE_LIST, HIDDEN, (0.006, 1.0, 1.0),
                           points=np.zeros((12, 3)))]
@@ -322,9 +335,9 @@ class Scene:
         base = np.asarray(self.mech.base_points, dtype=float)
         legs = np.empty((12, 3))
         legs[0::2] = base
-        legs[1::2] = verts[[0, 0, 1, 1, 2, 2]]
+        legs[1::2] = verts[self._leg_joint]
         return [Shape('ghost', 0, TRIANGLE_LIST, (0.95, 0.75, 0.20, 0.35),
-                      points=_two_sided(verts)),
+                      points=self._two_sided(verts)),
                 Shape('ghost_legs', 0, LINE_LIST, (0.95, 0.75, 0.20, 0.5),
                       (0.006, 1.0, 1.0), points=legs)]
 
@@ -351,9 +364,24 @@ def flatten(shape_list: list[Shape]) -> tuple[np.ndarray, np.ndarray]:
     return np.array(f8, dtype=float), np.array(f4, dtype=np.float32)
 
 
-def _two_sided(verts) -> np.ndarray:
-    """The triangle in both windings, so that it shows from below too."""
-    return np.asarray(verts, dtype=float)[[0, 1, 2, 0, 2, 1]]
+def plate_faces(points: ArrayLike) -> np.ndarray:
+    """The platform plate's triangles: a 6-3's one triangle (0, 1, 2); a 6-6's
+    hexagon, its joints in turn about their centre (in the plane they span)
+    and fanned from the first.
+
+    Args:
+        points: (3, 3) or (6, 3) ``platform_points``.
+
+    Returns:
+        (1, 3) or (4, 3) int, rows of indices into ``points``.
+    """
+    points = np.asarray(points, dtype=float)
+    if len(points) == 3:
+        return np.array([[0, 1, 2]])
+    centred = points - points.mean(axis=0)
+    u, v, _ = np.linalg.svd(centred)[2]          # the joints' plane: u, v in it
+    ring = np.argsort(np.arctan2(centred @ v, centred @ u))
+    return np.array([[ring[0], ring[j], ring[j + 1]] for j in range(1, len(ring) - 1)])
 
 
 def _cylinder(ns, i, start, end, diameter, color) -> Shape:
