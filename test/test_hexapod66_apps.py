@@ -33,8 +33,9 @@ from test_laws import potential, six_axis_reference
 from stewart63_ros.core.analysis import linear, modal
 from stewart63_ros.core.analysis.workspace import workspace_map
 from stewart63_ros.core.controllers.laws import Controller, PDGravityLaw
-from stewart63_ros.core.controllers.reference import Reference, tracking_errors
+from stewart63_ros.core.controllers.reference import Reference
 from stewart63_ros.core.controllers.simulate import run_continuous, run_sampled
+from stewart63_ros.core.controllers.tracking import tracking_errors
 from stewart63_ros.core.machine.supervisor import (
     limits_from_params,
     rest_lengths,
@@ -342,7 +343,9 @@ def test_the_views_ghost_pose_is_read_back_from_a_6_6_plate(mech):
 
 # -- scenarios -----------------------------------------------------------------------------------
 def test_a_scenario_runs_a_6_6_parameter_file(params66, default_setup, tmp_path):
-    from stewart63_ros.core.scenarios.scenario import evaluate, load_scenarios, run_sim
+    from stewart63_ros.core.scenarios.parsing import load_scenarios
+    from stewart63_ros.core.scenarios.running import run_sim
+    from stewart63_ros.core.scenarios.verdicts import evaluate
     split = split_platform_points(default_setup.mechanism.platform_points, 0.06).ravel()
     (tmp_path / 'hexapod66.yaml').write_text(params66.read_text())
     path = tmp_path / 'six.yaml'
