@@ -191,6 +191,8 @@ def test_rig_cli_composed_supervised_over_the_bus_ends_at_the_separate_runs_erro
     assert 'rig: composed, plant,' in out, out
     assert 'final positioning error: %.4f %%' % BUS_FINAL_ERROR in out, out
     assert 'supervisor: no trip' in out, out
+    assert 'drives left safe: leg_1, leg_2, leg_3, leg_4, leg_5, leg_6 ready to switch on' \
+        in out, (out, done.stderr)
     n = int(BUS_DURATION * RATE) + 1
     assert 'canopen_bridge: 1000 Hz, %d cycles, missed cycles 0, force timeouts 0' % n in out, \
         out

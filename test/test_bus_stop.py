@@ -297,3 +297,19 @@ def test_a_stalled_bridge_skips_the_syncs_it_missed_sends_no_burst_and_loses_no_
     assert done['syncs_skipped'] >= 40, done
     print('\nstalled 0.6 s: %d SYNCs skipped, then at most %d SYNCs in 50 ms'
           % (done['syncs_skipped'], most))
+
+
+def test_the_rig_summary_says_the_drives_were_left_safe_or_names_those_that_were_not(capsys):
+    from stewart63_ros.tools.rig import print_drives_at_stop
+    safe = {'leg_%d' % i: READY_TO_SWITCH_ON for i in range(1, 7)}
+    print_drives_at_stop({'drives_at_stop': safe})
+    out, err = capsys.readouterr()
+    assert out == ('  drives left safe: leg_1, leg_2, leg_3, leg_4, leg_5, leg_6 ready to '
+                   'switch on, zero torque, NMT pre-operational\n') and err == ''
+    print_drives_at_stop({'drives_at_stop': dict(
+        safe, leg_3='not confirmed (last seen OPERATION ENABLED)')})
+    out, err = capsys.readouterr()
+    assert out == '' and err == ('rig: error: the drives were NOT all left safe: leg_3: not '
+                                 'confirmed (last seen OPERATION ENABLED)\n')
+    print_drives_at_stop(None)          # killed: no summary
+    assert 'the drives were NOT confirmed safe' in capsys.readouterr().err
