@@ -494,15 +494,15 @@ class Cycles:
     controller has the platform alone again, and ~/reset once the descent
     has reached rest (the node serves both between samples)."""
 
-    def __init__(self, sup, controller, cycles):
-        self.sup, self.controller, self.cycles = sup, controller, cycles
+    def __init__(self, sup, controller, cycles, rate):
+        self.sup, self.controller, self.cycles, self.rate = sup, controller, cycles, rate
         self.events, self.since = [], None
 
     def forces(self, t, lengths, rates):
-        k, state = int(round(t * RATE)), self.sup.state
+        k, state = int(round(t * self.rate)), self.sup.state
         if state == 'forwarding':
             self.since = k if self.since is None else self.since
-            if k - self.since >= 500 and len(self.events) < 2 * self.cycles:
+            if k - self.since >= 0.5 * self.rate and len(self.events) < 2 * self.cycles:
                 self.sup.trip_now('estop', '~/estop')
                 self.events.append(('estop', k))
                 self.since = None
@@ -521,17 +521,24 @@ def test_estop_descent_reset_and_return_ten_times_never_trip_with_the_packaged_l
     cycles in one run (the plant's dynamics): the only trips are the
     estops; no leg ever faster than return_speed (the plant's truth, with
     the 2 % a PD tracking a profile overshoots); every return ends on the
-    setpoint with the controller's own forces."""
+    setpoint with the controller's own forces.
+
+    For the suite's time (a third of it): the descent at 0.2 m/s, not the
+    packaged 0.05 m/s (9 s of simulated time a cycle; the descent itself is
+    the subject of test_the_descent_ends_at_rest_inside_the_soft_stroke),
+    and 500 Hz (the peak return speed and the end on the setpoint were the
+    same to 4 digits at the packaged 1 kHz). The limits are the packaged ones."""
     from stewart63_ros.core.controllers.laws import Controller
-    sup = supervisor_from_params(setup, params, RATE)
+    rate = 500.0
+    sup = supervisor_from_params(setup, dict(params, descent_speed=0.2), rate)
     assert sup.limits.leg_speed == 0.5 and sup.limits.return_speed == 0.2   # packaged
-    cycles = Cycles(sup, Controller(setup), 10)
-    out = run_supervised(setup, sup, 130.0, RATE, controller=cycles)
+    cycles = Cycles(sup, Controller(setup), 10, rate)
+    out = run_supervised(setup, sup, 60.0, rate, controller=cycles)
     estops = [k for what, k in cycles.events if what == 'estop']
     resets = [k for what, k in cycles.events if what == 'reset']
     assert len(estops) == len(resets) == 10, cycles.events
     assert [(t.cause, t.sample_ns // 1_000_000) for t in sup.trips] == [
-        ('estop', k) for k in estops]
+        ('estop', k * 1000 // int(rate)) for k in estops]
     assert sup.state == 'forwarding'
     speed = np.abs(true_rates(mech, out)).max(axis=1)
     for reset, end in zip(resets, estops[1:] + [len(speed)]):
@@ -539,8 +546,8 @@ def test_estop_descent_reset_and_return_ten_times_never_trip_with_the_packaged_l
         # back on the setpoint (the PD's sag), the controller's forces alone
         np.testing.assert_allclose(out['lengths'][end - 1], setup.task.setpoint_lengths,
                                    atol=0.02)
-        np.testing.assert_array_equal(out['forces'][end - 100:end],
-                                      out['requests'][end - 100:end])
+        np.testing.assert_array_equal(out['forces'][end - 50:end],
+                                      out['requests'][end - 50:end])
 
 
 #: A dead piston whose force comes back: the platform falls, tilting, and

@@ -146,6 +146,9 @@ def test_homing_over_the_bus_sets_the_drives_and_a_killed_supervisor_leaves_no_t
     assert codes['supervisor'] == -signal.SIGKILL and codes['plant'] == 0 \
         and codes['controller'] == 0 and codes['canopen_bridge'] == 0, (codes,
                                                                        logs_of(rig.log_dir))
+    # stopped by the rig (the bridge before the plant): the drives confirmed the safe stop
+    assert rig.summary('canopen_bridge')['drives_at_stop'] == {
+        leg.name: 'READY TO SWITCH ON' for leg in config_legs}, logs_of(rig.log_dir)
 
 
 def test_rig_cli_runs_supervisor_on_the_bus_and_a_bus_fault_trips_on_stale_lengths(
@@ -170,6 +173,9 @@ def test_rig_cli_runs_supervisor_on_the_bus_and_a_bus_fault_trips_on_stale_lengt
                           timeout=START_TIMEOUT)
     assert done.returncode == 0, (done.stdout, done.stderr, logs_of(tmp_path / 'rig'))
     assert 'supervisor: 1 trip' in done.stdout and 'lengths_stale' in done.stdout, done.stdout
+    # the end of the run: the bridge's safe stop confirmed by the drives (the plant's)
+    assert 'drives left safe: leg_1, leg_2, leg_3, leg_4, leg_5, leg_6 ready to switch on' \
+        in done.stdout, (done.stdout, done.stderr)
     # the core, with that leg's reading missing over the same samples
     setup = load_setup(PARAMS)
     core_params = setup.to_params()

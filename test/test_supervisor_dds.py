@@ -480,11 +480,14 @@ def test_estop_descent_reset_and_return_repeat_without_a_trip_on_the_packaged_li
     to rest, ~/reset, the return to the setpoint and the controller's hand-
     over, ``SUPERVISOR_CYCLES`` times (default 1, for the suite's time; 10 measured, see
     docs/supervisor.md), with the packaged limits: the estops are the only
-    trips (test_supervisor.py runs 10 cycles in the core)."""
+    trips (test_supervisor.py runs 10 cycles in the core). The descent at
+    0.2 m/s, not the packaged 0.05 m/s: 9 s of lockstep samples less, for
+    the suite's time; the limits are the packaged ones."""
     cycles = int(os.environ.get('SUPERVISOR_CYCLES', '1'))
     rig_env(ros, monkeypatch)
     client = Client(ros)
     extra = json.loads(json.dumps(PATIENT))
+    extra['supervisor']['descent_speed'] = 0.2
     # (a loaded machine has stalled the whole rig 2 s: the controller's
     # wall-clock watchdog is not this test's subject)
     extra['controller'] = {'watchdog_timeout': 10.0}
@@ -536,11 +539,12 @@ def test_rig_whose_supervisor_is_killed_shows_the_plants_fail_safe_then_stops(ro
 
     from stewart63_ros import topics as T
     plant = tmp_path / 'plant.yaml'
-    # each sample waits this long for the dead supervisor's answer (1 s by default)
-    plant.write_text('/**/plant:\n  ros__parameters:\n    force_timeout: 0.05\n')
+    # each sample waits this long for the dead supervisor's answer (1 s by
+    # default): the fail safe's 51 samples then take 1 s
+    plant.write_text('/**/plant:\n  ros__parameters:\n    force_timeout: 0.02\n')
     proc = ros.python('-m', 'stewart63_ros.tools.rig', '--mode', 'lockstep', '--supervisor',
-                      '--plant-params', str(plant), '--duration', '120',
-                      '--log-dir', str(tmp_path / 'rig'), name='rig')
+                      '--nodes', ','.join(NODES), '--plant-params', str(plant),
+                      '--duration', '120', '--log-dir', str(tmp_path / 'rig'), name='rig')
     node = ros.node('probe')
     forces = []
     node.create_subscription(JointState, '/leg_forces', lambda m: forces.append(1),

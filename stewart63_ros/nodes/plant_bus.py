@@ -32,6 +32,9 @@ from stewart63_ros.runtime.launcher import STOP
 
 #: s: how often the bus is served before the loop starts (SDO answers of the bring-up)
 IDLE_SERVICE_PERIOD = 0.002
+#: s: at its stop, how long the plant's drives go on answering for the bridge's
+#: safe stop (its wait for the statuswords and its SDO budget, canbus/master.py)
+SAFE_STOP_WAIT = 1.0
 
 
 class PlantBus:
@@ -175,6 +178,19 @@ class PlantBus:
             '%s: %s%s' % (d.leg.name, 'off' if d.off else d.nmt.lower(),
                           '' if d.off else ' ' + d.drive.state.lower())
             for d in devices.drives)
+
+    def close(self):
+        """Drives outlive their master: at the plant's stop (the end of its
+        duration, a signal) its drives go on answering until the bridge has
+        left them safe (NMT pre-operational, its safe stop's last step), at
+        most SAFE_STOP_WAIT s; so the bridge's stop is confirmed by them
+        (docs/bus.md, "Stopping"), however the two are stopped."""
+        devices = getattr(self, 'devices', None)
+        deadline = time.monotonic() + SAFE_STOP_WAIT
+        while devices is not None and time.monotonic() < deadline and any(
+                not d.off and d.nmt == 'OPERATIONAL' for d in devices.drives):
+            devices.poll(0.005)
+        super().close()
 
     def close_bus(self) -> None:
         devices = getattr(self, 'devices', None)

@@ -388,7 +388,9 @@ class Rig:
         stopped as asked: 0.
         """
         interrupted = set()
-        order = [n for n in ('composed', 'plant', 'canopen_bridge', 'controller', 'supervisor',
+        # --bus: the bridge (alone or composed) before the plant, whose drives
+        # answer its safe stop before they go (plant_bus.py, PlantBus.close)
+        order = [n for n in ('composed', 'canopen_bridge', 'plant', 'controller', 'supervisor',
                              'fk', 'view')
                  if n in self.procs] + (
             ['record'] if 'record' in self.procs else [])
@@ -419,6 +421,27 @@ class Rig:
             return json.loads(path.read_text())
         except (OSError, ValueError):
             return None
+
+
+def print_drives_at_stop(bridge) -> None:
+    """What the bridge's safe stop left the drives in (docs/bus.md, "Stopping"):
+    one line when every drive confirmed READY TO SWITCH ON, else an ERROR
+    naming each drive that did not."""
+    states = (bridge or {}).get('drives_at_stop')
+    if states is None:
+        print('rig: error: the drives were NOT confirmed safe: the bridge wrote no summary '
+              'of its safe stop', file=sys.stderr)
+        return
+    if not states:
+        print('  drives: none was up at the bridge\'s stop (NMT pre-operational sent)')
+        return
+    unsafe = {leg: state for leg, state in states.items() if state != 'READY TO SWITCH ON'}
+    if unsafe:
+        print('rig: error: the drives were NOT all left safe: %s' % ', '.join(
+            '%s: %s' % item for item in unsafe.items()), file=sys.stderr)
+    else:
+        print('  drives left safe: %s ready to switch on, zero torque, NMT pre-operational'
+              % ', '.join(states))
 
 
 def _dump_stacks(proc) -> None:
@@ -885,6 +908,7 @@ def print_summary(rig, wall, started_unix=None):
                                             s['rate_hz'], s['cycles'], s['missed_cycles'],
                                             s['force_timeouts'], s['tpdo_missed'],
                                             s['bus_load_computed_percent'])))
+        print_drives_at_stop(s)
     for node in ('controller', 'fk'):
         if node not in rig.nodes:
             continue
