@@ -399,7 +399,7 @@ def test_the_example_detector_trips_on_a_stuck_sensor_only(setup, mech):
 
 
 def test_the_live_view_shows_the_run_state_and_each_fault():
-    from stewart63_ros.tools.view import run_lines
+    from stewart63_ros.tools.view_sources import run_lines
     lines = run_lines({'run': 'paused', 'sample': '120', 'run_number': '2',
                        'fault: sensor_bias:leg_1:0.01@5': 'scheduled from 5 s',
                        'fault: actuator_dead:leg_4': 'active since 0.000000 s'})

@@ -330,7 +330,7 @@ def test_the_fk_nodes_marker_bytes_of_a_6_6_are_the_message_built_field_by_field
 
 
 def test_the_views_ghost_pose_is_read_back_from_a_6_6_plate(mech):
-    from stewart63_ros.tools.view import _pose_from_vertices
+    from stewart63_ros.tools.view_sources import _pose_from_vertices
     rot = Rotation.from_euler('xyz', [0.2, -0.1, 0.4]).as_matrix()
     t = np.array([0.1, -0.05, 1.2])
     scene = M.Scene(mech)

@@ -30,7 +30,6 @@ WHY = 'Why this long:'
 LONG_MODULES = {
     'stewart63_ros/core/machine/calibration.py': 'under change (the calibration work)',
     'stewart63_ros/tools/rig.py': 'under change (the rig work)',
-    'stewart63_ros/tools/view.py': 'to split by job (the server, the scene)',
 }
 #: Classes over CLASS_LINES, as 'path:Class'.
 LONG_CLASSES = {

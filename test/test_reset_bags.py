@@ -169,7 +169,7 @@ def test_plot_writes_one_figure_per_run(reset_bag, tmp_path):
 
 
 def test_view_replays_one_run_of_a_reset_bag(reset_bag):
-    from stewart63_ros.tools.view import BagRun
+    from stewart63_ros.tools.view_sources import BagRun
     last = BagRun(reset_bag, SETUP)
     assert last.t[-1] == pytest.approx(0.3) and np.all(np.diff(last.t) > 0)
     assert last.position[0][2] == pytest.approx(1.0)
