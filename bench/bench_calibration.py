@@ -18,6 +18,7 @@ import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from stewart63_ros.core.machine import calibration as cal  # noqa: E402
+from stewart63_ros.core.machine import calibration_model as cal_model  # noqa: E402
 from stewart63_ros.core.machine import calibration_plan as cp  # noqa: E402
 from stewart63_ros.core.plumbing.params import load_setup  # noqa: E402
 
@@ -27,14 +28,14 @@ def measure(poses: int = 100, repeat: int = 5) -> dict:
     setup = load_setup()
     mech = setup.mechanism
     rng = np.random.default_rng(0)
-    theta = cal.parameter_vector(mech)
+    theta = cal_model.parameter_vector(mech)
     theta[:27] += rng.uniform(-0.005, 0.005, 27)
     theta[27:] += rng.uniform(-0.01, 0.01, 6)
     positions, rotations = cp.candidate_poses(setup, poses, rng)
-    true = cal.Measurements(positions, rotations, np.zeros((poses, 6)))
-    readings = cal.predict_readings(theta, true)
+    true = cal_model.Measurements(positions, rotations, np.zeros((poses, 6)))
+    readings = cal_model.predict_readings(theta, true)
     seen = Rotation.from_rotvec(rng.normal(0, 1e-4, (poses, 3))) * Rotation.from_matrix(rotations)
-    meas = cal.measurements(positions + rng.normal(0, 1e-4, positions.shape), seen.as_quat(),
+    meas = cal_model.measurements(positions + rng.normal(0, 1e-4, positions.shape), seen.as_quat(),
                             readings)
     cal.fit(mech, meas)         # imports and first calls
     fits = []

@@ -15,18 +15,19 @@ from scipy.spatial.transform import Rotation
 
 from stewart63_ros.core.controllers.sensor import SensorModel, TrackerModel
 from stewart63_ros.core.machine import calibration as cal
+from stewart63_ros.core.machine import calibration_model as cal_model
 from stewart63_ros.core.machine import calibration_plan as cp
 from stewart63_ros.core.plumbing.params import ParameterError, load_setup
 from stewart63_ros.tools import calibrate
 
-NOISE = cal.NoiseModel(1e-4, 1e-4, 1e-5)
+NOISE = cal_model.NoiseModel(1e-4, 1e-4, 1e-5)
 
 
 @pytest.fixture(scope='module')
 def truth(mech):
     """A machine built off the drawing: points up to 5 mm, offsets up to 10 mm."""
     rng = np.random.default_rng(11)
-    theta = cal.parameter_vector(mech)
+    theta = cal_model.parameter_vector(mech)
     theta[:27] += rng.uniform(-0.005, 0.005, 27)
     theta[27:] += rng.uniform(-0.01, 0.01, 6)
     return theta
@@ -41,13 +42,13 @@ def planned(setup, mech):
 def tracked(theta, positions, rotations, rng, noise=NOISE):
     """Measurements of a machine ``theta`` at true poses: readings from the
     truth, the poses as a noisy tracker reports them."""
-    true = cal.Measurements(positions, rotations, np.zeros((len(positions), 6)))
-    readings = cal.predict_readings(theta, true) + rng.normal(0, noise.reading,
+    true = cal_model.Measurements(positions, rotations, np.zeros((len(positions), 6)))
+    readings = cal_model.predict_readings(theta, true) + rng.normal(0, noise.reading,
                                                               (len(positions), 6))
     seen_pos = positions + rng.normal(0, noise.position, positions.shape)
     seen_rot = Rotation.from_rotvec(rng.normal(0, noise.orientation, (len(positions), 3))) \
         * Rotation.from_matrix(rotations)
-    return cal.measurements(seen_pos, seen_rot.as_quat(), readings)
+    return cal_model.measurements(seen_pos, seen_rot.as_quat(), readings)
 
 
 def random_poses(setup, count, seed, half_range=cp.DEFAULT_RANGE):
@@ -57,27 +58,28 @@ def random_poses(setup, count, seed, half_range=cp.DEFAULT_RANGE):
 # -- the model -----------------------------------------------------------------
 def test_parameter_and_pose_jacobians_match_finite_differences(setup, mech, truth):
     positions, rotations = random_poses(setup, 5, 1)
-    meas = cal.Measurements(positions, rotations, np.zeros((5, 6)))
-    jac = cal.parameter_jacobian(truth, meas)
+    meas = cal_model.Measurements(positions, rotations, np.zeros((5, 6)))
+    jac = cal_model.parameter_jacobian(truth, meas)
     step = 1e-6
-    for j in range(cal.N_PARAMETERS):
-        d = np.zeros(cal.N_PARAMETERS)
+    for j in range(cal_model.N_PARAMETERS):
+        d = np.zeros(cal_model.N_PARAMETERS)
         d[j] = step
-        numeric = (cal.predict_readings(truth + d, meas)
-                   - cal.predict_readings(truth - d, meas)) / (2 * step)
-        assert np.allclose(jac[:, :, j], numeric, atol=1e-7), cal.PARAMETER_NAMES[j]
-    pose_jac = cal.pose_jacobian(truth, meas)
+        numeric = (cal_model.predict_readings(truth + d, meas)
+                   - cal_model.predict_readings(truth - d, meas)) / (2 * step)
+        assert np.allclose(jac[:, :, j], numeric, atol=1e-7), cal_model.PARAMETER_NAMES[j]
+    pose_jac = cal_model.pose_jacobian(truth, meas)
     for a in range(6):
         d = np.zeros(3)
         d[a % 3] = step
         if a < 3:
-            plus = cal.Measurements(positions + d, rotations, meas.readings)
-            minus = cal.Measurements(positions - d, rotations, meas.readings)
+            plus = cal_model.Measurements(positions + d, rotations, meas.readings)
+            minus = cal_model.Measurements(positions - d, rotations, meas.readings)
         else:
             turn = Rotation.from_rotvec(d).as_matrix()
-            plus = cal.Measurements(positions, turn @ rotations, meas.readings)
-            minus = cal.Measurements(positions, turn.T @ rotations, meas.readings)
-        numeric = (cal.predict_readings(truth, plus) - cal.predict_readings(truth, minus)) \
+            plus = cal_model.Measurements(positions, turn @ rotations, meas.readings)
+            minus = cal_model.Measurements(positions, turn.T @ rotations, meas.readings)
+        numeric = (cal_model.predict_readings(truth, plus)
+                   - cal_model.predict_readings(truth, minus)) \
             / (2 * step)
         assert np.allclose(pose_jac[:, :, a], numeric, atol=1e-7), a
 
@@ -87,8 +89,8 @@ def test_readings_of_the_drawing_are_the_inverse_kinematics_plus_offset(setup, m
     offset = [0.001, -0.002, 0.003, 0.0, 0.004, -0.005]
     drawn = mech.replace(leg_length_offset=offset)
     positions, rotations = random_poses(setup, 3, 2)
-    meas = cal.Measurements(positions, rotations, np.zeros((3, 6)))
-    predicted = cal.predict_readings(cal.parameter_vector(drawn), meas)
+    meas = cal_model.Measurements(positions, rotations, np.zeros((3, 6)))
+    predicted = cal_model.predict_readings(cal_model.parameter_vector(drawn), meas)
     for n in range(3):
         assert np.allclose(predicted[n], leg_lengths(mech, positions[n], rotations[n])
                            + offset, atol=1e-12)
@@ -103,7 +105,7 @@ def test_planned_poses_recover_the_machine_within_three_reported_sigma(mech, tru
     print('\nrecovery: max |error| %.3g mm, max |error|/std %.2f, max std %.3g mm, '
           'noise scale %.3f' % (np.abs(result.estimate - truth).max() * 1e3,
                                 np.abs(z).max(), result.std.max() * 1e3, result.noise_scale))
-    assert np.all(np.abs(z) <= 3.0), dict(zip(cal.PARAMETER_NAMES, np.round(z, 2)))
+    assert np.all(np.abs(z) <= 3.0), dict(zip(cal_model.PARAMETER_NAMES, np.round(z, 2)))
     assert 0.8 < result.noise_scale < 1.25
     # The drawing was millimetres off; the calibrated model predicts to the noise.
     assert result.rms_before > 2e-3 and result.rms_after < 2e-4
@@ -125,7 +127,7 @@ def test_reported_sigma_agrees_with_the_spread_over_noise_seeds(mech, truth, pla
                                           reported.min() * 1e3, reported.max() * 1e3))
     # 40 seeds estimate a spread to about +-11 % (1 sigma).
     assert 0.85 < np.median(ratio) < 1.15
-    assert np.all((ratio > 0.6) & (ratio < 1.45)), dict(zip(cal.PARAMETER_NAMES,
+    assert np.all((ratio > 0.6) & (ratio < 1.45)), dict(zip(cal_model.PARAMETER_NAMES,
                                                             np.round(ratio, 2)))
     # Unbiased: the mean estimate within 4 standard errors of the truth.
     assert np.all(np.abs(np.mean(estimates, axis=0) - truth) < 4 * reported / np.sqrt(40))
@@ -155,7 +157,7 @@ def test_close_poses_hold_the_leg_against_offset_trade_at_the_drawing(setup, mec
 def test_held_out_fk_error_drops_with_the_calibrated_file(setup, mech, truth, planned):
     meas = tracked(truth, planned.positions, planned.rotations, np.random.default_rng(6))
     result = cal.fit(mech, meas, NOISE)
-    calibrated = cal.mechanism_with(mech, result.estimate)
+    calibrated = cal_model.mechanism_with(mech, result.estimate)
     positions, rotations = random_poses(setup, 10, 12)
     check = tracked(truth, positions, rotations, np.random.default_rng(7))
     before = cal.pose_errors(mech, check)
@@ -172,7 +174,7 @@ def test_held_out_fk_error_drops_with_the_calibrated_file(setup, mech, truth, pl
 def test_too_few_poses_are_refused(mech, truth, planned):
     meas = tracked(truth, planned.positions[:9], planned.rotations[:9],
                    np.random.default_rng(1))
-    with pytest.raises(cal.CalibrationError, match='9 poses: the fit needs at least 10'):
+    with pytest.raises(cal_model.CalibrationError, match='9 poses: the fit needs at least 10'):
         cal.fit(mech, meas, NOISE)
 
 
@@ -180,9 +182,9 @@ def test_level_poses_are_refused_naming_what_they_leave_unseen(setup, mech, trut
     positions, _ = random_poses(setup, 30, 2)
     level = np.repeat(np.eye(3)[None], 30, axis=0)
     meas = tracked(truth, positions, level, np.random.default_rng(2),
-                   cal.NoiseModel(1e-4, 1e-12, 1e-5))
-    meas = cal.Measurements(positions, level, meas.readings)
-    with pytest.raises(cal.CalibrationError) as info:
+                   cal_model.NoiseModel(1e-4, 1e-12, 1e-5))
+    meas = cal_model.Measurements(positions, level, meas.readings)
+    with pytest.raises(cal_model.CalibrationError) as info:
         cal.fit(mech, meas, NOISE)
     text = str(info.value)
     assert 'leave 9 combinations unidentifiable' in text
@@ -197,10 +199,11 @@ def test_poses_at_one_height_turning_only_about_z_are_refused(setup, mech, truth
     centre, _ = setpoint_pose(setup)
     positions = centre + np.column_stack([rng.uniform(-0.2, 0.2, (30, 2)), np.zeros(30)])
     rotations = Rotation.from_euler('z', rng.uniform(-0.3, 0.3, (30, 1))).as_matrix()
-    readings = cal.predict_readings(truth, cal.Measurements(positions, rotations,
+    readings = cal_model.predict_readings(truth, cal_model.Measurements(positions, rotations,
                                                             np.zeros((30, 6))))
-    meas = cal.Measurements(positions, rotations, readings)
-    with pytest.raises(cal.CalibrationError, match='unidentifiable.*p_1.z.*level.*one height'):
+    meas = cal_model.Measurements(positions, rotations, readings)
+    with pytest.raises(cal_model.CalibrationError,
+                       match='unidentifiable.*p_1.z.*level.*one height'):
         cal.fit(mech, meas, NOISE)
 
 
@@ -208,16 +211,16 @@ def test_nan_rows_and_bad_quaternions_are_refused():
     good = np.zeros((3, 3)), np.tile([0, 0, 0, 1.0], (3, 1)), np.ones((3, 6))
     readings = good[2].copy()
     readings[1, 4] = np.nan
-    with pytest.raises(cal.CalibrationError, match='row 2 holds NaN'):
-        cal.measurements(good[0], good[1], readings)
-    with pytest.raises(cal.CalibrationError, match='row 1: the quaternion'):
-        cal.measurements(good[0], np.tile([0, 0, 0, 2.0], (3, 1)), good[2])
+    with pytest.raises(cal_model.CalibrationError, match='row 2 holds NaN'):
+        cal_model.measurements(good[0], good[1], readings)
+    with pytest.raises(cal_model.CalibrationError, match='row 1: the quaternion'):
+        cal_model.measurements(good[0], np.tile([0, 0, 0, 2.0], (3, 1)), good[2])
 
 
 def test_a_calibration_outside_the_stroke_is_not_a_machine(setup, mech, truth):
     positions, rotations = random_poses(setup, 20, 5)
     meas = tracked(truth, positions, rotations, np.random.default_rng(5))
-    lengths = cal.predict_readings(cal.parameter_vector(mech), meas)
+    lengths = cal_model.predict_readings(cal_model.parameter_vector(mech), meas)
     short = mech.replace(leg_length_max=max(float(setup.task.setpoint_lengths.max()) + 0.01,
                                             float(np.percentile(lengths, 90))))
     with pytest.raises(ParameterError, match='outside the stroke.*not the machine'):
@@ -271,10 +274,10 @@ def test_fit_writes_a_calibrated_file_every_node_reads(setup, tmp_path, mech, tr
                            '--out', str(tmp_path / 'out')]) == 0
     calibrated_setup = load_setup(tmp_path / 'out' / 'calibrated.yaml')
     calibrated = calibrated_setup.mechanism
-    error = cal.parameter_vector(calibrated) - truth
+    error = cal_model.parameter_vector(calibrated) - truth
     assert np.abs(error).max() < 5e-3
     report = json.loads((tmp_path / 'out' / 'report.json').read_text())
-    assert set(report['parameters']) == set(cal.PARAMETER_NAMES)
+    assert set(report['parameters']) == set(cal_model.PARAMETER_NAMES)
     assert {'estimate', 'std'} <= set(report['parameters']['offset_1'])
     assert report['rms_after_m'] < report['rms_before_m'] / 10
     assert report['held_out']['after']['position_rms_m'] < \
@@ -305,7 +308,7 @@ def test_an_impossible_calibration_is_never_written(setup, tmp_path, mech, truth
     positions, rotations = random_poses(setup, 20, 5)
     meas = tracked(truth, positions, rotations, np.random.default_rng(5))
     write_measurements(tmp_path / 'm.csv', meas)
-    lengths = cal.predict_readings(cal.parameter_vector(mech), meas)
+    lengths = cal_model.predict_readings(cal_model.parameter_vector(mech), meas)
     import yaml
     doc = yaml.safe_load(open(calibrate.default_params_path()))
     doc['/**']['ros__parameters']['leg_length_max'] = max(
@@ -349,13 +352,13 @@ def test_fit_refuses_unit_mistakes_naming_the_file_and_row(tmp_path, mech, truth
     swapped = meas.readings.copy()
     swapped[::2] = swapped[::2, ::-1]
     cases = {
-        'mm.csv': (cal.Measurements(meas.positions * 1000, meas.rotations,
+        'mm.csv': (cal_model.Measurements(meas.positions * 1000, meas.rotations,
                                     meas.readings * 1000), 'row 1: leg_1 reads'),
-        'mm_reading.csv': (cal.Measurements(meas.positions, meas.rotations, readings_mm),
+        'mm_reading.csv': (cal_model.Measurements(meas.positions, meas.rotations, readings_mm),
                            'row 4: leg_1 reads'),
-        'mm_pose.csv': (cal.Measurements(positions_mm, meas.rotations, meas.readings),
+        'mm_pose.csv': (cal_model.Measurements(positions_mm, meas.rotations, meas.readings),
                         'row 5: the pose'),
-        'swapped.csv': (cal.Measurements(meas.positions, meas.rotations, swapped),
+        'swapped.csv': (cal_model.Measurements(meas.positions, meas.rotations, swapped),
                         'the rows it predicts worst: '),
     }
     for name, (bad, words) in cases.items():
@@ -373,7 +376,7 @@ def test_fit_refuses_unit_mistakes_naming_the_file_and_row(tmp_path, mech, truth
 
 
 def test_held_out_readings_fk_cannot_solve_are_counted_not_infinite(mech):
-    meas = cal.Measurements(np.array([[0.01, 0.01, 1.0]] * 2), np.array([np.eye(3)] * 2),
+    meas = cal_model.Measurements(np.array([[0.01, 0.01, 1.0]] * 2), np.array([np.eye(3)] * 2),
                             np.array([[1.2] * 5 + [2.3], [1.2, 2.3] * 3]))
     errors = cal.pose_errors(mech, meas)
     assert errors['unsolved'] == 2 and errors['position_rms_m'] is None

@@ -19,6 +19,7 @@ from geometry66 import setup66
 from test_calibration import NOISE, tracked, write_measurements
 
 from stewart63_ros.core.machine import calibration as cal
+from stewart63_ros.core.machine import calibration_model as cal_model
 from stewart63_ros.core.machine import calibration_plan as cp
 from stewart63_ros.core.plumbing.params import load_setup
 from stewart63_ros.tools import calibrate
@@ -46,31 +47,31 @@ def built_off(theta, seed):
 
 def test_a_6_6_has_42_parameters_and_its_jacobian_matches_finite_differences(setup, poses):
     mech = setup.mechanism
-    theta = cal.parameter_vector(mech)
-    names = cal.parameter_names('6-6')
+    theta = cal_model.parameter_vector(mech)
+    names = cal_model.parameter_names('6-6')
     assert theta.size == len(names) == 42 and names[18:21] == ('p_1.x', 'p_1.y', 'p_1.z')
     assert names[33:36] == ('p_6.x', 'p_6.y', 'p_6.z') and names[-1] == 'offset_6'
-    meas = cal.Measurements(poses[0][:5], poses[1][:5], np.zeros((5, 6)))
-    jac = cal.parameter_jacobian(theta, meas)
+    meas = cal_model.Measurements(poses[0][:5], poses[1][:5], np.zeros((5, 6)))
+    jac = cal_model.parameter_jacobian(theta, meas)
     step = 1e-6
     for j in range(theta.size):
         d = np.zeros(theta.size)
         d[j] = step
-        numeric = (cal.predict_readings(theta + d, meas)
-                   - cal.predict_readings(theta - d, meas)) / (2 * step)
+        numeric = (cal_model.predict_readings(theta + d, meas)
+                   - cal_model.predict_readings(theta - d, meas)) / (2 * step)
         assert np.allclose(jac[:, :, j], numeric, atol=1e-7), names[j]
     # leg i sees its own joint only
     assert np.all(jac[:, :, 18:36].reshape(5, 6, 6, 3).any(axis=(0, 3)) == np.eye(6, dtype=bool))
     # the readings of the drawing are its inverse kinematics plus the offsets
     legs = poses[0][:5, None] + np.einsum('nab,ib->nia', poses[1][:5],
                                           mech.leg_platform_points) - mech.base_points
-    np.testing.assert_allclose(cal.predict_readings(theta, meas),
+    np.testing.assert_allclose(cal_model.predict_readings(theta, meas),
                                np.linalg.norm(legs, axis=2) + mech.leg_length_offset, atol=1e-12)
 
 
 def test_a_simulated_6_6_with_known_errors_is_recovered(setup, poses):
     mech = setup.mechanism
-    truth = built_off(cal.parameter_vector(mech), 11)
+    truth = built_off(cal_model.parameter_vector(mech), 11)
     meas = tracked(truth, *poses, np.random.default_rng(3))
     result = cal.fit(mech, meas, NOISE)
     assert result.geometry == '6-6' and result.held.shape[1] == 0
@@ -81,7 +82,7 @@ def test_a_simulated_6_6_with_known_errors_is_recovered(setup, poses):
     assert np.all(np.abs(z) <= 3.0), dict(zip(result.names, np.round(z, 2)))
     assert 0.8 < result.noise_scale < 1.25
     assert result.rms_before > 2e-3 and result.rms_after < 2e-4
-    calibrated = cal.mechanism_with(mech, result.estimate)
+    calibrated = cal_model.mechanism_with(mech, result.estimate)
     assert calibrated.layout == '6-6' and calibrated.platform_points.shape == (6, 3)
     report = cal.report(result)
     assert report['geometry'] == '6-6' and list(report['parameters']) == list(result.names)
@@ -92,19 +93,19 @@ def test_poses_at_one_orientation_leave_each_joint_with_its_base_point_unseen(se
     """No gauge freedom (the tracker fixes both frames), but poses at one
     orientation cannot tell a joint from its base point: 3 combinations per
     leg, 18 for a 6-6 (9 for a 6-3, whose pair shares its vertex)."""
-    truth = built_off(cal.parameter_vector(setup.mechanism), 12)
+    truth = built_off(cal_model.parameter_vector(setup.mechanism), 12)
     level = np.repeat(np.eye(3)[None], len(poses[0]), axis=0)
-    readings = cal.predict_readings(truth, cal.Measurements(poses[0], level,
+    readings = cal_model.predict_readings(truth, cal_model.Measurements(poses[0], level,
                                                             np.zeros((len(level), 6))))
-    with pytest.raises(cal.CalibrationError) as info:
-        cal.fit(setup.mechanism, cal.Measurements(poses[0], level, readings), NOISE)
+    with pytest.raises(cal_model.CalibrationError) as info:
+        cal.fit(setup.mechanism, cal_model.Measurements(poses[0], level, readings), NOISE)
     text = str(info.value)
     assert 'leave 18 combinations unidentifiable' in text, text
     assert '{b_6.z, p_6.z}' in text or '{p_6.z, b_6.z}' in text
     assert 'each platform joint and its base point' in text
     # a 6-6 is not three vertices
-    with pytest.raises(cal.CalibrationError, match='cannot be fitted as a 6-3'):
-        cal.fit(setup.mechanism, cal.Measurements(poses[0], level, readings), NOISE,
+    with pytest.raises(cal_model.CalibrationError, match='cannot be fitted as a 6-3'):
+        cal.fit(setup.mechanism, cal_model.Measurements(poses[0], level, readings), NOISE,
                 geometry='6-3')
 
 
@@ -138,8 +139,8 @@ def test_a_6_3_machine_whose_pairs_came_apart_is_fitted_as_a_6_6(default_setup, 
     assert calibrated.layout == '6-6' and len(calibrated.to_params()['platform_points']) == 18
     report = json.loads((tmp_path / 'out' / 'report.json').read_text())
     assert report['geometry'] == '6-6' and len(report['singular_values']) == 42
-    std = np.array([report['parameters'][n]['std'] for n in cal.parameter_names('6-6')])
-    z = (cal.parameter_vector(calibrated) - truth) / std
+    std = np.array([report['parameters'][n]['std'] for n in cal_model.parameter_names('6-6')])
+    z = (cal_model.parameter_vector(calibrated) - truth) / std
     assert np.all(np.abs(z) <= 3.0), np.round(z, 2)
     true_joints = truth[18:36].reshape(6, 3)
     true_gap = np.linalg.norm(true_joints[1::2] - true_joints[0::2], axis=1)
@@ -169,6 +170,6 @@ def test_a_plan_for_a_6_6_fit_sees_all_42_parameters(default_setup):
     """``plan --geometry 6-6`` on a 6-3 drawing: its index is of the 42-parameter fit."""
     plan = cp.plan(default_setup, 12, seed=1, candidates=60, geometry='6-6')
     blocks = cp._blocks(default_setup.mechanism, plan.positions, plan.rotations,
-                        cal.NoiseModel(), '6-6')
+                        cal_model.NoiseModel(), '6-6')
     assert blocks.shape == (12, 6, 42) and plan.o3 > 0
     assert cp.indices(blocks, range(12))[1] == pytest.approx(plan.o3)

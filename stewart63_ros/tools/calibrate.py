@@ -46,6 +46,7 @@ from stewart63_ros.core.controllers.reference import Reference, ReferenceError
 from stewart63_ros.core.controllers.reference_files import write_reference_csv
 from stewart63_ros.core.controllers.sensor import TrackerModel
 from stewart63_ros.core.machine import calibration as cal
+from stewart63_ros.core.machine import calibration_model as cal_model
 from stewart63_ros.core.machine import calibration_plan as cp
 from stewart63_ros.core.machine.supervisor import limits_from_params
 from stewart63_ros.core.mechanics.rotation import euler_from_matrix
@@ -99,8 +100,8 @@ def read_measurements_csv(path: Path):
         except ValueError:
             raise InputError('%s: row %d: not a number in %s' % (path, n + 1, row)) from None
     try:
-        return cal.measurements(table[:, 0:3], table[:, 3:7], table[:, 7:13])
-    except cal.CalibrationError as exc:
+        return cal_model.measurements(table[:, 0:3], table[:, 3:7], table[:, 7:13])
+    except cal_model.CalibrationError as exc:
         raise InputError('%s: %s' % (path, exc)) from None
 
 
@@ -153,9 +154,9 @@ def read_measurements_bag(path: Path, tracker_topic: str, tolerance: float, stil
         raise InputError('%s: no tracker sample left (matched, legs still)' % path)
     table = np.array(rows)
     try:
-        return cal.measurements(table[:, 0:3], table[:, 3:7], table[:, 7:13]), {
+        return cal_model.measurements(table[:, 0:3], table[:, 3:7], table[:, 7:13]), {
             'tracker_samples': len(poses), 'unmatched': len(off), 'used': len(rows)}
-    except cal.CalibrationError as exc:
+    except cal_model.CalibrationError as exc:
         raise InputError('%s: %s' % (path, exc)) from None
 
 
@@ -200,9 +201,9 @@ def write_calibrated(out: Path, params_path: Path, mech, note: str) -> Path:
 # -- the subcommands -------------------------------------------------------------------
 def _noise(args):
     try:
-        return cal.NoiseModel(args.tracker_noise[0], args.tracker_noise[1],
-                              getattr(args, 'reading_noise', cal.NoiseModel.reading))
-    except cal.CalibrationError as exc:
+        return cal_model.NoiseModel(args.tracker_noise[0], args.tracker_noise[1],
+                              getattr(args, 'reading_noise', cal_model.NoiseModel.reading))
+    except cal_model.CalibrationError as exc:
         raise InputError(str(exc)) from None
 
 
@@ -218,24 +219,24 @@ def run_fit(args, mech, params_path: Path) -> int:
     noise = _noise(args)
     what = 'tracker sample' if path.is_dir() else 'row'
     try:
-        cal.check_plausible(mech, meas, args.tolerance)
+        cal_model.check_plausible(mech, meas, args.tolerance)
         held_mask = cal.holdout_split(meas.count, args.holdout)
-    except cal.CalibrationError as exc:
+    except cal_model.CalibrationError as exc:
         raise InputError('%s: %s' % (path, str(exc).replace('row', what, 1))) from None
     fitted, held = meas.subset(~held_mask), meas.subset(held_mask)
-    if fitted.count < cal.MIN_POSES:
+    if fitted.count < cal_model.MIN_POSES:
         raise InputError('%s: %d poses, %d of them held out (--holdout %g): %d left to fit, '
                          'the fit needs at least %d' % (path, meas.count, held.count,
                                                         args.holdout, fitted.count,
-                                                        cal.MIN_POSES))
+                                                        cal_model.MIN_POSES))
     rows = np.flatnonzero(~held_mask) + 1        # each fitted pose's row in the file
     started = time.perf_counter()
     try:
         result = cal.fit(mech, fitted, noise, args.tolerance, rows=rows, geometry=args.geometry)
-    except cal.CalibrationError as exc:
+    except cal_model.CalibrationError as exc:
         raise InputError('%s: %s' % (path, str(exc).replace('rows', what + 's', 1))) from None
     try:
-        calibrated = cal.mechanism_with(mech, result.estimate)
+        calibrated = cal_model.mechanism_with(mech, result.estimate)
         cal.check_assembles(calibrated, meas)
     except ParameterError as exc:
         together = ' (a 6-3 fitted as a 6-6 whose pair stayed together: fit it without '\
@@ -328,7 +329,7 @@ def run_plan(args, setup, params_path: Path) -> int:
                        geometry=args.geometry)
         times, rows = cp.reference_rows(setup, plan.positions, plan.rotations, args.hold,
                                         args.move, args.leg_speed, limits=limits)
-    except (cp.PlanError, cal.CalibrationError) as exc:
+    except (cp.PlanError, cal_model.CalibrationError) as exc:
         raise InputError(exc) from None
     try:
         Reference.from_poses(setup.mechanism, times, rows).check(max_leg_speed=limits.leg_speed)
@@ -366,14 +367,14 @@ def run_machine(args, mech, params_path: Path) -> int:
     pair joints each moved on their own (the machine a 6-6 file describes)."""
     rng = np.random.default_rng(args.seed)
     try:
-        theta = cal.parameter_vector(mech, args.geometry)
-    except cal.CalibrationError as exc:
+        theta = cal_model.parameter_vector(mech, args.geometry)
+    except cal_model.CalibrationError as exc:
         raise InputError(exc) from None
     points = theta.size - 6
     theta[:points] += rng.uniform(-args.points, args.points, points)
     theta[points:] += rng.uniform(-args.offsets, args.offsets, 6)
     try:
-        machine = cal.mechanism_with(mech, theta)
+        machine = cal_model.mechanism_with(mech, theta)
     except ParameterError as exc:
         raise InputError('the perturbed machine is impossible: %s' % exc) from None
     doc = calibrated_document(params_path, machine)
@@ -407,7 +408,7 @@ def build_parser() -> argparse.ArgumentParser:
                            metavar=('POS', 'ANG'),
                            help="the tracker's standard deviations per axis: position [m] "
                            'and angle [rad] (default 1e-4 1e-4)')
-        p.add_argument('--geometry', choices=cal.GEOMETRIES, default=None,
+        p.add_argument('--geometry', choices=cal_model.GEOMETRIES, default=None,
                        help="the layout to identify: 6-3 (three platform vertices) or 6-6 "
                        "(six joints; of a 6-3's file: its pairs allowed to come apart, 18 "
                        "numbers written). Default: the file's own")

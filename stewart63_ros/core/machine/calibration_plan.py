@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from stewart63_ros.core.analysis.equilibrium import AnalysisError, holding_forces, setpoint_pose
-from stewart63_ros.core.machine import calibration as cal
+from stewart63_ros.core.machine import calibration_model as cal_model
 from stewart63_ros.core.mechanics.dynamics import Dynamics
 from stewart63_ros.core.mechanics.fk import ForwardKinematics
 from stewart63_ros.core.mechanics.mechanism import Mechanism
@@ -223,8 +223,8 @@ def candidate_poses(setup: Setup, count: int, rng: np.random.Generator,
         pos = centre + rng.uniform(-1, 1, (batch, 3)) * half[:3]
         rot = rotation_from_quaternion(quaternion_of_rotvec_times(
             rng.uniform(-1, 1, (batch, 3)) * half[3:], centre_rot))
-        meas = cal.Measurements(pos, rot, np.zeros((batch, 6)))
-        lengths = cal.predict_readings(cal.parameter_vector(mech), meas) \
+        meas = cal_model.Measurements(pos, rot, np.zeros((batch, 6)))
+        lengths = cal_model.predict_readings(cal_model.parameter_vector(mech), meas) \
             - mech.leg_length_offset
         inside = np.array([not why for why in limits.violations(pos, rot, lengths)])
         for n in np.flatnonzero(inside):
@@ -244,11 +244,11 @@ def candidate_poses(setup: Setup, count: int, rng: np.random.Generator,
 
 def _blocks(mech, positions, rotations, noise, geometry=None):
     """The whitened Jacobian block (6, P) of every candidate (P: 33 for a 6-3, 42 for a
-    6-6: the parameters of the fit the poses are for, ``cal.parameter_vector``)."""
-    meas = cal.Measurements(positions, rotations, np.zeros((len(positions), 6)))
-    theta = cal.parameter_vector(mech, geometry)
-    white = cal.whitening(theta, meas, noise)
-    return np.einsum('nij,njp->nip', white, cal.parameter_jacobian(theta, meas))
+    6-6: the parameters of the fit the poses are for, ``cal_model.parameter_vector``)."""
+    meas = cal_model.Measurements(positions, rotations, np.zeros((len(positions), 6)))
+    theta = cal_model.parameter_vector(mech, geometry)
+    white = cal_model.whitening(theta, meas, noise)
+    return np.einsum('nij,njp->nip', white, cal_model.parameter_jacobian(theta, meas))
 
 
 def indices(blocks: np.ndarray, chosen: ArrayLike) -> tuple[float, float]:
@@ -348,7 +348,7 @@ def tour(mech: Mechanism, positions: np.ndarray, rotations: np.ndarray,
     return order
 
 
-def plan(setup: Setup, count: int, seed: int = 0, noise: cal.NoiseModel | None = None,
+def plan(setup: Setup, count: int, seed: int = 0, noise: cal_model.NoiseModel | None = None,
          candidates: int = 1500, half_range: ArrayLike = DEFAULT_RANGE,
          max_condition: float = 100.0, force_share: float = 0.5,
          limits: PlanLimits | None = None, geometry: str | None = None) -> Plan:
@@ -370,12 +370,12 @@ def plan(setup: Setup, count: int, seed: int = 0, noise: cal.NoiseModel | None =
     Raises:
         PlanError: too few poses asked for, or too few feasible candidates.
     """
-    if count < cal.MIN_POSES:
-        raise PlanError('%d poses: a fit needs at least %d' % (count, cal.MIN_POSES))
+    if count < cal_model.MIN_POSES:
+        raise PlanError('%d poses: a fit needs at least %d' % (count, cal_model.MIN_POSES))
     if candidates < 2 * count:
         raise PlanError('%d candidates for %d poses: give at least twice as many'
                         % (candidates, count))
-    noise = noise or cal.NoiseModel()
+    noise = noise or cal_model.NoiseModel()
     rng = np.random.default_rng(seed)
     mech = setup.mechanism
     positions, rotations = candidate_poses(setup, candidates, rng, half_range, max_condition,
@@ -479,9 +479,10 @@ def reference_rows(setup: Setup, positions: np.ndarray, rotations: np.ndarray,
 
 def _lengths(mech, poses):
     """The leg lengths (N, 6) [m] of poses (N, 6) x, y, z, theta (eq. 5)."""
-    meas = cal.Measurements(poses[:, :3], rotation_from_euler(poses[:, 3:]),
+    meas = cal_model.Measurements(poses[:, :3], rotation_from_euler(poses[:, 3:]),
                             np.zeros((len(poses), 6)))
-    return cal.predict_readings(cal.parameter_vector(mech), meas) - mech.leg_length_offset
+    theta = cal_model.parameter_vector(mech)
+    return cal_model.predict_readings(theta, meas) - mech.leg_length_offset
 
 
 def hold_windows(times: np.ndarray, poses: np.ndarray) -> list[tuple[float, float]]:
