@@ -521,3 +521,36 @@ def test_heartbeats_follow_the_run_time_and_start_again_with_a_new_run():
     finally:
         devices.close()
         listener.shutdown()
+
+
+def test_plant_drives_beat_on_the_wall_clock_in_realtime_before_the_run_too():
+    # The bridge judges realtime heartbeats on their reception times, so the
+    # plant's drives beat on the wall clock there, from 0x1017's write on: a
+    # run not yet started, or SYNCs skipped after a stall, must not make them
+    # look lost (test_supervisor_bus tripped on that). Lockstep: run time only
+    # (test_heartbeats_follow_the_run_time...).
+    import can
+
+    from stewart63_ros.canbus.devices import DeviceSet
+    from stewart63_ros.nodes.plant_bus import PlantBus
+    config = load_bus_config(CONFIG, channels=channels())
+    listener = can.Bus(interface='s63hub', channel=config.buses[0].channel)
+    devices = DeviceSet(config)
+    plant = type('Plant', (PlantBus,), {})()
+    plant.mode, plant.devices = 'realtime', devices
+    try:
+        for drive in devices.drives:
+            drive.write(0x1017, 0, 100)
+        while listener.recv(0.2) is not None:       # the boot-ups
+            pass
+        beats = []
+        start = time.monotonic()
+        while time.monotonic() - start < 0.35:      # the plant's idle timer, no run
+            PlantBus.serve_bus_idle(plant)
+            msg = listener.recv(0.002)
+            if msg is not None and 0x700 < msg.arbitration_id < 0x780:
+                beats.append(msg.arbitration_id - 0x700)
+        assert beats in ([1, 2, 3] * 3, [1, 2, 3] * 4), beats  # at 0, 0.1, 0.2, 0.3 s
+    finally:
+        devices.close()
+        listener.shutdown()

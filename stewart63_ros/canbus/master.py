@@ -25,6 +25,7 @@ import time
 
 from stewart63_ros.canbus.cycle import SETTLE_POLL, CycleSide
 from stewart63_ros.canbus.devices import PDO_CODES, open_bus
+from stewart63_ros.canbus.hub import batched
 from stewart63_ros.canbus.pdo import PdoRefused, configure_pdos
 from stewart63_ros.canbus.sync import SyncWindows
 from stewart63_ros.core.machine.bus import (
@@ -400,19 +401,25 @@ class Master(CycleSide):
         and the controlwords down to READY TO SWITCH ON (a lost controller)."""
         if self.stopped:        # the drives are left safe: nothing enables them again
             return
-        for link in self.links:
-            if not link.up:
-                continue
-            if shut_down:
-                cw = CW_DISABLE_OPERATION if link.state == OPERATION_ENABLED else CW_SHUTDOWN
-            elif link.statusword is not None:
-                cw = next_controlword(link.state, link.last_cw)
-            else:
-                cw = link.last_cw
-            torque = 0
-            if not (withhold or shut_down) and forces is not None:
-                torque = link.leg.permille(float(forces[link.leg.leg]))
-            self._rpdo(link, cw, torque)
+        # one write a bus for the cycle's RPDOs (s63hub): the drives' side
+        # wakes once, not once a drive
+        with batched(network.bus for network in self.networks.values()):
+            for link in self.links:
+                if link.up:
+                    self._command(link, forces, withhold, shut_down)
+
+    def _command(self, link: Link, forces, withhold: bool, shut_down: bool) -> None:
+        """One drive's RPDO1 of ``command``."""
+        if shut_down:
+            cw = CW_DISABLE_OPERATION if link.state == OPERATION_ENABLED else CW_SHUTDOWN
+        elif link.statusword is not None:
+            cw = next_controlword(link.state, link.last_cw)
+        else:
+            cw = link.last_cw
+        torque = 0
+        if not (withhold or shut_down) and forces is not None:
+            torque = link.leg.permille(float(forces[link.leg.leg]))
+        self._rpdo(link, cw, torque)
 
     # -- the stop -------------------------------------------------------------------------
     def _rpdo(self, link: Link, cw: int, torque: int) -> None:
