@@ -261,8 +261,8 @@ class BridgeNode(BridgeCycles, RigNode):
         late = self.master.late_tpdos()
         if late:        # WARN with the counts: the reading is one period late
             self.late_tpdo = '; '.join(late)
-            self.get_logger().warning('late TPDO: %s' % self.late_tpdo,
-                                      throttle_duration_sec=1.0)
+            if self.health.log_due('late TPDO'):
+                self.get_logger().warning('late TPDO: %s' % self.late_tpdo)
             self.health.warning = 'late, not yet a fault (tpdo_missing_error_cycles %d): %s' % (
                 self.master.tpdo_error_cycles, self.late_tpdo)
 
