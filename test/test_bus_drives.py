@@ -326,8 +326,9 @@ def test_a_frame_nobody_configured_is_an_error_naming_its_cob_id(wire):
     import can
     w = wire()
     assert w.bring_up() == [True] * 6, w.log
-    # (open to the end: a bus closing while the hub forwards to it can end the
-    # hub, canbus/hub.py's serve, a race of its own)
+    # (open to the end: the hub forwards nothing now, and a bus closing while
+    # it introduces another ends no hub, test_bus.py; the stranger is simply
+    # heard until the test ends)
     stranger = can.Bus(interface='s63hub', channel=w.config.buses[1].channel)
     try:
         w.wire.restart()
