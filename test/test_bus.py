@@ -196,6 +196,47 @@ def test_s63hub_links_processes_and_loses_no_frame_of_a_burst():
         receiver.shutdown()
 
 
+def test_s63hub_a_bus_that_closes_while_another_is_introduced_ends_no_hub():
+    # The old hub forwarded frames and, when a write to a closing bus failed,
+    # closed a socket still in its select list (KeyError: the hub ended and
+    # the channel with it). Now a bus gone while a newcomer is introduced
+    # gets no link, the hub goes on, and the buses left still hear each other.
+    import socket
+
+    import can
+
+    from stewart63_ros.canbus import hub
+    newcomer, newcomer_far = socket.socketpair()
+    gone, gone_far = socket.socketpair()
+    live, live_far = socket.socketpair()
+    gone_far.close()
+    try:
+        hub._introduce(newcomer, {gone.fileno(): gone, live.fileno(): live})
+        word, fds, _, _ = socket.recv_fds(newcomer_far, 1, hub.MAX_FDS)
+        assert word == hub.PEERS and len(fds) == 1      # the live bus only
+        for fd in fds + socket.recv_fds(live_far, 1, hub.MAX_FDS)[1]:
+            socket.socket(fileno=fd).close()
+    finally:
+        for sock in (newcomer, newcomer_far, gone, live, live_far):
+            sock.close()
+    channel = channels(1)[0]
+    first, second = (can.Bus(interface='s63hub', channel=channel) for _ in range(2))
+    buses = [second]
+    try:
+        first.shutdown()                        # gone without a word, then at once:
+        second.send(can.Message(arbitration_id=0x101, is_extended_id=False))
+        buses += [can.Bus(interface='s63hub', channel=channel) for _ in range(2)]
+        buses[1].send(can.Message(arbitration_id=0x102, is_extended_id=False))
+        second, third, fourth = buses
+        for bus in (second, fourth):            # the hub is alive, the links are
+            msg = bus.recv(5.0)
+            assert msg is not None and msg.arbitration_id == 0x102
+        assert [bus.recv(0.2) for bus in buses] == [None] * 3
+    finally:
+        for bus in buses:
+            bus.shutdown()
+
+
 def test_unknown_interface_is_a_clear_error():
     from stewart63_ros.canbus.devices import open_bus
     with pytest.raises(ValueError, match="unknown python-can interface 'nosuch'"):
@@ -477,6 +518,39 @@ def test_heartbeats_follow_the_run_time_and_start_again_with_a_new_run():
         assert beats(0.05) == []
         assert beats(0.1) == [1, 2, 3]
         assert beats(0.0) == [1, 2, 3]              # reset: run time from 0 again
+    finally:
+        devices.close()
+        listener.shutdown()
+
+
+def test_plant_drives_beat_on_the_wall_clock_in_realtime_before_the_run_too():
+    # The bridge judges realtime heartbeats on their reception times, so the
+    # plant's drives beat on the wall clock there, from 0x1017's write on: a
+    # run not yet started, or SYNCs skipped after a stall, must not make them
+    # look lost (test_supervisor_bus tripped on that). Lockstep: run time only
+    # (test_heartbeats_follow_the_run_time...).
+    import can
+
+    from stewart63_ros.canbus.devices import DeviceSet
+    from stewart63_ros.nodes.plant_bus import PlantBus
+    config = load_bus_config(CONFIG, channels=channels())
+    listener = can.Bus(interface='s63hub', channel=config.buses[0].channel)
+    devices = DeviceSet(config)
+    plant = type('Plant', (PlantBus,), {})()
+    plant.mode, plant.devices = 'realtime', devices
+    try:
+        for drive in devices.drives:
+            drive.write(0x1017, 0, 100)
+        while listener.recv(0.2) is not None:       # the boot-ups
+            pass
+        beats = []
+        start = time.monotonic()
+        while time.monotonic() - start < 0.35:      # the plant's idle timer, no run
+            PlantBus.serve_bus_idle(plant)
+            msg = listener.recv(0.002)
+            if msg is not None and 0x700 < msg.arbitration_id < 0x780:
+                beats.append(msg.arbitration_id - 0x700)
+        assert beats in ([1, 2, 3] * 3, [1, 2, 3] * 4), beats  # at 0, 0.1, 0.2, 0.3 s
     finally:
         devices.close()
         listener.shutdown()

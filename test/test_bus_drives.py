@@ -254,7 +254,11 @@ def wire(tmp_path):
 @pytest.mark.slow        # (the hub: a process per bus)
 def test_six_strict_drives_come_up_with_only_the_bridges_pdos_on_the_wire(wire):
     w = wire()
+    w.master.sync_window_us = 7500          # the bridge's realtime window at RATE
     assert w.bring_up() == [True] * 6, w.log
+    # the window it judges TPDOs by is the drives' own (0x1007, CiA 301)
+    assert {node: d.values[(0x1007, 0)] for node, d in w.drives.items()} == dict.fromkeys(
+        w.drives, 7500)
     for node, drive in w.drives.items():
         assert drive.state == OE and drive.nmt == 'OPERATIONAL', (node, drive.state)
         comms = [*range(0x1400, 0x1600), *range(0x1800, 0x1A00)]
@@ -294,6 +298,7 @@ def test_six_strict_drives_come_up_with_only_the_bridges_pdos_on_the_wire(wire):
 @pytest.mark.slow        # (the hub: a process per bus)
 def test_a_drive_whose_tpdo3_cannot_be_switched_off_is_refused_naming_the_object(wire):
     w = wire(read_only={3: [(0x1802, 1)]})
+    start = time.time()
     ups = w.bring_up()
     assert ups == [True, True, False, True, True, True], w.log
     leg_3 = w.master.links[2]
@@ -302,7 +307,18 @@ def test_a_drive_whose_tpdo3_cannot_be_switched_off_is_refused_naming_the_object
     assert error.startswith('leg_3 (node 3, bus a): bring-up failed: TPDO3 cannot be disabled: '
                             '0x1802:01 refused the write of 0xC0000383'), error
     assert '0x06010002' in error and '\n' not in error
+    assert error.endswith('(refused, not retried: the drive or its EDS must change)'), error
     assert (0x1802, 1, 0x06010002) in w.drives[3].aborts
+    # refused once: no reset, no second try (a boot-up cannot make it writable)
+    assert [line for line in w.log if line.startswith('leg_3')] == [error], w.log
+    w.master.reset_all()                    # its next boot-up is not brought up either
+    assert w.master.wait_for_boot(5.0) == []
+    assert w.master.bring_up_rebooted() == ['leg_%d (node %d, bus %s)' % (i, i, 'a' if i < 4
+                                                                          else 'b')
+                                            for i in (1, 2, 4, 5, 6)]
+    assert not leg_3.up and leg_3.boot_error == error
+    boot_ups = [t for t, _, cob in w.seen if cob == 0x703 and t >= start]
+    assert len(boot_ups) == 2, boot_ups     # the two resets' own: none of a retry
 
 
 @pytest.mark.slow        # (the hub: a process per bus)
@@ -310,8 +326,9 @@ def test_a_frame_nobody_configured_is_an_error_naming_its_cob_id(wire):
     import can
     w = wire()
     assert w.bring_up() == [True] * 6, w.log
-    # (open to the end: a bus closing while the hub forwards to it can end the
-    # hub, canbus/hub.py's serve, a race of its own)
+    # (open to the end: the hub forwards nothing now, and a bus closing while
+    # it introduces another ends no hub, test_bus.py; the stranger is simply
+    # heard until the test ends)
     stranger = can.Bus(interface='s63hub', channel=w.config.buses[1].channel)
     try:
         w.wire.restart()

@@ -379,3 +379,15 @@ def test_lockstep_a_drive_whose_answer_came_late_is_waited_for_not_taken_as_sile
     assert all(row == [counts(k, n) for n in range(1, 7)] for k, row in enumerate(rows)
                if k != 1), rows
     assert master.links[3].late_tpdo == 1 and master.links[3].missed_tpdo == 1
+
+
+def test_a_repeated_warning_of_the_cycle_is_let_through_once_a_period_per_key():
+    # The bridge's late-TPDO and stall warnings repeat every cycle under load;
+    # rclpy's own throttle costs ~1 ms a call before it stays silent, so the
+    # clock is looked at first (runtime/diagnostics.py, LogThrottle).
+    from stewart63_ros.runtime.diagnostics import LogThrottle
+    due = LogThrottle(0.05)
+    assert [due('late TPDO'), due('late TPDO'), due('stalled'), due('late TPDO')] == [
+        True, False, True, False]
+    time.sleep(0.06)
+    assert [due('late TPDO'), due('late TPDO')] == [True, False]

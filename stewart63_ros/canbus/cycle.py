@@ -91,7 +91,8 @@ class CycleSide:
         link.tpdo = values
         link.tpdo_sync = sync
         link.tpdo_taken_at = time.monotonic()
-        self._arrived.notify()
+        if not self._awaited():         # the cycle's waiter wakes once, not once a drive
+            self._arrived.notify()
 
     def _on_tpdo2(self, link):
         def on(cob_id, data, timestamp):
@@ -155,7 +156,8 @@ class CycleSide:
         """When every drive that is up is done with this cycle (under the
         lock): a time (``time.monotonic()``) to look again at, inf while a
         drive that answered the SYNC before is still awaited."""
-        waiting_live = False
+        if self._awaited():
+            return math.inf
         silent = False
         last = self._opened_at
         ready = -math.inf
@@ -166,14 +168,20 @@ class CycleSide:
                 last = max(last, link.tpdo_taken_at)
                 if not link.tpdo_firm:
                     ready = max(ready, link.tpdo_taken_at + settle)
-            elif link.missed_in_a_row and (link.answered is None
-                                           or link.answered < self.cycle - 1):
-                silent = True       # nothing from it for the SYNC before, not even late
             else:
-                waiting_live = True
-        if waiting_live:
-            return math.inf
+                silent = True       # nothing from it for the SYNC before, not even late
         return max(ready, last + silent_grace) if silent else ready
+
+    def _awaited(self) -> bool:
+        """Whether a drive that is up, and answered the SYNC before (even
+        late), has not answered this one yet (under the lock)."""
+        cycle = self.cycle
+        for link in self.links:
+            if link.up and link.tpdo_sync != cycle and not (
+                    link.missed_in_a_row and (link.answered is None
+                                              or link.answered < cycle - 1)):
+                return True
+        return False
 
     @property
     def opened_at(self) -> float:

@@ -383,7 +383,8 @@ class DeviceSet:
             drive.answer_sync(float(lengths[drive.leg.leg]), float(rates[drive.leg.leg]))
 
     def heartbeats(self, t: float) -> None:
-        """Heartbeats due at run time ``t`` [s] (each drive's 0x1017 period)."""
+        """Heartbeats due at time ``t`` [s] (each drive's 0x1017 period): the
+        run's time (lockstep) or the monotonic clock (realtime)."""
         if t < self._last_t:        # a new run (the plant's reset): its time from 0
             self._next_heartbeat = t
         self._last_t = t

@@ -25,7 +25,8 @@ import time
 
 from stewart63_ros.canbus.cycle import SETTLE_POLL, CycleSide
 from stewart63_ros.canbus.devices import PDO_CODES, open_bus
-from stewart63_ros.canbus.pdo import configure_pdos
+from stewart63_ros.canbus.hub import batched
+from stewart63_ros.canbus.pdo import PdoRefused, configure_pdos
 from stewart63_ros.canbus.sync import SyncWindows
 from stewart63_ros.core.machine.bus import (
     CW_DISABLE_OPERATION,
@@ -70,6 +71,31 @@ STOP_SDO_TIMEOUT = 0.2
 STOP_SDO_BUDGET = 0.6
 #: NMT enter pre-operational (CiA 301)
 NMT_PRE_OPERATIONAL = 0x80
+#: CiA 301's synchronous window length [µs] (UNSIGNED32; 0: none)
+SYNC_WINDOW_LENGTH = 0x1007
+
+
+class DriveRefused(BusConfigError):
+    """A drive that answers the bring-up with a no that a reset will not
+    change (a rated torque other than the config's): refused once, not retried."""
+
+
+#: SDO aborts that say the transfer went wrong (0x0503...., 0x0504....: toggle
+#: bit, timeout, CRC, memory) or the drive cannot do it now (general error,
+#: local control, its present state): worth a reset and another try; any
+#: other abort is the drive's final answer
+TRANSIENT_ABORT_CLASSES = (0x0503, 0x0504)
+TRANSIENT_ABORTS = (0x08000000, 0x08000020, 0x08000021, 0x08000022)
+
+
+def refused_for_good(exc: Exception) -> bool:
+    """Whether a bring-up's failure is the drive's final answer (an object
+    it refuses, a PDO it cannot switch off, a value it does not keep), not
+    silence or a state it may leave (a timeout, a drive still in FAULT)."""
+    code = getattr(exc, 'code', None)       # an SDO abort's (PdoRefused keeps it)
+    if code is not None:
+        return code >> 16 not in TRANSIENT_ABORT_CLASSES and code not in TRANSIENT_ABORTS
+    return isinstance(exc, (PdoRefused, DriveRefused))
 
 
 def check_eds(leg: LegDrive, od) -> None:
@@ -119,6 +145,7 @@ class Link:
         self.silent_since = None    # the first SYNC of that run of missing TPDOs
         self.last_cw = 0
         self.failed_bring_ups = 0   # in a row
+        self.refused = False        # the drive refused the bring-up for good (not retried)
         node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT
         od = node.object_dictionary
         self.rpdo_struct = pdo_struct(od, RPDO1)
@@ -152,6 +179,9 @@ class Master(CycleSide):
         self.rate = float(rate)
         self.log = log
         self.cycle = -1
+        #: µs written to each drive's 0x1007 at bring-up, where its EDS has it
+        #: (None: not written); the bridge sets its own window (bridge_cycles)
+        self.sync_window_us: int | None = None
         #: the drives were left safe (``safe_stop``): no RPDO any more
         self.stopped = False
         #: bits seen on each bus (sent and received, worst-case stuffing): the measured load
@@ -249,10 +279,15 @@ class Master(CycleSide):
             if switched_off:
                 self.log('%s: %s off (unused)' % (link.name, ', '.join(switched_off)))
             node.sdo[0x1017].raw = self.config.heartbeat_ms
+            if self.sync_window_us is not None and SYNC_WINDOW_LENGTH in node.object_dictionary:
+                # the window the bridge judges TPDOs by: a drive that has it
+                # sends no synchronous TPDO later (CiA 301), none goes on the
+                # bus to be counted late
+                node.sdo[SYNC_WINDOW_LENGTH].raw = self.sync_window_us
             rated = node.sdo[0x6076].raw
             if rated != leg.rated_torque_mnm:
-                raise BusConfigError('rated torque 0x6076 is %d mN m, the config says %d'
-                                     % (rated, leg.rated_torque_mnm))
+                raise DriveRefused('rated torque 0x6076 is %d mN m, the config says %d'
+                                   % (rated, leg.rated_torque_mnm))
             node.sdo[0x6060].raw = MODE_CST
             cw = self.enable_by_sdo(node)
             link.statusword = node.sdo[0x6041].raw
@@ -265,7 +300,10 @@ class Master(CycleSide):
                 OSError) as exc:
             link.failed_bring_ups += 1
             link.boot_error = '%s: bring-up failed: %s' % (link.name, exc)
-            if link.failed_bring_ups < BRING_UP_TRIES:     # once more, from its boot-up
+            if refused_for_good(exc):   # the drive said no: a reset will not change that
+                link.refused = True
+                link.boot_error += ' (refused, not retried: the drive or its EDS must change)'
+            elif link.failed_bring_ups < BRING_UP_TRIES:     # once more, from its boot-up
                 node.nmt.send_command(0x81)
                 link.boot_error += ' (reset, try %d of %d)' % (link.failed_bring_ups + 1,
                                                               BRING_UP_TRIES)
@@ -328,8 +366,10 @@ class Master(CycleSide):
         return counts
 
     def bring_up_rebooted(self) -> list[str]:
-        """Bring up the drives that sent a boot-up since; their names."""
-        return [link.name for link in self.links if link.booted and self.bring_up(link)]
+        """Bring up the drives that sent a boot-up since (not one refused for
+        good: its boot-up changes nothing); their names."""
+        return [link.name for link in self.links
+                if link.booted and not link.refused and self.bring_up(link)]
 
     def errors(self) -> list[str]:
         """Why torque is withheld now, one line per leg at fault (empty: none)."""
@@ -361,19 +401,25 @@ class Master(CycleSide):
         and the controlwords down to READY TO SWITCH ON (a lost controller)."""
         if self.stopped:        # the drives are left safe: nothing enables them again
             return
-        for link in self.links:
-            if not link.up:
-                continue
-            if shut_down:
-                cw = CW_DISABLE_OPERATION if link.state == OPERATION_ENABLED else CW_SHUTDOWN
-            elif link.statusword is not None:
-                cw = next_controlword(link.state, link.last_cw)
-            else:
-                cw = link.last_cw
-            torque = 0
-            if not (withhold or shut_down) and forces is not None:
-                torque = link.leg.permille(float(forces[link.leg.leg]))
-            self._rpdo(link, cw, torque)
+        # one write a bus for the cycle's RPDOs (s63hub): the drives' side
+        # wakes once, not once a drive
+        with batched(network.bus for network in self.networks.values()):
+            for link in self.links:
+                if link.up:
+                    self._command(link, forces, withhold, shut_down)
+
+    def _command(self, link: Link, forces, withhold: bool, shut_down: bool) -> None:
+        """One drive's RPDO1 of ``command``."""
+        if shut_down:
+            cw = CW_DISABLE_OPERATION if link.state == OPERATION_ENABLED else CW_SHUTDOWN
+        elif link.statusword is not None:
+            cw = next_controlword(link.state, link.last_cw)
+        else:
+            cw = link.last_cw
+        torque = 0
+        if not (withhold or shut_down) and forces is not None:
+            torque = link.leg.permille(float(forces[link.leg.leg]))
+        self._rpdo(link, cw, torque)
 
     # -- the stop -------------------------------------------------------------------------
     def _rpdo(self, link: Link, cw: int, torque: int) -> None:

@@ -101,7 +101,16 @@ def bridge_cob_ids(node_id: int) -> dict[int, str]:
 
 
 class PdoRefused(BusConfigError):
-    """A drive that does not take the PDO configuration; names the object."""
+    """A drive that does not take the PDO configuration; names the object.
+    ``code``: the SDO abort code, None for a value read back that differs."""
+
+    code: int | None = None
+
+    @classmethod
+    def aborted(cls, text: str, abort) -> PdoRefused:
+        refused = cls(text)
+        refused.code = abort.code
+        return refused
 
 
 class _Sdo:
@@ -117,8 +126,8 @@ class _Sdo:
         try:
             data = self.client.upload(index, sub)
         except self.aborted as exc:
-            raise PdoRefused('%s: 0x%04X:%02X refused the read (SDO abort %s)'
-                             % (why, index, sub, exc)) from None
+            raise PdoRefused.aborted('%s: 0x%04X:%02X refused the read (SDO abort %s)'
+                                     % (why, index, sub, exc), exc) from None
         if len(data) < layout.size:
             raise PdoRefused('%s: 0x%04X:%02X read %d bytes, expected %d'
                              % (why, index, sub, len(data), layout.size))
@@ -128,8 +137,8 @@ class _Sdo:
         try:
             self.client.download(index, sub, layout.pack(value))
         except self.aborted as exc:
-            raise PdoRefused('%s: 0x%04X:%02X refused the write of 0x%X (SDO abort %s)'
-                             % (why, index, sub, value, exc)) from None
+            raise PdoRefused.aborted('%s: 0x%04X:%02X refused the write of 0x%X (SDO abort %s)'
+                                     % (why, index, sub, value, exc), exc) from None
 
 
 def configure_pdos(node, leg: LegDrive) -> list[str]:

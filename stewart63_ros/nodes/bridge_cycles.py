@@ -184,9 +184,9 @@ class BridgeCycles:
             skipped = schedule.advance(time.monotonic())
             if skipped:         # a stall: those SYNCs' time is gone, none is sent late
                 self.health.values['syncs_skipped'] = schedule.skipped
-                self.get_logger().warning('stalled: %d SYNCs skipped (%d in all)'
-                                          % (skipped, schedule.skipped),
-                                          throttle_duration_sec=1.0)
+                if self.health.log_due('stalled'):  # (rclpy's throttle costs ~1 ms a call)
+                    self.get_logger().warning('stalled: %d SYNCs skipped (%d in all)'
+                                              % (skipped, schedule.skipped))
 
     def controller_lost(self) -> bool:
         """Whether the controller, having answered, is lost: no force for

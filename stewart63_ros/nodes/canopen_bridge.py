@@ -50,7 +50,7 @@ from stewart63_ros.canbus.master import Master
 from stewart63_ros.core.machine.bus import BusConfigError, BusLoadError, load_bus_config
 from stewart63_ros.core.plumbing.errors import ParameterError
 from stewart63_ros.exits import quiet_on_closed_pipe
-from stewart63_ros.nodes.bridge_cycles import CONTROLLER_LOST_MIN, BridgeCycles
+from stewart63_ros.nodes.bridge_cycles import CONTROLLER_LOST_MIN, SYNC_WINDOW, BridgeCycles
 from stewart63_ros.runtime import wire
 from stewart63_ros.runtime.base import RigNode
 from stewart63_ros.runtime.checks import (
@@ -112,6 +112,10 @@ class BridgeNode(BridgeCycles, RigNode):
         # the load on the wire beside the planned one; unknown COB-IDs (busload.py)
         self.wire = WireLoad(config, self.rate)
         self.wire.attach(self.master.networks)
+        # the synchronous window into each drive that has 0x1007 (lockstep: none,
+        # a SYNC's window lasts until every drive has answered)
+        self.master.sync_window_us = int(SYNC_WINDOW * 1e6 / self.rate) \
+            if self.mode == 'realtime' else 0
         if self.mode == 'realtime':     # lockstep: a miss has waited bus_timeout already
             self.master.tpdo_error_cycles = self.param('tpdo_missing_error_cycles')
             self.master.clock = 'wall'  # heartbeats judged on their reception times
@@ -257,8 +261,8 @@ class BridgeNode(BridgeCycles, RigNode):
         late = self.master.late_tpdos()
         if late:        # WARN with the counts: the reading is one period late
             self.late_tpdo = '; '.join(late)
-            self.get_logger().warning('late TPDO: %s' % self.late_tpdo,
-                                      throttle_duration_sec=1.0)
+            if self.health.log_due('late TPDO'):
+                self.get_logger().warning('late TPDO: %s' % self.late_tpdo)
             self.health.warning = 'late, not yet a fault (tpdo_missing_error_cycles %d): %s' % (
                 self.master.tpdo_error_cycles, self.late_tpdo)
 

@@ -18,6 +18,12 @@ with the force held, answers the newest, and counts the others as late).
 Before its loop the plant serves the bus from a timer (the bridge brings the
 drives up by SDO while the plant waits for its subscribers); while paused
 it keeps serving it (NMT, SDO) and holds the SYNCs that come.
+
+Heartbeats (0x1017) keep the clock the bridge judges them on: in lockstep
+the run's time (a beat every heartbeat period of samples), in realtime the
+wall clock, from the write of 0x1017 on, as a real drive beats: a run that
+has not started, or whose SYNCs the bridge skipped after a stall, does not
+make the drives look lost.
 """
 from __future__ import annotations
 
@@ -70,10 +76,22 @@ class PlantBus:
         # A sample's frames (TPDOs, heartbeats) leave together on each local
         # bus: the bridge wakes once a bus and SYNC, not once a frame.
         self.bus_batch = lambda: batched(devices.buses.values())
-        self.bus_timer = self.create_timer(IDLE_SERVICE_PERIOD, lambda: devices.poll(0.0))
+        self.bus_timer = self.create_timer(IDLE_SERVICE_PERIOD, self.serve_bus_idle)
         self.syncs_skipped = 0
         self.bus_first = True
         return devices
+
+    def serve_bus_idle(self) -> None:
+        """Before the loop: NMT and SDO (the bridge's bring-up), and the
+        realtime drives' heartbeats."""
+        self.devices.poll(0.0)
+        self.wall_heartbeats()
+
+    def wall_heartbeats(self) -> None:
+        """Realtime: the heartbeats due on the wall clock (lockstep: none
+        here; they beat in the run's time, ``bus_sample``)."""
+        if self.mode == 'realtime':
+            self.devices.heartbeats(time.monotonic())
 
     def bus_sample(self, lengths, rates) -> None:
         """Sample ``self.k`` on the bus: faults, heartbeats, each drive's TPDO
@@ -82,7 +100,10 @@ class PlantBus:
         for event in devices.apply_faults(self.fault_model.bus_active()):
             self.get_logger().warning(event)
         with self.bus_batch():
-            devices.heartbeats(self.k * self.period)
+            if self.mode == 'realtime':
+                devices.heartbeats(time.monotonic())
+            else:
+                devices.heartbeats(self.k * self.period)
             for drive in devices.drives:
                 i = drive.leg.leg
                 if math.isfinite(lengths[i]) and math.isfinite(rates[i]):
@@ -98,6 +119,7 @@ class PlantBus:
                 return False
             if self.hold_due and interruptible:
                 return True
+            self.wall_heartbeats()
             now = time.monotonic()
             wake = self.housekeeping(now)
             self.forces_in.poll(0.0)            # external_wrench
@@ -156,6 +178,7 @@ class PlantBus:
                                     if getattr(self, 'devices', None) is not None else until)
         if getattr(self, 'devices', None) is not None:
             self.devices.poll(0.0)
+            self.wall_heartbeats()
 
     def next_sample(self) -> int:
         """The sample the loop publishes next: on the bus the physics steps at

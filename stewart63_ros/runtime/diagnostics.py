@@ -22,6 +22,29 @@ if TYPE_CHECKING:
 HARDWARE_ID = 'stewart63_ros'
 
 
+class LogThrottle:
+    """Whether a throttled message is due: at most one per ``period`` s and key.
+
+    rclpy's ``throttle_duration_sec`` finds the caller's frame and source
+    line (``inspect``: file stats, source reads) before it decides to stay
+    silent: about 1 ms a call on this machine, a whole 1 kHz cycle, paid on
+    every cycle of a warning that repeats (a late TPDO, a rejected sample),
+    so a loaded loop grew slower the more it warned. This looks at the clock
+    first; log through rclpy only when it says so.
+    """
+
+    def __init__(self, period: float = 1.0) -> None:
+        self.period = period
+        self._next: dict[str, float] = {}
+
+    def __call__(self, key: str) -> bool:
+        now = time.monotonic()
+        if now < self._next.get(key, -1.0):
+            return False
+        self._next[key] = now + self.period
+        return True
+
+
 class StatusPublisher:
     """A node's status on /diagnostics, under the node's own name (``name``):
     what ``Health`` and the recorder (recording/recorder_status.py) publish through."""
@@ -95,6 +118,8 @@ class Health:
         self.every_message = set()
         self._skipped_at_report = 0
         self.last_rejection = ''
+        #: the node's repeated warnings, at most one a second each (``LogThrottle``)
+        self.log_due = LogThrottle(1.0)
         self.latency = LatencyStats()
         self.fault = ''
         self.collision = ''     # more than one source on the 1 kHz input (see RigNode)
@@ -111,8 +136,8 @@ class Health:
     def reject(self, topic: str, exc: Rejected) -> None:
         self.rejected['%s/%s' % (topic, exc.reason)] += 1
         self.last_rejection = '%s: %s' % (topic, exc)
-        self.node.get_logger().warning('rejected %s' % self.last_rejection,
-                                    throttle_duration_sec=1.0)
+        if self.log_due('rejected'):
+            self.node.get_logger().warning('rejected %s' % self.last_rejection)
 
     def sender(self, topic: str, publisher):
         """A function that publishes serialized bytes on ``publisher`` (see
@@ -137,9 +162,9 @@ class Health:
                 publish(data)
             except RuntimeError as exc:     # rclpy's RCLError
                 failed[topic] += 1
-                logger.warning('could not publish on %s (%d so far): %s'
-                               % (topic, failed[topic], str(exc).split(',')[0]),
-                               throttle_duration_sec=1.0)
+                if self.log_due('publish_failed/' + topic):
+                    logger.warning('could not publish on %s (%d so far): %s'
+                                   % (topic, failed[topic], str(exc).split(',')[0]))
                 return False
             published[topic] += 1
             return True
@@ -148,10 +173,10 @@ class Health:
     def skip(self, topic: str, n: int) -> None:
         """``n`` messages on ``topic`` never reached the node."""
         self.skipped[topic] += n
-        if topic in self.every_message:
+        if topic in self.every_message and self.log_due('skipped/' + topic):
             self.node.get_logger().warning(
                 'lost %d %s messages (%d so far): they never reached this node'
-                % (n, topic, self.skipped[topic]), throttle_duration_sec=1.0)
+                % (n, topic, self.skipped[topic]))
 
     def lost(self) -> int:
         """Messages lost on the topics that must see every message."""
