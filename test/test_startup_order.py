@@ -35,3 +35,55 @@ def test_the_rigs_parameter_file_carries_them_to_the_plant(tmp_path):
     plant = doc['/**/plant']['ros__parameters']
     assert plant['lockstep_peers'] == ['fk', 'record'] and plant['lengths_subscribers'] == 3
     assert doc['/**']['ros__parameters']['wait_for_subscribers'] == 1
+
+
+READER = r'''
+import sys, time
+import rclpy
+from sensor_msgs.msg import JointState
+from stewart63_ros import topics
+rclpy.init()
+node = rclpy.create_node('late_reader')
+got = []
+node.create_subscription(JointState, 'race', lambda m: got.append(m.header.frame_id),
+                         topics.EVERY_SUB)
+print('SUBSCRIBED', flush=True)
+deadline = time.monotonic() + 30
+while time.monotonic() < deadline and 'last' not in got:
+    rclpy.spin_once(node, timeout_sec=0.05)
+print('GOT ' + ','.join(got), flush=True)
+'''
+
+
+def test_a_reader_that_matches_after_the_first_message_still_gets_it(ros):
+    """The race the fixed settles (``discovery_settle``, a match's 1 s) were
+    kept for: a publisher counts a subscription as matched as soon as it has
+    discovered it, and sends its first message at once, possibly before
+    the reader has discovered the publisher in turn. With the rig's QoS and
+    its Fast DDS profile (heartbeat 50 ms) the writer then repairs it: every
+    reader gets every message from the first, so the start-up waits for
+    matches, not for a clock. (The recorder still says it has matched,
+    ``matched_publishers``: its bag must hold every message from the first
+    even if a publisher's first messages outrun its side of the match.)"""
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Header
+
+    from stewart63_ros import topics
+    from stewart63_ros.middleware import use_rig_profile
+    assert use_rig_profile()        # this process's writer too (set before its participant)
+    node = ros.node('race_writer')
+    pub = node.create_publisher(JointState, 'race', topics.STREAM_PUB)
+    burst = 50
+    for trial in range(2):
+        readers = [ros.python('-c', READER, name='reader%d_%d' % (trial, k)) for k in range(3)]
+        assert ros.spin_until(lambda: pub.get_subscription_count() >= 3, 60), \
+            [r.describe() for r in readers]
+        # at once: the readers' side of the match may not be complete yet
+        for k in range(burst):
+            pub.publish(JointState(header=Header(frame_id='first' if k == 0 else str(k))))
+        pub.publish(JointState(header=Header(frame_id='last')))
+        for reader in readers:
+            assert reader.wait(60) == 0, reader.describe()
+            got = reader.stdout().split('GOT ')[-1].split()[0].split(',')
+            assert got[0] == 'first' and len(got) == burst + 1, (got[:3], len(got))
+        assert ros.spin_until(lambda: pub.get_subscription_count() == 0, 30)

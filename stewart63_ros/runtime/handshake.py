@@ -15,11 +15,11 @@ nothing anybody publishes is lost:
    (``RigNode.wait_for_matches``: ``startup.StartupBarrier``) until every data
    publisher has ``wait_for_subscribers`` matched subscriptions (``rig``
    sets 1 when it records) and every subscription the ROS graph shows on its
-   topic, after ``discovery_settle`` s for the graph to show what already
-   runs; then a new match settles for ``MATCH_SETTLE`` s, and a recorder
-   that the graph shows on its topics must name the node under
-   ``matched_publishers`` on /diagnostics (below: the recorder's side of
-   the match, which only the recorder sees).
+   topic, and a recorder that the graph shows on its topics must name the
+   node under ``matched_publishers`` on /diagnostics (below: the recorder's
+   side of the match, which only the recorder sees). No fixed settle: these
+   events end the wait (``discovery_settle``, 0 by default, adds one for a
+   subscriber the run does not name).
 3. ``rig --record``: the recorder prints ``MATCHED`` once it has matched the
    publishers of the controller and fk run here (``recorder_waits_for``,
    below); ``rig`` waits for that line, then starts the plant.

@@ -27,8 +27,6 @@ class StartupBarrier:
 
     #: s: how often a node still waiting for its peers says what it waits for.
     WAIT_REPORT_PERIOD = 5.0
-    #: s: how long a new match must hold before the first message (wait_for_matches).
-    MATCH_SETTLE = 1.0
 
     def graph_subscriptions(self, pub) -> list:
         """The subscriptions the ROS graph shows on ``pub``'s topic that can
@@ -43,34 +41,32 @@ class StartupBarrier:
     def wait(self, extra=None) -> bool:
         """Bounded wait (``discovery_timeout``) before the first message until
         every data publisher has matched ``wait_for_subscribers``
-        subscriptions and every subscription the ROS graph shows on its topic
-        (so a recorder started before the rig gets everything from the first
-        message), and ``extra()`` (a list of what else is missing) is empty.
-        The graph is given ``discovery_settle`` s from the node's start to
-        show what already runs. A new match must then hold for
-        ``MATCH_SETTLE`` s: a publisher counts a subscription as matched as
-        soon as it has discovered it, but the subscription drops what comes
-        before it has discovered the publisher in turn (a volatile reader
-        starts at the first sample it sees announced), which under load has
-        lagged tens of ms. Says at once what it waits for, and again every
-        few s."""
+        subscriptions and every subscription the ROS graph shows on its topic,
+        every recorder the graph shows there names this node under
+        ``matched_publishers`` (its side of the match: acknowledged), and
+        ``extra()`` (a list of what else is missing) is empty.
+
+        No fixed settle by default: the wait ends on these events, not on a
+        clock. ``discovery_settle`` (0 unless set) gives the graph that long
+        from the node's start to show a subscriber that runs already and that
+        the run does not name (a recorder started on its own; the run names
+        one with ``wait_for_subscribers``). A subscription that matched after
+        a sample was sent still gets it: the writer counted it as matched,
+        and its heartbeat (50 ms, config/fastdds.xml) repairs the sample
+        (test/test_startup_order.py shows it). Says at once what it waits
+        for, and again every few s."""
         node = self.node
         pubs = node.data_publishers + [node.health.pub]
-        counts = {id(pub): (pub.get_subscription_count(), node.created) for pub in pubs}
-
         me = node.get_fully_qualified_name()
         matched = self.word.matched
 
         def missing():
             out = []
             recorders = set()
-            # Discovery of what already runs takes a moment (seconds, loaded):
-            # until then the graph may not show a subscriber started before us.
             age = time.monotonic() - node.created
             if age < node.discovery_settle:
                 out.append('discovery of the ROS graph (%.1f of %g s, discovery_settle)'
                            % (age, node.discovery_settle))
-            now = time.monotonic()
             for pub in pubs:
                 floor = node.wait_for_subscribers
                 if id(pub) in node.optional_publishers:
@@ -80,13 +76,9 @@ class StartupBarrier:
                                  if name in matched)
                 want = max(floor, len(subscribers))
                 have = pub.get_subscription_count()
-                if have != counts[id(pub)][0]:
-                    counts[id(pub)] = (have, now)
                 if have < want:
                     out.append('%s: %d of %d subscriptions matched'
                                % (pub.topic_name, have, want))
-                elif now - counts[id(pub)][1] < self.MATCH_SETTLE:
-                    out.append('%s: a new match settling' % pub.topic_name)
             for name in sorted(recorders):
                 if me not in matched[name]:
                     out.append('%s to match %s\'s publishers' % (name, me))
@@ -103,7 +95,8 @@ class StartupBarrier:
                 log.info('waiting (at most %.1f s more, discovery_timeout) for: %s'
                          % (deadline - now, '; '.join(waiting)))
                 next_report = now + self.WAIT_REPORT_PERIOD
-            node.executor_.spin_once(timeout_sec=min(0.05, max(0.0, deadline - now)))
+            # 10 ms: a match is no executor event, so this is how soon one is seen
+            node.executor_.spin_once(timeout_sec=min(0.01, max(0.0, deadline - now)))
             if node.after_batch is not None:
                 # The turn may have served the node's 1 kHz input (it is in
                 # the executor too): report it now (fk's lockstep progress;

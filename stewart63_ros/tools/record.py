@@ -23,6 +23,7 @@ from pathlib import Path
 from stewart63_ros.runtime.launcher import (
     StopSignals,
     dump_stacks_on_sigusr1,
+    end_process,
     ignore_stop_signals,
 )
 from stewart63_ros.runtime.ros_args import rclpy_args, split_ros_args
@@ -82,6 +83,16 @@ def _write_ready_file(path, text):
 
 @quiet_on_closed_pipe
 def main(argv=None) -> int:
+    code = _record(argv)
+    if argv is None:
+        # Its own process (the command line): the bag is closed and the
+        # summary printed; end past the interpreter's finalization, a fifth
+        # of a second of a rig's stop (launcher.end_process).
+        end_process(code)
+    return code
+
+
+def _record(argv=None) -> int:
     made = []                   # the Recorder, once made
     stop = threading.Event()
 
