@@ -87,3 +87,85 @@ def test_a_reader_that_matches_after_the_first_message_still_gets_it(ros):
             got = reader.stdout().split('GOT ')[-1].split()[0].split(',')
             assert got[0] == 'first' and len(got) == burst + 1, (got[:3], len(got))
         assert ros.spin_until(lambda: pub.get_subscription_count() == 0, 30)
+
+
+NOTING_RECORDER = r'''
+import sys, time
+from stewart63_ros.runtime import recorders
+path = recorders.announce('/rig7/record', 77)
+print('NOTED', flush=True)
+time.sleep(60)
+'''
+
+
+def test_a_recorder_running_here_is_known_on_its_domain_until_it_ends(tmp_path, monkeypatch):
+    """runtime/recorders.py: what a starting node learns before discovery
+    shows a recorder started before it (a live process, its domain, this
+    network namespace); a recorder killed without withdrawing its note is
+    not waited for, and its note goes."""
+    import subprocess
+    import sys
+
+    from stewart63_ros.runtime import recorders
+    monkeypatch.setenv('XDG_RUNTIME_DIR', str(tmp_path))
+    proc = subprocess.Popen([sys.executable, '-c', NOTING_RECORDER], stdout=subprocess.PIPE,
+                            text=True)
+    try:
+        assert proc.stdout.readline().strip() == 'NOTED'
+        assert recorders.running(77) == ['/rig7/record']
+        assert recorders.running(78) == []
+        own = recorders.announce('/me/record', 77)       # this process's own: not waited for
+        assert recorders.running(77) == ['/rig7/record']
+        recorders.withdraw(own)
+    finally:
+        proc.kill()
+        proc.wait(10)
+    assert recorders.running(77) == []
+    assert list(recorders.notes_dir().iterdir()) == []
+
+
+class _Pub:
+    def __init__(self, topic):
+        self.topic_name = topic
+
+
+class _Info:
+    def __init__(self, node):
+        self.node_namespace, _, self.node_name = node.rpartition('/')
+        self.node_namespace = self.node_namespace or '/'
+
+
+def test_a_node_waits_for_each_recorder_on_every_topic_it_records():
+    """StartupBarrier.recorders_missing: a recorder noted running here is
+    waited for before discovery shows it; then on each of the node's topics
+    it records (its status's ``recorded/`` keys) the graph must show its
+    subscription, so that the writer's own count holds it, and it must name
+    the node (its side of the match)."""
+    from stewart63_ros.runtime.handshake import RecorderWord
+    from stewart63_ros.runtime.startup import StartupBarrier
+
+    class Node:
+        def get_fully_qualified_name(self):
+            return '/fk'
+    word = RecorderWord.__new__(RecorderWord)
+    word.matched, word.recorded = {}, {}
+    barrier = StartupBarrier(Node(), word)
+    pubs = [_Pub('/platform_pose'), _Pub('/diagnostics')]
+    graph = {'/platform_pose': [], '/diagnostics': []}
+    barrier.graph_subscriptions = lambda pub: [_Info(n) for n in graph[pub.topic_name]]
+    noted = ['/record']
+    assert barrier.recorders_missing(pubs, noted) == [
+        '/record (recording on this machine) to say what it records']
+    word.matched['/record'] = {''}
+    word.recorded['/record'] = {'/platform_pose', '/diagnostics', '/leg_lengths'}
+    assert barrier.recorders_missing(pubs, noted) == [
+        '/diagnostics: the subscription of /record', '/platform_pose: the subscription of /record',
+        "/record to match /fk's publishers"]
+    graph['/platform_pose'] = ['/record']
+    graph['/diagnostics'] = ['/record', '/plant']
+    assert barrier.recorders_missing(pubs, noted) == ["/record to match /fk's publishers"]
+    word.matched['/record'] = {'/plant', '/fk'}
+    assert barrier.recorders_missing(pubs, noted) == []
+    # one the graph shows but that has not spoken is no recorder (a viewer)
+    graph['/platform_pose'] = ['/record', '/view']
+    assert barrier.recorders_missing(pubs, []) == []

@@ -145,7 +145,7 @@ class RecorderStatus:
         per topic; WARN once messages were lost."""
         lost = self.losses.lost
         values = [KeyValue(key=k, value=v) for k, v in keys.items()]
-        values += [KeyValue(key='recorded/' + topic, value=str(n))
+        values += [KeyValue(key=handshake.RECORDED_PREFIX + topic, value=str(n))
                    for topic, n in sorted(self.counts.items())]
         values += [KeyValue(key='lost/' + topic, value=str(n))
                    for topic, n in sorted(lost.items())]

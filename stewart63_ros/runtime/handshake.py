@@ -67,6 +67,8 @@ MATCHED = 'matched_publishers'
 CONFIRMS = 'confirms'
 FINAL = 'final'
 FINAL_PREFIX = 'final/'
+#: a recorder's status: ``recorded/<full topic name>`` per topic it records
+RECORDED_PREFIX = 'recorded/'
 RUN = 'run'
 RUN_ENDED = 'ended'
 #: What ``record`` prints on its standard output, one line each, for ``rig``
@@ -147,6 +149,9 @@ class RecorderWord:
     def __init__(self, node):
         self.node = node
         self.matched: dict[str, set] = {}
+        #: recorder's full name -> the full names of the topics it records
+        #: (its status's ``recorded/<topic>`` keys)
+        self.recorded: dict[str, set] = {}
         self.confirmed = False
         self.sub = node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS,
                                             self.on_status, topics.DIAGNOSTICS_QOS, raw=True)
@@ -166,6 +171,9 @@ class RecorderWord:
                 if kv.key == MATCHED and not node.started:
                     recorder = status.name[len(topics.STATUS_PREFIX):]
                     self.matched[recorder] = set(kv.value.split(','))
+                    self.recorded[recorder] = {
+                        v.key[len(RECORDED_PREFIX):] for v in status.values
+                        if v.key.startswith(RECORDED_PREFIX)}
                 elif kv.key == CONFIRMS and node.closing and me in kv.value.split(','):
                     self.confirmed = True
 

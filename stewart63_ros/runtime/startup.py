@@ -10,6 +10,7 @@ from __future__ import annotations
 import time
 
 from stewart63_ros import topics
+from stewart63_ros.runtime import recorders
 
 
 class StartupBarrier:
@@ -42,27 +43,26 @@ class StartupBarrier:
         """Bounded wait (``discovery_timeout``) before the first message until
         every data publisher has matched ``wait_for_subscribers``
         subscriptions and every subscription the ROS graph shows on its topic,
-        every recorder the graph shows there names this node under
-        ``matched_publishers`` (its side of the match: acknowledged), and
-        ``extra()`` (a list of what else is missing) is empty.
+        every recorder that could lose this node's messages has matched it
+        (``recorders_missing``), and ``extra()`` (a list of what else is
+        missing) is empty.
 
-        No fixed settle by default: the wait ends on these events, not on a
-        clock. ``discovery_settle`` (0 unless set) gives the graph that long
-        from the node's start to show a subscriber that runs already and that
-        the run does not name (a recorder started on its own; the run names
-        one with ``wait_for_subscribers``). A subscription that matched after
-        a sample was sent still gets it: the writer counted it as matched,
-        and its heartbeat (50 ms, config/fastdds.xml) repairs the sample
-        (test/test_startup_order.py shows it). Says at once what it waits
-        for, and again every few s."""
+        No fixed settle by default: these events end the wait, not a clock.
+        ``discovery_settle`` (0 unless set) gives the graph that long from
+        the node's start to show a subscriber that runs already and that
+        neither the run nor this machine names (a recorder on another host).
+        A subscription that matched after a sample was sent still gets it:
+        the writer counted it as matched, and its heartbeat (50 ms,
+        config/fastdds.xml) repairs the sample (test/test_startup_order.py
+        shows it). Says at once what it waits for, and again every few s."""
         node = self.node
         pubs = node.data_publishers + [node.health.pub]
-        me = node.get_fully_qualified_name()
-        matched = self.word.matched
+        # Recorders running on this machine (runtime/recorders.py): known
+        # before discovery shows them, so waited for like one it shows.
+        noted = recorders.running(node.context.get_domain_id())
 
         def missing():
             out = []
-            recorders = set()
             age = time.monotonic() - node.created
             if age < node.discovery_settle:
                 out.append('discovery of the ROS graph (%.1f of %g s, discovery_settle)'
@@ -71,17 +71,12 @@ class StartupBarrier:
                 floor = node.wait_for_subscribers
                 if id(pub) in node.optional_publishers:
                     floor = 0
-                subscribers = self.graph_subscriptions(pub)
-                recorders.update(name for name in map(topics.endpoint_node_name, subscribers)
-                                 if name in matched)
-                want = max(floor, len(subscribers))
+                want = max(floor, len(self.graph_subscriptions(pub)))
                 have = pub.get_subscription_count()
                 if have < want:
                     out.append('%s: %d of %d subscriptions matched'
                                % (pub.topic_name, have, want))
-            for name in sorted(recorders):
-                if me not in matched[name]:
-                    out.append('%s to match %s\'s publishers' % (name, me))
+            out += self.recorders_missing(pubs, noted)
             return out + (list(extra()) if extra is not None else [])
 
         log = node.get_logger()
@@ -111,6 +106,34 @@ class StartupBarrier:
                  % (node.discovery_timeout, '; '.join(waiting)))
         node.health.warning = 'started before all subscribers matched'
         return False
+
+
+    def recorders_missing(self, pubs, noted) -> list[str]:
+        """What the recorders still miss to record this node from its first
+        message: each one the graph shows on a topic of ``pubs`` or that is
+        ``noted`` running here must have said on /diagnostics what it records
+        (``RecorderWord``); on each such topic the graph must show its
+        subscription (so the count above holds the writer's side of the
+        match), and it must name this node under ``matched_publishers``
+        (its side: only it sees that)."""
+        node = self.node
+        me = node.get_fully_qualified_name()
+        word = self.word
+        shown = {}          # recorder -> topics of pubs it subscribes, as the graph shows
+        for pub in pubs:
+            for name in map(topics.endpoint_node_name, self.graph_subscriptions(pub)):
+                shown.setdefault(name, set()).add(pub.topic_name)
+        out = []
+        for name in sorted(set(noted) | (set(shown) & set(word.matched))):
+            if name not in word.matched:
+                out.append('%s (recording on this machine) to say what it records' % name)
+                continue
+            mine = {pub.topic_name for pub in pubs} & word.recorded.get(name, set())
+            for topic in sorted(mine - shown.get(name, set())):
+                out.append('%s: the subscription of %s' % (topic, name))
+            if (mine or name in shown) and me not in word.matched[name]:
+                out.append('%s to match %s\'s publishers' % (name, me))
+        return out
 
 
 class PlantStartup:

@@ -17,6 +17,8 @@ import threading
 import time
 from pathlib import Path
 
+from stewart63_ros.runtime import recorders
+
 # Light imports only up to main's first line, which installs the stop
 # handlers (the recorder's modules, rclpy and rosbags, load after them): a
 # Ctrl-C while they load could otherwise be swallowed by a library's catch-all.
@@ -95,9 +97,12 @@ def main(argv=None) -> int:
 def _record(argv=None) -> int:
     made = []                   # the Recorder, once made
     stop = threading.Event()
+    notes = []                  # this recorder's note for starting nodes (runtime/recorders.py)
 
     def stop_recording():
         stop.set()
+        for note in notes:      # a stopping recorder: nobody is to wait for it
+            recorders.withdraw(note)
         for rec in made:
             try:
                 rec.request_stop()
@@ -144,6 +149,9 @@ def _record(argv=None) -> int:
         except BagError as exc:
             print(f'record: error: {exc}', file=sys.stderr)
             return 2
+        # Nodes started from here on wait for this recorder to match them
+        # before their first message, though discovery has not shown it yet.
+        notes.append(recorders.announce(rec.full_name, rec.domain_id))
         print(READY_LINE, flush=True)
         print(f'record: recording {len(rec.topics)} topics into {bag}', file=sys.stderr,
               flush=True)
@@ -176,6 +184,8 @@ def _record(argv=None) -> int:
         print(f'record: error: {exc}', file=sys.stderr)
         return 1
     finally:
+        for note in notes:
+            recorders.withdraw(note)
         try:
             rec.close()
         except Exception as exc:  # noqa: BLE001 - reported, the process ends anyway
