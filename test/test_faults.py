@@ -60,8 +60,10 @@ def test_hang_kill_and_restart_of_nodes_in_a_realtime_rig(ros, tmp_path):
     def ready(name):
         proc = procs[name]
         said = 'realtime at' if name == 'plant' else 'matched after'
-        assert wait_until(lambda: said in _text(proc) or proc.returncode is not None, 120), \
-            proc.describe()
+        # or its start-up wait ran out (discovery_timeout): the bag then
+        # shows what that cost, with the logs (below), not a 120 s wait here
+        assert wait_until(lambda: said in _text(proc) or 'starting anyway' in _text(proc)
+                          or proc.returncode is not None, 120), proc.describe()
         assert proc.returncode is None, proc.describe()
 
     def start(name, *extra):
