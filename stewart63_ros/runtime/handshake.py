@@ -17,9 +17,13 @@ nothing anybody publishes is lost:
    sets 1 when it records) and every subscription the ROS graph shows on its
    topic, and a recorder that the graph shows on its topics must name the
    node under ``matched_publishers`` on /diagnostics (below: the recorder's
-   side of the match, which only the recorder sees). No fixed settle: these
-   events end the wait (``discovery_settle``, 0 by default, adds one for a
-   subscriber the run does not name).
+   side of the match, which only the recorder sees). A ``record`` running
+   on this machine is waited for so before discovery shows it: it leaves a
+   note (runtime/recorders.py), and on each topic its status says it records
+   (``recorded/<topic>``) the node waits for its subscription, matched. No
+   fixed settle: these events end the wait (``discovery_settle``, 0 by
+   default, adds one for a subscriber on another host the run does not
+   name).
 3. ``rig --record``: the recorder prints ``MATCHED`` once it has matched the
    publishers of the controller and fk run here (``recorder_waits_for``,
    below); ``rig`` waits for that line, then starts the plant.
