@@ -140,7 +140,9 @@ def test_a_node_waits_for_each_recorder_on_every_topic_it_records():
     waited for before discovery shows it; then on each of the node's topics
     it records (its status's ``recorded/`` keys) the graph must show its
     subscription, so that the writer's own count holds it, and it must name
-    the node (its side of the match)."""
+    the node on each of them (``matched_publishers/<topic>``: its side of
+    the match; a recorder that named it matched from a partial graph lost
+    410 lockstep forces at -n 2)."""
     from stewart63_ros.runtime.handshake import RecorderWord
     from stewart63_ros.runtime.startup import StartupBarrier
 
@@ -148,7 +150,7 @@ def test_a_node_waits_for_each_recorder_on_every_topic_it_records():
         def get_fully_qualified_name(self):
             return '/fk'
     word = RecorderWord.__new__(RecorderWord)
-    word.matched, word.recorded = {}, {}
+    word.matched, word.recorded, word.matched_on = {}, {}, {}
     barrier = StartupBarrier(Node(), word)
     pubs = [_Pub('/platform_pose'), _Pub('/diagnostics')]
     graph = {'/platform_pose': [], '/diagnostics': []}
@@ -160,11 +162,14 @@ def test_a_node_waits_for_each_recorder_on_every_topic_it_records():
     word.recorded['/record'] = {'/platform_pose', '/diagnostics', '/leg_lengths'}
     assert barrier.recorders_missing(pubs, noted) == [
         '/diagnostics: the subscription of /record', '/platform_pose: the subscription of /record',
-        "/record to match /fk's publishers"]
+        '/record to match /fk on /diagnostics, /platform_pose']
     graph['/platform_pose'] = ['/record']
     graph['/diagnostics'] = ['/record', '/plant']
-    assert barrier.recorders_missing(pubs, noted) == ["/record to match /fk's publishers"]
+    # its graph showed fk's status publisher only: named on that alone, not enough
     word.matched['/record'] = {'/plant', '/fk'}
+    word.matched_on['/record'] = {'/diagnostics': {'/plant', '/fk'}}
+    assert barrier.recorders_missing(pubs, noted) == ['/record to match /fk on /platform_pose']
+    word.matched_on['/record']['/platform_pose'] = {'/fk'}
     assert barrier.recorders_missing(pubs, noted) == []
     # one the graph shows but that has not spoken is no recorder (a viewer)
     graph['/platform_pose'] = ['/record', '/view']

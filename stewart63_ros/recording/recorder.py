@@ -203,7 +203,7 @@ class Recorder:
         for topic in published:
             if topic not in self.bag.conns:
                 self.intake.add_connection(topic)
-        self.status.matched(matched)
+        self.status.matched(matched, self.subs.matched_on)
 
     # ------------------------------------------------------------ public state
     @property

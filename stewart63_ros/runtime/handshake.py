@@ -73,6 +73,9 @@ FINAL = 'final'
 FINAL_PREFIX = 'final/'
 #: a recorder's status: ``recorded/<full topic name>`` per topic it records
 RECORDED_PREFIX = 'recorded/'
+#: a recorder's status: ``matched_publishers/<full topic name>``, the nodes
+#: whose publishers on that topic its subscription has matched
+MATCHED_ON_PREFIX = MATCHED + '/'
 RUN = 'run'
 RUN_ENDED = 'ended'
 #: What ``record`` prints on its standard output, one line each, for ``rig``
@@ -156,6 +159,8 @@ class RecorderWord:
         #: recorder's full name -> the full names of the topics it records
         #: (its status's ``recorded/<topic>`` keys)
         self.recorded: dict[str, set] = {}
+        #: recorder's full name -> {topic: the nodes it has matched there}
+        self.matched_on: dict[str, dict] = {}
         self.confirmed = False
         self.sub = node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS,
                                             self.on_status, topics.DIAGNOSTICS_QOS, raw=True)
@@ -178,6 +183,9 @@ class RecorderWord:
                     self.recorded[recorder] = {
                         v.key[len(RECORDED_PREFIX):] for v in status.values
                         if v.key.startswith(RECORDED_PREFIX)}
+                    self.matched_on[recorder] = {
+                        v.key[len(MATCHED_ON_PREFIX):]: set(v.value.split(','))
+                        for v in status.values if v.key.startswith(MATCHED_ON_PREFIX)}
                 elif kv.key == CONFIRMS and node.closing and me in kv.value.split(','):
                     self.confirmed = True
 

@@ -133,7 +133,13 @@ class StartupBarrier:
             mine = {pub.topic_name for pub in pubs} & word.recorded.get(name, set())
             for topic in sorted(mine - shown.get(name, set())):
                 out.append('%s: the subscription of %s' % (topic, name))
-            if (mine or name in shown) and me not in word.matched[name]:
+            # Its side, topic by topic: its graph may show only some of this
+            # node's publishers yet, and name it matched on those alone.
+            on = getattr(word, 'matched_on', {}).get(name, {})
+            unmatched = sorted(t for t in mine if me not in on.get(t, ()))
+            if unmatched:
+                out.append('%s to match %s on %s' % (name, me, ', '.join(unmatched)))
+            elif (mine or name in shown) and me not in word.matched[name]:
                 out.append('%s to match %s\'s publishers' % (name, me))
         return out
 
