@@ -38,7 +38,7 @@ from bench_loop import private_domain
 from stewart63_ros.canbus.master import Master
 from stewart63_ros.core.machine.bus import load_bus_config
 from stewart63_ros.paths import default_params_path
-from stewart63_ros.tools.rig import Rig
+from stewart63_ros.tools.rig_process import Rig
 
 DEVICES = textwrap.dedent('''
     import sys, time

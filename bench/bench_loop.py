@@ -26,7 +26,8 @@ import time
 
 from stewart63_ros.core.plumbing.params import default_params_path
 from stewart63_ros.paths import try_lock_domain
-from stewart63_ros.tools.rig import Rig, control_params
+from stewart63_ros.tools.rig import control_params
+from stewart63_ros.tools.rig_process import Rig
 
 FULL = ('plant', 'controller', 'fk')
 PAIR = ('plant', 'controller')

@@ -24,7 +24,7 @@ from bench_loop import PAIR, private_domain
 
 from stewart63_ros.core.machine.supervisor import run_supervised, supervisor_from_params
 from stewart63_ros.core.plumbing.params import default_params_path, load_setup
-from stewart63_ros.tools.rig import Rig
+from stewart63_ros.tools.rig_process import Rig
 
 
 def per_sample_us(samples: int = 5000) -> dict:

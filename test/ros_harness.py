@@ -413,7 +413,7 @@ def logs_of(log_dir, tail: int = 3000) -> str:
 
 
 def run_to_end(rig, timeout: float) -> tuple[bool, dict, str]:
-    """Start ``rig`` (a tools.rig.Rig), wait for the end of its run (bounded),
+    """Start ``rig`` (a tools.rig_process.Rig), wait for the end of its run (bounded),
     always stop it: (whether it ran to its end, exit codes, its logs)."""
     ok = False
     try:

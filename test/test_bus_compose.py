@@ -38,7 +38,8 @@ from stewart63_ros.core.machine.bus import OverTheBus, load_bus_config
 from stewart63_ros.core.mechanics.dynamics import Dynamics
 from stewart63_ros.core.plumbing.params import load_mechanism
 from stewart63_ros.nodes.composed import hosting_problem
-from stewart63_ros.tools.rig import Rig, plant_params_problem
+from stewart63_ros.tools.rig import plant_params_problem
+from stewart63_ros.tools.rig_process import Rig
 
 RATE = 1000.0
 RUN_TIMEOUT = 150.0

@@ -26,7 +26,7 @@ from stewart63_ros.core.controllers.simulate import run_sampled
 from stewart63_ros.core.machine.bus import OverTheBus, load_bus_config
 from stewart63_ros.core.mechanics.dynamics import Dynamics
 from stewart63_ros.core.plumbing.params import load_mechanism, load_setup
-from stewart63_ros.tools.rig import Rig
+from stewart63_ros.tools.rig_process import Rig
 
 pytestmark = [pytest.mark.dds, pytest.mark.slow]
 RATE = 1000.0

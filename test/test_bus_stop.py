@@ -300,7 +300,7 @@ def test_a_stalled_bridge_skips_the_syncs_it_missed_sends_no_burst_and_loses_no_
 
 
 def test_the_rig_summary_says_the_drives_were_left_safe_or_names_those_that_were_not(capsys):
-    from stewart63_ros.tools.rig import print_drives_at_stop
+    from stewart63_ros.tools.rig_summary import print_drives_at_stop
     safe = {'leg_%d' % i: READY_TO_SWITCH_ON for i in range(1, 7)}
     print_drives_at_stop({'drives_at_stop': safe})
     out, err = capsys.readouterr()

@@ -33,7 +33,7 @@ from test_rig import (
 from stewart63_ros.core.controllers.simulate import run_sampled, sensor_reading
 from stewart63_ros.core.mechanics.dynamics import POS, Dynamics
 from stewart63_ros.core.plumbing.params import load_mechanism
-from stewart63_ros.tools.rig import Rig
+from stewart63_ros.tools.rig_process import Rig
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / 'config' / 'stewart63.yaml'

@@ -310,7 +310,8 @@ def test_lockstep_rig_with_a_reference_equals_sim(setup, ros, monkeypatch, tmp_p
     from stewart63_ros.core.controllers.reference_files import write_reference_csv
     from stewart63_ros.core.controllers.simulate import run_sampled, sensor_reading
     from stewart63_ros.core.controllers.tracking import tracking_errors
-    from stewart63_ros.tools.rig import Rig, control_params
+    from stewart63_ros.tools.rig import control_params
+    from stewart63_ros.tools.rig_process import Rig
     from stewart63_ros.tools.sim import make_controller
     ref_csv = tmp_path / 'reference.csv'
     write_reference_csv(ref_csv, *six_axis_reference(setup, duration=3.0))

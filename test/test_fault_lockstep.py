@@ -25,7 +25,7 @@ from ros_harness import rig_env, run_to_end
 
 from stewart63_ros.core.machine.faults import BUS_PREFIX
 from stewart63_ros.core.machine.faults import KINDS as ALL_KINDS
-from stewart63_ros.tools.rig import Rig
+from stewart63_ros.tools.rig_process import Rig
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / 'config' / 'stewart63.yaml'

@@ -44,7 +44,7 @@ from stewart63_ros.core.mechanics.dynamics import Dynamics
 from stewart63_ros.recording.recorder import header_stamp_ns
 from stewart63_ros.runtime.checks import SkipCounter
 from stewart63_ros.runtime.launcher import signals_deferred
-from stewart63_ros.tools.rig import Rig
+from stewart63_ros.tools.rig_process import Rig
 
 # test_rig's module fixtures: the mechanism, the kernels compiled once
 mech, warm_kernels = test_rig.mech, test_rig.warm_kernels

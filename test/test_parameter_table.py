@@ -200,7 +200,7 @@ def test_the_rigs_clock_mode_is_written_once_and_the_packaged_file_sets_it_for_e
     import yaml
 
     from stewart63_ros.paths import RIG_CLOCK_MODE
-    from stewart63_ros.tools.rig import Rig
+    from stewart63_ros.tools.rig_process import Rig
     doc = yaml.safe_load(default_params_path().read_text())
     assert doc['/**']['ros__parameters']['clock_mode'] == RIG_CLOCK_MODE
     assert [k for k, v in doc.items() if k != '/**' and 'clock_mode' in v['ros__parameters']] \

@@ -28,7 +28,7 @@ from stewart63_ros.bagio import header_stamp_ns as stamp_ns
 from stewart63_ros.core.controllers.simulate import run_sampled, sensor_reading
 from stewart63_ros.core.mechanics.dynamics import POS, Dynamics
 from stewart63_ros.core.plumbing.params import load_mechanism
-from stewart63_ros.tools.rig import Rig
+from stewart63_ros.tools.rig_process import Rig
 
 REPO = Path(__file__).resolve().parents[1]
 #: Node processes over DDS: `make test-fast` leaves this file out.

@@ -14,7 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from stewart63_ros.tools.rig import Rig, print_summary
+from stewart63_ros.tools.rig_process import Rig
+from stewart63_ros.tools.rig_summary import print_summary
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / 'config' / 'stewart63.yaml'

@@ -9,7 +9,7 @@ import sys
 import yaml
 
 from stewart63_ros.paths import default_params_path
-from stewart63_ros.tools import rig
+from stewart63_ros.tools import rig, rig_summary
 
 PLANT = {'clock_mode': 'lockstep', 'rate_hz': 1000.0, 'samples': 501,
          'positioning_error_percent': 31.8, 'loop_latency': {'count': 0},
@@ -27,11 +27,11 @@ class FakeRig:
 
 
 def test_a_run_that_ends_during_the_homing_says_so(capsys):
-    rig.print_summary(FakeRig('false'), 2.0)
+    rig_summary.print_summary(FakeRig('false'), 2.0)
     out = capsys.readouterr().out
     assert 'the run ended before the homing finished (homed: false)' in out, out
     assert '31.8' not in out and 'supervisor: no trip' not in out, out
-    rig.print_summary(FakeRig('true'), 2.0)
+    rig_summary.print_summary(FakeRig('true'), 2.0)
     out = capsys.readouterr().out
     assert 'homing' not in out and '31.8000 %' in out and 'supervisor: no trip' in out, out
 

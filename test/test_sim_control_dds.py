@@ -31,7 +31,7 @@ from stewart63_ros import bagio
 from stewart63_ros.bagio import header_stamp_ns as stamp_ns
 from stewart63_ros.core.controllers.simulate import run_sampled
 from stewart63_ros.core.plumbing.params import load_mechanism
-from stewart63_ros.tools.rig import Rig
+from stewart63_ros.tools.rig_process import Rig
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / 'config' / 'stewart63.yaml'

@@ -5,7 +5,7 @@ from __future__ import annotations
 import yaml
 
 from stewart63_ros.runtime.handshake import plant_startup_parameters, recorder_waits_for
-from stewart63_ros.tools.rig import Rig
+from stewart63_ros.tools.rig_process import Rig
 
 
 def test_a_recording_lockstep_rig_holds_its_plant_for_fk_and_the_recorder():

@@ -35,7 +35,7 @@ from stewart63_ros.core.mechanics.fk import ForwardKinematics
 from stewart63_ros.core.mechanics.kinematics import leg_lengths
 from stewart63_ros.core.mechanics.rotation import euler_from_matrix, rotation_from_euler
 from stewart63_ros.core.plumbing.params import load_mechanism, load_setup
-from stewart63_ros.tools.rig import Rig
+from stewart63_ros.tools.rig_process import Rig
 
 pytestmark = [pytest.mark.dds, pytest.mark.slow]
 REPO = Path(__file__).resolve().parents[1]

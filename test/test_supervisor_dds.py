@@ -27,7 +27,7 @@ from ros_harness import logs_of, rig_env, run_to_end
 from stewart63_ros import bagio
 from stewart63_ros.core.machine.supervisor import run_supervised, supervisor_from_params
 from stewart63_ros.core.plumbing.params import load_mechanism
-from stewart63_ros.tools.rig import Rig
+from stewart63_ros.tools.rig_process import Rig
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / 'config' / 'stewart63.yaml'
