@@ -76,9 +76,13 @@ def test_the_packaged_6_6_passes_the_parameter_files_checks(setup66):
     again = setup66.replace()
     np.testing.assert_array_equal(again.mechanism.platform_points,
                                   setup66.mechanism.platform_points)
-    # the paper's scenario and gains, as the 6-3 runs them
-    np.testing.assert_array_equal(setup66.task.setpoint_lengths, [1.9, 1.9, 1.6, 1.6, 1.6, 1.6])
+    # the paper's initial state and gains; its step sized to this machine
+    # (2-5.5 cm a leg, the 6-3's 3.4-5.8 cm) to a pose inside the default pose_box
+    np.testing.assert_array_equal(setup66.task.initial_position, [0.01, 0.01, 1.0])
     np.testing.assert_array_equal(setup66.gains.kp, [4000.0] * 6)
+    step = setup66.task.setpoint_lengths - leg_lengths(
+        setup66.mechanism, setup66.task.initial_position, setup66.task.initial_rotation)
+    assert 0.015 < step.min() and step.max() < 0.06, step
 
 
 # -- refusals at load --
@@ -187,7 +191,7 @@ def test_the_plant_path_on_a_6_6_has_end_stops_and_faults_per_leg(setup66):
 
 def test_sim_runs_the_packaged_6_6(tmp_path, capsys):
     """``sim --params config/hexapod66.yaml``: the paper's scenario, sampled
-    at the plant's 1 kHz; 2 s here (10 s of continuous PD end at 1.13 %, README)."""
+    at the plant's 1 kHz; 2 s here (10 s of continuous PD end at 0.872 %, README)."""
     from stewart63_ros.tools import sim
     out = tmp_path / 'run'
     assert sim.main(['--params', str(HEXAPOD66), '--duration', '2', '--out', str(out),
