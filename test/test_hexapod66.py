@@ -68,7 +68,9 @@ def test_the_packaged_6_6_passes_the_parameter_files_checks(setup66):
     assert unknown_keys(file_parameters(str(HEXAPOD66))) == []
     doc = yaml.safe_load(HEXAPOD66.read_text())
     ours = yaml.safe_load((REPO / 'config' / 'stewart63.yaml').read_text())
-    assert sorted(doc) == sorted(ours)
+    # and a supervisor section: the lower stops for the homing (docs/supervisor.md)
+    assert sorted(doc) == sorted([*ours, '/**/supervisor'])
+    assert read_parameter_file(HEXAPOD66, node_name='supervisor')['homing_direction'] == 'retract'
     assert sorted(doc['/**']['ros__parameters']) == sorted(ours['/**']['ros__parameters'])
     assert doc['/**']['ros__parameters']['clock_mode'] == \
         ours['/**']['ros__parameters']['clock_mode']
@@ -188,6 +190,20 @@ def test_the_plant_path_on_a_6_6_has_end_stops_and_faults_per_leg(setup66):
     others = [0, 2, 3, 4, 5]
     assert np.all(result.applied[dead][:, others] == result.forces[dead][:, others])
 
+
+
+def test_the_packaged_6_6_runs_its_task_under_the_packaged_supervisor_limits(setup66):
+    """``rig --params config/hexapod66.yaml --supervisor`` as the core runs it
+    (``run_supervised``, sample for sample): every limit at its default
+    (trip_leg_speed 0.5 m/s, pose_box +-0.3 m), no trip through the step. (The
+    paper's own lengths, the file's task before, tripped leg_speed at sample 2.)"""
+    from stewart63_ros.core.machine.supervisor import run_supervised, supervisor_from_params
+    sup = supervisor_from_params(setup66, setup66.to_params(), 1000.0)
+    out = run_supervised(setup66, sup, 0.5, 1000.0)     # the fastest leg at 0.04 s
+    assert sup.trips == []
+    np.testing.assert_array_equal(out['forces'], out['requests'])
+    speed = np.abs(np.diff(out['lengths'], axis=0)).max() * 1000.0
+    assert 0.2 < speed < 0.5, speed          # the fastest leg: 0.34 m/s
 
 def test_sim_runs_the_packaged_6_6(tmp_path, capsys):
     """``sim --params config/hexapod66.yaml``: the paper's scenario, sampled
