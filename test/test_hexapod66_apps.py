@@ -186,7 +186,7 @@ def test_the_packaged_6_6_homes_to_its_lower_stops_and_recovers_the_offsets():
     # the file's step after it pass them
     params = dict(setup.to_params(), homing=True, homing_speed=0.2, homing_direction='retract')
     sup = supervisor_from_params(setup, params, RATE)
-    out = run_supervised(setup, sup, 2.3, RATE, homing_offset=hidden,
+    out = run_supervised(setup, sup, 3.3, RATE, homing_offset=hidden,   # homed at 3.1 s
                          sensor=SensorModel({'sensor_resolution': resolution}))
     assert sup.homed and sup.trips == []
     assert np.all(np.abs(sup.offsets - hidden) <= resolution), sup.offsets - hidden
