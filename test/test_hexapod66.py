@@ -68,7 +68,9 @@ def test_the_packaged_6_6_passes_the_parameter_files_checks(setup66):
     assert unknown_keys(file_parameters(str(HEXAPOD66))) == []
     doc = yaml.safe_load(HEXAPOD66.read_text())
     ours = yaml.safe_load((REPO / 'config' / 'stewart63.yaml').read_text())
-    assert sorted(doc) == sorted(ours)
+    # and a supervisor section: the lower stops for the homing (docs/supervisor.md)
+    assert sorted(doc) == sorted([*ours, '/**/supervisor'])
+    assert read_parameter_file(HEXAPOD66, node_name='supervisor')['homing_direction'] == 'retract'
     assert sorted(doc['/**']['ros__parameters']) == sorted(ours['/**']['ros__parameters'])
     assert doc['/**']['ros__parameters']['clock_mode'] == \
         ours['/**']['ros__parameters']['clock_mode']
@@ -76,9 +78,13 @@ def test_the_packaged_6_6_passes_the_parameter_files_checks(setup66):
     again = setup66.replace()
     np.testing.assert_array_equal(again.mechanism.platform_points,
                                   setup66.mechanism.platform_points)
-    # the paper's scenario and gains, as the 6-3 runs them
-    np.testing.assert_array_equal(setup66.task.setpoint_lengths, [1.9, 1.9, 1.6, 1.6, 1.6, 1.6])
+    # the paper's initial state (10 cm higher) and gains; its step sized to this
+    # machine (2-5.5 cm a leg, the 6-3's 3.4-5.8 cm) to a pose inside the default pose_box
+    np.testing.assert_array_equal(setup66.task.initial_position, [0.01, 0.01, 1.1])
     np.testing.assert_array_equal(setup66.gains.kp, [4000.0] * 6)
+    step = setup66.task.setpoint_lengths - leg_lengths(
+        setup66.mechanism, setup66.task.initial_position, setup66.task.initial_rotation)
+    assert 0.015 < step.min() and step.max() < 0.06, step
 
 
 # -- refusals at load --
@@ -185,9 +191,23 @@ def test_the_plant_path_on_a_6_6_has_end_stops_and_faults_per_leg(setup66):
     assert np.all(result.applied[dead][:, others] == result.forces[dead][:, others])
 
 
+
+def test_the_packaged_6_6_runs_its_task_under_the_packaged_supervisor_limits(setup66):
+    """``rig --params config/hexapod66.yaml --supervisor`` as the core runs it
+    (``run_supervised``, sample for sample): every limit at its default
+    (trip_leg_speed 0.5 m/s, pose_box +-0.3 m), no trip through the step. (The
+    paper's own lengths, the file's task before, tripped leg_speed at sample 2.)"""
+    from stewart63_ros.core.machine.supervisor import run_supervised, supervisor_from_params
+    sup = supervisor_from_params(setup66, setup66.to_params(), 1000.0)
+    out = run_supervised(setup66, sup, 0.5, 1000.0)     # the fastest leg at 0.04 s
+    assert sup.trips == []
+    np.testing.assert_array_equal(out['forces'], out['requests'])
+    speed = np.abs(np.diff(out['lengths'], axis=0)).max() * 1000.0
+    assert 0.2 < speed < 0.5, speed          # the fastest leg: 0.35 m/s
+
 def test_sim_runs_the_packaged_6_6(tmp_path, capsys):
     """``sim --params config/hexapod66.yaml``: the paper's scenario, sampled
-    at the plant's 1 kHz; 2 s here (10 s of continuous PD end at 1.13 %, README)."""
+    at the plant's 1 kHz; 2 s here (10 s of continuous PD end at 0.792 %, README)."""
     from stewart63_ros.tools import sim
     out = tmp_path / 'run'
     assert sim.main(['--params', str(HEXAPOD66), '--duration', '2', '--out', str(out),

@@ -182,12 +182,11 @@ def test_the_packaged_6_6_homes_to_its_lower_stops_and_recovers_the_offsets():
     mech = setup.mechanism
     resolution = 1e-4
     hidden = np.array([3.0, -2.0, 5.0, 0.0, -4.0, 1.2]) * 1e-3
-    # the paper's step after it moves leg 1 at 2 m/s to a pose 0.34 m off in x: the
-    # packaged limits (0.5 m/s, a box of +-0.3 m) are not this machine's
-    params = dict(setup.to_params(), homing=True, homing_speed=0.2, homing_direction='retract',
-                  trip_leg_speed=0.0, pose_box=[-0.6, -0.6, 0.5, 0.6, 0.6, 2.1])
+    # the packaged limits (trip_leg_speed 0.5 m/s, pose_box +-0.3 m): the homing and
+    # the file's step after it pass them
+    params = dict(setup.to_params(), homing=True, homing_speed=0.2, homing_direction='retract')
     sup = supervisor_from_params(setup, params, RATE)
-    out = run_supervised(setup, sup, 2.3, RATE, homing_offset=hidden,
+    out = run_supervised(setup, sup, 3.3, RATE, homing_offset=hidden,   # homed at 3.1 s
                          sensor=SensorModel({'sensor_resolution': resolution}))
     assert sup.homed and sup.trips == []
     assert np.all(np.abs(sup.offsets - hidden) <= resolution), sup.offsets - hidden

@@ -88,8 +88,8 @@ def test_paper_scenario_agrees_with_mujoco_within_its_convergence(default_setup)
 
 def test_the_packaged_6_6_agrees_with_mujoco_over_the_paper_scenario():
     """config/hexapod66.yaml (leg i at its own platform joint p_i): the same
-    convergence test, 10 s of the paper's scenario. Measured: 2.4e-7 m at
-    1 ms, 6.0e-8 m at 0.5 ms (the issue's bar: 1e-6 m)."""
+    convergence test, 10 s of its scenario. Measured: 2.6e-8 m at
+    1 ms, 6.6e-9 m at 0.5 ms (the issue's bar: 1e-6 m)."""
     from stewart63_ros.core.plumbing.params import load_setup
     setup = load_setup(HEXAPOD66)
     assert setup.mechanism.layout == '6-6'
