@@ -137,7 +137,7 @@ def test_plot_of_a_reset_bag_draws_each_run_on_its_own(reset_bag, tmp_path, monk
     from stewart63_ros.tools import plot
     drawn = {}
 
-    def spy(columns, out_path, title='', reference=None, setpoint=None, faults=None):
+    def spy(columns, out_path, title='', reference=None, setpoint=None, faults=None, layout='6-3'):
         drawn[Path(out_path).name] = (title, columns['t'].copy(), columns['z'].copy(), faults)
         return out_path
     monkeypatch.setattr(plot, 'draw_figure', spy)

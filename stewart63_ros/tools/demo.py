@@ -51,7 +51,7 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return code
     figure = run_dir / 'figure.png'
-    plot.main([str(bag), '--out', str(figure)])
+    plot.main([str(bag), '--out', str(figure), '--params', str(params)])
     loop = None
     try:
         loop = json.loads((run_dir / 'logs' / 'plant_summary.json').read_text())['wall_time_s']

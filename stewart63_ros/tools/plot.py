@@ -38,14 +38,15 @@ LEG_STYLES = ('-', (0, (6, 2)), '-.', (0, (1, 1.5)), (0, (8, 2, 1, 2, 1, 2)), (0
 
 
 def draw_figure(columns: dict, out_path, title: str = '', reference: dict | None = None,
-                setpoint=None, faults: list | None = None) -> Path:
+                setpoint=None, faults: list | None = None, layout: str = '6-3') -> Path:
     """Write Fig. 4 from {column: array} (the CSV layout) to ``out_path``; with
     ``reference`` ({t, x, y, z, theta_x, theta_y, theta_z: array}) also the
     reference (dashed) and the error actual - reference. ``setpoint``: the six
     desired lengths (L_i)_0, drawn as thin dashed black lines, so the final
     sag of the legs below or above them shows. ``faults``: dicts with
     ``fault``, ``active_from_s`` and ``active_until_s`` (None: to the end;
-    times from the first sample), shaded on every panel."""
+    times from the first sample), shaded on every panel. ``layout``: the
+    machine's ('6-3' or '6-6'), named in the title."""
     import matplotlib  # lazy: matplotlib costs 425 ms; only a figure needs it
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt  # lazy: pyplot costs 794 ms; only a figure needs it
@@ -100,7 +101,7 @@ def draw_figure(columns: dict, out_path, title: str = '', reference: dict | None
     for ax in axes:
         ax.grid(True, alpha=0.3)
         ax.legend(loc='best', fontsize='small', ncol=3)
-    fig.suptitle('6-3 Stewart platform, PD control (Yurt & Ozkol, Fig. 4)'
+    fig.suptitle('%s Stewart platform, PD control (Yurt & Ozkol, Fig. 4)' % layout
                  + ('\n' + title if title else ''))
     fig.tight_layout()
     out_path = Path(out_path)
@@ -289,7 +290,8 @@ def main(argv=None) -> int:
         title = run_title(source, columns, run)
         draw_figure(columns, path, title=title if not args.title else
                     args.title + ('' if len(drawn) == 1 else ' (%s)' % run.name),
-                    reference=moved, setpoint=setpoint, faults=faults)
+                    reference=moved, setpoint=setpoint, faults=faults,
+                    layout=setup.mechanism.layout)
         print(path if len(drawn) == 1 else '%s (%s)' % (path, title))
     return 0
 
