@@ -274,3 +274,141 @@ def test_every_trip_of_the_node_is_reset_once_gone_refused_while_it_holds(
             assert all(loop.ns(k) in loop.sent for k in range(first_after, loop.k))
     finally:
         node.destroy_node()
+
+
+class ZeroNode:
+    """The node that owns the sensors' zero (the plant, or the bridge), as a
+    composed peer: refuses ``homed_offset`` while ``refuse`` says why."""
+
+    def __init__(self):
+        self.refuse = 'drive 3: SDO timeout'
+        self.offsets = None
+
+    def set_parameters(self, params):
+        from rcl_interfaces.msg import SetParametersResult
+        if self.refuse:
+            return [SetParametersResult(successful=False, reason=self.refuse)]
+        self.offsets = np.array(params[0].value, float)
+        return [SetParametersResult(successful=True)]
+
+
+#: the hidden zero of each leg's sensor [m] (test_supervisor_dds.py's)
+HIDDEN = np.array([0.003, -0.002, 0.005, 0.0, -0.004, 0.0012])
+
+
+class HomingLegs:
+    """Legs that follow the homing's setpoint exactly: towards their upper
+    stops (2.3 m) at the homing's speed from a level pose 1.55 m up, then
+    back; resting where they are while tripped; readings = truth + ``shift``
+    (the hidden zero until the offsets are set)."""
+
+    SPEED = 0.4
+
+    def __init__(self, node, loop, mech):
+        self.core, self.loop, self.stop = node.core, loop, mech.leg_length_max
+        self.start = leg_lengths(mech, np.array([0.01, 0.01, 1.55]), np.eye(3))  # 1.9-2.2 m
+        self.shift = HIDDEN.copy()
+        self.true = self.start - self.SPEED / RATE     # (the first sample reads the start)
+
+    def step(self) -> None:
+        core, k = self.core, self.loop.k
+        homing = core.homing
+        moving = homing is not None and core.trip is None
+        if homing is None:                  # homed: back at the start
+            self.true = self.start
+        elif homing.back is not None and moving:
+            self.true = homing.back.at((self.loop.ns(k) - homing.back_ns) * 1e-9)[0]
+        elif moving:
+            self.true = np.minimum(self.true + self.SPEED / RATE, self.stop)
+        rates = np.where(moving & (self.true < self.stop), self.SPEED, 0.0)
+        self.loop.step(self.true + self.shift, rates, np.full(6, 50.0))
+
+    def until(self, done, most: int) -> None:
+        for _ in range(most):
+            self.step()
+            if done():
+                return
+
+
+def homing_node(monkeypatch, mode):
+    from stewart63_ros.core.plumbing.params import default_params_path, load_setup
+    node = supervisor_node(monkeypatch, mode, homing='true', homing_speed=HomingLegs.SPEED,
+                           pose_box='[]')
+    node.zero_peer = ZeroNode()
+    loop = Loop(node, mode)
+    return node, loop, HomingLegs(node, loop, load_setup(default_params_path()).mechanism)
+
+
+@pytest.mark.parametrize('mode', MODES)
+def test_a_homing_trip_is_reset_once_the_offsets_are_set_then_the_homing_goes_on(
+        ros_in_process, monkeypatch, mode):
+    """``homing``: the offsets a homing found could not be set on the node
+    that owns the zero. A reset tries again: refused while that node
+    refuses, naming its reason; accepted once it takes them. Then the
+    homing's way back starts over from where the legs are (readings true
+    now), ends homed, and the return to the reference follows (before, a
+    reset went on without the offsets ever set: ``homed: true`` on readings
+    off by the hidden zero, up to 5 mm)."""
+    node, loop, legs = homing_node(monkeypatch, mode)
+    core, zero = node.core, node.zero_peer
+    try:
+        legs.until(lambda: core.trip is not None, 400)
+        assert core.trip is not None and core.trip.cause == 'homing', core.trips
+        assert 'drive 3: SDO timeout' in core.trip.detail and core.state == 'tripped'
+        np.testing.assert_array_equal(loop.sent[loop.ns(loop.k - 1)], np.zeros(6))
+        legs.step()
+        for _ in range(2):
+            ok, why = reset(node)
+            assert not ok and why.startswith('the cause of the trip (homing) persists: '), why
+            assert 'drive 3: SDO timeout' in why, why
+        assert zero.offsets is None
+        zero.refuse = ''
+        ok, why = reset(node)
+        assert ok and why.startswith('reset: homing trip of sample'), why
+        # the offsets found went to the zero's owner: the hidden zero, less
+        # each stop's spring (the push over 2e6 N/m: under 0.2 mm)
+        np.testing.assert_allclose(zero.offsets, HIDDEN, atol=2e-4)
+        legs.shift = HIDDEN - zero.offsets
+        assert node.health.values['homed'] == 'false' and core.state == 'homing'
+        # the way back from where the legs are (at the stops) to the start
+        back = core.homing.back
+        np.testing.assert_allclose(back.start, legs.stop, atol=2e-4)
+        np.testing.assert_allclose(back.end, legs.start, atol=2e-4)
+        legs.until(lambda: core.homing is None, 500)
+        assert core.homed and node.health.values['homed'] == 'true'
+        assert core.trip is None and len(core.trips) == 1, core.trips
+        legs.step()
+        assert core.state == 'returning', core.state
+    finally:
+        node.destroy_node()
+
+
+def test_a_trip_during_the_homing_is_reset_and_the_homing_starts_over(ros_in_process,
+                                                                     monkeypatch):
+    """~/estop half-way to the stops: the descent; a reset starts the homing
+    over from where the legs are (its setpoint went on while tripped: going
+    on would jump), which then homes as ever."""
+    node, loop, legs = homing_node(monkeypatch, 'lockstep')
+    core, zero = node.core, node.zero_peer
+    zero.refuse = ''
+    try:
+        legs.until(lambda: False, 20)
+        before = loop.sent[loop.ns(loop.k - 1)]
+        node.on_estop(Trigger.Request(), Trigger.Response())
+        legs.until(lambda: False, 10)
+        assert core.trip.cause == 'estop' and core.state == 'tripped'
+        ok, why = reset(node)
+        assert ok, why
+        assert core.state == 'homing'
+        legs.step()
+        # no pull towards where the setpoint would have gone meanwhile (0.1 N)
+        after = loop.sent[loop.ns(loop.k - 1)]
+        assert np.abs(after - before).max() < 10.0, (before, after)
+        np.testing.assert_array_equal(core.homing.start, legs.true + legs.shift)
+        legs.until(lambda: zero.offsets is not None, 400)
+        np.testing.assert_allclose(zero.offsets, HIDDEN, atol=2e-4)
+        legs.shift = HIDDEN - zero.offsets
+        legs.until(lambda: core.homing is None, 500)
+        assert core.homed and [t.cause for t in core.trips] == ['estop']
+    finally:
+        node.destroy_node()
