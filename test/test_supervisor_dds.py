@@ -421,25 +421,24 @@ def test_a_supervisor_given_another_rate_than_the_plants_says_so(ros, monkeypatc
     assert summary['status'] == want, summary['status']
 
 
-@pytest.mark.parametrize('mode', ['lockstep', 'realtime'])
 def test_force_and_forces_stale_trips_reset_once_gone_on_the_live_requests(ros, monkeypatch,
-                                                                          tmp_path, mode):
-    """docs/supervisor.md's reset rule on a rig: the requests that come
-    while tripped reach the core. ``force``: the controller's first request
-    (234 N, kp 4000 on the start's 5.8 cm) past a 200 N limit; a reset is
-    refused naming the live request until kp is lowered at run time, then
-    accepted. ``forces_stale``: the controller stopped (SIGSTOP) past
+                                                                          tmp_path):
+    """docs/supervisor.md's reset rule on a realtime rig (where a
+    ``forces_stale`` trip was refused for ever while requests came at
+    609 Hz): the requests that come while tripped reach the core over DDS.
+    ``force``: the controller's first request (234 N, kp 4000 on the
+    start's 5.8 cm) past a 200 N limit; a reset is refused naming the live
+    request until kp is lowered at run time, then accepted.
+    ``forces_stale``: the controller stopped (SIGSTOP) past
     ``stale_forces_ms``; refused while it is stopped, accepted once its
-    requests come again (SIGCONT)."""
+    requests come again (SIGCONT). Every cause, lockstep and realtime, on
+    the node itself: test_supervisor_node.py (in this process, no rig)."""
     rig_env(ros, monkeypatch)
     client = Client(ros)
     supervisor = {'trip_force': 200.0}
-    if mode == 'realtime':
-        # a loaded machine's late forces are not this test's subject
-        supervisor.update(trip_leg_speed=0.0, stale_forces_ms=300.0, trip_tracking_error=0.0)
-    else:
-        supervisor.update(request_timeout=0.01)
-    rig = Rig(PARAMS, mode=mode, duration=None, nodes=NODES, log_dir=tmp_path / 'rig',
+    # a loaded machine's late forces are not this test's subject
+    supervisor.update(trip_leg_speed=0.0, stale_forces_ms=300.0, trip_tracking_error=0.0)
+    rig = Rig(PARAMS, mode='realtime', duration=None, nodes=NODES, log_dir=tmp_path / 'rig',
               supervisor=True, extra_params={'plant': {'force_timeout': 0.05},
                                              'supervisor': supervisor})
     controller = None

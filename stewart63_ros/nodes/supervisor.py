@@ -260,6 +260,9 @@ class SupervisorNode(SupervisorHoming, RigNode):
             response.success = False
             response.message = 'the cause of the trip (diagnostics_error) persists: %s' % (
                 '; '.join('%s in ERROR: %s' % item for item in self.node_errors.items()))
+        elif trip is not None and trip.cause == 'homing' and (refused := self.set_zero_again()):
+            response.success = False
+            response.message = 'the cause of the trip (homing) persists: %s' % refused
         else:
             response.success, response.message = self.core.reset()
         if response.success:

@@ -41,6 +41,15 @@ class SupervisorHoming:
             self.report()
         return forces
 
+    def set_zero_again(self) -> str:
+        """A reset of a ``homing`` trip: the offsets found, set again; '' or
+        why they were refused again (the reset is then refused)."""
+        why = self.set_zero(self.core.offsets)
+        if not why:
+            self.get_logger().info('homed: offsets %s m set on the %s at the reset'
+                                   % (np.round(self.core.offsets, 6).tolist(), self.zero_node))
+        return why
+
     def set_zero(self, zero) -> str:
         """``homed_offset`` of the plant (or bridge) of this namespace; '' or
         why it failed."""

@@ -166,12 +166,12 @@ class Supervisor:
 
     @property
     def state(self) -> str:
-        """``homing``, ``tripped``, ``descended`` (tripped, the descent at
-        rest), ``returning`` (after a reset) or ``forwarding``."""
-        if self.homing is not None:
-            return 'homing'
+        """``tripped``, ``descended`` (tripped, the descent at rest),
+        ``homing``, ``returning`` (after a reset) or ``forwarding``."""
         if self.trip is not None:
             return 'descended' if self.descended else 'tripped'
+        if self.homing is not None:
+            return 'homing'
         return 'returning' if self.returning else 'forwarding'
 
     # -- the checks -------------------------------------------------------------------
@@ -384,7 +384,8 @@ class Supervisor:
         events (``estop``, ``user_request``) and ``tracking_error`` (the safe
         action itself moves the platform off its reference; the check starts
         over after the return) do not persist; ``diagnostics_error`` is judged
-        by the node (the rig's statuses)."""
+        by the node (the rig's statuses), and so is ``homing`` (the node
+        sets the offsets again: refused while their owner refuses them)."""
         if self.trip is None:
             return ''
         ns, lengths, rates, lim = self.sample_ns, self.lengths, self.rates, self.limits
@@ -422,6 +423,9 @@ class Supervisor:
         cleared = self.trip
         self.trip = None
         self.descent = None
+        if self.homing is not None:     # (a homing trip: the node has set the offsets now)
+            self.homing = self.homing.after_reset(self.lengths, self.sample_ns,
+                                                  zero_just_set=cleared.cause == 'homing')
         self.tracking_since = None
         self.returning = True           # from the next complete sample
         # the controller's silence counts from here (it was heard: above)

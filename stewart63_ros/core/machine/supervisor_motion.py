@@ -75,6 +75,7 @@ class Homing:
     def __init__(self, setup: Setup, direction: str, speed: float, force: float,
                  stiffness: float) -> None:
         mech = setup.mechanism
+        self.settings = (setup, direction, speed, force, stiffness)
         self.sign = 1.0 if direction == 'extend' else -1.0
         self.stop = mech.leg_length_max if direction == 'extend' else mech.leg_length_min
         self.speed, self.force, self.stiffness = speed, force, stiffness
@@ -120,6 +121,26 @@ class Homing:
             self.back = Descent(lengths - self.offsets, self.start - self.offsets, self.speed)
             self.back_ns = ns
         return force
+
+
+    def after_reset(self, lengths: np.ndarray, ns: int, zero_just_set: bool) -> Homing:
+        """The homing after a reset of a trip during it, at sample ``ns``
+        whose readings are ``lengths``: its setpoint went on while tripped,
+        so it starts over from where the legs are. Not every leg found yet:
+        a new homing towards the stops. Else the way back to the start
+        again, from ``lengths`` (true readings; ``zero_just_set``: the
+        offsets were set only now, so ``lengths`` still hold them).
+
+        Returns:
+            The homing to go on with (this one, or a new one).
+        """
+        if self.back is None:
+            return Homing(*self.settings)
+        true = lengths - self.offsets if zero_just_set else lengths
+        self.back = Descent(true, self.start - self.offsets, self.speed)
+        self.back_ns = ns
+        self.done = False
+        return self
 
 
 def check_homing(mech: Mechanism, direction: str) -> None:
