@@ -27,6 +27,7 @@ from __future__ import annotations
 import time
 
 from stewart63_ros.canbus.sync import Schedule
+from stewart63_ros.canbus.trace import CycleTrace
 from stewart63_ros.runtime.launcher import STOP
 
 #: s: the slice of a wait between two turns of housekeeping
@@ -45,6 +46,9 @@ SYNC_WINDOW = 0.75
 #: realtime: a share of the period given beyond the window to a receive side
 #: that has frames waiting (they are judged on their reception times)
 CATCH_UP = 0.15
+#: the columns of the realtime loop's per-cycle trace (canbus/trace.py)
+TRACE_FIELDS = ('k', 'slot', 'due', 'woke', 'synced', 'collected', 'published', 'ended',
+                'missing', 'answer_missed', 'skipped', 'cpu', 'thread_cpu')
 #: s: the controller is lost after no force for ``force_timeout`` s, and at least this
 #: long (a short lockstep ``force_timeout`` must not stop the drives at one slow answer)
 CONTROLLER_LOST_MIN = 1.0
@@ -143,11 +147,27 @@ class BridgeCycles:
         # drop the TPDO it answered with.
         for name in master.bring_up_rebooted():
             self.get_logger().info('%s: back on the bus' % name)
+        # this thread reads the buses from here on: a cycle wakes it alone,
+        # not the notifier threads too (canbus/cycle.py)
+        if not master.receive_in_loop():
+            self.get_logger().info('a bus has no file descriptor: its frames are read by '
+                                   'notifier threads')
         master.sync(0)
         if not self.wait_for_tpdos(first=True):
             return
         schedule = self.schedule = Schedule(time.monotonic(), self.period)
         t0_wall = time.time()
+        trace = CycleTrace.from_env('canopen_bridge', TRACE_FIELDS,
+                                    (n_samples or 600_000) + 1)
+        try:
+            self._realtime_cycles(n_samples, schedule, t0_wall, trace)
+        finally:
+            if trace is not None:
+                trace.write()
+
+    def _realtime_cycles(self, n_samples, schedule, t0_wall, trace):
+        master = self.master
+        clock, cpu, thread_cpu = time.monotonic, time.process_time, time.thread_time
         k = 0
         answered_ns = None
         while not STOP.requested:
@@ -157,31 +177,45 @@ class BridgeCycles:
                 self.forces_in.poll(max(0.0, wake - time.monotonic()))
                 if time.monotonic() >= due:
                     break
-            if k and self.force_ns != answered_ns:
+            woke = clock()
+            answer_missed = bool(k and self.force_ns != answered_ns)
+            if answer_missed:
                 self.missed += 1
             for name in master.bring_up_rebooted():
                 self.get_logger().info('%s: back on the bus' % name)
             self.k = k
+            synced = clock()
             if k:
                 master.sync(k)
                 window = SYNC_WINDOW * self.period
                 master.collect(master.opened_at + window, window, window,
                                catch_up=CATCH_UP * self.period)
-            master.missing()
+            collected = clock()
+            missing = master.missing()
             self.judge()
             # the SYNC's time: its slot, never later than it went out; the run's
             # clock starts once SYNC 0 is answered (a plant standing in for the
             # drives may take seconds to start): sample 0 is stamped then
             ns = int(round((min(t0_wall + schedule.slot * self.period,
                                 master.windows.last[1]) if k else t0_wall) * 1e9))
-            answered_ns = ns if self.publish(ns) else self.force_ns
+            # an answer is awaited for a complete sample, or for every sample
+            # when the supervisor answers them all (a NaN sample it answers in
+            # time is not a missed cycle: its TPDO is counted missing)
+            complete = self.publish(ns)
+            answered_ns = ns if complete or self.answer_every_sample else self.force_ns
+            published = clock()
             if self.errors or self.controller_lost() or self.force_is_stale(k, ns,
                                                                               self.force_ns):
                 self.write_torques(k, ns)
+            ended = clock()
+            slot = schedule.slot
+            skipped = schedule.advance(ended) if n_samples is None or k < n_samples else 0
+            if trace is not None:
+                trace.add(k, slot, due, woke, synced, collected, published, ended,
+                          len(missing), answer_missed, skipped, cpu(), thread_cpu())
             if n_samples is not None and k >= n_samples:
                 return
             k += 1
-            skipped = schedule.advance(time.monotonic())
             if skipped:         # a stall: those SYNCs' time is gone, none is sent late
                 self.health.values['syncs_skipped'] = schedule.skipped
                 if self.health.log_due('stalled'):  # (rclpy's throttle costs ~1 ms a call)
