@@ -170,10 +170,13 @@ class BridgeCycles:
         clock, cpu, thread_cpu = time.monotonic, time.process_time, time.thread_time
         k = 0
         answered_ns = None
+        # composed: the other nodes' side work (fk, housekeeping) is done while
+        # the drives answer a SYNC, not between the answer and the next SYNC
+        idle = getattr(self.forces_in, 'idle', None)
         while not STOP.requested:
             due = schedule.due()
             while True:     # at least once: composed, this serves the controller too
-                wake = min(due, self.housekeeping(time.monotonic()))
+                wake = due if idle else min(due, self.housekeeping(time.monotonic()))
                 self.forces_in.poll(max(0.0, wake - time.monotonic()))
                 if time.monotonic() >= due:
                     break
@@ -187,6 +190,9 @@ class BridgeCycles:
             synced = clock()
             if k:
                 master.sync(k)
+                if idle is not None:
+                    self.housekeeping(time.monotonic())
+                    idle()
                 window = SYNC_WINDOW * self.period
                 master.collect(master.opened_at + window, window, window,
                                catch_up=CATCH_UP * self.period)
