@@ -142,7 +142,8 @@ class BridgeCycles:
     def run_realtime(self, n_samples):
         master = self.master
         # SYNC 0 waits for the drives' first answer (the plant may still be
-        # starting); the wall-clock schedule starts from it. A drive that
+        # starting); the wall-clock schedule starts once sample 0 is answered
+        # and the nodes are warm (warm_up). A drive that
         # booted again is brought up first: after SYNC 0 its bring-up would
         # drop the TPDO it answered with.
         for name in master.bring_up_rebooted():
@@ -199,9 +200,9 @@ class BridgeCycles:
             collected = clock()
             missing = master.missing()
             self.judge()
-            # the SYNC's time: its slot, never later than it went out; the run's
-            # clock starts once SYNC 0 is answered (a plant standing in for the
-            # drives may take seconds to start): sample 0 is stamped then
+            # the SYNC's time: its slot, never later than it went out; sample 0
+            # is stamped once SYNC 0 is answered (a plant standing in for the
+            # drives may take seconds to start), the slots once it is answered
             ns = int(round((min(t0_wall + schedule.slot * self.period,
                                 master.windows.last[1]) if k else t0_wall) * 1e9))
             # an answer is awaited for a complete sample, or for every sample
@@ -213,6 +214,10 @@ class BridgeCycles:
             if self.errors or self.controller_lost() or self.force_is_stale(k, ns,
                                                                               self.force_ns):
                 self.write_torques(k, ns)
+            if not k:           # the clock starts once sample 0 is answered, all warm
+                self.warm_up(ns, complete, idle)
+                schedule.restart(time.monotonic())
+                t0_wall = time.time()
             ended = clock()
             slot = schedule.slot
             skipped = schedule.advance(ended) if n_samples is None or k < n_samples else 0
@@ -227,6 +232,19 @@ class BridgeCycles:
                 if self.health.log_due('stalled'):  # (rclpy's throttle costs ~1 ms a call)
                     self.get_logger().warning('stalled: %d SYNCs skipped (%d in all)'
                                               % (skipped, schedule.skipped))
+
+    def warm_up(self, ns: int, complete: bool, idle) -> None:
+        """Realtime, before the SYNC clock starts: sample 0 answered (when an
+        answer is awaited), and the nodes' side work done once. Their first
+        pass costs 10-20 ms (first callbacks, first executor turns, first
+        reports): on the clock that would be SYNCs skipped, and a stamp gap
+        the supervisor's ``stale_lengths_ms`` can trip on."""
+        if (complete or self.answer_every_sample) and not self.wait_for_answer(
+                ns, max(self.force_timeout, self.discovery_timeout)):
+            self.get_logger().warning('no answer to sample 0: the SYNC clock starts anyway')
+        self.housekeeping(time.monotonic())
+        if idle is not None:
+            idle()
 
     def controller_lost(self) -> bool:
         """Whether the controller, having answered, is lost: no force for
