@@ -64,10 +64,13 @@ class BridgeCycles:
         plant started a new run."""
         timeout = max(self.bus_timeout, self.boot_timeout) if first else self.bus_timeout
         until = time.monotonic() + timeout
+        idle = getattr(self.forces_in, 'idle', None)      # composed: the others' side work
         while not self.master.collect(until, LOCKSTEP_GRACE, LOCKSTEP_SETTLE, give_back=SLICE):
             if STOP.requested or self.new_run:
                 return False
             self.serve(0.0)
+            if idle is not None and self.forces_in.deferred:
+                idle()
             if self.plant_run in HELD_RUN:
                 until = time.monotonic() + timeout
         return True
@@ -153,6 +156,8 @@ class BridgeCycles:
         if not master.receive_in_loop():
             self.get_logger().info('a bus has no file descriptor: its frames are read by '
                                    'notifier threads')
+        idle = getattr(self.forces_in, 'idle', None)
+        self.warm_up(idle)
         master.sync(0)
         if not self.wait_for_tpdos(first=True):
             return
@@ -214,10 +219,10 @@ class BridgeCycles:
             if self.errors or self.controller_lost() or self.force_is_stale(k, ns,
                                                                               self.force_ns):
                 self.write_torques(k, ns)
-            if not k:           # the clock starts once sample 0 is answered, all warm
-                self.warm_up(ns, complete, idle)
-                schedule.restart(time.monotonic())
-                t0_wall = time.time()
+            if not k:           # the clock starts once sample 0 is answered: SYNC 1 now
+                self.answer_sample_0(ns, complete)
+                schedule.restart(time.monotonic() - self.period)
+                t0_wall = time.time() - self.period
             ended = clock()
             slot = schedule.slot
             skipped = schedule.advance(ended) if n_samples is None or k < n_samples else 0
@@ -233,18 +238,22 @@ class BridgeCycles:
                     self.get_logger().warning('stalled: %d SYNCs skipped (%d in all)'
                                               % (skipped, schedule.skipped))
 
-    def warm_up(self, ns: int, complete: bool, idle) -> None:
-        """Realtime, before the SYNC clock starts: sample 0 answered (when an
-        answer is awaited), and the nodes' side work done once. Their first
-        pass costs 10-20 ms (first callbacks, first executor turns, first
-        reports): on the clock that would be SYNCs skipped, and a stamp gap
-        the supervisor's ``stale_lengths_ms`` can trip on."""
+    def warm_up(self, idle) -> None:
+        """Realtime, before SYNC 0: the side work of this node and of the
+        nodes composed with it done once (first executor turns and reports
+        cost milliseconds), so that it does not fall in the first cycles."""
+        for _ in range(len(getattr(self.forces_in, 'nodes', ())) + 1):
+            self.housekeeping(time.monotonic())
+            if idle is not None:
+                idle()
+
+    def answer_sample_0(self, ns: int, complete: bool) -> None:
+        """Realtime: the SYNC clock starts once sample 0 is answered (when an
+        answer is awaited): the answering nodes' first pass costs 5-15 ms
+        here, which on the clock would be SYNCs skipped."""
         if (complete or self.answer_every_sample) and not self.wait_for_answer(
                 ns, max(self.force_timeout, self.discovery_timeout)):
             self.get_logger().warning('no answer to sample 0: the SYNC clock starts anyway')
-        self.housekeeping(time.monotonic())
-        if idle is not None:
-            idle()
 
     def controller_lost(self) -> bool:
         """Whether the controller, having answered, is lost: no force for
