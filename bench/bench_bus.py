@@ -265,6 +265,7 @@ def rig_run(mode, duration, compose=False, supervisor=False, bus='canopen', hz=1
         trips = (rig.summary('supervisor') or {}).get('trips')
         out['trips'] = ['%s at sample %d' % (t['cause'], t['sample']) for t in trips or []] \
             if trips is not None else ['no supervisor summary']
+        out['trip_details'] = [t.get('detail', '')[:200] for t in trips or []]
     if mode == 'realtime' and bus:
         out['where'] = where_missed(os.environ.get(TRACE_ENV) or os.path.join(log_dir, 'trace'))
     if watcher is not None:
@@ -301,6 +302,8 @@ def describe(name, run) -> str:
             ' '.join('%s %.1f' % kv for kv in run['planned_load'].items()),
             ' '.join('%s %.1f %%' % kv for kv in measured.items()) or 'none')
     text += ' (load average %.1f -> %.1f)' % run['load_average']
+    for detail in run.get('trip_details', []):
+        text += '\n  trip: %s' % detail
     where = run.get('where')
     if where:
         text += ('\n  where: %d cycles with a TPDO missing (%d in the first second, longest '
