@@ -25,6 +25,7 @@
 from __future__ import annotations
 
 import argparse
+import glob
 import os
 import subprocess
 import sys
@@ -182,7 +183,6 @@ def measured_loads(bridge: dict) -> dict:
 def where_missed(folder) -> dict | None:
     """From the per-cycle traces of a realtime run (canbus/trace.py): where
     the bridge's misses fall and what each cycle cost. None without traces."""
-    import glob
     found = {}
     for name in ('canopen_bridge', 'plant'):
         files = glob.glob(os.path.join(folder, '%s-*.npz' % name))
