@@ -11,7 +11,10 @@
   the bridge's missed cycles, each leg's missed TPDOs, leg_lengths to force,
   and SYNC to the torques' RPDO on the wire (a passive bus on each channel,
   the sender's stamps), the bus load planned and as the bridge's
-  /diagnostics measures it; the load average beside every run.
+  /diagnostics measures it; the load average beside every run; from the
+  per-cycle traces (canbus/trace.py), where the misses fell (the first
+  second, by tenths of the run, the longest run of them), SYNCs skipped,
+  and each side's CPU time a cycle.
 - ``--accept``: the composed bridge's target (docs/bus.md), two 30 s realtime
   runs against their lockstep run, PASS or FAIL per figure (exit 0: pass).
   Run it with nothing else on the machine:
@@ -22,6 +25,7 @@
 from __future__ import annotations
 
 import argparse
+import glob
 import os
 import subprocess
 import sys
@@ -36,6 +40,7 @@ import numpy as np
 from bench_loop import private_domain
 
 from stewart63_ros.canbus.master import Master
+from stewart63_ros.canbus.trace import TRACE_ENV
 from stewart63_ros.core.machine.bus import load_bus_config
 from stewart63_ros.paths import default_params_path
 from stewart63_ros.tools.rig_process import Rig
@@ -175,10 +180,52 @@ def measured_loads(bridge: dict) -> dict:
             if key.startswith('bus_load') and str(value).replace('.', '', 1).isdigit()}
 
 
+def where_missed(folder) -> dict | None:
+    """From the per-cycle traces of a realtime run (canbus/trace.py): where
+    the bridge's misses fall and what each cycle cost. None without traces."""
+    found = {}
+    for name in ('canopen_bridge', 'plant'):
+        files = glob.glob(os.path.join(folder, '%s-*.npz' % name))
+        if not files:
+            return None
+        with np.load(files[0]) as z:
+            found[name] = ({f: z['rows'][:, i] for i, f in enumerate(z['fields'])},
+                           z['gc'])
+    b, bgc = found['canopen_bridge']
+    p, _ = found['plant']
+    if len(b['k']) < 3:
+        return None
+    t0 = b['due'][0]
+    bad = b['missing'] > 0
+    runs, run = [], 0
+    for x in bad:
+        run = run + 1 if x else 0
+        if x:
+            runs.append(run)
+    when = b['due'][bad] - t0
+    span = max(1.0, b['ended'][-1] - t0)
+    in_gc = bgc[(bgc[:, 0] >= t0)] if len(bgc) else bgc
+    return {
+        'missing_cycles': int(bad.sum()), 'longest_run': int(max(runs, default=0)),
+        'first_second': int((when < 1.0).sum()),
+        'per_tenth': np.histogram(when, bins=10, range=(0, span))[0].tolist(),
+        'skipped_syncs': int(b['skipped'].sum()),
+        'sync_late_p99_ms': float(np.percentile(b['woke'] - b['due'], 99) * 1e3),
+        'bridge_cpu_us': float(np.median(np.diff(b['cpu'])) * 1e6),
+        'plant_cpu_us': float(np.median(np.diff(p['cpu'])) * 1e6),
+        'plant_answer_p99_ms': float(np.percentile(p['answered'] - p['sync_seen'], 99) * 1e3),
+        'gc_over_1ms': int((in_gc[:, 2] > 1e-3).sum()) if len(in_gc) else 0}
+
+
 def rig_run(mode, duration, compose=False, supervisor=False, bus='canopen', hz=1000.0,
             watch=False, log_dir=None) -> dict | None:
-    """One rig run to its end; its figures (None if it did not end)."""
+    """One rig run to its end; its figures (None if it did not end). In
+    realtime over the bus, with the bridge's and the drives' per-cycle
+    traces (``where``: where the misses fell)."""
     log_dir = log_dir or tempfile.mkdtemp(prefix='bench_bus_')
+    traced = mode == 'realtime' and bus and TRACE_ENV not in os.environ
+    if traced:
+        os.environ[TRACE_ENV] = os.path.join(log_dir, 'trace')
     extra = {n: {'sensor_rate': hz} for n in ('plant', 'canopen_bridge')} \
         if hz != 1000.0 else {}
     rig = Rig(default_params_path(), mode, duration, log_dir=log_dir, bus=bus,
@@ -196,6 +243,8 @@ def rig_run(mode, duration, compose=False, supervisor=False, bus='canopen', hz=1
         rig.stop()
         if watcher is not None:
             watcher.close()
+        if traced:
+            del os.environ[TRACE_ENV]
     plant = rig.summary()
     bridge = rig.summary('canopen_bridge') if bus else None
     if not ok or plant is None or (bus and bridge is None):
@@ -216,6 +265,9 @@ def rig_run(mode, duration, compose=False, supervisor=False, bus='canopen', hz=1
         trips = (rig.summary('supervisor') or {}).get('trips')
         out['trips'] = ['%s at sample %d' % (t['cause'], t['sample']) for t in trips or []] \
             if trips is not None else ['no supervisor summary']
+        out['trip_details'] = [t.get('detail', '')[:200] for t in trips or []]
+    if mode == 'realtime' and bus:
+        out['where'] = where_missed(os.environ.get(TRACE_ENV) or os.path.join(log_dir, 'trace'))
     if watcher is not None:
         lat, empty, cycles = watcher.sync_to_rpdo()
         out['sync_to_rpdo'] = {'count': len(lat), 'no_rpdo_cycles': empty, 'cycles': cycles}
@@ -249,7 +301,20 @@ def describe(name, run) -> str:
         text += '; bus load planned %s %%, measured on the bridge\'s /diagnostics %s' % (
             ' '.join('%s %.1f' % kv for kv in run['planned_load'].items()),
             ' '.join('%s %.1f %%' % kv for kv in measured.items()) or 'none')
-    return text + ' (load average %.1f -> %.1f)' % run['load_average']
+    text += ' (load average %.1f -> %.1f)' % run['load_average']
+    for detail in run.get('trip_details', []):
+        text += '\n  trip: %s' % detail
+    where = run.get('where')
+    if where:
+        text += ('\n  where: %d cycles with a TPDO missing (%d in the first second, longest '
+                 'run %d; by tenths of the run %s), %d SYNCs skipped, SYNC late p99 %.2f ms, '
+                 'plant answer p99 %.2f ms; CPU a cycle: bridge\'s process %.0f us, plant '
+                 '%.0f us; %d GC pauses over 1 ms' % (
+                     where['missing_cycles'], where['first_second'], where['longest_run'],
+                     ' '.join(map(str, where['per_tenth'])), where['skipped_syncs'],
+                     where['sync_late_p99_ms'], where['plant_answer_p99_ms'],
+                     where['bridge_cpu_us'], where['plant_cpu_us'], where['gc_over_1ms']))
+    return text
 
 
 def figures(prefix, run) -> dict:

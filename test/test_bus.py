@@ -554,3 +554,31 @@ def test_plant_drives_beat_on_the_wall_clock_in_realtime_before_the_run_too():
     finally:
         devices.close()
         listener.shutdown()
+
+
+def test_the_loop_reads_the_buses_itself_and_an_sdo_meanwhile_gets_its_threads_back(bench):
+    """Realtime: the bridge's loop reads the buses (no notifier thread wakes
+    per cycle); a drive brought up again (SDO) meanwhile gets its answers."""
+    b = bench()
+    master = b.master
+    master.reset_all()
+    assert master.wait_for_boot(5.0) == []
+    assert all(master.bring_up(link) for link in master.links)
+    assert master.receive_in_loop()
+    ours = [bus.channel for bus in master.config.buses]
+
+    def readers():
+        return [t.name for t in threading.enumerate()
+                if t.name.startswith('Notifier') and any(c in t.name for c in ours)]
+    assert readers() == []
+    for k in range(3):
+        assert b.cycle(k) == []
+    assert np.allclose(master.readings()[0], b.lengths, atol=1e-6)
+    b.devices.drives[2].boot()              # it boots again: brought up by SDO in the loop
+    time.sleep(0.05)
+    for k in range(3, 6):
+        assert b.cycle(k) == [], k
+    assert master.links[2].up and readers() == []   # read by the loop again
+    assert np.allclose(master.readings()[0], b.lengths, atol=1e-6)
+    states = master.safe_stop()
+    assert set(states.values()) == {'READY TO SWITCH ON'}

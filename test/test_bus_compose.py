@@ -12,7 +12,9 @@ and ``rig --compose --supervisor``, and the local bus under them.
   paper's run: the separate bus run's final error (0.94488 %), no trip;
 - ``rig --compose --supervisor`` on DDS: the supervisor in the controller's
   process answers every sample, and the run is the direct loop's;
-- the option checks: what one process cannot host is refused with the reason.
+- the option checks: what one process cannot host is refused with the reason;
+- realtime, the bridge driving: fk and the housekeeping are done while the
+  drives answer (``Peers.idle``), not on the answer's path.
 
 Each rig runs on its own ROS domain and its own bus channels.
 """
@@ -256,3 +258,56 @@ def test_composed_homing_over_the_bus_writes_the_drives_home_offsets(ros, monkey
         leg.home_offset_counts(found[leg.leg]) for leg in load_bus_config().legs], bridge
     print('\ncomposed homing over the bus: offsets %s, drives %s'
           % (found.round(6).tolist(), json.dumps(bridge['values']['home_offset_counts'])))
+
+
+def test_bridge_driven_loop_leaves_fk_and_housekeeping_to_the_drives_wait(monkeypatch):
+    """Realtime, the bridge driving: once it calls ``idle`` (while its drives
+    answer a SYNC), ``serve`` takes only the answer's path (supervisor,
+    controller, the force) and ``idle`` takes fk's samples and one node's
+    housekeeping a call, in turn; the loop's wait no longer wakes for fk."""
+    from stewart63_ros.nodes import composed
+    from stewart63_ros.runtime import rclpy_internals
+
+    class Take:
+        def __init__(self, queued=0):
+            self.queued, self.polls, self.sub = queued, 0, object()
+
+        def poll(self, timeout):
+            self.polls += 1
+            if self.queued:
+                self.queued -= 1
+                return True
+            return False
+
+    class Node:
+        BATCH_MAX = 1000
+
+        def __init__(self):
+            self.turns = 0
+
+        def housekeeping(self, now, turn_ok=True):
+            self.turns += 1
+            return now + 1.0
+
+    waited_on = []
+    monkeypatch.setattr(rclpy_internals, 'WaitAny',
+                        lambda context, subs: waited_on.append(subs) or object())
+    supervisor, controller, fk = Node(), Node(), Node()
+    samples, fk_samples, force = Take(), Take(queued=3), Take()
+    peers = composed.Peers(None, [(supervisor, samples), (controller, Take())],
+                           [(fk, fk_samples)])
+    peers.own = force
+    peers.serve()                       # before: everything in one pass
+    assert fk_samples.polls == 1 and supervisor.turns == controller.turns == fk.turns == 1
+    peers.idle()                        # the drives answer: fk's queue, one node's turn
+    assert fk_samples.queued == 0 and supervisor.turns + controller.turns + fk.turns == 4
+    assert waited_on[-1] == [samples.sub, peers.answer_first[1][1].sub, force.sub]
+    polls, turns = fk_samples.polls, (supervisor.turns, controller.turns, fk.turns)
+    peers.next_side = 0.0
+    for _ in range(3):
+        peers.serve()                   # the answer's path only
+    assert samples.polls == force.polls == 4
+    assert fk_samples.polls == polls and (supervisor.turns, controller.turns, fk.turns) == turns
+    for _ in range(3):
+        peers.idle()                    # each node in turn
+    assert (supervisor.turns, controller.turns, fk.turns) == tuple(t + 1 for t in turns)

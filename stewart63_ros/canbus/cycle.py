@@ -17,14 +17,29 @@ the sample, in lockstep and realtime alike. Heartbeats are judged on their
 reception times (realtime) or on the run's time (lockstep, where the
 plant's drives beat in run time).
 
+**Where frames are read.** Until the realtime loop starts, each bus has the
+library's notifier thread (SDO answers during the bring-up need it). The
+realtime loop reads its buses itself (``receive_in_loop``): it drains them
+when it sends a SYNC and while it waits for the cycle's TPDOs (a ``select``
+on the buses, not a condition the notifier threads signal), so a cycle
+wakes one thread of the bridge, not three, and no frame waits for the GIL
+between two threads. Anything that needs answers while the loop is not
+reading (an SDO: a drive brought up again, a home offset, the safe stop)
+runs ``receiving_in_threads``, which gives the buses their notifier threads
+back for its duration. Frames go through the same listeners either way
+(canopen's dispatch, the wire's load count).
+
 No ROS here.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import select
 import struct
 import time
+
+import can
 
 from stewart63_ros.core.machine.bus import frame_bits
 
@@ -32,6 +47,9 @@ from stewart63_ros.core.machine.bus import frame_bits
 STAMP_TRUST = 10.0
 #: s: the longest the safe stop sleeps before it looks at the clock again
 SETTLE_POLL = 0.005
+#: s: a notifier thread's wait per turn (the library's 1 s, one per bus, made a
+#: stopping bridge miss the launcher's 3.5 s deadline)
+NOTIFIER_CYCLE = 0.1
 
 
 class CycleSide:
@@ -139,9 +157,81 @@ class CycleSide:
             horizon = now
         return max(0.0, horizon - stamp)
 
+    # -- who reads the buses ------------------------------------------------------------
+    def receive_in_loop(self) -> bool:
+        """From now on the caller's thread reads the buses (``pump``), in
+        ``sync`` and ``collect``: the notifier threads stop. False (threads
+        kept) when a bus cannot be waited on (no ``fileno``)."""
+        if self._pumped is not None:
+            return True
+        try:
+            fds = [network.bus.fileno() for network in self.networks.values()]
+        except (AttributeError, NotImplementedError, OSError):
+            return False
+        if any(fd < 0 for fd in fds):
+            return False
+        pumped = []
+        for network in self.networks.values():
+            notifier = network.notifier
+            listeners = list(notifier.listeners)
+            notifier.stop(2 * NOTIFIER_CYCLE)
+            pumped.append((network.bus, listeners))
+        self._fds = fds
+        self._pumped = pumped
+        return True
+
+    @contextlib.contextmanager
+    def receiving_in_threads(self):
+        """For the block, each bus has its notifier thread again (an SDO
+        waits for its answer while the loop is not reading); then, if the
+        loop was reading, it reads again."""
+        pumped = self._pumped
+        if pumped is None:
+            yield
+            return
+        self.pump()
+        self._pumped = None
+        for network, (bus, listeners) in zip(self.networks.values(), pumped):
+            network.notifier = can.Notifier(bus, listeners, NOTIFIER_CYCLE)
+        try:
+            yield
+        finally:
+            if not self.stopped:
+                self.receive_in_loop()
+
+    def pump(self) -> int:
+        """Read every frame that has come on the buses and hand each to the
+        bus's listeners (as its notifier thread would); how many. Nothing
+        while the notifier threads read."""
+        n = 0
+        for bus, listeners in self._pumped or ():
+            msg = bus.recv(0.0)
+            while msg is not None:
+                n += 1
+                for listener in listeners:
+                    listener(msg)
+                msg = bus.recv(0.0)
+        return n
+
+    def _wait_frames(self, timeout: float) -> None:
+        """Wait up to ``timeout`` s for frames (under the lock): the loop's
+        own read (``pump``), or the notifier threads' signal."""
+        if self._pumped is None:
+            self._arrived.wait(timeout)
+            return
+        if self.pump() == 0 and timeout > 0:
+            try:
+                select.select(self._fds, [], [], timeout)
+            except (OSError, ValueError):
+                time.sleep(min(timeout, SETTLE_POLL))
+            self.pump()
+
     # -- the cycle ----------------------------------------------------------------------
     def sync(self, cycle: int) -> None:
-        """Cycle ``cycle`` starts: a SYNC on every bus; its window opens."""
+        """Cycle ``cycle`` starts: a SYNC on every bus; its window opens.
+        (The loop that reads the buses takes what came first: a late answer
+        to the SYNC before, a heartbeat; each is judged by its stamp.)"""
+        self.pump()
         with self._arrived:
             self.cycle = cycle
             self._open = True
@@ -226,13 +316,16 @@ class CycleSide:
                 if now >= done_at:
                     return True
                 if now >= until:
+                    if self._pumped is not None:    # what came by now, judged by its stamp
+                        self.pump()
+                        return True
                     if now >= until + catch_up or not self._receive_pending():
                         return True
                     self._arrived.wait(0.0005)
                     continue
                 if now >= start + give_back:
                     return False
-                self._arrived.wait(min(until, start + give_back, done_at) - now)
+                self._wait_frames(min(until, start + give_back, done_at) - now)
 
     def missing(self) -> list:
         """The cycle is over: its window closes (a TPDO received in it from

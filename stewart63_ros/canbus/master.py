@@ -23,7 +23,7 @@ import struct
 import threading
 import time
 
-from stewart63_ros.canbus.cycle import SETTLE_POLL, CycleSide
+from stewart63_ros.canbus.cycle import NOTIFIER_CYCLE, SETTLE_POLL, CycleSide
 from stewart63_ros.canbus.devices import PDO_CODES, open_bus
 from stewart63_ros.canbus.hub import batched
 from stewart63_ros.canbus.pdo import PdoRefused, configure_pdos
@@ -57,9 +57,6 @@ EMCY_NO_ERROR = 0x0000
 SDO_TIMEOUT = 1.0
 #: bring-ups of one drive that fail in a row before the master stops resetting it
 BRING_UP_TRIES = 3
-#: s: the notifier's wait per turn (the library's 1 s, one per bus, made a
-#: stopping bridge miss the launcher's 3.5 s deadline)
-NOTIFIER_CYCLE = 0.1
 #: s: at bring-up, how long a drive in FAULT REACTION ACTIVE is given to reach FAULT
 FAULT_REACTION_WAIT = 1.0
 #: s: the safe stop waits this long for the drives' statuswords, then asks by SDO
@@ -196,6 +193,10 @@ class Master(CycleSide):
         #: per bus, the reception time of the newest frame taken (any node's):
         #: how far the receive side has got
         self.received_to = {bus.name: 0.0 for bus in config.buses}
+        #: the buses the loop reads itself, with their listeners (None: the
+        #: notifier threads read them); their descriptors (cycle.py)
+        self._pumped = None
+        self._fds: list[int] = []
         ods = {}
         for leg in config.legs:
             od = ods.get(leg.eds) or canopen.import_od(leg.eds)
@@ -270,6 +271,10 @@ class Master(CycleSide):
     def bring_up(self, link: Link) -> bool:
         """Configure one booted drive and enable it (see the module's doc).
         False with ``link.boot_error`` set when the drive refused or went quiet."""
+        with self.receiving_in_threads():       # SDO answers come while it waits
+            return self._bring_up(link)
+
+    def _bring_up(self, link: Link) -> bool:
         # lazy: optional: canopen costs 273 ms; the simulated bus runs without it
         import canopen
         leg, node = link.leg, link.node
@@ -362,12 +367,14 @@ class Master(CycleSide):
         if not link.up:
             raise BusConfigError('%s is not up' % link.name)
         counts = link.leg.home_offset_counts(metres)
-        link.node.sdo[HOME_OFFSET].raw = counts
+        with self.receiving_in_threads():
+            link.node.sdo[HOME_OFFSET].raw = counts
         return counts
 
     def bring_up_rebooted(self) -> list[str]:
         """Bring up the drives that sent a boot-up since (not one refused for
         good: its boot-up changes nothing); their names."""
+        self.pump()                 # (a boot-up waiting on a bus the loop reads)
         return [link.name for link in self.links
                 if link.booted and not link.refused and self.bring_up(link)]
 
@@ -442,9 +449,13 @@ class Master(CycleSide):
             {leg name: READY TO SWITCH ON, or "not confirmed (last seen
             ...)"} for the drives that were up; the others get the NMT only.
         """
+        self.stopped = True
+        with self.receiving_in_threads():       # statuswords and SDO answers, from here on
+            return self._safe_stop(confirm_timeout)
+
+    def _safe_stop(self, confirm_timeout: float) -> dict[str, str]:
         # lazy: optional: canopen costs 273 ms; the simulated bus runs without it
         import canopen
-        self.stopped = True
         up = [link for link in self.links if link.up]
         for link in up:
             cw = CW_ENABLE if link.state == OPERATION_ENABLED else link.last_cw

@@ -71,6 +71,11 @@ class Schedule:
         #: slots whose time passed while the bridge was stalled: no SYNC was sent
         self.skipped = 0
 
+    def restart(self, t0: float) -> None:
+        """Slot 0 is at ``t0`` from now on (the clock starts again there)."""
+        self.t0 = t0
+        self.slot = 0
+
     def due(self) -> float:
         """When the current slot's SYNC is due (monotonic [s])."""
         return self.t0 + self.slot * self.period

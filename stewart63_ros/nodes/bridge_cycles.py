@@ -27,6 +27,7 @@ from __future__ import annotations
 import time
 
 from stewart63_ros.canbus.sync import Schedule
+from stewart63_ros.canbus.trace import CycleTrace
 from stewart63_ros.runtime.launcher import STOP
 
 #: s: the slice of a wait between two turns of housekeeping
@@ -45,6 +46,9 @@ SYNC_WINDOW = 0.75
 #: realtime: a share of the period given beyond the window to a receive side
 #: that has frames waiting (they are judged on their reception times)
 CATCH_UP = 0.15
+#: the columns of the realtime loop's per-cycle trace (canbus/trace.py)
+TRACE_FIELDS = ('k', 'slot', 'due', 'woke', 'synced', 'collected', 'published', 'ended',
+                'missing', 'answer_missed', 'skipped', 'cpu', 'thread_cpu')
 #: s: the controller is lost after no force for ``force_timeout`` s, and at least this
 #: long (a short lockstep ``force_timeout`` must not stop the drives at one slow answer)
 CONTROLLER_LOST_MIN = 1.0
@@ -60,10 +64,13 @@ class BridgeCycles:
         plant started a new run."""
         timeout = max(self.bus_timeout, self.boot_timeout) if first else self.bus_timeout
         until = time.monotonic() + timeout
+        idle = getattr(self.forces_in, 'idle', None)      # composed: the others' side work
         while not self.master.collect(until, LOCKSTEP_GRACE, LOCKSTEP_SETTLE, give_back=SLICE):
             if STOP.requested or self.new_run:
                 return False
             self.serve(0.0)
+            if idle is not None and self.forces_in.deferred:
+                idle()
             if self.plant_run in HELD_RUN:
                 until = time.monotonic() + timeout
         return True
@@ -138,55 +145,115 @@ class BridgeCycles:
     def run_realtime(self, n_samples):
         master = self.master
         # SYNC 0 waits for the drives' first answer (the plant may still be
-        # starting); the wall-clock schedule starts from it. A drive that
+        # starting); the wall-clock schedule starts once sample 0 is answered
+        # and the nodes are warm (warm_up). A drive that
         # booted again is brought up first: after SYNC 0 its bring-up would
         # drop the TPDO it answered with.
         for name in master.bring_up_rebooted():
             self.get_logger().info('%s: back on the bus' % name)
+        # this thread reads the buses from here on: a cycle wakes it alone,
+        # not the notifier threads too (canbus/cycle.py)
+        if not master.receive_in_loop():
+            self.get_logger().info('a bus has no file descriptor: its frames are read by '
+                                   'notifier threads')
+        idle = getattr(self.forces_in, 'idle', None)
+        self.warm_up(idle)
         master.sync(0)
         if not self.wait_for_tpdos(first=True):
             return
         schedule = self.schedule = Schedule(time.monotonic(), self.period)
         t0_wall = time.time()
+        trace = CycleTrace.from_env('canopen_bridge', TRACE_FIELDS,
+                                    (n_samples or 600_000) + 1)
+        try:
+            self._realtime_cycles(n_samples, schedule, t0_wall, trace)
+        finally:
+            if trace is not None:
+                trace.write()
+
+    def _realtime_cycles(self, n_samples, schedule, t0_wall, trace):
+        master = self.master
+        clock, cpu, thread_cpu = time.monotonic, time.process_time, time.thread_time
         k = 0
         answered_ns = None
+        # composed: the other nodes' side work (fk, housekeeping) is done while
+        # the drives answer a SYNC, not between the answer and the next SYNC
+        idle = getattr(self.forces_in, 'idle', None)
         while not STOP.requested:
             due = schedule.due()
             while True:     # at least once: composed, this serves the controller too
-                wake = min(due, self.housekeeping(time.monotonic()))
+                wake = due if idle else min(due, self.housekeeping(time.monotonic()))
                 self.forces_in.poll(max(0.0, wake - time.monotonic()))
                 if time.monotonic() >= due:
                     break
-            if k and self.force_ns != answered_ns:
+            woke = clock()
+            answer_missed = bool(k and self.force_ns != answered_ns)
+            if answer_missed:
                 self.missed += 1
             for name in master.bring_up_rebooted():
                 self.get_logger().info('%s: back on the bus' % name)
             self.k = k
+            synced = clock()
             if k:
                 master.sync(k)
+                if idle is not None:
+                    self.housekeeping(time.monotonic())
+                    idle()
                 window = SYNC_WINDOW * self.period
                 master.collect(master.opened_at + window, window, window,
                                catch_up=CATCH_UP * self.period)
-            master.missing()
+            collected = clock()
+            missing = master.missing()
             self.judge()
-            # the SYNC's time: its slot, never later than it went out; the run's
-            # clock starts once SYNC 0 is answered (a plant standing in for the
-            # drives may take seconds to start): sample 0 is stamped then
+            # the SYNC's time: its slot, never later than it went out; sample 0
+            # is stamped once SYNC 0 is answered (a plant standing in for the
+            # drives may take seconds to start), the slots once it is answered
             ns = int(round((min(t0_wall + schedule.slot * self.period,
                                 master.windows.last[1]) if k else t0_wall) * 1e9))
-            answered_ns = ns if self.publish(ns) else self.force_ns
+            # an answer is awaited for a complete sample, or for every sample
+            # when the supervisor answers them all (a NaN sample it answers in
+            # time is not a missed cycle: its TPDO is counted missing)
+            complete = self.publish(ns)
+            answered_ns = ns if complete or self.answer_every_sample else self.force_ns
+            published = clock()
             if self.errors or self.controller_lost() or self.force_is_stale(k, ns,
                                                                               self.force_ns):
                 self.write_torques(k, ns)
+            if not k:           # the clock starts once sample 0 is answered: SYNC 1 now
+                self.answer_sample_0(ns, complete)
+                schedule.restart(time.monotonic() - self.period)
+                t0_wall = time.time() - self.period
+            ended = clock()
+            slot = schedule.slot
+            skipped = schedule.advance(ended) if n_samples is None or k < n_samples else 0
+            if trace is not None:
+                trace.add(k, slot, due, woke, synced, collected, published, ended,
+                          len(missing), answer_missed, skipped, cpu(), thread_cpu())
             if n_samples is not None and k >= n_samples:
                 return
             k += 1
-            skipped = schedule.advance(time.monotonic())
             if skipped:         # a stall: those SYNCs' time is gone, none is sent late
                 self.health.values['syncs_skipped'] = schedule.skipped
                 if self.health.log_due('stalled'):  # (rclpy's throttle costs ~1 ms a call)
                     self.get_logger().warning('stalled: %d SYNCs skipped (%d in all)'
                                               % (skipped, schedule.skipped))
+
+    def warm_up(self, idle) -> None:
+        """Realtime, before SYNC 0: the side work of this node and of the
+        nodes composed with it done once (first executor turns and reports
+        cost milliseconds), so that it does not fall in the first cycles."""
+        for _ in range(len(getattr(self.forces_in, 'nodes', ())) + 1):
+            self.housekeeping(time.monotonic())
+            if idle is not None:
+                idle()
+
+    def answer_sample_0(self, ns: int, complete: bool) -> None:
+        """Realtime: the SYNC clock starts once sample 0 is answered (when an
+        answer is awaited): the answering nodes' first pass costs 5-15 ms
+        here, which on the clock would be SYNCs skipped."""
+        if (complete or self.answer_every_sample) and not self.wait_for_answer(
+                ns, max(self.force_timeout, self.discovery_timeout)):
+            self.get_logger().warning('no answer to sample 0: the SYNC clock starts anyway')
 
     def controller_lost(self) -> bool:
         """Whether the controller, having answered, is lost: no force for

@@ -66,6 +66,9 @@ class Peers:
             self.side_period = side_period
         # Lockstep: fk's samples in batches, with the other side work (see serve).
         self.batch_then = batch_then
+        #: the runner does the side work in its own waits (``idle``), serve leaves it
+        self.deferred = False
+        self._turn = 0                          # idle's node, in turn
 
     def start(self, own=None) -> Peers:
         """The loop begins; ``own``: the plant's DirectTake on ``leg_forces``
@@ -109,9 +112,42 @@ class Peers:
             for tick in self.tickers:
                 tick(now)
         got = self.own.poll(0.0) if self.own is not None else False
+        if self.deferred:       # the runner's idle() does the rest, while it waits
+            return got
         if not self.batch_then:
             for _, direct in self.then:
                 direct.poll(0.0)
+        self._side(turn_ok)
+        return got
+
+    def idle(self) -> None:
+        """The runner is waiting on something else (the bridge, for its
+        drives' answers to a SYNC: a third of the period): do the work no
+        answer waits for now, fk's samples, the nodes' housekeeping and the
+        recorder's share, instead of between the answer and the next SYNC.
+        From its first call on, ``serve`` leaves that work to it."""
+        if not self.deferred:   # fk's samples no longer wake the loop's wait
+            # lazy: rclpy costs 302 ms: --help answers without it
+            from stewart63_ros.runtime.rclpy_internals import WaitAny
+            self.deferred = True
+            self.waiter = WaitAny(self.context, [d.sub for _, d in self.answer_first]
+                                  + ([self.own.sub] if self.own else []))
+        for node, direct in self.then:
+            n = 0
+            while n < node.BATCH_MAX and direct.poll(0.0):
+                n += 1
+        # one node's housekeeping a call, in turn (a turn of the executor or
+        # a report costs up to half a millisecond: one per wait, not three)
+        if self.nodes:
+            self._turn = (self._turn + 1) % len(self.nodes)
+            self.nodes[self._turn].housekeeping(time.monotonic(), True)
+        if self.recorder is not None and time.monotonic() >= self.next_side:
+            self.recorder.take_available()
+            self.next_side = time.monotonic() + self.side_period
+
+    def _side(self, turn_ok: bool) -> None:
+        """The side work when due: fk in lockstep's batches, the nodes'
+        housekeeping, the recorder's share."""
         now = time.monotonic()
         if now >= self.next_side:
             if self.batch_then:
@@ -130,7 +166,6 @@ class Peers:
             self.next_side = wake
             if self.recorder is not None:
                 self.recorder.take_available()
-        return got
 
     def drain(self) -> None:
         """Serve what is still queued on the peers' subscriptions (at the end)."""
@@ -151,7 +186,8 @@ class Peers:
             now = time.monotonic()
             if now >= deadline:
                 return False
-            self.waiter.wait(min(deadline, self.next_side) - now)
+            self.waiter.wait((deadline if self.deferred else min(deadline, self.next_side))
+                             - now)
 
 
 class Composed:

@@ -32,12 +32,15 @@ import time
 
 import numpy as np
 
+from stewart63_ros.canbus.trace import CycleTrace
 from stewart63_ros.core.machine.bus import BusConfigError, load_bus_config
 from stewart63_ros.core.plumbing.errors import ParameterError
 from stewart63_ros.runtime.launcher import STOP
 
 #: s: how often the bus is served before the loop starts (SDO answers of the bring-up)
 IDLE_SERVICE_PERIOD = 0.002
+#: the columns of the realtime drives' per-sample trace (canbus/trace.py)
+TRACE_FIELDS = ('k', 'waited', 'sync_seen', 'periods', 'answered', 'cpu', 'thread_cpu')
 #: s: at its stop, how long the plant's drives go on answering for the bridge's
 #: safe stop (its wait for the statuswords and its SDO budget, canbus/master.py)
 SAFE_STOP_WAIT = 1.0
@@ -129,16 +132,28 @@ class PlantBus:
     def run_bus(self, n_samples) -> None:
         """The loop on the bus: a sample per SYNC (see the module's doc)."""
         self.destroy_timer(self.bus_timer)
+        trace = CycleTrace.from_env('plant', TRACE_FIELDS, (n_samples or 600_000) + 1) \
+            if self.mode == 'realtime' else None
+        try:
+            self._bus_samples(n_samples, trace)
+        finally:
+            if trace is not None:
+                trace.write()
+
+    def _bus_samples(self, n_samples, trace) -> None:
         devices = self.devices
         self.bus_first = True
+        clock = time.monotonic
         while True:
             stepping = False
             if self.hold_due:
                 if not self.sample_boundary():          # pause, step, reset
                     return
                 stepping = self.hold_due                # ~/step let this sample through
+            waited = clock()
             if not self.wait_for_sync(interruptible=not stepping):
                 return
+            sync_seen = clock()
             if self.hold_due and not stepping:
                 continue
             periods = 1
@@ -159,6 +174,9 @@ class PlantBus:
                     self.step()
             self.bus_first = False
             self.publish_sample()
+            if trace is not None:
+                trace.add(self.k, waited, sync_seen, periods, clock(), time.process_time(),
+                          time.thread_time())
             if n_samples is not None and self.k >= n_samples:
                 return
 
