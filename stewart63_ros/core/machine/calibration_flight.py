@@ -12,7 +12,8 @@ another assembly mode, although the drawing flies the same plan within
 5 mm (docs/calibration.md, "The plan and the machine").
 
 No margin in pose space states that: it depends on the machine's
-sensitivity, its law and its loads. So the plan is flown: on ``count``
+sensitivity, its law and its loads. So the plan is flown: on the drawing
+(a plan it cannot fly is too fast for the law) and on ``machines``
 machines built off the drawing within the stated tolerance (each point
 coordinate uniform in +-``points``, each sensor offset in +-``offsets``,
 seeded: what ``calibrate machine`` builds), by ``pd_gravity`` and the
@@ -58,7 +59,12 @@ SETTLE = 1.0
 #: The law a plan is flown with: the documented one (docs/calibration.md, step 3).
 LAW = 'pd_gravity'
 #: Machines flown, and the default tolerance: calibrate machine's defaults.
-MACHINES = 4
+MACHINES = 8
+#: The flights' sample rate at most [Hz]: a flight at 100, 200 and 500 Hz of
+#: one plan on one machine tripped on the same pose within 1 mm.
+MAX_RATE = 200.0
+#: The share of the range kept at each failed flight.
+NARROWING = 0.9
 POINTS_TOLERANCE = 0.005
 OFFSETS_TOLERANCE = 0.01
 
@@ -88,6 +94,19 @@ def machine_off_drawing(mech: Mechanism, rng: np.random.Generator, points: float
     return cal_model.mechanism_with(mech, theta)
 
 
+def machine_at_corner(mech: Mechanism, rng: np.random.Generator, points: float,
+                      offsets: float, geometry: str | None = None) -> Mechanism:
+    """A machine at a corner of the tolerance: every point coordinate moved by
+    +-``points``, every sensor offset by +-``offsets`` [m] (the signs random):
+    as far off as the tolerance allows on every parameter at once, so farther
+    off than a machine drawn uniformly inside it (``machine_off_drawing``)."""
+    theta = cal_model.parameter_vector(mech, geometry)
+    count = theta.size - 6
+    theta[:count] += points * rng.choice([-1.0, 1.0], count)
+    theta[count:] += offsets * rng.choice([-1.0, 1.0], 6)
+    return cal_model.mechanism_with(mech, theta)
+
+
 @dataclasses.dataclass(frozen=True)
 class Flight:
     """One plan flown on one machine.
@@ -108,7 +127,8 @@ class Flight:
         return self.failed_at is None
 
     def describe(self) -> str:
-        what = 'tripped %s' % self.trip if self.trip else 'tracked'
+        what = 'tripped %s' % self.trip if self.trip else (
+            'tracked' if self.ok else 'left %g of the tracking bound' % BOUND_SHARE)
         return '%s, within %.1f mm and %.1f mrad of the reference' % (
             what, self.position_max * 1e3, self.angle_max * 1e3)
 
@@ -194,7 +214,7 @@ class FlownPlan:
     Attributes:
         plan: the plan (``calibration_plan.Plan``).
         times, rows: its reference (``calibration_plan.reference_rows``).
-        flights: the last round's flights, one per machine.
+        flights: the last round's flights, one per machine off the drawing.
         struck: the poses struck on the way, each (position (3,), rotation
             (3, 3), why: the failed flight, described).
     """
@@ -209,14 +229,14 @@ def flown_plan(setup: Setup, count: int, rate: float, supervisor_params: Mapping
                plan_options: Mapping[str, Any], reference_options: Mapping[str, Any],
                points: float = POINTS_TOLERANCE, offsets: float = OFFSETS_TOLERANCE,
                machines: int = MACHINES, seed: int = 0, rounds: int = 10) -> FlownPlan:
-    """Plan ``count`` poses, fly the reference on ``machines`` machines off the
-    drawing (``fly``), strike the pose the first failed flight was going to
-    or holding, and plan again, until every flight passes.
+    """Plan ``count`` poses, fly the reference on the drawing and on ``machines``
+    machines off it (``fly``), strike the pose the first failed flight was
+    going to or holding, and plan again, until every flight passes.
 
     Args:
         setup: the drawing and its task.
         count: poses.
-        rate: the flights' sample rate [Hz].
+        rate: the plant's sample rate [Hz] (the flights': at most ``MAX_RATE``).
         supervisor_params: the supervisor's parameters of the file.
         plan_options: keyword arguments of ``calibration_plan.plan`` (not ``struck``).
         reference_options: of ``calibration_plan.reference_rows``.
@@ -236,7 +256,7 @@ def flown_plan(setup: Setup, count: int, rate: float, supervisor_params: Mapping
     from stewart63_ros.core.machine import calibration_plan as cp
     mech = setup.mechanism
     fleet = [machine_off_drawing(mech, np.random.default_rng(seed * 1000 + 1 + m), points,
-                                 offsets, plan_options.get('geometry'))
+                               offsets, plan_options.get('geometry'))
              for m in range(machines if points or offsets else 0)]
     for m, machine in enumerate(fleet):
         off = standing_error(mech, machine, setup.task.initial_position,
@@ -251,16 +271,24 @@ def flown_plan(setup: Setup, count: int, rate: float, supervisor_params: Mapping
                 % (m + 1, len(fleet), points, offsets, off[0] * 1e3, off[1] * 1e3, BOUND_SHARE,
                    *TRACKING_BOUND))
     struck: list[tuple[np.ndarray, np.ndarray, str]] = []
+    options = dict(plan_options)
+    half_range = np.asarray(options.pop('half_range', cp.DEFAULT_RANGE), float)
     for _ in range(rounds):
+        # each failure narrows the range too: the poses machines off the drawing
+        # fail on are its outer ones (tilted, off centre, legs long), and a
+        # struck pose's neighbours beyond STRIKE_RADIUS fail alike
         plan = cp.plan(setup, count, seed, struck=[(t, r) for t, r, _ in struck],
-                       **plan_options)
+                       half_range=half_range * NARROWING ** len(struck), **options)
         times, rows = cp.reference_rows(setup, plan.positions, plan.rotations,
                                         **reference_options)
         reference = Reference.from_poses(mech, times, rows)
         flights, failed = [], None
-        for m, machine in enumerate(fleet):
-            flight = fly(setup, machine, reference, rate, supervisor_params)
-            flights.append(flight)
+        # the drawing first: a plan it cannot fly is too fast for the law, not
+        # too wide for the machine
+        for m, machine in enumerate([mech] + fleet if fleet else []):
+            flight = fly(setup, machine, reference, min(rate, MAX_RATE), supervisor_params)
+            if m:
+                flights.append(flight)
             if not flight.ok:
                 failed = (m, flight)
                 break
@@ -270,12 +298,17 @@ def flown_plan(setup: Setup, count: int, rate: float, supervisor_params: Mapping
         windows = cp.hold_windows(times, rows)
         pose = next((j for j, (_, end) in enumerate(windows) if end >= flight.failed_at),
                     len(windows) - 1)
-        why = 'pose %d (%s), machine %d of %d off the drawing (+-%g m points, +-%g m ' \
-            'offsets) at %.2f s: %s' % (
-                pose + 1, ', '.join('%.3f' % v for v in rows[np.searchsorted(
-                    times, windows[pose][0])]), m + 1, len(fleet), points, offsets,
-                flight.failed_at, flight.describe())
+        who = 'the drawing itself' if m == 0 else \
+            'machine %d of %d off the drawing (+-%g m points, +-%g m offsets)' % (
+                m, len(fleet), points, offsets)
+        why = 'pose %d (%s), %s at %.2f s: %s' % (
+            pose + 1, ', '.join('%.3f' % v for v in rows[np.searchsorted(
+                times, windows[pose][0])]), who, flight.failed_at, flight.describe())
         struck.append((plan.positions[pose], plan.rotations[pose], why))
-    raise cp.PlanError('the plan still fails in simulation after %d poses struck; the last: '
-                       '%s. Slow it (--leg-speed, --move), or narrow the tolerance if the '
-                       'machine is known better (--tolerance)' % (len(struck), struck[-1][2]))
+    drawing = sum(1 for _, _, why in struck if 'the drawing itself' in why)
+    raise cp.PlanError(
+        'the plan still fails in simulation after %d poses struck (%d of them on the drawing '
+        'itself: the moves too fast for the law); the last: %s. Slow it (--leg-speed, '
+        '--move)%s' % (len(struck), drawing, struck[-1][2],
+                       '' if drawing == len(struck) else ', or state a narrower tolerance '
+                       'if the machine is known better (--tolerance)'))
