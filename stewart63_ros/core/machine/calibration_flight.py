@@ -36,6 +36,7 @@ from stewart63_ros.core.controllers.laws import Controller
 from stewart63_ros.core.controllers.reference import R_POS, R_ROT, Reference
 from stewart63_ros.core.controllers.sensor import SensorModel
 from stewart63_ros.core.machine import calibration_model as cal_model
+from stewart63_ros.core.machine import calibration_plan as cp
 from stewart63_ros.core.machine.supervisor import (
     Supervisor,
     limits_from_params,
@@ -253,7 +254,6 @@ def flown_plan(setup: Setup, count: int, rate: float, supervisor_params: Mapping
         PlanError: a plan cannot be made, or its flights still fail after
             ``rounds`` (naming the pose, the machine and what happened).
     """
-    from stewart63_ros.core.machine import calibration_plan as cp
     mech = setup.mechanism
     fleet = [machine_off_drawing(mech, np.random.default_rng(seed * 1000 + 1 + m), points,
                                offsets, plan_options.get('geometry'))
