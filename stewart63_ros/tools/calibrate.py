@@ -1,7 +1,8 @@
 """`calibrate`: identify the machine's geometry and sensor offsets; plan the poses.
 
     calibrate plan --params P --poses N --out DIR [--seed S] [--hold S] [--move S]
-        [--leg-speed V] [--candidates K] [--tracker-noise POS ANG] [--geometry G]
+        [--leg-speed V] [--candidates K] [--tolerance POINTS OFFSETS] [--machines N]
+        [--tracker-noise POS ANG] [--geometry G]
     calibrate fit --measurements F --params P --out DIR [--holdout SHARE]
         [--tolerance M] [--tracker-noise POS ANG] [--reading-noise M]
         [--tracker-topic T] [--stamp-tolerance S] [--still V] [--geometry G]
@@ -12,9 +13,12 @@
 pairs allowed to come apart: 42 parameters instead of 33) and writes 18
 numbers; the default is the file's own layout.
 
-``plan`` writes DIR/poses.csv (the poses, and when the reference holds
-each), DIR/reference.csv (``t,x,y,z,theta_x,theta_y,theta_z`` for ``rig
---reference``) and DIR/plan.json (the observability indices O1 and O3).
+``plan`` flies its reference in simulation on machines off the drawing
+(core/machine/calibration_flight.py), strikes the poses where one fails, and
+writes DIR/poses.csv (the poses, and when the reference holds each),
+DIR/reference.csv (``t,x,y,z,theta_x,theta_y,theta_z`` for ``rig
+--reference``) and DIR/plan.json (the observability indices O1 and O3, the
+flights, the poses struck).
 ``fit`` reads a measurements CSV (``x,y,z,qx,qy,qz,qw,L1..L6``) or a bag
 (a ``geometry_msgs/PoseStamped`` tracker topic and ``leg_lengths``, matched
 by stamp) and writes DIR/calibrated.yaml (the starting file with the
