@@ -322,7 +322,9 @@ def test_an_impossible_calibration_is_never_written(setup, tmp_path, mech, truth
 
 def test_plan_writes_poses_and_a_reference_the_rig_accepts(tmp_path, mech):
     from stewart63_ros.core.controllers.reference_files import load_reference
-    assert calibrate.main(['plan', '--poses', '12', '--out', str(tmp_path / 'plan'),
+    # --machines 0: the flights on machines off the drawing are test_calibration_flight.py's
+    assert calibrate.main(['plan', '--poses', '12', '--machines', '0', '--out',
+                           str(tmp_path / 'plan'),
                            '--hold', '0.5', '--move', '0.5', '--leg-speed', '0.4',
                            '--seed', '2']) == 0
     reference = load_reference(mech, tmp_path / 'plan' / 'reference.csv')
@@ -413,7 +415,8 @@ def test_plan_stays_inside_the_supervisors_limits_with_a_margin(tmp_path, setup,
     for params, tilt, box in ((None, 0.35, [-0.3, -0.3, 0.5, 0.3, 0.3, 1.6]),
                               (tmp_path / 'tight.yaml', 0.3, [-0.2, -0.25, 0.5, 0.3, 0.3, 1.5])):
         out = tmp_path / ('plan_%s' % tilt)
-        argv = ['plan', '--poses', '10', '--out', str(out), '--hold', '0.3', '--move', '0.4',
+        argv = ['plan', '--poses', '10', '--machines', '0', '--out', str(out), '--hold', '0.3',
+                '--move', '0.4',
                 '--leg-speed', '0.4']
         assert calibrate.main(argv + (['--params', str(params)] if params else [])) == 0
         reference = load_reference(mech, out / 'reference.csv')

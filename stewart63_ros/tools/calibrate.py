@@ -1,7 +1,8 @@
 """`calibrate`: identify the machine's geometry and sensor offsets; plan the poses.
 
     calibrate plan --params P --poses N --out DIR [--seed S] [--hold S] [--move S]
-        [--leg-speed V] [--candidates K] [--tracker-noise POS ANG] [--geometry G]
+        [--leg-speed V] [--candidates K] [--tolerance POINTS OFFSETS] [--machines N]
+        [--tracker-noise POS ANG] [--geometry G]
     calibrate fit --measurements F --params P --out DIR [--holdout SHARE]
         [--tolerance M] [--tracker-noise POS ANG] [--reading-noise M]
         [--tracker-topic T] [--stamp-tolerance S] [--still V] [--geometry G]
@@ -12,9 +13,12 @@
 pairs allowed to come apart: 42 parameters instead of 33) and writes 18
 numbers; the default is the file's own layout.
 
-``plan`` writes DIR/poses.csv (the poses, and when the reference holds
-each), DIR/reference.csv (``t,x,y,z,theta_x,theta_y,theta_z`` for ``rig
---reference``) and DIR/plan.json (the observability indices O1 and O3).
+``plan`` flies its reference in simulation on machines off the drawing
+(core/machine/calibration_flight.py), strikes the poses where one fails, and
+writes DIR/poses.csv (the poses, and when the reference holds each),
+DIR/reference.csv (``t,x,y,z,theta_x,theta_y,theta_z`` for ``rig
+--reference``) and DIR/plan.json (the observability indices O1 and O3, the
+flights, the poses struck).
 ``fit`` reads a measurements CSV (``x,y,z,qx,qy,qz,qw,L1..L6``) or a bag
 (a ``geometry_msgs/PoseStamped`` tracker topic and ``leg_lengths``, matched
 by stamp) and writes DIR/calibrated.yaml (the starting file with the
@@ -46,10 +50,12 @@ from stewart63_ros.core.controllers.reference import Reference, ReferenceError
 from stewart63_ros.core.controllers.reference_files import write_reference_csv
 from stewart63_ros.core.controllers.sensor import TrackerModel
 from stewart63_ros.core.machine import calibration as cal
+from stewart63_ros.core.machine import calibration_flight as flight
 from stewart63_ros.core.machine import calibration_model as cal_model
 from stewart63_ros.core.machine import calibration_plan as cp
 from stewart63_ros.core.machine.supervisor import limits_from_params
 from stewart63_ros.core.mechanics.rotation import euler_from_matrix
+from stewart63_ros.core.plumbing.node_parameters import read as read_declared
 from stewart63_ros.core.plumbing.params import (  # noqa: E402
     ParameterError,
     default_params_path,
@@ -319,18 +325,32 @@ def _figure(value, unit) -> str:
 def run_plan(args, setup, params_path: Path) -> int:
     noise = _noise(args)
     try:
+        sup_params = dict(setup.to_params(), **read_parameter_file(params_path, 'supervisor'))
+        rate = float(read_declared(read_parameter_file(params_path, 'plant'), 'sensor_rate'))
+    except ParameterError as exc:
+        raise InputError('%s: %s' % (params_path, exc)) from None
+    try:
         limits = cp.plan_limits(setup.mechanism, supervisor_limits(setup, params_path))
         if limits.leg_speed and args.leg_speed > limits.leg_speed:
             raise InputError('--leg-speed %g m/s: the supervisor trips at trip_leg_speed %g '
                              'm/s, and a plan keeps its legs under %g m/s (%g of it)'
                              % (args.leg_speed, limits.leg_speed / cp.SPEED_SHARE,
                                 limits.leg_speed, cp.SPEED_SHARE))
-        plan = cp.plan(setup, args.poses, args.seed, noise, args.candidates, limits=limits,
-                       geometry=args.geometry)
-        times, rows = cp.reference_rows(setup, plan.positions, plan.rotations, args.hold,
-                                        args.move, args.leg_speed, limits=limits)
+        flown = flight.flown_plan(
+            setup, args.poses, rate, sup_params,
+            {'noise': noise, 'candidates': args.candidates, 'limits': limits,
+             'geometry': args.geometry},
+            {'hold': args.hold, 'move': args.move, 'leg_speed': args.leg_speed,
+             'limits': limits},
+            points=args.tolerance[0], offsets=args.tolerance[1], machines=args.machines,
+            seed=args.seed)
     except (cp.PlanError, cal_model.CalibrationError) as exc:
         raise InputError(exc) from None
+    except ParameterError as exc:
+        raise InputError('%s: %s' % (params_path, exc)) from None
+    plan, times, rows = flown.plan, flown.times, flown.rows
+    for _, _, why in flown.struck:
+        print('calibrate: struck %s' % why)
     try:
         Reference.from_poses(setup.mechanism, times, rows).check(max_leg_speed=limits.leg_speed)
     except ReferenceError as exc:
@@ -350,12 +370,22 @@ def run_plan(args, setup, params_path: Path) -> int:
     summary = {'poses': len(plan.positions), 'seed': args.seed, 'o1_per_m': plan.o1,
                'o3_per_m': plan.o3, 'worst_std_m': plan.worst_std,
                'candidates': plan.candidates, 'duration_s': float(times[-1]),
-               'hold_s': args.hold, 'tracker_noise': list(args.tracker_noise)}
+               'hold_s': args.hold, 'tracker_noise': list(args.tracker_noise),
+               'tolerance_m': {'points': args.tolerance[0], 'offsets': args.tolerance[1]},
+               'flights': [{'machine': m + 1, 'trip': f.trip, 'position_max_m': f.position_max,
+                            'angle_max_rad': f.angle_max} for m, f in enumerate(flown.flights)],
+               'struck': [why for _, _, why in flown.struck]}
     (out / 'plan.json').write_text(json.dumps(finite_or_none(summary), indent=1, allow_nan=False))
     print('calibrate: %d poses from %d candidates: O3 %.4g /m (worst combination std %.3g m '
           'at the stated noise), O1 %.4g /m; reference %.1f s' % (
               len(plan.positions), plan.candidates, plan.o3, plan.worst_std, plan.o1,
               times[-1]))
+    if flown.flights:
+        print('calibrate: flown on %d machines off the drawing (points +-%g m, offsets +-%g m) '
+              'with %s and the supervisor: no trip, within %.1f mm and %.1f mrad of the plan'
+              % (len(flown.flights), args.tolerance[0], args.tolerance[1], flight.LAW,
+                 max(f.position_max for f in flown.flights) * 1e3,
+                 max(f.angle_max for f in flown.flights) * 1e3))
     print('calibrate: wrote %s, %s and %s' % (out / 'poses.csv', out / 'reference.csv',
                                              out / 'plan.json'))
     return 0
@@ -367,14 +397,9 @@ def run_machine(args, mech, params_path: Path) -> int:
     pair joints each moved on their own (the machine a 6-6 file describes)."""
     rng = np.random.default_rng(args.seed)
     try:
-        theta = cal_model.parameter_vector(mech, args.geometry)
+        machine = flight.machine_off_drawing(mech, rng, args.points, args.offsets, args.geometry)
     except cal_model.CalibrationError as exc:
         raise InputError(exc) from None
-    points = theta.size - 6
-    theta[:points] += rng.uniform(-args.points, args.points, points)
-    theta[points:] += rng.uniform(-args.offsets, args.offsets, 6)
-    try:
-        machine = cal_model.mechanism_with(mech, theta)
     except ParameterError as exc:
         raise InputError('the perturbed machine is impossible: %s' % exc) from None
     doc = calibrated_document(params_path, machine)
@@ -448,6 +473,16 @@ def build_parser() -> argparse.ArgumentParser:
                       help='the fastest a leg moves on average in a move [m/s] (default 0.1)')
     plan.add_argument('--candidates', type=int, default=1500, metavar='K',
                       help='random feasible poses to choose from (default 1500)')
+    plan.add_argument('--tolerance', type=float, nargs=2, metavar=('POINTS', 'OFFSETS'),
+                      default=(flight.POINTS_TOLERANCE, flight.OFFSETS_TOLERANCE),
+                      help='how far the machine may be off its drawing [m]: each point '
+                      'coordinate within +-POINTS, each sensor offset within +-OFFSETS. The '
+                      'plan is flown in simulation on --machines such machines and a pose '
+                      'where one fails is struck (default %g %g)'
+                      % (flight.POINTS_TOLERANCE, flight.OFFSETS_TOLERANCE))
+    plan.add_argument('--machines', type=int, default=flight.MACHINES, metavar='N',
+                      help='machines off the drawing the plan is flown on (default %d; 0: '
+                      'none, the plan is not checked on a machine)' % flight.MACHINES)
 
     machine = sub.add_parser('machine', help='a parameter file of a machine built off its '
                              'drawing, for the simulation')
@@ -470,6 +505,8 @@ def option_problem(args) -> str:
     if args.command == 'fit':
         checks += [('--stamp-tolerance', args.stamp_tolerance > 0), ('--still', args.still >= 0),
                    ('--reading-noise', args.reading_noise >= 0)]
+    elif args.command == 'plan':
+        checks += [('--tolerance', min(args.tolerance) >= 0), ('--machines', args.machines >= 0)]
     elif args.command == 'machine':
         checks += [('--points', args.points >= 0), ('--offsets', args.offsets >= 0),
                    ('--tracker-rate', args.tracker_rate >= 0)]

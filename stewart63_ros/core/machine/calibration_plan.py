@@ -68,6 +68,9 @@ LIMIT_MARGIN = 0.04
 TILT_MARGIN = 0.1
 #: The plan's fastest leg, at most this share of the supervisor's trip_leg_speed.
 SPEED_SHARE = 0.8
+#: A struck pose (a machine off the drawing failed there) takes the candidates
+#: this near with it [m] (|dt| + platform radius x angle): a neighbour fails alike.
+STRIKE_RADIUS = 0.05
 
 
 class PlanError(ValueError):
@@ -333,25 +336,31 @@ def tour(mech: Mechanism, positions: np.ndarray, rotations: np.ndarray,
     Returns:
         The order, a permutation of range(N).
     """
-    size = float(np.max(np.linalg.norm(mech.platform_points - mech.platform_points.mean(0),
-                                       axis=1)))
     left = list(range(len(positions)))
     here_t, here_r = start
     order = []
     while left:
-        turns = rotvec_between(quaternion_from_rotation(rotations[left]), here_r)
-        dist = np.linalg.norm(positions[left] - here_t, axis=1) + size * np.linalg.norm(
-            turns, axis=1)
+        dist = pose_distance(mech, positions[left], rotations[left], here_t, here_r)
         nxt = left.pop(int(np.argmin(dist)))
         order.append(nxt)
         here_t, here_r = positions[nxt], rotations[nxt]
     return order
 
 
+def pose_distance(mech: Mechanism, positions: np.ndarray, rotations: np.ndarray,
+                  position: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """|dt| + platform radius x angle [m] of poses (N, 3), (N, 3, 3) from one pose."""
+    size = float(np.max(np.linalg.norm(mech.platform_points - mech.platform_points.mean(0),
+                                       axis=1)))
+    turns = rotvec_between(quaternion_from_rotation(rotations), rotation)
+    return np.linalg.norm(positions - position, axis=1) + size * np.linalg.norm(turns, axis=1)
+
+
 def plan(setup: Setup, count: int, seed: int = 0, noise: cal_model.NoiseModel | None = None,
          candidates: int = 1500, half_range: ArrayLike = DEFAULT_RANGE,
          max_condition: float = 100.0, force_share: float = 0.5,
-         limits: PlanLimits | None = None, geometry: str | None = None) -> Plan:
+         limits: PlanLimits | None = None, geometry: str | None = None,
+         struck: list | None = None) -> Plan:
     """Choose ``count`` poses that make the identification well conditioned.
 
     Args:
@@ -363,6 +372,9 @@ def plan(setup: Setup, count: int, seed: int = 0, noise: cal_model.NoiseModel | 
         half_range, max_condition, force_share, limits: as ``candidate_poses``.
         geometry: the layout the fit will identify (default the drawing's):
             '6-6' of a 6-3 plans for the pairs' joints apart (42 parameters).
+        struck: poses (position (3,), rotation (3, 3)) not to plan: every
+            candidate within ``STRIKE_RADIUS`` of one is dropped
+            (``calibration_flight``: a machine off the drawing failed there).
 
     Returns:
         The plan, in visiting order from the initial pose.
@@ -380,6 +392,15 @@ def plan(setup: Setup, count: int, seed: int = 0, noise: cal_model.NoiseModel | 
     mech = setup.mechanism
     positions, rotations = candidate_poses(setup, candidates, rng, half_range, max_condition,
                                            force_share, limits)
+    if struck:
+        near = np.zeros(len(positions), dtype=bool)
+        for position, rotation in struck:
+            near |= pose_distance(mech, positions, rotations, position, rotation) \
+                < STRIKE_RADIUS
+        positions, rotations = positions[~near], rotations[~near]
+        if len(positions) < 2 * count:
+            raise PlanError('%d poses struck (machines off the drawing failed there) leave '
+                            '%d candidates for %d poses' % (len(struck), len(positions), count))
     blocks = _blocks(mech, positions, rotations, noise, geometry)
     chosen = choose(blocks, count)
     o1, o3 = indices(blocks, chosen)
