@@ -128,9 +128,11 @@ class Flight:
 
     @property
     def ok(self) -> bool:
+        """True when the machine flew the whole plan without a trip and within the bound."""
         return self.failed_at is None
 
     def describe(self) -> str:
+        """One line for the plan's report: tripped, tracked or left the bound, and how close."""
         what = 'tripped %s' % self.trip if self.trip else (
             'tracked' if self.ok else 'left %g of the tracking bound' % BOUND_SHARE)
         return '%s, within %.1f mm and %.1f mrad of the reference' % (
