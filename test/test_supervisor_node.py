@@ -3,7 +3,7 @@ loop drives it: every trip cause, in lockstep and in realtime, is refused a
 reset while it holds (naming what holds), accepted once it is gone, and the
 node goes on (the return, then the controller's live requests forwarded).
 
-This is the node's own path, where the bug of issue 38 was (tripped, the
+This is the node's own path, where an old bug lived (tripped, the
 node parked every request and never handed it to the core, so ``force`` and
 ``forces_stale`` could never be reset): the node's callbacks are called
 directly with serialized messages, its loop's ``attend`` with an injected
