@@ -258,7 +258,7 @@ def test_fk_reports_the_samples_its_start_up_wait_served():
     fk.discovery_timeout = 5.0
     fk.data_publishers = [Pub('/a/platform_pose', 0)]
     fk.health.pub = Pub('/diagnostics', 1)
-    gate = startup.StartupBarrier(fk, SimpleNamespace(matched={}))
+    gate = startup.StartupBarrier(fk, SimpleNamespace(matched={}, recorded={}))
     gate.MATCH_SETTLE = 0.0
     size = 3
 
@@ -362,7 +362,7 @@ def barrier(matched=0):
     node.data_publishers = [Pub('/a/platform_pose', matched), Pub('/a/markers', 0)]
     node.optional_publishers = {id(node.data_publishers[1])}
     node.health.pub = Pub('/diagnostics', 5)
-    gate = startup.StartupBarrier(node, SimpleNamespace(matched={}))
+    gate = startup.StartupBarrier(node, SimpleNamespace(matched={}, recorded={}))
     gate.MATCH_SETTLE = 0.0
     return node, gate
 
@@ -515,7 +515,7 @@ def test_hot_loop_serves_side_subscriptions_timers_and_the_executor_between_mess
     status = timer(0.05)
     node.timers = [status]
     assert node.start_hot_loop(hot) == ('direct', hot)
-    assert node.gc == ['collect', 'freeze']      # no 20-40 ms collection in the loop
+    assert node.gc == ['freeze']      # no 20-40 ms collection in the loop, none at start
     assert STOP.interruptible is False          # from here a stop is a flag the loop reads
     side.queue.append('setpoint')
     now = time.monotonic()

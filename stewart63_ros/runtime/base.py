@@ -68,10 +68,7 @@ class RigNode(HotLoop, Node):
             self.get_logger().info(COMPILE_NOTICE)
         self.wait_for_subscribers = self.param('wait_for_subscribers')
         self.discovery_timeout = self.param('discovery_timeout')
-        # A participant announces itself every 3 s after its first burst (Fast
-        # DDS): one lost exchange and the graph shows a running recorder only
-        # then (measured 0.6-1.4 s here, and more than 2 s in 1 of ~10 loaded
-        # starts). 4 s outlasts one period.
+        # 0 unless set: the start-up waits for events, not a clock (startup.py).
         self.discovery_settle = self.param('discovery_settle')
         if not self.discovery_settle <= self.discovery_timeout:
             raise ParameterError('discovery_settle', 'must be from 0 to discovery_timeout '

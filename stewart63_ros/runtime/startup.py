@@ -10,6 +10,7 @@ from __future__ import annotations
 import time
 
 from stewart63_ros import topics
+from stewart63_ros.runtime import recorders
 
 
 class StartupBarrier:
@@ -27,8 +28,6 @@ class StartupBarrier:
 
     #: s: how often a node still waiting for its peers says what it waits for.
     WAIT_REPORT_PERIOD = 5.0
-    #: s: how long a new match must hold before the first message (wait_for_matches).
-    MATCH_SETTLE = 1.0
 
     def graph_subscriptions(self, pub) -> list:
         """The subscriptions the ROS graph shows on ``pub``'s topic that can
@@ -43,53 +42,43 @@ class StartupBarrier:
     def wait(self, extra=None) -> bool:
         """Bounded wait (``discovery_timeout``) before the first message until
         every data publisher has matched ``wait_for_subscribers``
-        subscriptions and every subscription the ROS graph shows on its topic
-        (so a recorder started before the rig gets everything from the first
-        message), and ``extra()`` (a list of what else is missing) is empty.
-        The graph is given ``discovery_settle`` s from the node's start to
-        show what already runs. A new match must then hold for
-        ``MATCH_SETTLE`` s: a publisher counts a subscription as matched as
-        soon as it has discovered it, but the subscription drops what comes
-        before it has discovered the publisher in turn (a volatile reader
-        starts at the first sample it sees announced), which under load has
-        lagged tens of ms. Says at once what it waits for, and again every
-        few s."""
+        subscriptions and every subscription the ROS graph shows on its topic,
+        every recorder that could lose this node's messages has matched it
+        (``recorders_missing``), and ``extra()`` (a list of what else is
+        missing) is empty.
+
+        No fixed settle by default: these events end the wait, not a clock.
+        ``discovery_settle`` (0 unless set) gives the graph that long from
+        the node's start to show a subscriber that runs already and that
+        neither the run nor this machine names (a recorder on another host).
+        A subscription that matched after a sample was sent still gets it:
+        the writer counted it as matched, and its heartbeat (50 ms,
+        config/fastdds.xml) repairs the sample (test/test_startup_order.py
+        shows it). Says at once what it waits for, and again every few s."""
         node = self.node
         pubs = node.data_publishers + [node.health.pub]
-        counts = {id(pub): (pub.get_subscription_count(), node.created) for pub in pubs}
-
-        me = node.get_fully_qualified_name()
-        matched = self.word.matched
+        # Recorders running on this machine (runtime/recorders.py): known
+        # before discovery shows them, so waited for like one it shows.
+        # (A test's stand-in for a node has no ROS context: no recorders then.)
+        context = getattr(node, 'context', None)
+        noted = [] if context is None else recorders.running(context.get_domain_id())
 
         def missing():
             out = []
-            recorders = set()
-            # Discovery of what already runs takes a moment (seconds, loaded):
-            # until then the graph may not show a subscriber started before us.
             age = time.monotonic() - node.created
             if age < node.discovery_settle:
                 out.append('discovery of the ROS graph (%.1f of %g s, discovery_settle)'
                            % (age, node.discovery_settle))
-            now = time.monotonic()
             for pub in pubs:
                 floor = node.wait_for_subscribers
                 if id(pub) in node.optional_publishers:
                     floor = 0
-                subscribers = self.graph_subscriptions(pub)
-                recorders.update(name for name in map(topics.endpoint_node_name, subscribers)
-                                 if name in matched)
-                want = max(floor, len(subscribers))
+                want = max(floor, len(self.graph_subscriptions(pub)))
                 have = pub.get_subscription_count()
-                if have != counts[id(pub)][0]:
-                    counts[id(pub)] = (have, now)
                 if have < want:
                     out.append('%s: %d of %d subscriptions matched'
                                % (pub.topic_name, have, want))
-                elif now - counts[id(pub)][1] < self.MATCH_SETTLE:
-                    out.append('%s: a new match settling' % pub.topic_name)
-            for name in sorted(recorders):
-                if me not in matched[name]:
-                    out.append('%s to match %s\'s publishers' % (name, me))
+            out += self.recorders_missing(pubs, noted)
             return out + (list(extra()) if extra is not None else [])
 
         log = node.get_logger()
@@ -103,7 +92,8 @@ class StartupBarrier:
                 log.info('waiting (at most %.1f s more, discovery_timeout) for: %s'
                          % (deadline - now, '; '.join(waiting)))
                 next_report = now + self.WAIT_REPORT_PERIOD
-            node.executor_.spin_once(timeout_sec=min(0.05, max(0.0, deadline - now)))
+            # 10 ms: a match is no executor event, so this is how soon one is seen
+            node.executor_.spin_once(timeout_sec=min(0.01, max(0.0, deadline - now)))
             if node.after_batch is not None:
                 # The turn may have served the node's 1 kHz input (it is in
                 # the executor too): report it now (fk's lockstep progress;
@@ -118,6 +108,40 @@ class StartupBarrier:
                  % (node.discovery_timeout, '; '.join(waiting)))
         node.health.warning = 'started before all subscribers matched'
         return False
+
+
+    def recorders_missing(self, pubs, noted) -> list[str]:
+        """What the recorders still miss to record this node from its first
+        message: each one the graph shows on a topic of ``pubs`` or that is
+        ``noted`` running here must have said on /diagnostics what it records
+        (``RecorderWord``); on each such topic the graph must show its
+        subscription (so the count above holds the writer's side of the
+        match), and it must name this node under ``matched_publishers``
+        (its side: only it sees that)."""
+        node = self.node
+        me = node.get_fully_qualified_name()
+        word = self.word
+        shown = {}          # recorder -> topics of pubs it subscribes, as the graph shows
+        for pub in pubs:
+            for name in map(topics.endpoint_node_name, self.graph_subscriptions(pub)):
+                shown.setdefault(name, set()).add(pub.topic_name)
+        out = []
+        for name in sorted(set(noted) | (set(shown) & set(word.matched))):
+            if name not in word.matched:
+                out.append('%s (recording on this machine) to say what it records' % name)
+                continue
+            mine = {pub.topic_name for pub in pubs} & word.recorded.get(name, set())
+            for topic in sorted(mine - shown.get(name, set())):
+                out.append('%s: the subscription of %s' % (topic, name))
+            # Its side, topic by topic: its graph may show only some of this
+            # node's publishers yet, and name it matched on those alone.
+            on = getattr(word, 'matched_on', {}).get(name, {})
+            unmatched = sorted(t for t in mine if me not in on.get(t, ()))
+            if unmatched:
+                out.append('%s to match %s on %s' % (name, me, ', '.join(unmatched)))
+            elif (mine or name in shown) and me not in word.matched[name]:
+                out.append('%s to match %s\'s publishers' % (name, me))
+        return out
 
 
 class PlantStartup:
