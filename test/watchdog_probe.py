@@ -33,6 +33,7 @@ def main(argv) -> int:
                    '-p', 'clock_mode:=%s' % mode])
     rclpy.init()
     controller = ControllerNode(None)
+    controller.subscribe_input()        # (its start-up wait, which makes it, is not run here)
     sensor = Node('probe_sensor')
     pub = sensor.create_publisher(JointState, topics.LEG_LENGTHS, topics.STREAM_PUB)
     deadline = time.monotonic() + 20

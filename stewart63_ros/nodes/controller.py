@@ -138,9 +138,7 @@ class ControllerNode(RigNode):
         self.forces_out.get('base')             # made now, not on the first sample
         self.send_forces = self.health.sender(topics.LEG_FORCES, self.pub_forces)
         wire.warm_up(('position', 'velocity'))
-        # Serialized samples in, serialized forces out: see runtime/wire.py.
-        self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
-                                                    self.on_sample, topics.LATEST_SUB, raw=True)
+        self.sub_samples = None         # made once its forces are matched
         self.commands = [
             CommandInput(self, JointState, topics.LEG_SETPOINT, self.on_leg_setpoint),
             CommandInput(self, PoseStamped, topics.POSE_SETPOINT, self.on_pose_setpoint),
@@ -169,6 +167,15 @@ class ControllerNode(RigNode):
         self.health.values['control_law'] = self.control.law_name
         self.health.values['reference'] = self.reference_name
         self.withheld = 0
+
+    def subscribe_input(self):
+        """``leg_lengths``, once the controller's outputs are matched
+        (RigNode.subscribe_input)."""
+        if self.sub_samples is not None:
+            return
+        # Serialized samples in, serialized forces out: see runtime/wire.py.
+        self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
+                                                    self.on_sample, topics.LATEST_SUB, raw=True)
         self.watch_source(self.sub_samples, topics.LEG_LENGTHS, self.sample_gate)
 
     def _warm_up(self, name=None):
@@ -368,6 +375,7 @@ class ControllerNode(RigNode):
             self.plant_run = number
 
     def run(self):
+        self.wait_for_matches()         # (its input: made as the wait ends)
         self.run_on(self.sub_samples)
 
     def read_queued(self) -> None:
@@ -375,7 +383,7 @@ class ControllerNode(RigNode):
         /diagnostics message, then the newest sample, as the loop would."""
         for msg in iter(lambda: take(self.sub_diagnostics), None):
             self.on_diagnostics(msg)
-        taken = take_with_info(self.sub_samples)
+        taken = take_with_info(self.sub_samples) if self.sub_samples is not None else None
         if taken is not None:
             self.sub_samples.callback(*taken)
 

@@ -199,6 +199,19 @@ class RigNode(HotLoop, Node):
             self.optional_publishers.add(id(pub))
         return pub
 
+    def subscribe_input(self) -> None:
+        """Subscribe to the node's 1 kHz input (controller, fk: ``leg_lengths``).
+
+        Called once, as the start-up wait ends (``startup.StartupBarrier``),
+        not in the constructor: a node that answers samples must not take
+        one before its own outputs are matched, or its answers would go to
+        writers not yet matched by their readers (a recorder started first
+        lost fk's first marker arrays that way, served by the executor
+        turns of fk's wait). And the plant waits for this subscription
+        (``lengths_peers``, ``lengths_subscribers``): so it sends its first
+        sample only once each of these nodes has ended its wait, the
+        start-up order of runtime/handshake.py."""
+
     def wait_for_matches(self, extra=None) -> bool:
         """Bounded wait before the first message until the node's subscribers
         are matched (``startup.StartupBarrier.wait``); True if they all are."""

@@ -56,6 +56,8 @@ class StartupBarrier:
         config/fastdds.xml) repairs the sample (test/test_startup_order.py
         shows it). Says at once what it waits for, and again every few s."""
         node = self.node
+        if node.started:
+            return True         # (once: run_on waits too, after a node's own wait)
         pubs = node.data_publishers + [node.health.pub]
         # Recorders running on this machine (runtime/recorders.py): known
         # before discovery shows them, so waited for like one it shows.
@@ -101,6 +103,10 @@ class StartupBarrier:
                 node.after_batch()
             waiting = missing()
         node.started = True
+        # Its outputs are matched: now it may take its input (see subscribe_input).
+        subscribe = getattr(node, 'subscribe_input', None)
+        if subscribe is not None:
+            subscribe()
         if not waiting:
             log.info('matched after %.2f s' % (time.monotonic() - start))
             return True
