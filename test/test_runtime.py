@@ -249,6 +249,21 @@ def fk_progress(clock=time.monotonic):
     return fk, fk.progress.pub.sent
 
 
+def test_peer_window_ends_the_run_only_once_every_peer_handled_the_last_sample():
+    """The plant's exit ends a rig (rig stops the others): a peer still a
+    window behind would be stopped with samples its reader acknowledged and
+    it never handled (a late fk: 670 of 801 poses)."""
+    node, peers = window(size=200)
+    progress(peers, '/a/fk', 900 * MS)
+    progress(peers, '/a/record', 1000 * MS)
+    assert peers.hold(1000 * MS, pytest.fail)       # the last sample goes out at once
+
+    def fk_catches_up(_timeout):
+        progress(peers, '/a/fk', peers.progress['/a/fk'] + 25 * MS)
+    assert peers.drain(1000 * MS, bounded(fk_catches_up))
+    assert peers.progress['/a/fk'] == 1000 * MS and peers.dropped == {}
+
+
 def test_fk_reports_the_samples_its_start_up_wait_served():
     """The stall of a loaded rig (fk dropped after lockstep_peer_timeout, the
     plant holding one sample): fk's executor turns in its start-up wait
@@ -378,6 +393,25 @@ def test_startup_barrier_waits_for_the_subscribers_then_starts():
     assert node.started and node.spins == 3     # no first message before the match
     assert node.health.warning == ''
     assert node.log.lines[0][0] == 'info' and '/a/platform_pose: 0 of 1' in node.log.lines[0][1]
+
+
+def test_a_node_takes_its_input_only_once_its_outputs_are_matched():
+    """A node that answers samples subscribes to them as its wait ends
+    (RigNode.subscribe_input), not before: samples served by its wait's
+    executor turns were answered on writers a recorder had not matched. A
+    second wait (run_on after the node's own) neither waits nor subscribes
+    again."""
+    node, gate = barrier()
+    subscribed = []
+    node.subscribe_input = lambda: subscribed.append((node.spins, node.started))
+
+    def recorder_matches():
+        if node.spins == 3:
+            node.data_publishers[0].matched = 1
+    node.on_spin = recorder_matches
+    assert gate.wait() is True
+    assert subscribed == [(3, True)]
+    assert gate.wait() is True and subscribed == [(3, True)] and node.spins == 3
 
 
 def test_startup_barrier_waits_for_what_else_is_missing():
