@@ -94,8 +94,7 @@ class SupervisorNode(SupervisorHoming, RigNode):
         self.forces_out = wire.JointStateTemplates(('effort',))
         self.forces_out.get('base')
         wire.warm_up(('position', 'velocity'))
-        self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
-                                                    self.on_sample, topics.LATEST_SUB, raw=True)
+        self.sub_samples = None         # made once its forces are matched
         self.sub_requests = self.create_subscription(JointState, REQUEST_TOPIC,
                                                      self.on_request, topics.EVERY_SUB, raw=True)
         self.sub_diagnostics = self.create_subscription(
@@ -115,6 +114,14 @@ class SupervisorNode(SupervisorHoming, RigNode):
             self.health.values['homed'] = 'false'
         self.health.values.update({'tripped': 'false', 'trips': 0,
                                    'rest_lengths': np.round(self.core.rest, 4).tolist()})
+
+    def subscribe_input(self):
+        """``leg_lengths``, once its forces are matched (RigNode.subscribe_input):
+        the plant, which waits for this subscription, then sends its first
+        sample only once the supervisor can answer it."""
+        if self.sub_samples is None:
+            self.sub_samples = self.create_subscription(
+                JointState, topics.LEG_LENGTHS, self.on_sample, topics.LATEST_SUB, raw=True)
 
     # -- run-time limits -------------------------------------------------------------
     def _limit_setter(self, name):

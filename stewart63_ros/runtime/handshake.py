@@ -23,10 +23,10 @@ nothing anybody publishes is lost:
    (``recorded/<topic>``) the node waits for its subscription, matched. No
    fixed settle: these events end the wait (``discovery_settle``, 0 by
    default, adds one for a subscriber on another host the run does not
-   name). Only then does each subscribe to ``leg_lengths``
-   (``RigNode.subscribe_input``): it answers no sample before its outputs
-   are matched, and the plant, which waits for these subscriptions (4.),
-   waits so for the end of their start-up.
+   name). Only then does each (and a supervisor) subscribe to
+   ``leg_lengths`` (``RigNode.subscribe_input``): it answers no sample
+   before its outputs are matched, and the plant, which waits for these
+   subscriptions (4.), waits so for the end of their start-up.
 3. ``rig --record``: the recorder prints ``MATCHED`` once it has matched the
    publishers of the controller and fk run here (``recorder_waits_for``,
    below); ``rig`` waits for that line, then starts the plant.
