@@ -414,6 +414,42 @@ def test_a_node_takes_its_input_only_once_its_outputs_are_matched():
     assert gate.wait() is True and subscribed == [(3, True)] and node.spins == 3
 
 
+def test_a_lockstep_answer_to_a_new_source_waits_for_the_writers_side_of_the_match():
+    """The controller's first answer to a plant went to a writer that had not
+    discovered the plant's subscription yet (the plant's side had matched):
+    sent to nobody, never repaired, the plant waiting 20 s for it. Now the
+    first answer to each source waits until the graph shows the source's
+    subscription and the writer has matched it; later answers do not wait."""
+    node = Node()
+    node.discovery_timeout = 5.0
+    plant_gid = bytes(range(16))
+    graph = {'subs': [], 'matched': 0, 'polls': 0}
+
+    class Answers:
+        topic_name = '/leg_forces'
+
+        def get_subscription_count(self):
+            graph['polls'] += 1
+            if graph['polls'] == 5:     # discovery brings the plant's subscription
+                graph['subs'] = [SimpleNamespace(node_namespace='/', node_name=n)
+                                 for n in ('plant', 'record')]
+            if graph['polls'] == 8:     # and the writer matches it
+                graph['matched'] = 2
+            return graph['matched']
+    node.resolve_topic_name = lambda topic: '/' + topic.lstrip('/')
+    node.get_publishers_info_by_topic = lambda topic: [
+        SimpleNamespace(node_namespace='/', node_name='plant', endpoint_gid=list(plant_gid))]
+    node.startup = SimpleNamespace(graph_subscriptions=lambda pub: graph['subs'])
+    first = startup.FirstAnswer(node, Answers(), 'leg_lengths')
+    assert first.missing(plant_gid) == '/leg_forces: the subscription of /plant'
+    first.wait(plant_gid)
+    assert graph['polls'] >= 8 and first.missing(plant_gid) == ''
+    polls = graph['polls']
+    first.wait(plant_gid)                       # the same source: no wait, no look
+    assert graph['polls'] == polls
+    assert node.log.lines[-1][0] == 'info' and 'waited' in node.log.lines[-1][1]
+
+
 def test_startup_barrier_waits_for_what_else_is_missing():
     node, gate = barrier(matched=1)
     missing = ['a leg_forces publisher']

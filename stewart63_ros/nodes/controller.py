@@ -64,6 +64,7 @@ from stewart63_ros.runtime.commands import CommandInput
 from stewart63_ros.runtime.handshake import plant_run
 from stewart63_ros.runtime.launcher import run
 from stewart63_ros.runtime.rclpy_internals import take, take_with_info
+from stewart63_ros.runtime.startup import FirstAnswer
 
 _NO_ROTATION = np.eye(3)
 
@@ -137,6 +138,15 @@ class ControllerNode(RigNode):
         self.forces_out = wire.JointStateTemplates(('effort',))
         self.forces_out.get('base')             # made now, not on the first sample
         self.send_forces = self.health.sender(topics.LEG_FORCES, self.pub_forces)
+        # Lockstep: the first answer to a plant waits for the writer's side of
+        # its match (startup.FirstAnswer); remapped (a supervisor takes the
+        # forces), for whatever the graph shows on that topic.
+        self.first_answer = None
+        if self.lockstep:
+            to_plant = self.pub_forces.topic_name == self.resolve_topic_name(
+                topics.LEG_FORCES, only_expand=True)
+            self.first_answer = FirstAnswer(self, self.pub_forces, topics.LEG_LENGTHS,
+                                            to_source=to_plant)
         wire.warm_up(('position', 'velocity'))
         self.sub_samples = None         # made once its forces are matched
         self.commands = [
@@ -255,6 +265,8 @@ class ControllerNode(RigNode):
         except LawError as exc:
             self.on_law_error(exc)
             return
+        if self.first_answer is not None:
+            self.first_answer.wait(source)
         self.send_forces(self.forces_out.get(frame_id).fill(sec, nanosec, effort=force))
         estimate = self.control.estimate
         if estimate is None:

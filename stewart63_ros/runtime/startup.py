@@ -184,3 +184,73 @@ class PlantStartup:
         if plant.peers is not None:
             out += plant.peers.missing_publishers()
         return out
+
+
+class FirstAnswer:
+    """Before a node answers the first sample of a source (a plant, or a
+    plant started again): ``wait(source)`` until its answer's writer
+    ``pub`` has matched the subscription that answer is for.
+
+    The race it ends: the plant counts the controller's writer as matched
+    (its side) and sends sample 0, which the controller answers at once; if
+    the controller's writer has not discovered the plant's subscription yet,
+    the answer is sent to nobody and never repaired (a volatile writer owes
+    nothing to a reader it matches later), and a lockstep plant then waits
+    its whole ``discovery_timeout`` for it (20 s, a plant started under a
+    running controller at ``-n 2``). The sample itself proves the source's
+    participant is discovered; its subscription shows in the graph, and is
+    matched by the writer, within a discovery exchange.
+
+    ``to_source``: the answer goes to the sample's own node (the controller's
+    ``leg_forces`` to the plant, the supervisor's); else (a controller whose
+    forces a supervisor takes) to whatever the graph shows on the topic, at
+    least one. Bounded by ``discovery_timeout``; a wait is logged."""
+
+    def __init__(self, node, pub, input_topic: str, to_source: bool = True):
+        self.node, self.pub, self.to_source = node, pub, to_source
+        self.input_topic = node.resolve_topic_name(input_topic)
+        self.answered = None        # the source whose first sample was answered
+
+    def source_node(self, source: bytes) -> str | None:
+        """The full name of the node whose publisher has GID ``source``."""
+        for info in self.node.get_publishers_info_by_topic(self.input_topic):
+            gid = bytes(info.endpoint_gid)
+            n = min(len(gid), len(source), 16)
+            if n and gid[:n] == source[:n]:
+                return topics.endpoint_node_name(info)
+        return None
+
+    def missing(self, source: bytes) -> str:
+        """What the first answer to ``source`` still waits for ('' : nothing)."""
+        shown = self.node.startup.graph_subscriptions(self.pub)
+        have = self.pub.get_subscription_count()
+        if have < len(shown):
+            return '%s: %d of %d subscriptions matched' % (self.pub.topic_name, have, len(shown))
+        if not self.to_source:
+            return '' if shown else 'a %s subscription' % self.pub.topic_name
+        name = self.source_node(source)
+        if name is None:
+            return 'the sender of %s in the ROS graph' % self.input_topic
+        if name not in {topics.endpoint_node_name(info) for info in shown}:
+            return '%s: the subscription of %s' % (self.pub.topic_name, name)
+        return ''
+
+    def wait(self, source) -> None:
+        """Called before each answer: returns at once but for a new source."""
+        if source is None or source == self.answered:
+            return
+        self.answered = source
+        node = self.node
+        start = time.monotonic()
+        deadline = start + node.discovery_timeout
+        waiting = first = self.missing(source)
+        while waiting and time.monotonic() < deadline:
+            time.sleep(0.001)       # the graph is the middleware's: no executor turn needed
+            waiting = self.missing(source)
+        waited = time.monotonic() - start
+        if waiting:
+            node.get_logger().warning('first answer to a new source sent after %.1f s '
+                                      '(discovery_timeout) without %s' % (waited, waiting))
+        elif first:
+            node.get_logger().info('first answer to a new source: waited %.3f s for %s'
+                                   % (waited, first))
