@@ -50,6 +50,7 @@ from stewart63_ros.runtime.checks import (
 )
 from stewart63_ros.runtime.launcher import STOP, run
 from stewart63_ros.runtime.rclpy_internals import WaitAny, take_with_info
+from stewart63_ros.runtime.startup import FirstAnswer
 
 #: The controller's forces, remapped here when the supervisor is in the rig.
 REQUEST_TOPIC = 'leg_forces_request'
@@ -91,6 +92,9 @@ class SupervisorNode(SupervisorHoming, RigNode):
         self.timeouts = 0
         self.pub_forces = self.publisher(JointState, topics.LEG_FORCES, topics.STREAM_PUB)
         self.send_forces = self.health.sender(topics.LEG_FORCES, self.pub_forces)
+        # lockstep: its first answer to a plant waits for its writer's side of the match
+        self.first_answer = FirstAnswer(self, self.pub_forces, topics.LEG_LENGTHS) \
+            if self.lockstep else None
         self.forces_out = wire.JointStateTemplates(('effort',))
         self.forces_out.get('base')
         wire.warm_up(('position', 'velocity'))
@@ -164,6 +168,8 @@ class SupervisorNode(SupervisorHoming, RigNode):
         if self.sample_gate.new_run:        # a plant's ~/reset: its stamps start again
             self.core.new_run()
         self.sample_gate.accept(ns, source_of(info))
+        if self.first_answer is not None:
+            self.first_answer.wait(source_of(info))
         wrong_rate = self.spacing.add(ns)
         if wrong_rate:
             # a setting to fix, not a fault of the machine: WARN, no trip
