@@ -45,7 +45,12 @@ nothing anybody publishes is lost:
    order: controller, then fk, then the plant (``Composed.run``).
 
 Every wait is bounded by ``discovery_timeout``: a node still missing a peer
-then starts anyway, with a warning in its log and on /diagnostics.
+then starts anyway, with a warning in its log and on /diagnostics. In
+lockstep, the first answer of the controller (or a supervisor) to a new
+source waits besides for its writer's side of that match
+(``startup.FirstAnswer``), and the plant ends its run only once each
+lockstep peer has handled the last sample (``lockstep.PeerWindow.drain``):
+its exit is what makes ``rig`` stop the others.
 
 **The words on /diagnostics.**
 
