@@ -95,14 +95,18 @@ def test_no_fault_holds_or_drops_a_lockstep_peer(ros, monkeypatch, tmp_path):
 
 def test_a_plant_does_not_drop_an_fk_that_starts_its_loop_late(ros, monkeypatch, tmp_path):
     """fk's start-up wait outlasting the plant's (a loaded machine starts its
-    processes seconds apart; here fk's discovery_settle is longer): its
-    executor turns there serve the samples the plant sends meanwhile, a
-    window's worth, and fk must report them; the plant then held its next
-    sample until lockstep_peer_timeout and dropped fk."""
+    processes seconds apart; here fk's discovery_settle is longer than the
+    plant's lockstep_peer_timeout): fk subscribes to leg_lengths only as its
+    wait ends, and the plant waits for that subscription, so no sample is
+    sent before fk can pose it. Before, fk's executor turns served the
+    samples meanwhile and had to report them (or the plant held its next
+    sample until lockstep_peer_timeout and dropped fk); and the plant ended
+    with fk still a window behind, whose last samples rig's stop then lost
+    (670 of 801 poses)."""
     rig_env(ros, monkeypatch)
     rig = Rig(PARAMS, mode='lockstep', duration=LATE_FK_DURATION, log_dir=tmp_path / 'rig',
               extra_params={'plant': {'lockstep_peer_timeout': PEER_TIMEOUT},
-                            'fk': {'discovery_settle': 8.0}})
+                            'fk': {'discovery_settle': PEER_TIMEOUT + 1.0}})
     ok, codes, logs = run_to_end(rig, RUN_TIMEOUT)
     assert ok and codes == {'controller': 0, 'fk': 0, 'plant': 0}, logs
     peers = rig.summary()['lockstep_peers']

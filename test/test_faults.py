@@ -60,8 +60,10 @@ def test_hang_kill_and_restart_of_nodes_in_a_realtime_rig(ros, tmp_path):
     def ready(name):
         proc = procs[name]
         said = 'realtime at' if name == 'plant' else 'matched after'
-        assert wait_until(lambda: said in _text(proc) or proc.returncode is not None, 120), \
-            proc.describe()
+        # or its start-up wait ran out (discovery_timeout): the bag then
+        # shows what that cost, with the logs (below), not a 120 s wait here
+        assert wait_until(lambda: said in _text(proc) or 'starting anyway' in _text(proc)
+                          or proc.returncode is not None, 120), proc.describe()
         assert proc.returncode is None, proc.describe()
 
     def start(name, *extra):
@@ -137,11 +139,19 @@ def test_hang_kill_and_restart_of_nodes_in_a_realtime_rig(ros, tmp_path):
                 msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
     found = {topic: gaps(stamps.get(topic, []), 300_000_000)
              for topic in ('leg_lengths', 'leg_forces', 'platform_pose')}
+    # What the bag holds of each topic (count, first and last stamp from the
+    # first sample), what the recorder said, and what fk said: a topic the
+    # recorder lost, or a restarted node that published nothing, shows here.
+    first = min((min(v) for v in stamps.values() if v), default=0)
+    held = {t: (len(v), '%.2f-%.2f s' % ((min(v) - first) * 1e-9, (max(v) - first) * 1e-9))
+            for t, v in stamps.items() if v}
+    why = (found, held, 'record: ' + _text(record)[-1500:],
+           'fk: ' + _text(procs['fk'])[-1500:], events)
     # the hang and the kill of the controller: two gaps in the forces; fk's
     # restart: one in the poses; the plant's restart: one in everything
-    assert len(found['leg_forces']) >= 2, found
-    assert len(found['platform_pose']) >= 2, found
-    assert len(found['leg_lengths']) == 1, found
+    assert len(found['leg_forces']) >= 2, why
+    assert len(found['platform_pose']) >= 2, why
+    assert len(found['leg_lengths']) == 1, why
     print('\nfaults in a realtime rig: %s; gaps > 0.3 s in the bag: %s' % (
         ', '.join('%s: %d missed cycles' % e for e in events),
         {t: ['%.2f s' % (g[1] * 1e-9) for g in v] for t, v in found.items()}))

@@ -121,7 +121,13 @@ def test_a_recorder_started_first_records_every_message(ros, tmp_path, mode, dur
     print('plant: %s' % waits)
     if mode == 'realtime':
         assert_no_error_but_starvation(logs)
-        assert 'the plant ended its run' in logs['controller.log'], logs['controller.log']
+        # The controller tells the end of the run from a lost sensor, or was
+        # stopped by rig (within ms of the plant's exit) before its watchdog
+        # could take the end for a fault: no watchdog line after the last
+        # resumption either way.
+        ctl = logs['controller.log']
+        assert ('the plant ended its run' in ctl
+                or 'watchdog' not in ctl.split('samples are back')[-1]), ctl
 
 
 def test_a_publisher_waits_for_a_subscription_the_graph_shows(ros, tmp_path):
@@ -182,9 +188,10 @@ def test_a_node_starts_only_when_a_recorder_says_it_has_matched_it(ros):
             status_pub.publish(DiagnosticArray(status=[status]))
             ros.spin_until(until, 0.2)
         return until()
-    # (the default discovery_settle, 4 s: time to hear from the recorder)
+    # a recorder the run does not name: discovery_settle gives the graph
+    # time to show it (4 s: one lost DDS announcement)
     fk = ros.spawn([exe('fk'), '--ros-args', '-r', '__ns:=/rw',
-                    '-p', 'discovery_timeout:=60.0'], name='fk')
+                    '-p', 'discovery_timeout:=60.0', '-p', 'discovery_settle:=4.0'], name='fk')
     waits_for_it = "fake_recorder to match /rw/fk's publishers"
     assert say_matched('/rw/other', 60, lambda: waits_for_it in fk.stderr()
                        or fk.returncode is not None), fk.describe()

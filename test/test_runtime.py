@@ -249,6 +249,21 @@ def fk_progress(clock=time.monotonic):
     return fk, fk.progress.pub.sent
 
 
+def test_peer_window_ends_the_run_only_once_every_peer_handled_the_last_sample():
+    """The plant's exit ends a rig (rig stops the others): a peer still a
+    window behind would be stopped with samples its reader acknowledged and
+    it never handled (a late fk: 670 of 801 poses)."""
+    node, peers = window(size=200)
+    progress(peers, '/a/fk', 900 * MS)
+    progress(peers, '/a/record', 1000 * MS)
+    assert peers.hold(1000 * MS, pytest.fail)       # the last sample goes out at once
+
+    def fk_catches_up(_timeout):
+        progress(peers, '/a/fk', peers.progress['/a/fk'] + 25 * MS)
+    assert peers.drain(1000 * MS, bounded(fk_catches_up))
+    assert peers.progress['/a/fk'] == 1000 * MS and peers.dropped == {}
+
+
 def test_fk_reports_the_samples_its_start_up_wait_served():
     """The stall of a loaded rig (fk dropped after lockstep_peer_timeout, the
     plant holding one sample): fk's executor turns in its start-up wait
@@ -258,7 +273,7 @@ def test_fk_reports_the_samples_its_start_up_wait_served():
     fk.discovery_timeout = 5.0
     fk.data_publishers = [Pub('/a/platform_pose', 0)]
     fk.health.pub = Pub('/diagnostics', 1)
-    gate = startup.StartupBarrier(fk, SimpleNamespace(matched={}))
+    gate = startup.StartupBarrier(fk, SimpleNamespace(matched={}, recorded={}))
     gate.MATCH_SETTLE = 0.0
     size = 3
 
@@ -362,7 +377,7 @@ def barrier(matched=0):
     node.data_publishers = [Pub('/a/platform_pose', matched), Pub('/a/markers', 0)]
     node.optional_publishers = {id(node.data_publishers[1])}
     node.health.pub = Pub('/diagnostics', 5)
-    gate = startup.StartupBarrier(node, SimpleNamespace(matched={}))
+    gate = startup.StartupBarrier(node, SimpleNamespace(matched={}, recorded={}))
     gate.MATCH_SETTLE = 0.0
     return node, gate
 
@@ -378,6 +393,61 @@ def test_startup_barrier_waits_for_the_subscribers_then_starts():
     assert node.started and node.spins == 3     # no first message before the match
     assert node.health.warning == ''
     assert node.log.lines[0][0] == 'info' and '/a/platform_pose: 0 of 1' in node.log.lines[0][1]
+
+
+def test_a_node_takes_its_input_only_once_its_outputs_are_matched():
+    """A node that answers samples subscribes to them as its wait ends
+    (RigNode.subscribe_input), not before: samples served by its wait's
+    executor turns were answered on writers a recorder had not matched. A
+    second wait (run_on after the node's own) neither waits nor subscribes
+    again."""
+    node, gate = barrier()
+    subscribed = []
+    node.subscribe_input = lambda: subscribed.append((node.spins, node.started))
+
+    def recorder_matches():
+        if node.spins == 3:
+            node.data_publishers[0].matched = 1
+    node.on_spin = recorder_matches
+    assert gate.wait() is True
+    assert subscribed == [(3, True)]
+    assert gate.wait() is True and subscribed == [(3, True)] and node.spins == 3
+
+
+def test_a_lockstep_answer_to_a_new_source_waits_for_the_writers_side_of_the_match():
+    """The controller's first answer to a plant went to a writer that had not
+    discovered the plant's subscription yet (the plant's side had matched):
+    sent to nobody, never repaired, the plant waiting 20 s for it. Now the
+    first answer to each source waits until the graph shows the source's
+    subscription and the writer has matched it; later answers do not wait."""
+    node = Node()
+    node.discovery_timeout = 5.0
+    plant_gid = bytes(range(16))
+    graph = {'subs': [], 'matched': 0, 'polls': 0}
+
+    class Answers:
+        topic_name = '/leg_forces'
+
+        def get_subscription_count(self):
+            graph['polls'] += 1
+            if graph['polls'] == 5:     # discovery brings the plant's subscription
+                graph['subs'] = [SimpleNamespace(node_namespace='/', node_name=n)
+                                 for n in ('plant', 'record')]
+            if graph['polls'] == 8:     # and the writer matches it
+                graph['matched'] = 2
+            return graph['matched']
+    node.resolve_topic_name = lambda topic: '/' + topic.lstrip('/')
+    node.get_publishers_info_by_topic = lambda topic: [
+        SimpleNamespace(node_namespace='/', node_name='plant', endpoint_gid=list(plant_gid))]
+    node.startup = SimpleNamespace(graph_subscriptions=lambda pub: graph['subs'])
+    first = startup.FirstAnswer(node, Answers(), 'leg_lengths')
+    assert first.missing(plant_gid) == '/leg_forces: the subscription of /plant'
+    first.wait(plant_gid)
+    assert graph['polls'] >= 8 and first.missing(plant_gid) == ''
+    polls = graph['polls']
+    first.wait(plant_gid)                       # the same source: no wait, no look
+    assert graph['polls'] == polls
+    assert node.log.lines[-1][0] == 'info' and 'waited' in node.log.lines[-1][1]
 
 
 def test_startup_barrier_waits_for_what_else_is_missing():
@@ -515,7 +585,7 @@ def test_hot_loop_serves_side_subscriptions_timers_and_the_executor_between_mess
     status = timer(0.05)
     node.timers = [status]
     assert node.start_hot_loop(hot) == ('direct', hot)
-    assert node.gc == ['collect', 'freeze']      # no 20-40 ms collection in the loop
+    assert node.gc == ['freeze']      # no 20-40 ms collection in the loop, none at start
     assert STOP.interruptible is False          # from here a stop is a flag the loop reads
     side.queue.append('setpoint')
     now = time.monotonic()

@@ -286,7 +286,17 @@ def test_play_of_one_bag_twice_into_a_running_fk_is_answered_in_full(ros, tmp_pa
 
 
 def test_two_rigs_in_one_namespace_report_the_collision_and_withhold_forces(ros, tmp_path):
+    from sensor_msgs.msg import JointState
+
+    from stewart63_ros import topics as T
     diags = Diagnostics(ros)
+    # A witness of the two sources: a reader of /leg_lengths, matched to both
+    # plants once this domain's discovery has joined the two rigs. Each rig
+    # waits only for its own nodes (it cannot name the other), so that join
+    # comes when discovery brings it, seconds later on a loaded machine; the
+    # report's delay is counted from it, not from the plants' start.
+    witness = diags.node.create_subscription(JointState, '/leg_lengths', lambda _m: None,
+                                             T.LATEST_SUB, raw=True)
     rigs = [ros.spawn(exe('rig') + ['--mode', 'realtime', '--log-dir', str(tmp_path / str(i))],
                       name='rig%d' % i) for i in (1, 2)]
     plant_logs = [tmp_path / str(i) / 'plant.log' for i in (1, 2)]
@@ -295,7 +305,10 @@ def test_two_rigs_in_one_namespace_report_the_collision_and_withhold_forces(ros,
         return plant_logs[i].exists() and 'realtime at' in plant_logs[i].read_text()
     assert ros.spin_until(lambda: running(0) and running(1) or any(
         r.returncode is not None for r in rigs), 240), [r.describe() for r in rigs]
+    assert ros.spin_until(lambda: witness.get_publisher_count() >= 2, 30), (
+        witness.get_publisher_count(), [r.describe() for r in rigs])
     both_running = time.monotonic()
+    diags.node.destroy_subscription(witness)        # (2 kHz this test need not take)
     name = 'stewart63/controller'      # both rigs' controllers: one status name
 
     def collisions():
@@ -326,7 +339,8 @@ def test_two_rigs_in_one_namespace_report_the_collision_and_withhold_forces(ros,
     for r in rigs:
         ros.stop(r)
     print('\ntwo rigs, one namespace: first collision report %.2f s after both plants ran '
-          '(negative: found from the graph before); %s; forces withheld %d, leg_forces '
+          'and a reader had matched both (negative: found before); %s; forces withheld %d, '
+          'leg_forces '
           'published counts while colliding %s' % (delay, first[3][:160], withheld,
                                                     sorted(published)))
     assert delay <= 1.0, delay

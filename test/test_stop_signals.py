@@ -69,11 +69,21 @@ def test_rig_is_interrupted_once_after_its_options_are_read(deadlines):
     assert signals.received[0] == 'SIGINT' and deadlines == []
 
 
+@pytest.fixture(autouse=True)
+def private_recorder_notes(monkeypatch, tmp_path):
+    """A fake recorder's note for starting nodes goes to this test's folder,
+    not to the machine's, where another test's nodes would wait for it."""
+    from stewart63_ros.runtime import recorders
+    monkeypatch.setattr(recorders, 'notes_dir', lambda: tmp_path / 'recorder_notes')
+
+
 class FakeRecorder:
     """``record``'s Recorder without DDS: a signal while recording and
     another while the bag is closed."""
 
     topics = ['/leg_lengths']
+    full_name = '/record'     # what record notes for starting nodes (runtime/recorders)
+    domain_id = 0
 
     def __init__(self, *args, **kwargs):
         self.stop_requests = 0

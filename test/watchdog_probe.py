@@ -33,8 +33,12 @@ def main(argv) -> int:
                    '-p', 'clock_mode:=%s' % mode])
     rclpy.init()
     controller = ControllerNode(None)
+    controller.subscribe_input()        # (its start-up wait, which makes it, is not run here)
     sensor = Node('probe_sensor')
     pub = sensor.create_publisher(JointState, topics.LEG_LENGTHS, topics.STREAM_PUB)
+    # as a plant's: the reader of the answers (a lockstep controller's first one waits for it)
+    sensor.create_subscription(JointState, topics.LEG_FORCES, lambda _msg: None,
+                               topics.LATEST_SUB)
     deadline = time.monotonic() + 20
     while pub.get_subscription_count() < 1 and time.monotonic() < deadline:
         time.sleep(0.01)

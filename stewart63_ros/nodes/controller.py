@@ -64,6 +64,7 @@ from stewart63_ros.runtime.commands import CommandInput
 from stewart63_ros.runtime.handshake import plant_run
 from stewart63_ros.runtime.launcher import run
 from stewart63_ros.runtime.rclpy_internals import take, take_with_info
+from stewart63_ros.runtime.startup import FirstAnswer
 
 _NO_ROTATION = np.eye(3)
 
@@ -137,10 +138,17 @@ class ControllerNode(RigNode):
         self.forces_out = wire.JointStateTemplates(('effort',))
         self.forces_out.get('base')             # made now, not on the first sample
         self.send_forces = self.health.sender(topics.LEG_FORCES, self.pub_forces)
+        # Lockstep: the first answer to a plant waits for the writer's side of
+        # its match (startup.FirstAnswer); remapped (a supervisor takes the
+        # forces), for whatever the graph shows on that topic.
+        self.first_answer = None
+        if self.lockstep:
+            to_plant = self.pub_forces.topic_name == self.resolve_topic_name(
+                topics.LEG_FORCES, only_expand=True)
+            self.first_answer = FirstAnswer(self, self.pub_forces, topics.LEG_LENGTHS,
+                                            to_source=to_plant)
         wire.warm_up(('position', 'velocity'))
-        # Serialized samples in, serialized forces out: see runtime/wire.py.
-        self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
-                                                    self.on_sample, topics.LATEST_SUB, raw=True)
+        self.sub_samples = None         # made once its forces are matched
         self.commands = [
             CommandInput(self, JointState, topics.LEG_SETPOINT, self.on_leg_setpoint),
             CommandInput(self, PoseStamped, topics.POSE_SETPOINT, self.on_pose_setpoint),
@@ -169,6 +177,15 @@ class ControllerNode(RigNode):
         self.health.values['control_law'] = self.control.law_name
         self.health.values['reference'] = self.reference_name
         self.withheld = 0
+
+    def subscribe_input(self):
+        """``leg_lengths``, once the controller's outputs are matched
+        (RigNode.subscribe_input)."""
+        if self.sub_samples is not None:
+            return
+        # Serialized samples in, serialized forces out: see runtime/wire.py.
+        self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
+                                                    self.on_sample, topics.LATEST_SUB, raw=True)
         self.watch_source(self.sub_samples, topics.LEG_LENGTHS, self.sample_gate)
 
     def _warm_up(self, name=None):
@@ -248,6 +265,8 @@ class ControllerNode(RigNode):
         except LawError as exc:
             self.on_law_error(exc)
             return
+        if self.first_answer is not None:
+            self.first_answer.wait(source)
         self.send_forces(self.forces_out.get(frame_id).fill(sec, nanosec, effort=force))
         estimate = self.control.estimate
         if estimate is None:
@@ -368,6 +387,7 @@ class ControllerNode(RigNode):
             self.plant_run = number
 
     def run(self):
+        self.wait_for_matches()         # (its input: made as the wait ends)
         self.run_on(self.sub_samples)
 
     def read_queued(self) -> None:
@@ -375,7 +395,7 @@ class ControllerNode(RigNode):
         /diagnostics message, then the newest sample, as the loop would."""
         for msg in iter(lambda: take(self.sub_diagnostics), None):
             self.on_diagnostics(msg)
-        taken = take_with_info(self.sub_samples)
+        taken = take_with_info(self.sub_samples) if self.sub_samples is not None else None
         if taken is not None:
             self.sub_samples.callback(*taken)
 

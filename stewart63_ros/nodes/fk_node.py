@@ -58,12 +58,7 @@ class FKNode(RigNode):
         rate = self.param('marker_rate')
         if rate:
             self.markers = MarkerPublisher(self, self.setup, float(rate), self.tracker.fk)
-        # Every sample gets a pose: a short queue rather than newest-only.
-        # Serialized samples in, serialized poses out: see runtime/wire.py.
-        self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
-                                                    self.on_sample, topics.EVERY_SUB,
-                                                    raw=True)
-        self.watch_source(self.sub_samples, topics.LEG_LENGTHS, self.gate)
+        self.sub_samples = None         # made once its outputs are matched
         # Every sample must reach fk; in lockstep it tells the plant how far it
         # has got (runtime/lockstep.py), so the plant never outruns it.
         self.health.every_message.add(topics.LEG_LENGTHS)
@@ -72,6 +67,17 @@ class FKNode(RigNode):
         if self.lockstep:
             self.progress = ProgressPublisher(self)
             self.after_batch = self.progress.publish
+
+    def subscribe_input(self):
+        """``leg_lengths``, once fk's outputs are matched (RigNode.subscribe_input)."""
+        if self.sub_samples is not None:
+            return
+        # Every sample gets a pose: a short queue rather than newest-only.
+        # Serialized samples in, serialized poses out: see runtime/wire.py.
+        self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
+                                                    self.on_sample, topics.EVERY_SUB,
+                                                    raw=True)
+        self.watch_source(self.sub_samples, topics.LEG_LENGTHS, self.gate)
 
     def warm_up(self):
         """Compile / load the solver kernels now, not on the first sample."""
@@ -132,6 +138,7 @@ class FKNode(RigNode):
     LOCKSTEP_BATCH_PERIOD = 0.005
 
     def run(self):
+        self.wait_for_matches()         # (its input: made as the wait ends)
         self.run_on(self.sub_samples, self.LOCKSTEP_BATCH_PERIOD if self.lockstep else 0.0)
 
     def report(self):

@@ -319,6 +319,8 @@ class PlantNode(PlantBus, PlantControl, RigNode):
                         self.k, timeout)
                     self.answers.missed(timeout)
             if n_samples is not None and self.k >= n_samples:
+                if self.peers is not None:     # the end: every peer has the last one
+                    self.peers.drain(ns, self.serve)
                 return
             self.step()
 

@@ -50,6 +50,7 @@ from stewart63_ros.runtime.checks import (
 )
 from stewart63_ros.runtime.launcher import STOP, run
 from stewart63_ros.runtime.rclpy_internals import WaitAny, take_with_info
+from stewart63_ros.runtime.startup import FirstAnswer
 
 #: The controller's forces, remapped here when the supervisor is in the rig.
 REQUEST_TOPIC = 'leg_forces_request'
@@ -91,11 +92,13 @@ class SupervisorNode(SupervisorHoming, RigNode):
         self.timeouts = 0
         self.pub_forces = self.publisher(JointState, topics.LEG_FORCES, topics.STREAM_PUB)
         self.send_forces = self.health.sender(topics.LEG_FORCES, self.pub_forces)
+        # lockstep: its first answer to a plant waits for its writer's side of the match
+        self.first_answer = FirstAnswer(self, self.pub_forces, topics.LEG_LENGTHS) \
+            if self.lockstep else None
         self.forces_out = wire.JointStateTemplates(('effort',))
         self.forces_out.get('base')
         wire.warm_up(('position', 'velocity'))
-        self.sub_samples = self.create_subscription(JointState, topics.LEG_LENGTHS,
-                                                    self.on_sample, topics.LATEST_SUB, raw=True)
+        self.sub_samples = None         # made once its forces are matched
         self.sub_requests = self.create_subscription(JointState, REQUEST_TOPIC,
                                                      self.on_request, topics.EVERY_SUB, raw=True)
         self.sub_diagnostics = self.create_subscription(
@@ -115,6 +118,14 @@ class SupervisorNode(SupervisorHoming, RigNode):
             self.health.values['homed'] = 'false'
         self.health.values.update({'tripped': 'false', 'trips': 0,
                                    'rest_lengths': np.round(self.core.rest, 4).tolist()})
+
+    def subscribe_input(self):
+        """``leg_lengths``, once its forces are matched (RigNode.subscribe_input):
+        the plant, which waits for this subscription, then sends its first
+        sample only once the supervisor can answer it."""
+        if self.sub_samples is None:
+            self.sub_samples = self.create_subscription(
+                JointState, topics.LEG_LENGTHS, self.on_sample, topics.LATEST_SUB, raw=True)
 
     # -- run-time limits -------------------------------------------------------------
     def _limit_setter(self, name):
@@ -157,6 +168,8 @@ class SupervisorNode(SupervisorHoming, RigNode):
         if self.sample_gate.new_run:        # a plant's ~/reset: its stamps start again
             self.core.new_run()
         self.sample_gate.accept(ns, source_of(info))
+        if self.first_answer is not None:
+            self.first_answer.wait(source_of(info))
         wrong_rate = self.spacing.add(ns)
         if wrong_rate:
             # a setting to fix, not a fault of the machine: WARN, no trip

@@ -135,6 +135,16 @@ class Recorder:
         self.ready.set()
         return self
 
+    @property
+    def full_name(self) -> str:
+        """The recorder node's full name (after ``open``)."""
+        return self._node.get_fully_qualified_name()
+
+    @property
+    def domain_id(self) -> int:
+        """The ROS domain it records (after ``open``)."""
+        return self._context.get_domain_id()
+
     def _subscribe(self, full, type_name, qos=None):
         """Subscribe ``full`` now (RecordedTopics.subscribe)."""
         self.subs.subscribe(full, type_name, qos)
@@ -193,7 +203,7 @@ class Recorder:
         for topic in published:
             if topic not in self.bag.conns:
                 self.intake.add_connection(topic)
-        self.status.matched(matched)
+        self.status.matched(matched, self.subs.matched_on)
 
     # ------------------------------------------------------------ public state
     @property

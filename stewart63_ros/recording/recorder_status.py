@@ -85,6 +85,7 @@ class RecorderStatus:
         #: (status name, participant) -> (counts wanted per topic, since when)
         self.finals: dict[tuple, tuple] = {}
         self._matched_nodes: list[str] = []
+        self._matched_on: dict[str, list[str]] = {}
         self._next_report = 0.0
         self._own_gid = None        # its status publisher's, from the graph
         losses.on_loss = self.report_soon
@@ -93,10 +94,14 @@ class RecorderStatus:
         """Publish the status at the next ``report``, not a period later."""
         self._next_report = 0.0
 
-    def matched(self, nodes: list[str]) -> None:
-        """The nodes the recorder has matched every publisher of, now (sorted)."""
-        if nodes != self._matched_nodes:
+    def matched(self, nodes: list[str], on_topics=None) -> None:
+        """The nodes the recorder has matched every publisher of, now
+        (sorted), and per topic the nodes whose publishers on it it has
+        matched (``matched_publishers/<topic>``)."""
+        on_topics = dict(on_topics or {})
+        if nodes != self._matched_nodes or on_topics != self._matched_on:
             self._matched_nodes = nodes
+            self._matched_on = on_topics
             self.report_soon()
 
     def report(self, now: float) -> None:
@@ -104,8 +109,10 @@ class RecorderStatus:
         if now < self._next_report:
             return
         self._next_report = now + self.REPORT_PERIOD
+        per_topic = {handshake.MATCHED_ON_PREFIX + topic: ','.join(nodes)
+                     for topic, nodes in sorted(self._matched_on.items())}
         self.publish('recording %d topics to %s' % (len(self.subscribed), self.path),
-                     **{handshake.MATCHED: ','.join(self._matched_nodes)})
+                     **{handshake.MATCHED: ','.join(self._matched_nodes)}, **per_topic)
 
     def note_final(self, data, source) -> None:
         """A /diagnostics message (``data``, serialized) from the participant
@@ -145,7 +152,7 @@ class RecorderStatus:
         per topic; WARN once messages were lost."""
         lost = self.losses.lost
         values = [KeyValue(key=k, value=v) for k, v in keys.items()]
-        values += [KeyValue(key='recorded/' + topic, value=str(n))
+        values += [KeyValue(key=handshake.RECORDED_PREFIX + topic, value=str(n))
                    for topic, n in sorted(self.counts.items())]
         values += [KeyValue(key='lost/' + topic, value=str(n))
                    for topic, n in sorted(lost.items())]

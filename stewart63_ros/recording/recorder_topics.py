@@ -53,6 +53,7 @@ class RecordedTopics:
         #: wakes ``wait`` when triggered (Recorder.request_stop)
         self.guard = node.create_guard_condition(lambda: None)
         self._waitset = None
+        self.matched_on: dict[str, list[str]] = {}     # see discover
 
     def request(self, name: str) -> None:
         """Subscribe the topic ``name`` (relative names in the node's
@@ -145,6 +146,10 @@ class RecordedTopics:
                     self.subscribe(name, types[0])
         complete: dict[str, bool] = {}     # node -> every publisher of it matched
         published = []
+        #: topic -> the nodes whose publishers on it are all matched (sorted):
+        #: a starting node checks its own topics by this, as the graph here
+        #: may not show all of its publishers yet
+        self.matched_on = {}
         for topic, sub in list(self.subs.items()):
             try:
                 infos = node.get_publishers_info_by_topic(topic)
@@ -158,6 +163,8 @@ class RecordedTopics:
             for info in infos:
                 name = T.endpoint_node_name(info)
                 complete[name] = complete.get(name, True) and matched
+            if matched and infos:
+                self.matched_on[topic] = sorted({T.endpoint_node_name(i) for i in infos})
             if infos:
                 published.append(topic)
                 self._follow_best_effort(topic, sub, infos)

@@ -68,10 +68,7 @@ class RigNode(HotLoop, Node):
             self.get_logger().info(COMPILE_NOTICE)
         self.wait_for_subscribers = self.param('wait_for_subscribers')
         self.discovery_timeout = self.param('discovery_timeout')
-        # A participant announces itself every 3 s after its first burst (Fast
-        # DDS): one lost exchange and the graph shows a running recorder only
-        # then (measured 0.6-1.4 s here, and more than 2 s in 1 of ~10 loaded
-        # starts). 4 s outlasts one period.
+        # 0 unless set: the start-up waits for events, not a clock (startup.py).
         self.discovery_settle = self.param('discovery_settle')
         if not self.discovery_settle <= self.discovery_timeout:
             raise ParameterError('discovery_settle', 'must be from 0 to discovery_timeout '
@@ -201,6 +198,19 @@ class RigNode(HotLoop, Node):
         if not required:
             self.optional_publishers.add(id(pub))
         return pub
+
+    def subscribe_input(self) -> None:
+        """Subscribe to the node's 1 kHz input (controller, fk: ``leg_lengths``).
+
+        Called once, as the start-up wait ends (``startup.StartupBarrier``),
+        not in the constructor: a node that answers samples must not take
+        one before its own outputs are matched, or its answers would go to
+        writers not yet matched by their readers (a recorder started first
+        lost fk's first marker arrays that way, served by the executor
+        turns of fk's wait). And the plant waits for this subscription
+        (``lengths_peers``, ``lengths_subscribers``): so it sends its first
+        sample only once each of these nodes has ended its wait, the
+        start-up order of runtime/handshake.py."""
 
     def wait_for_matches(self, extra=None) -> bool:
         """Bounded wait before the first message until the node's subscribers

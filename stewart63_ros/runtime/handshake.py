@@ -15,11 +15,18 @@ nothing anybody publishes is lost:
    (``RigNode.wait_for_matches``: ``startup.StartupBarrier``) until every data
    publisher has ``wait_for_subscribers`` matched subscriptions (``rig``
    sets 1 when it records) and every subscription the ROS graph shows on its
-   topic, after ``discovery_settle`` s for the graph to show what already
-   runs; then a new match settles for ``MATCH_SETTLE`` s, and a recorder
-   that the graph shows on its topics must name the node under
-   ``matched_publishers`` on /diagnostics (below: the recorder's side of
-   the match, which only the recorder sees).
+   topic, and a recorder that the graph shows on its topics must name the
+   node under ``matched_publishers`` on /diagnostics (below: the recorder's
+   side of the match, which only the recorder sees). A ``record`` running
+   on this machine is waited for so before discovery shows it: it leaves a
+   note (runtime/recorders.py), and on each topic its status says it records
+   (``recorded/<topic>``) the node waits for its subscription, matched. No
+   fixed settle: these events end the wait (``discovery_settle``, 0 by
+   default, adds one for a subscriber on another host the run does not
+   name). Only then does each (and a supervisor) subscribe to
+   ``leg_lengths`` (``RigNode.subscribe_input``): it answers no sample
+   before its outputs are matched, and the plant, which waits for these
+   subscriptions (4.), waits so for the end of their start-up.
 3. ``rig --record``: the recorder prints ``MATCHED`` once it has matched the
    publishers of the controller and fk run here (``recorder_waits_for``,
    below); ``rig`` waits for that line, then starts the plant.
@@ -38,7 +45,12 @@ nothing anybody publishes is lost:
    order: controller, then fk, then the plant (``Composed.run``).
 
 Every wait is bounded by ``discovery_timeout``: a node still missing a peer
-then starts anyway, with a warning in its log and on /diagnostics.
+then starts anyway, with a warning in its log and on /diagnostics. In
+lockstep, the first answer of the controller (or a supervisor) to a new
+source waits besides for its writer's side of that match
+(``startup.FirstAnswer``), and the plant ends its run only once each
+lockstep peer has handled the last sample (``lockstep.PeerWindow.drain``):
+its exit is what makes ``rig`` stop the others.
 
 **The words on /diagnostics.**
 
@@ -67,6 +79,11 @@ MATCHED = 'matched_publishers'
 CONFIRMS = 'confirms'
 FINAL = 'final'
 FINAL_PREFIX = 'final/'
+#: a recorder's status: ``recorded/<full topic name>`` per topic it records
+RECORDED_PREFIX = 'recorded/'
+#: a recorder's status: ``matched_publishers/<full topic name>``, the nodes
+#: whose publishers on that topic its subscription has matched
+MATCHED_ON_PREFIX = MATCHED + '/'
 RUN = 'run'
 RUN_ENDED = 'ended'
 #: What ``record`` prints on its standard output, one line each, for ``rig``
@@ -147,6 +164,11 @@ class RecorderWord:
     def __init__(self, node):
         self.node = node
         self.matched: dict[str, set] = {}
+        #: recorder's full name -> the full names of the topics it records
+        #: (its status's ``recorded/<topic>`` keys)
+        self.recorded: dict[str, set] = {}
+        #: recorder's full name -> {topic: the nodes it has matched there}
+        self.matched_on: dict[str, dict] = {}
         self.confirmed = False
         self.sub = node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS,
                                             self.on_status, topics.DIAGNOSTICS_QOS, raw=True)
@@ -166,6 +188,12 @@ class RecorderWord:
                 if kv.key == MATCHED and not node.started:
                     recorder = status.name[len(topics.STATUS_PREFIX):]
                     self.matched[recorder] = set(kv.value.split(','))
+                    self.recorded[recorder] = {
+                        v.key[len(RECORDED_PREFIX):] for v in status.values
+                        if v.key.startswith(RECORDED_PREFIX)}
+                    self.matched_on[recorder] = {
+                        v.key[len(MATCHED_ON_PREFIX):]: set(v.value.split(','))
+                        for v in status.values if v.key.startswith(MATCHED_ON_PREFIX)}
                 elif kv.key == CONFIRMS and node.closing and me in kv.value.split(','):
                     self.confirmed = True
 

@@ -68,9 +68,10 @@ class HotLoop:
         objects: hundreds of thousands) out of Python's cyclic garbage
         collector: a full collection over them stops the process for 20-40 ms
         at some point of every run, 20-40 missed 1 kHz cycles; what the loop
-        makes is still collected.
+        makes is still collected. No collection first: it found nothing to
+        free at this point (0 of 140 000 objects) and cost 80 ms of CPU per
+        process in every rig's start-up.
         """
-        gc.collect()
         gc.freeze()
         # From here a stop signal is a flag the loop checks (see StopSignals).
         STOP.interruptible = False

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ctypes
 import faulthandler
+import os
 import signal
 import sys
 import time
@@ -163,7 +165,6 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
                 node.close()
             except Exception as exc:  # noqa: BLE001 - shutting down anyway: say why, go on
                 print('%s: while closing: %s' % (prog, exc), file=sys.stderr)
-            node.destroy_node()
             # In the node's log, so that a slow stop shows where it went.
             flushed = getattr(node, 'flushed', '')
             print('%s: stopped (exit %d, close took %.2f s%s%s)'
@@ -171,10 +172,91 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
                      ', flush: %s' % flushed if flushed else '',
                      ', signals: %s' % ' '.join(signals.received) if signals.received else ''),
                   flush=True)
+            # Its run and its flush have decided its exit code: a teardown
+            # stuck in the middleware (eProsima/Fast-DDS#6502) must not turn
+            # that into a failed run. (A flush that timed out exits 0 with a
+            # working teardown too: its log says so.)
+            exit_natively_after(TEARDOWN_BOUND, code)
+            node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()
         ignore_stop_signals()
+    if node is not None:
+        end_process(code)
     return code
+
+
+def end_process(code: int) -> None:
+    """Exit now with ``code``, past the interpreter's finalization: a node
+    that has closed (its summary written, its messages flushed, the
+    middleware shut down) has nothing left to do, and unloading numba's
+    LLVM and the middleware's libraries took a fifth of a second per
+    process, the larger part of a rig's stop. An exception on its way out
+    never gets here: it ends the process with its traceback."""
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(code)
+
+
+#: s from the end of a node's flush (its messages delivered) to its exit with
+#: its own code, whatever the teardown does (``exit_natively_after``). The
+#: teardown took 8.9 ms median, 219 ms at most over 459 processes here.
+TEARDOWN_BOUND = 1.0
+
+
+class _Sigval(ctypes.Union):
+    _fields_ = [('sival_int', ctypes.c_int), ('sival_ptr', ctypes.c_void_p)]
+
+
+class _Sigevent(ctypes.Structure):
+    """glibc's ``struct sigevent`` (64 bytes), as SIGEV_THREAD uses it."""
+    _fields_ = [('sigev_value', _Sigval), ('sigev_signo', ctypes.c_int),
+                ('sigev_notify', ctypes.c_int), ('sigev_notify_function', ctypes.c_void_p),
+                ('sigev_notify_attributes', ctypes.c_void_p), ('_pad', ctypes.c_char * 32)]
+
+
+class _Itimerspec(ctypes.Structure):
+    _fields_ = [('interval_s', ctypes.c_long), ('interval_ns', ctypes.c_long),
+                ('value_s', ctypes.c_long), ('value_ns', ctypes.c_long)]
+
+
+_SIGEV_THREAD, _CLOCK_MONOTONIC = 2, 1
+_exit_timers = []       # kept alive with the process
+
+
+def exit_natively_after(seconds: float, code: int) -> bool:
+    """In ``seconds``, end this process with exit status ``code`` (``_exit``:
+    no clean-up), unless it has ended by then.
+
+    A POSIX timer whose expiry calls libc's ``_exit(code)`` in a thread of
+    its own: it needs neither the GIL nor the interpreter, so it fires while
+    the main thread is stuck in the middleware holding the GIL (the Fast DDS
+    teardown deadlock, eProsima/Fast-DDS#6502, where no Python watchdog
+    runs; faulthandler's deadline fires too but can only exit 1). Returns
+    False where the platform has no such timer (the stop deadline then
+    remains the bound)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        create, settime = libc.timer_create, libc.timer_settime
+        exit_address = ctypes.cast(libc._exit, ctypes.c_void_p).value
+    except (OSError, AttributeError):
+        return False
+    event = _Sigevent()
+    event.sigev_notify = _SIGEV_THREAD
+    event.sigev_value.sival_int = int(code)
+    # The thread calls _exit(sigev_value): a union passed by value in the
+    # first integer register, whose low 32 bits are the int code.
+    event.sigev_notify_function = exit_address
+    timer = ctypes.c_void_p()
+    if create(_CLOCK_MONOTONIC, ctypes.byref(event), ctypes.byref(timer)) != 0:
+        return False
+    whole, part = divmod(max(float(seconds), 1e-3), 1.0)
+    spec = _Itimerspec(0, 0, int(whole), int(part * 1e9))
+    if settime(timer, 0, ctypes.byref(spec), None) != 0:
+        return False
+    _exit_timers.append((event, timer))
+    return True
 
 
 #: s from the first stop signal to a forced exit: a node flushes to its

@@ -17,12 +17,15 @@ import threading
 import time
 from pathlib import Path
 
+from stewart63_ros.runtime import recorders
+
 # Light imports only up to main's first line, which installs the stop
 # handlers (the recorder's modules, rclpy and rosbags, load after them): a
 # Ctrl-C while they load could otherwise be swallowed by a library's catch-all.
 from stewart63_ros.runtime.launcher import (
     StopSignals,
     dump_stacks_on_sigusr1,
+    end_process,
     ignore_stop_signals,
 )
 from stewart63_ros.runtime.ros_args import rclpy_args, split_ros_args
@@ -82,11 +85,24 @@ def _write_ready_file(path, text):
 
 @quiet_on_closed_pipe
 def main(argv=None) -> int:
+    code = _record(argv)
+    if argv is None:
+        # Its own process (the command line): the bag is closed and the
+        # summary printed; end past the interpreter's finalization, a fifth
+        # of a second of a rig's stop (launcher.end_process).
+        end_process(code)
+    return code
+
+
+def _record(argv=None) -> int:
     made = []                   # the Recorder, once made
     stop = threading.Event()
+    notes = []                  # this recorder's note for starting nodes (runtime/recorders.py)
 
     def stop_recording():
         stop.set()
+        for note in notes:      # a stopping recorder: nobody is to wait for it
+            recorders.withdraw(note)
         for rec in made:
             try:
                 rec.request_stop()
@@ -133,6 +149,9 @@ def main(argv=None) -> int:
         except BagError as exc:
             print(f'record: error: {exc}', file=sys.stderr)
             return 2
+        # Nodes started from here on wait for this recorder to match them
+        # before their first message, though discovery has not shown it yet.
+        notes.append(recorders.announce(rec.full_name, rec.domain_id))
         print(READY_LINE, flush=True)
         print(f'record: recording {len(rec.topics)} topics into {bag}', file=sys.stderr,
               flush=True)
@@ -165,6 +184,8 @@ def main(argv=None) -> int:
         print(f'record: error: {exc}', file=sys.stderr)
         return 1
     finally:
+        for note in notes:
+            recorders.withdraw(note)
         try:
             rec.close()
         except Exception as exc:  # noqa: BLE001 - reported, the process ends anyway

@@ -373,11 +373,13 @@ DECLARED: tuple[Declared, ...] = (
     Declared('discovery_timeout', ALL, 20.0, 's', '', 'bound on those waits (and on the '
              'wait for every subscription the graph shows, see [Executables](#executables))',
              positive),
-    Declared('discovery_settle', ALL, 4.0, 's', '0 ≤ value ≤ `discovery_timeout`', 'time '
-             'from the node\'s start given to discovery to show the subscriptions already '
-             'running, before the first message. A DDS participant re-announces itself '
-             'every 3 s: one lost discovery exchange shows a running recorder only then '
-             '(more than 2 s in about 1 of 10 loaded starts here)', nonnegative),
+    Declared('discovery_settle', ALL, 0.0, 's', '0 ≤ value ≤ `discovery_timeout`', 'time '
+             'from the node\'s start given to discovery to show a subscriber already running '
+             'that the run does not name (a recorder started on its own), before the first '
+             'message. 0: none; the node waits only for what the run names '
+             '(`wait_for_subscribers`, the peers, a recorder\'s acknowledged match). A DDS '
+             'participant re-announces itself every 3 s: 4 s outlasts one lost exchange',
+             nonnegative),
     Declared('strict_parameters', ALL, False, '', '', 'true: an unknown key in what the '
              'node reads stops it (exit status 2) instead of a warning', boolean),
     Declared('realtime_priority', ALL, 0, '', '', 'not 0: the node\'s threads run '
