@@ -139,13 +139,13 @@ class BridgeNode(BridgeCycles, RigNode):
         self.watch_source(self.sub_forces, topics.LEG_FORCES, self.force_gate)
         self.plant_startup = PlantStartup(self)
         # The plant's run on /diagnostics: paused or reset, its drives hold the SYNC.
-        self.plant_status = topics.status_name(topics.node_full_name(self.get_namespace(),
-                                                                     'plant'))
+        self.plant_node = topics.node_full_name(self.get_namespace(), 'plant')
+        self.plant_status = topics.status_name(self.plant_node)
         self.plant_run = 'running'
         self.plant_run_number = None
         self.new_run = False
-        self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics,
-                                 topics.DIAGNOSTICS_QOS)
+        self.sub_diagnostics = self.create_subscription(
+            DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics, topics.DIAGNOSTICS_QOS)
         self.force = None
         self.force_ns = None
         self.force_at = 0.0             # time.monotonic() the newest force came
@@ -185,6 +185,22 @@ class BridgeNode(BridgeCycles, RigNode):
             if self.plant_run_number is not None and number != self.plant_run_number:
                 self.new_run = True
             self.plant_run_number = number
+
+    def startup_missing(self) -> list[str]:
+        """What the bridge waits for before SYNC 0: the plant's wait
+        (``PlantStartup``), and in lockstep the plant's /diagnostics writer.
+        Its run word (paused, reset) is what tells drives that hold the SYNC
+        from silent ones; a word sent before that match is lost, and a paused
+        plant was then taken for a pulled cable (NaN samples after
+        ``bus_timeout``, test_sim_control_dds's pause over the bus at -n 2)."""
+        out = self.plant_startup.missing()
+        if self.mode == 'lockstep':
+            shown = {topics.endpoint_node_name(info) for info in
+                     self.get_publishers_info_by_topic(self.sub_diagnostics.topic_name)}
+            if self.plant_node not in shown:
+                out.append('%s: no publisher from %s yet (its run word: paused, reset)'
+                           % (self.sub_diagnostics.topic_name, self.plant_node))
+        return out
 
     def set_homed_offset(self, value) -> None:
         """``homed_offset`` (a homing's result, set by the supervisor): each
@@ -314,7 +330,7 @@ class BridgeNode(BridgeCycles, RigNode):
             print('canopen_bridge: error: %s' % exc, file=sys.stderr, flush=True)
             return 1
         try:
-            self.wait_for_matches(self.plant_startup.missing)
+            self.wait_for_matches(self.startup_missing)
             self.forces_in = self.start_hot_loop(self.sub_forces)
             n_samples = int(round(self.duration * self.rate)) if self.duration > 0 else None
             self.get_logger().info('%s at %g Hz%s' % (self.mode, self.rate,
