@@ -51,10 +51,9 @@ demo: $(KERNELS)
 	$(BIN)/python -m stewart63_ros.tools.demo --out $(DEMO_OUT) --geometry $(GEOMETRY)
 
 # The MuJoCo agreement test must run here, not skip: make installed the extra.
-# Three workers (pytest-xdist) on this two-core machine: with two, the cores
-# sat idle 30 % of make test (DDS tests wait on discovery, acknowledgements
-# and the rig's pace, not on a core); each test leases its own ROS domain.
-TEST_WORKERS ?= 3
+# Two workers (pytest-xdist): most DDS tests wait on discovery and on the
+# rig's pace, not on a core; each test leases its own ROS domain.
+TEST_WORKERS ?= 2
 test: $(KERNELS)
 	STEWART63_REQUIRE_MUJOCO=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) test
 
