@@ -80,9 +80,11 @@ class BridgeCycles:
         k = 0
         while not STOP.requested:
             if self.new_run or self.plant_run in HELD_RUN:
-                if not self.hold_for_plant():
+                renewed = self.hold_for_plant()
+                if renewed is None:
                     return
-                k = 0
+                if renewed:         # a pause goes on at its own sample, a new run at 0
+                    k = 0
             if self.peers is not None and not self.peers.hold(k * self.period_ns, self.serve):
                 return
             for name in master.bring_up_rebooted():
@@ -116,19 +118,24 @@ class BridgeCycles:
                 return
             k += 1
 
-    def hold_for_plant(self) -> bool:
-        """The plant holds its run (paused, reset): wait until it runs again."""
-        self.new_run = False
+    def hold_for_plant(self) -> bool | None:
+        """The plant holds its run (paused, reset): wait until it runs again.
+        None if a stop was requested meanwhile; True if it runs a new run (its
+        SYNCs count from 0 again); False if the same run goes on (a pause, a
+        step: the next SYNC is the sample the plant paused before, not 0)."""
+        renewed = False
         while self.plant_run in HELD_RUN or self.new_run:
+            renewed = renewed or self.new_run or self.plant_run == 'reset'
             self.new_run = False
             if STOP.requested:
-                return False
+                return None
             self.serve(SLICE)
-        self.force = None
-        self.force_ns = None
-        self.force_gate.last_ns = None
-        self.master.new_run()           # the new run's SYNCs count from 0 again
-        return True
+        if renewed:
+            self.force = None
+            self.force_ns = None
+            self.force_gate.last_ns = None
+            self.master.new_run()       # the new run's SYNCs count from 0 again
+        return renewed
 
     def wait_for_answer(self, ns, timeout) -> bool:
         deadline = time.monotonic() + timeout
