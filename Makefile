@@ -15,7 +15,7 @@ ROS_WHEELS := ros-rclpy ros-rmw-fastrtps-cpp ros-std-msgs ros-geometry-msgs \
               ros-sensor-msgs ros-diagnostic-msgs ros-rosgraph-msgs ros-builtin-interfaces \
               ros-trajectory-msgs ros-visualization-msgs ros-std-srvs
 PY_DEPS    := numpy scipy numba matplotlib pyyaml rosbags mcap mcap-ros2-support viser \
-              dask distributed python-can canopen
+              dask distributed python-can canopen setproctitle
 TEST_DEPS  := pytest pytest-xdist ruff colcon-core colcon-ros colcon-package-information playwright \
               xmlschema junitparser
 

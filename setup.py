@@ -17,7 +17,7 @@ setup(
         ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'numba', 'matplotlib', 'pyyaml', 'rosbags',
-                      'mcap', 'viser', 'python-can', 'canopen'],
+                      'mcap', 'viser', 'python-can', 'canopen', 'setproctitle'],
     # MuJoCo only for `make bench` and its agreement tests, never at run time;
     # Dask only for `sweep --scheduler` / `--dask-local`.
     extras_require={'bench': ['mujoco>=3.1'], 'cluster': ['dask', 'distributed']},

@@ -280,8 +280,8 @@ def test_the_plant_waits_for_a_late_peer_even_when_a_recorder_fills_the_count(ro
     from stewart63_ros import topics
     node = ros.node('early_recorder')
     stamps = []
-    node.create_subscription(JointState, '/leg_lengths', lambda m: stamps.append(m),
-                             topics.RECORD_SUB)
+    recorder = node.create_subscription(JointState, '/leg_lengths',
+                                        lambda m: stamps.append(m), topics.RECORD_SUB)
     plant_summary, fk_summary = tmp_path / 'plant.json', tmp_path / 'fk.json'
     plant = ros.spawn([exe('plant'), '--ros-args', '--params-file', str(PARAMS),
                        '-p', 'clock_mode:=realtime', '-p', 'duration:=0.5',
@@ -290,6 +290,10 @@ def test_the_plant_waits_for_a_late_peer_even_when_a_recorder_fills_the_count(ro
                        '-p', 'summary_file:=%s' % plant_summary], name='plant')
     try:
         assert wait_text(plant, 'no subscription from /fk yet (lengths_peers)', 60), (
+            plant.describe())
+        # The case is a count the recorder fills: it must have matched before
+        # fk comes (a loaded CI run matched fk first, and the recorder got nothing).
+        assert ros.spin_until(lambda: recorder.get_publisher_count() >= 1, 30), (
             plant.describe())
         fk = ros.spawn([exe('fk'), '--ros-args', '--params-file', str(PARAMS),
                         '-p', 'summary_file:=%s' % fk_summary], name='fk')

@@ -322,6 +322,17 @@ def rig_command():
 
 
 def children_of(pid: int) -> dict[int, str]:
+    """{pid: command line} of the live children of ``pid`` (from /proc), and
+    of a child that is rig's fork server (runtime/forkserver.py), its
+    children too: the rig's nodes, forked from it."""
+    out = direct_children(pid)
+    for child, cmd in list(out.items()):
+        if 'stewart63_ros.runtime.forkserver' in cmd.split():
+            out.update(direct_children(child))
+    return out
+
+
+def direct_children(pid: int) -> dict[int, str]:
     """{child pid: command line} of the live children of ``pid`` (from /proc)."""
     out = {}
     for entry in Path('/proc').iterdir():

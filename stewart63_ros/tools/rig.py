@@ -45,6 +45,7 @@ from pathlib import Path
 from stewart63_ros.core.plumbing.errors import ParameterError
 from stewart63_ros.core.plumbing.node_names import NODES
 from stewart63_ros.paths import RIG_CLOCK_MODE, default_params_path
+from stewart63_ros.runtime.forkserver import ForkServer, fork_server_wanted
 from stewart63_ros.runtime.launcher import (
     StopSignals,
     dump_stacks_on_sigusr1,
@@ -176,6 +177,11 @@ def main(argv=None) -> int:
     except ValueError as exc:
         print('rig: error: --namespace: %s' % exc, file=sys.stderr)
         return 2
+    try:     # it loads the core on the other core while this one checks the options
+        fork_server = ForkServer() if fork_server_wanted() else None
+    except ValueError as exc:
+        print('rig: error: %s' % exc, file=sys.stderr)
+        return 2
     params = args.params or str(default_params_path())
     if not all(b >= 0 for b in args.tracking_bound):       # NaN fails too
         parser.error('--tracking-bound takes two numbers >= 0 (metres, radians)')
@@ -273,7 +279,8 @@ def main(argv=None) -> int:
         return 2
     rig = Rig(params, args.mode, args.duration, args.record, args.namespace, args.log_dir,
               nodes=nodes, realtime_priority=args.realtime_priority, compose=args.compose,
-              extra_params=extra, supervisor=args.supervisor, bus=args.bus)
+              extra_params=extra, supervisor=args.supervisor, bus=args.bus,
+              fork_server=fork_server)
     rig.plant_params = args.plant_params and str(Path(args.plant_params).resolve())
     ok = False
     start, start_unix = time.monotonic(), time.time()

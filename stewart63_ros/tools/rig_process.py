@@ -18,6 +18,7 @@ from pathlib import Path
 # the stop handlers (rig.py says why).
 from stewart63_ros.core.plumbing.node_names import NODES
 from stewart63_ros.paths import RIG_CLOCK_MODE
+from stewart63_ros.runtime.forkserver import ForkedProcess, ForkServer, fork_server_wanted
 from stewart63_ros.runtime.launcher import signals_deferred
 from stewart63_ros.tools.cli import ros_namespace
 
@@ -49,7 +50,7 @@ class Rig:
 
     def __init__(self, params, mode=RIG_CLOCK_MODE, duration=None, record=None, namespace='',
                  log_dir=None, extra_params=None, nodes=NODES, realtime_priority=0,
-                 compose=False, supervisor=False, bus=None):
+                 compose=False, supervisor=False, bus=None, fork_server=None):
         self.params = str(params)
         #: ``rig --supervisor``: the supervisor between controller and plant
         self.supervisor = bool(supervisor)
@@ -70,7 +71,10 @@ class Rig:
         self.compose = bool(compose)
         #: 'canopen': the plant on the field bus, and canopen_bridge (docs/bus.md)
         self.bus = bus
-        self.procs: dict[str, subprocess.Popen] = {}
+        self.procs: dict[str, subprocess.Popen | ForkedProcess] = {}
+        #: where the processes are forked from (``start()`` starts one if
+        #: None: runtime/forkserver.py); ``rig`` starts it before its checks
+        self.fork_server: ForkServer | None = fork_server
         #: the plant's own parameter file (the machine), read after ``params``
         self.plant_params = None
 
@@ -161,20 +165,34 @@ class Rig:
         return args
 
     def spawn(self, name, argv):
-        log = open(self.log_dir / ('%s.log' % name), 'w')
+        log_path = self.log_dir / ('%s.log' % name)
         # Own process group: a Ctrl-C in the terminal reaches only the rig,
         # which then stops each child itself, in order. A stop signal during
         # the start is acted on once the child is known (and so stopped too).
         with signals_deferred():
-            proc = subprocess.Popen([sys.executable, '-m', MODULES[name]] + argv,
-                                    stdout=log, stderr=subprocess.STDOUT,
-                                    start_new_session=True)
+            proc = None
+            if self.fork_server is not None:    # a fork: its own session too
+                try:
+                    proc = self.fork_server.spawn(MODULES[name], argv, log_path)
+                except RuntimeError as exc:
+                    print('rig: the fork server failed (%s): each process starts with '
+                          'python -m' % exc, file=sys.stderr, flush=True)
+                    self.fork_server.close()
+                    self.fork_server = None
+            if proc is None:
+                with open(log_path, 'w') as log:
+                    proc = subprocess.Popen([sys.executable, '-m', MODULES[name]] + argv,
+                                            stdout=log, stderr=subprocess.STDOUT,
+                                            start_new_session=True)
             self.procs[name] = proc
         return proc
 
     def start(self):
         """Recorder first; then controller and fk; the plant once they are
-        matched (the order and its reasons: runtime/handshake.py)."""
+        matched (the order and its reasons: runtime/handshake.py). The
+        processes are forks of one that has loaded the core (runtime/forkserver.py)."""
+        if self.fork_server is None and fork_server_wanted():
+            self.fork_server = ForkServer()
         if self.compose:
             argv = ['--nodes', ','.join(self.composed_nodes())]
             if self.record:
@@ -358,12 +376,14 @@ class Rig:
             # A node exits by itself STOP_DEADLINE after the signal, with its
             # stacks (launcher.arm_stop_deadline): grace outlasts that.
             for escalate, timeout in ((None, grace), (_dump_stacks, 0.5),
-                                      (subprocess.Popen.terminate, 1.0),
-                                      (subprocess.Popen.kill, None)):
+                                      (lambda proc: proc.terminate(), 1.0),
+                                      (lambda proc: proc.kill(), None)):
                 for proc in procs:
                     if escalate is not None and proc.poll() is None:
                         escalate(proc)
                 _wait_all(procs, timeout)
+        if self.fork_server is not None:
+            self.fork_server.close()
         return {n: 0 if n in interrupted and p.returncode == -signal.SIGINT else p.returncode
                 for n, p in self.procs.items()}
 
