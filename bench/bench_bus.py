@@ -218,7 +218,7 @@ def where_missed(folder) -> dict | None:
 
 
 def rig_run(mode, duration, compose=False, supervisor=False, bus='canopen', hz=1000.0,
-            watch=False, log_dir=None) -> dict | None:
+            watch=False, log_dir=None, priority=0) -> dict | None:
     """One rig run to its end; its figures (None if it did not end). In
     realtime over the bus, with the bridge's and the drives' per-cycle
     traces (``where``: where the misses fell)."""
@@ -229,7 +229,8 @@ def rig_run(mode, duration, compose=False, supervisor=False, bus='canopen', hz=1
     extra = {n: {'sensor_rate': hz} for n in ('plant', 'canopen_bridge')} \
         if hz != 1000.0 else {}
     rig = Rig(default_params_path(), mode, duration, log_dir=log_dir, bus=bus,
-              extra_params=extra, compose=compose, supervisor=supervisor)
+              extra_params=extra, compose=compose, supervisor=supervisor,
+              realtime_priority=priority)
     watcher = None
     if watch and bus:
         buses = load_bus_config(None).buses
@@ -369,14 +370,18 @@ def uptime() -> str:
     return subprocess.run(['uptime'], capture_output=True, text=True).stdout.strip()
 
 
-def accept(duration: float = 30.0, runs: int = 2, rate: float = 1000.0) -> int:
+def accept(duration: float = 30.0, runs: int = 2, rate: float = 1000.0,
+           priority: int = 0) -> int:
     """The composed bridge's target (docs/bus.md): ``rig --bus canopen --compose
     --supervisor`` in realtime at ``rate`` for ``duration`` s, ``runs`` times
     in a row, each against the lockstep run of the same rig: bridge cycles
     missed and each leg's missed TPDOs at most 0.1 %, no trip, final error
-    within 0.01 points of lockstep's. Exit 0 when every run passes."""
-    print('acceptance: realtime %g Hz, composed and supervised over the bus, %g s, %d runs; '
-          'nothing else should run (uptime: %s)' % (rate, duration, runs, uptime()), flush=True)
+    within 0.01 points of lockstep's. Exit 0 when every run passes. ``priority``:
+    ``rig --realtime-priority`` (SCHED_FIFO for the plant standing in for the
+    drives, and the composed process), 0: normal scheduling."""
+    print('acceptance: realtime %g Hz, composed and supervised over the bus, %g s, %d runs, '
+          'realtime priority %d; nothing else should run (uptime: %s)'
+          % (rate, duration, runs, priority, uptime()), flush=True)
     failed = 0
     with private_domain():
         reference = rig_run('lockstep', duration, compose=True, supervisor=True, hz=rate)
@@ -384,7 +389,8 @@ def accept(duration: float = 30.0, runs: int = 2, rate: float = 1000.0) -> int:
         if reference is None:
             return 1
         for i in range(runs):
-            run = rig_run('realtime', duration, compose=True, supervisor=True, hz=rate)
+            run = rig_run('realtime', duration, compose=True, supervisor=True, hz=rate,
+                          priority=priority)
             print(describe('realtime run %d' % (i + 1), run), flush=True)
             if run is None:
                 failed += 1
@@ -420,10 +426,14 @@ def main(argv=None) -> int:
     parser.add_argument('--accept', action='store_true',
                         help='the acceptance check of the composed bridge instead (30 s runs '
                         'unless --duration is given, two in a row): exit 0 if it passes')
+    parser.add_argument('--realtime-priority', type=int, default=0, metavar='P',
+                        help='--accept: rig --realtime-priority P for the realtime runs')
     args = parser.parse_args(argv)
     if args.accept:
         given = any(a.startswith('--duration') for a in (argv or sys.argv[1:]))
-        return accept(args.duration if given else 30.0, 2, args.rate)
+        return accept(args.duration if given else 30.0, 2, args.rate, args.realtime_priority)
+    if args.realtime_priority:
+        parser.error('--realtime-priority is for --accept')
     print('uptime: %s' % uptime(), flush=True)
     bridge_cost(args.cycles)
     if not args.no_rig:

@@ -51,7 +51,7 @@ def server(tmp_path, monkeypatch):
 
 def test_a_fork_exits_as_python_m_would(server, tmp_path):
     codes = {}
-    for what, expected in (('return', 4), ('exit', 3), ('raise', 1), ('none', 0)):
+    for what in ('return', 'exit', 'raise', 'none'):
         log = tmp_path / ('%s.log' % what)
         proc = server.spawn('fs_child', [what], log)
         codes[what] = proc.wait(60)

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from ros_harness import logs_of, rig_env, run_to_end
+from test_rig import children_of
 
 from stewart63_ros import bagio
 from stewart63_ros.core.machine.supervisor import run_supervised, supervisor_from_params
@@ -514,17 +515,11 @@ def test_estop_descent_reset_and_return_repeat_without_a_trip_on_the_packaged_li
 
 
 def child_pid(parent: int, module: str) -> int | None:
-    """The pid of ``parent``'s child process running ``module`` (by /proc)."""
-    try:
-        children = Path('/proc/%d/task/%d/children' % (parent, parent)).read_text().split()
-    except OSError:
-        return None
-    for pid in map(int, children):
-        try:
-            if module in Path('/proc/%d/cmdline' % pid).read_bytes().decode(errors='replace'):
-                return pid
-        except OSError:
-            continue
+    """The pid of ``parent``'s process running ``module``: a child of it, or
+    of its fork server (rig's nodes, runtime/forkserver.py; by /proc)."""
+    for pid, cmd in children_of(parent).items():
+        if module in cmd.split():
+            return pid
     return None
 
 
