@@ -20,7 +20,9 @@ signal's number for a child a signal ended). The server ends once its stdin
 is closed and its last child has ended. ``ForkServer`` is ``rig``'s side;
 ``ForkedProcess`` has the ``Popen`` methods ``rig`` uses.
 
-    python -m stewart63_ros.runtime.forkserver
+    python -m stewart63_ros.runtime.forkserver [LABEL]
+
+(``LABEL``, ignored, says whose server it is in ``ps``: ``rig`` gives its log folder.)
 """
 from __future__ import annotations
 
@@ -211,10 +213,12 @@ def fork(request: dict, reply) -> int | None:
 class ForkServer:
     """``rig``'s side: start the server, ask it for processes."""
 
-    def __init__(self):
+    def __init__(self, label: str = ''):
+        """``label``: on the server's command line only, for ``ps`` (whose it is)."""
         # Its own session: a Ctrl-C reaches only the rig, which ends the
         # server by closing its stdin. Its errors come back as replies.
-        self.proc = subprocess.Popen([sys.executable, '-m', __name__], stdin=subprocess.PIPE,
+        self.proc = subprocess.Popen([sys.executable, '-m', __name__] + ([label] if label else []),
+                                     stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
                                      start_new_session=True)
         os.set_blocking(self.proc.stdout.fileno(), False)

@@ -58,7 +58,7 @@ from stewart63_ros.tools.cli import (
     quiet_on_closed_pipe,
     ros_namespace,
 )
-from stewart63_ros.tools.rig_process import Rig, rate_followers, sample_rates
+from stewart63_ros.tools.rig_process import Rig, default_log_dir, rate_followers, sample_rates
 from stewart63_ros.tools.rig_summary import print_summary, reference_file_extra
 
 #: --tracking-bound's default: position [m], orientation [rad]. A planned
@@ -178,7 +178,8 @@ def main(argv=None) -> int:
         print('rig: error: --namespace: %s' % exc, file=sys.stderr)
         return 2
     try:     # it loads the core on the other core while this one checks the options
-        fork_server = ForkServer() if fork_server_wanted() else None
+        fork_server = ForkServer(str(Path(args.log_dir or default_log_dir(
+            args.record, args.namespace)) / 'forkserver')) if fork_server_wanted() else None
     except ValueError as exc:
         print('rig: error: %s' % exc, file=sys.stderr)
         return 2

@@ -192,7 +192,7 @@ class Rig:
         matched (the order and its reasons: runtime/handshake.py). The
         processes are forks of one that has loaded the core (runtime/forkserver.py)."""
         if self.fork_server is None and fork_server_wanted():
-            self.fork_server = ForkServer()
+            self.fork_server = ForkServer(str(self.log_dir / 'forkserver'))
         if self.compose:
             argv = ['--nodes', ','.join(self.composed_nodes())]
             if self.record:
