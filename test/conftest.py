@@ -26,6 +26,14 @@ def pytest_collection_modifyitems(items):
     items.sort(key=lambda item: item.get_closest_marker('slow') is None)
 
 
+@pytest.fixture(scope='session', autouse=True)
+def one_fork_server_per_worker():
+    """The rigs a test starts in its own process fork from one server per
+    worker (runtime/forkserver.py): the core is loaded once, not once a rig."""
+    from stewart63_ros.tools.rig_process import Rig
+    Rig.share_fork_server()
+
+
 @pytest.fixture(scope='session')
 def default_params_file() -> Path:
     """The packaged parameter file, read from the checkout."""

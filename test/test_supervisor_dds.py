@@ -452,8 +452,9 @@ def test_force_and_forces_stale_trips_reset_once_gone_on_the_live_requests(ros, 
         answer = client.call(client.reset)
         assert not answer.success and 'persists: the latest request: leg_' in answer.message, \
             answer.message
-        # (realtime: the platform sank before the first force came, ~10 cm)
-        client.set_parameter('controller', 'kp', [1500.0] * 6)
+        # (realtime: the platform sank before the first force came, 10-14 cm
+        # as the start went: at kp 1500 a 14 cm sag tripped again at 209 N)
+        client.set_parameter('controller', 'kp', [1000.0] * 6)
         answer = client.reset_until_accepted(rig)
         assert answer.message.startswith('reset: force trip of sample'), answer.message
         client.wait_state('forwarding')

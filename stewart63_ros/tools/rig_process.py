@@ -48,6 +48,18 @@ def default_log_dir(record=None, namespace='') -> Path:
 class Rig:
     """The processes of one rig; ``start()``, ``wait()``, ``stop()``."""
 
+    #: After ``share_fork_server()``, the server every Rig of this process
+    #: forks from (started with the first; a process that runs many rigs:
+    #: the tests, a bench); else each Rig starts and ends its own.
+    _shared_fork_server: ForkServer | None = None
+    _sharing = False
+
+    @classmethod
+    def share_fork_server(cls) -> None:
+        """Every later Rig of this process forks from one server, which ends
+        with the process (runtime/forkserver.py): the core is loaded once."""
+        cls._sharing = True
+
     def __init__(self, params, mode=RIG_CLOCK_MODE, duration=None, record=None, namespace='',
                  log_dir=None, extra_params=None, nodes=NODES, realtime_priority=0,
                  compose=False, supervisor=False, bus=None, fork_server=None):
@@ -179,6 +191,7 @@ class Rig:
                           'python -m' % exc, file=sys.stderr, flush=True)
                     self.fork_server.close()
                     self.fork_server = None
+                    Rig._shared_fork_server = None
             if proc is None:
                 with open(log_path, 'w') as log:
                     proc = subprocess.Popen([sys.executable, '-m', MODULES[name]] + argv,
@@ -192,7 +205,13 @@ class Rig:
         matched (the order and its reasons: runtime/handshake.py). The
         processes are forks of one that has loaded the core (runtime/forkserver.py)."""
         if self.fork_server is None and fork_server_wanted():
-            self.fork_server = ForkServer(str(self.log_dir / 'forkserver'))
+            if not Rig._sharing:
+                self.fork_server = ForkServer(str(self.log_dir / 'forkserver'))
+            else:
+                shared = Rig._shared_fork_server
+                if shared is None or shared.proc.poll() is not None:
+                    shared = Rig._shared_fork_server = ForkServer('shared by %d' % os.getpid())
+                self.fork_server = shared
         if self.compose:
             argv = ['--nodes', ','.join(self.composed_nodes())]
             if self.record:
@@ -382,7 +401,7 @@ class Rig:
                     if escalate is not None and proc.poll() is None:
                         escalate(proc)
                 _wait_all(procs, timeout)
-        if self.fork_server is not None:
+        if self.fork_server is not None and self.fork_server is not Rig._shared_fork_server:
             self.fork_server.close()
         return {n: 0 if n in interrupted and p.returncode == -signal.SIGINT else p.returncode
                 for n, p in self.procs.items()}
