@@ -119,3 +119,13 @@ def test_a_bad_switch_is_refused_and_zero_starts_python_m(monkeypatch):
     assert forkserver.fork_server_wanted() is False
     monkeypatch.delenv(forkserver.ENV_SWITCH)
     assert forkserver.fork_server_wanted() is True
+
+
+def test_rig_refuses_a_bad_switch_before_it_starts_anything(tmp_path):
+    env = dict(os.environ, **{forkserver.ENV_SWITCH: 'yes'})
+    done = subprocess.run([sys.executable, '-m', 'stewart63_ros.tools.rig', '--duration', '0.1',
+                           '--log-dir', str(tmp_path / 'logs')], env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 2, done
+    assert 'STEWART63_FORK_SERVER must be 0 or 1' in done.stderr, done.stderr
+    assert not (tmp_path / 'logs').exists()
