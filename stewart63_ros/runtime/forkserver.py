@@ -27,6 +27,7 @@ is closed and its last child has ended. ``ForkServer`` is ``rig``'s side;
 from __future__ import annotations
 
 import atexit
+import gc
 import importlib
 import json
 import os
@@ -161,6 +162,11 @@ def serve() -> int:
                                 % (type(exc).__name__, exc)}) + '\n')
         return 1
     loaded = time.monotonic() - started
+    # Out of the cyclic collector's sight: a child's collections then never
+    # write to these objects (their pages stay shared, no copy-on-write fault
+    # in a child's loop) nor spend time on them (the nodes do the same with
+    # their own objects once their loop starts: runtime/hotloop.py).
+    gc.freeze()
     # A child's end wakes the loop: SIGCHLD writes to this pipe.
     wake_read, wake_write = os.pipe()
     _SERVER_FDS.extend((wake_read, wake_write))
