@@ -30,8 +30,8 @@ def pytest_collection_modifyitems(items):
 def one_fork_server_per_worker():
     """The rigs a test starts in its own process fork from one server per
     worker (runtime/forkserver.py): the core is loaded once, not once a rig."""
-    from stewart63_ros.tools.rig_process import Rig
-    Rig.share_fork_server()
+    from stewart63_ros.runtime.forkserver import share_servers
+    share_servers()
 
 
 @pytest.fixture(scope='session')

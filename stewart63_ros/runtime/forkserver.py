@@ -68,6 +68,33 @@ def fork_server_wanted() -> bool:
     return value == '1'
 
 
+#: After ``share_servers()``: the one server ``server_for`` gives (see there).
+_SHARED: dict = {'on': False, 'server': None}
+
+
+def share_servers() -> None:
+    """Every later ``server_for`` of this process gives one server, which
+    ends with the process: a process that starts many rigs (the tests, a
+    bench) loads the core once, not once a rig."""
+    _SHARED['on'] = True
+
+
+def server_for(label: str) -> ForkServer | None:
+    """The server a rig forks its processes from: None with
+    ``STEWART63_FORK_SERVER=0``; after ``share_servers()`` the process's one
+    (started with the first rig); else a new one, labelled ``label``, that
+    the rig closes when it stops."""
+    if not fork_server_wanted():
+        return None
+    if not _SHARED['on']:
+        return ForkServer(label)
+    shared = _SHARED['server']
+    if shared is None or shared.proc.poll() is not None:
+        shared = _SHARED['server'] = ForkServer('shared by %d' % os.getpid())
+        shared.shared = True
+    return shared
+
+
 def preload() -> None:
     """Import ``PRELOAD`` and load ``WARM_KERNEL`` from numba's cache (a cold
     cache loads nothing: the nodes then compile, as they would alone)."""
@@ -233,6 +260,8 @@ class ForkServer:
         self.replies: list[dict] = []
         self.ready = False
         self.spawned = 0
+        #: the process's one server (``server_for`` after ``share_servers``)
+        self.shared = False
         #: s: the server's loading of the core (its 'ready' reply)
         self.loaded_s = None
 
@@ -283,6 +312,20 @@ class ForkServer:
             raise RuntimeError(message.get('error'))
         self.spawned += 1
         return ForkedProcess(self, message['pid'], [module] + list(args))
+
+    def spawn_or_say(self, module: str, args: list[str], log_path):
+        """``spawn``; None if the server failed, said on stderr, and the
+        server closed (and no longer shared): the caller starts the process
+        with ``python -m`` instead."""
+        try:
+            return self.spawn(module, args, log_path)
+        except RuntimeError as exc:
+            print('rig: the fork server failed (%s): each process starts with python -m'
+                  % exc, file=sys.stderr, flush=True)
+            self.close()
+            if _SHARED['server'] is self:
+                _SHARED['server'] = None
+            return None
 
     def __del__(self):
         if getattr(self, 'proc', None) is not None:

@@ -18,7 +18,7 @@ from pathlib import Path
 # the stop handlers (rig.py says why).
 from stewart63_ros.core.plumbing.node_names import NODES
 from stewart63_ros.paths import RIG_CLOCK_MODE
-from stewart63_ros.runtime.forkserver import ForkedProcess, ForkServer, fork_server_wanted
+from stewart63_ros.runtime.forkserver import ForkedProcess, ForkServer, server_for
 from stewart63_ros.runtime.launcher import signals_deferred
 from stewart63_ros.tools.cli import ros_namespace
 
@@ -47,18 +47,6 @@ def default_log_dir(record=None, namespace='') -> Path:
 
 class Rig:
     """The processes of one rig; ``start()``, ``wait()``, ``stop()``."""
-
-    #: After ``share_fork_server()``, the server every Rig of this process
-    #: forks from (started with the first; a process that runs many rigs:
-    #: the tests, a bench); else each Rig starts and ends its own.
-    _shared_fork_server: ForkServer | None = None
-    _sharing = False
-
-    @classmethod
-    def share_fork_server(cls) -> None:
-        """Every later Rig of this process forks from one server, which ends
-        with the process (runtime/forkserver.py): the core is loaded once."""
-        cls._sharing = True
 
     def __init__(self, params, mode=RIG_CLOCK_MODE, duration=None, record=None, namespace='',
                  log_dir=None, extra_params=None, nodes=NODES, realtime_priority=0,
@@ -184,14 +172,9 @@ class Rig:
         with signals_deferred():
             proc = None
             if self.fork_server is not None:    # a fork: its own session too
-                try:
-                    proc = self.fork_server.spawn(MODULES[name], argv, log_path)
-                except RuntimeError as exc:
-                    print('rig: the fork server failed (%s): each process starts with '
-                          'python -m' % exc, file=sys.stderr, flush=True)
-                    self.fork_server.close()
+                proc = self.fork_server.spawn_or_say(MODULES[name], argv, log_path)
+                if proc is None:        # the server failed, and said why
                     self.fork_server = None
-                    Rig._shared_fork_server = None
             if proc is None:
                 with open(log_path, 'w') as log:
                     proc = subprocess.Popen([sys.executable, '-m', MODULES[name]] + argv,
@@ -204,14 +187,8 @@ class Rig:
         """Recorder first; then controller and fk; the plant once they are
         matched (the order and its reasons: runtime/handshake.py). The
         processes are forks of one that has loaded the core (runtime/forkserver.py)."""
-        if self.fork_server is None and fork_server_wanted():
-            if not Rig._sharing:
-                self.fork_server = ForkServer(str(self.log_dir / 'forkserver'))
-            else:
-                shared = Rig._shared_fork_server
-                if shared is None or shared.proc.poll() is not None:
-                    shared = Rig._shared_fork_server = ForkServer('shared by %d' % os.getpid())
-                self.fork_server = shared
+        if self.fork_server is None:
+            self.fork_server = server_for(str(self.log_dir / 'forkserver'))
         if self.compose:
             argv = ['--nodes', ','.join(self.composed_nodes())]
             if self.record:
@@ -401,7 +378,7 @@ class Rig:
                     if escalate is not None and proc.poll() is None:
                         escalate(proc)
                 _wait_all(procs, timeout)
-        if self.fork_server is not None and self.fork_server is not Rig._shared_fork_server:
+        if self.fork_server is not None and not self.fork_server.shared:
             self.fork_server.close()
         return {n: 0 if n in interrupted and p.returncode == -signal.SIGINT else p.returncode
                 for n, p in self.procs.items()}
