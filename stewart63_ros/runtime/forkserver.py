@@ -142,15 +142,17 @@ def run_child(request: dict) -> None:
         os.chdir(request['cwd'])
         os.environ.clear()
         os.environ.update(request['env'])
-        module = importlib.import_module(request['module'])
-        sys.argv = [module.__file__] + list(request['args'])
         try:
+            module = importlib.import_module(request['module'])
+            sys.argv = [module.__file__] + list(request['args'])
             # ``python -m``: each module ends in ``main()`` or ``sys.exit(main())``
             code = _exit_code(module.main())
         except SystemExit as exc:
             code = _exit_code(exc.code)
         except KeyboardInterrupt:
-            # As the interpreter ends on one: killed by SIGINT.
+            # As the interpreter ends on one (a stop while it still imports,
+            # too): its traceback, then killed by SIGINT.
+            traceback.print_exc()
             _finish()
             signal.signal(signal.SIGINT, signal.SIG_DFL)
             os.kill(os.getpid(), signal.SIGINT)

@@ -121,7 +121,10 @@ class Rig:
             section['ros__parameters'].update(values)
         path = self.log_dir / 'rig_params.yaml'
         import yaml  # lazy: yaml costs 76 ms; --help answers without it
-        path.write_text(yaml.safe_dump(doc, sort_keys=False))
+        # Whole or not at all: a node forked just before may be reading it
+        part = path.with_name(path.name + '.part')
+        part.write_text(yaml.safe_dump(doc, sort_keys=False))
+        os.replace(part, path)
         return path
 
     def bus_overlay(self, doc, shared) -> None:
