@@ -182,7 +182,6 @@ def serve() -> int:
     """The server's loop: fork on each request, report each child's end."""
     reply = os.fdopen(os.dup(1), 'w', buffering=1)
     os.dup2(2, 1)               # its own prints go to its log, not into the protocol
-    started = time.monotonic()
     try:
         preload()
     except Exception as exc:  # noqa: BLE001 - said to rig, which starts its nodes without it
@@ -190,7 +189,6 @@ def serve() -> int:
         reply.write(json.dumps({'error': 'loading the core failed: %s: %s'
                                 % (type(exc).__name__, exc)}) + '\n')
         return 1
-    loaded = time.monotonic() - started
     # Out of the cyclic collector's sight: a child's collections then never
     # write to these objects (their pages stay shared, no copy-on-write fault
     # in a child's loop) nor spend time on them (the nodes do the same with
@@ -204,7 +202,7 @@ def serve() -> int:
     signal.signal(signal.SIGCHLD, lambda signum, frame: None)
     signal.signal(signal.SIGINT, signal.SIG_IGN)     # rig ends it by closing stdin
     children, pending, open_input = set(), b'', True
-    reply.write(json.dumps({'ready': os.getpid(), 'loaded_s': round(loaded, 3)}) + '\n')
+    reply.write(json.dumps({'ready': os.getpid()}) + '\n')
     while open_input or children:
         ready, _, _ = select.select([0, wake_read] if open_input else [wake_read], [], [], 1.0)
         if wake_read in ready:
@@ -264,8 +262,6 @@ class ForkServer:
         self.spawned = 0
         #: the process's one server (``server_for`` after ``share_servers``)
         self.shared = False
-        #: s: the server's loading of the core (its 'ready' reply)
-        self.loaded_s = None
 
     def _read(self, timeout: float) -> bool:
         """Take in what the server has said, waiting at most ``timeout``;
@@ -284,7 +280,7 @@ class ForkServer:
             if 'exit' in message:
                 self.codes[message['exit']] = message['code']
             elif 'ready' in message:
-                self.ready, self.loaded_s = True, message['loaded_s']
+                self.ready = True
             else:
                 self.replies.append(message)
         return True
