@@ -8,6 +8,11 @@ STAMP  := $(VENV)/.installed
 # numba's cache does not follow kernels across files: recompile all of them
 # whenever a core file changes (precompile clears the cache first).
 KERNELS := $(VENV)/.kernels
+# Bytecode of the package, its tests and benches, written once here: `make
+# test` starts some 1500 Python processes, and where PYTHONDONTWRITEBYTECODE
+# is set each would compile every module it imports again (0.15 s of CPU for
+# a node). A stale file is only ignored: Python checks the source's mtime.
+BYTECODE := $(VENV)/.bytecode
 # A parent shell may carry the wheels' bootstrap flag from another venv.
 unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE
 
@@ -25,7 +30,7 @@ GEOMETRY ?= 6-3
 
 .PHONY: demo test test-fast test-stress lint bench bench-view venv clean
 
-venv: $(KERNELS)
+venv: $(KERNELS) $(BYTECODE)
 
 $(STAMP): setup.py package.xml Makefile
 	@if $(PYTHON) -c 'import rclpy' >/dev/null 2>&1; then \
@@ -47,24 +52,32 @@ $(KERNELS): $(STAMP) $(wildcard stewart63_ros/core/*.py stewart63_ros/core/*/*.p
 	$(BIN)/python -m stewart63_ros.core.precompile
 	touch $(KERNELS)
 
-demo: $(KERNELS)
+$(BYTECODE): $(STAMP) $(shell find stewart63_ros test bench -name '*.py' 2>/dev/null)
+	$(BIN)/python -m compileall -q -j 0 stewart63_ros test bench
+	touch $(BYTECODE)
+
+demo: $(KERNELS) $(BYTECODE)
 	$(BIN)/python -m stewart63_ros.tools.demo --out $(DEMO_OUT) --geometry $(GEOMETRY)
 
 # The MuJoCo agreement test must run here, not skip: make installed the extra.
 # Two workers (pytest-xdist): most DDS tests wait on discovery and on the
-# rig's pace, not on a core; each test leases its own ROS domain.
+# rig's pace, not on a core; each test leases its own ROS domain. Work
+# stealing: a worker that is done takes tests queued on the other (with the
+# default scheduling one worker sat idle for the suite's last 1.5-2 minutes).
 TEST_WORKERS ?= 2
-test: $(KERNELS)
-	STEWART63_REQUIRE_MUJOCO=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) test
+# pytest keeps its rewritten test modules only where bytecode may be written.
+test: $(KERNELS) $(BYTECODE)
+	env -u PYTHONDONTWRITEBYTECODE STEWART63_REQUIRE_MUJOCO=1 \
+	  $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist worksteal test
 
 # The DDS tests three times in a row while another process keeps a core
 # busy (test/stress.py): a loaded machine may make the rig slower, never wrong.
 STRESS_ROUNDS ?= 3
-test-stress: $(KERNELS)
+test-stress: $(KERNELS) $(BYTECODE)
 	$(BIN)/python test/stress.py --rounds $(STRESS_ROUNDS) -- -n $(TEST_WORKERS) -m dds test
 
 # The numerics only: no DDS, no processes (markers in setup.cfg, test/conftest.py).
-test-fast: $(KERNELS)
+test-fast: $(KERNELS) $(BYTECODE)
 	$(BIN)/python -m pytest -q -m "not slow" test
 
 # pyflakes, pycodestyle, bugbear, blind except, import order (ruff.toml).
@@ -72,11 +85,11 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 
 # Every figure, medians of repeated runs, into bench/results.json (docs/performance.md).
-bench: $(KERNELS)
+bench: $(KERNELS) $(BYTECODE)
 	$(BIN)/python bench/bench_all.py
 
 # The realtime loop without and with the live view open (a client, a browser).
-bench-view: $(KERNELS)
+bench-view: $(KERNELS) $(BYTECODE)
 	$(BIN)/python bench/bench_view.py
 
 clean:

@@ -121,9 +121,10 @@ def test_hang_kill_and_restart_of_nodes_in_a_realtime_rig(ros, tmp_path):
     # (discovery_timeout, 20 s), not by a guess of how long that takes
     assert diags.wait(lambda: diags.value(ctl_name, 'source_restarts') > ctl_restarts, 30), \
         diags.last(ctl_name)
-    settle(2.0)
-    last = diags.last(ctl_name)
-    assert last[2] != ERROR, last           # the watchdog recovered
+    # The watchdog recovered: a report without its ERROR (a later one may
+    # again name a starved moment of a loaded machine: that is not this)
+    assert diags.wait(lambda: diags.last(ctl_name)[2] != ERROR, 10), diags.last(ctl_name)
+    settle(1.0)
     # everybody else ran on; now stop them all cleanly
     for name in ('plant', 'controller', 'fk'):
         assert procs[name].returncode is None, procs[name].describe()

@@ -221,6 +221,7 @@ def test_rig_view_refuses_a_port_in_use():
 def test_live_page_follows_a_pose_setpoint_step(ros, browser, tmp_path):
     from geometry_msgs.msg import PoseStamped
     from ros_harness import wait_matched
+    from std_srvs.srv import SetBool
 
     from stewart63_ros import topics
     # lockstep: on a two-core machine the software-rendering browser can
@@ -228,13 +229,23 @@ def test_live_page_follows_a_pose_setpoint_step(ros, browser, tmp_path):
     rig = ros.python('-m', 'stewart63_ros.tools.rig', '--mode', 'lockstep', '--view',
                      '--view-port', str(free_port()), '--log-dir', str(tmp_path / 'rig'),
                      name='rig')
+    node = ros.node('probe')
+    pause = node.create_client(SetBool, 'plant/pause')
+
+    def hold(paused: bool):
+        assert ros.spin_until(pause.service_is_ready, 60), rig.describe()
+        answer = pause.call_async(SetBool.Request(data=paused))
+        assert ros.spin_until(answer.done, 30) and answer.result().success, answer.result()
     url = view_url(rig, timeout=240)
     page = open_page(browser, url, 'Live')
+    # The lockstep rig runs flat out: paused while the page draws its first
+    # frames in software, so that the two do not share the cores.
+    hold(True)
     time.sleep(3.0)
     before = shot(page, tmp_path / 'live_before.png')
     assert_not_blank(before)
+    hold(False)
 
-    node = ros.node('probe')
     poses = []
     node.create_subscription(PoseStamped, 'platform_pose',
                              lambda m: poses.append(m.pose.position.z), 10)
@@ -376,7 +387,8 @@ def test_page_says_when_there_is_no_rig(ros, browser, tmp_path):
     url = view_url(proc)
     page = open_page(browser, url, 'No rig in namespace')
     assert '/nobody_here' in page.content()
-    shot(page, tmp_path / 'no_rig.png')
+    page.screenshot(path=str(tmp_path / 'no_rig.png'), timeout=SHOT_TIMEOUT_MS)
+    print('screenshot: %s' % (tmp_path / 'no_rig.png'))
     time.sleep(2.0)
     assert proc.returncode is None, proc.describe()     # still waiting
     assert 'Waiting' in page.content()
