@@ -8,10 +8,10 @@ STAMP  := $(VENV)/.installed
 # numba's cache does not follow kernels across files: recompile all of them
 # whenever a core file changes (precompile clears the cache first).
 KERNELS := $(VENV)/.kernels
-# Bytecode of the package, its tests and benches, written once here: `make
-# test` starts some 1500 Python processes, and where PYTHONDONTWRITEBYTECODE
-# is set each would compile every module it imports again (0.15 s of CPU for
-# a node). A stale file is only ignored: Python checks the source's mtime.
+# Bytecode of the package, its tests and benches, written once here: where
+# PYTHONDONTWRITEBYTECODE is set, each process `make test` starts compiled
+# every module it imported again (0.15 s of CPU for a node). A stale file is
+# only ignored: Python checks the source's mtime.
 BYTECODE := $(VENV)/.bytecode
 # A parent shell may carry the wheels' bootstrap flag from another venv.
 unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE
