@@ -181,8 +181,10 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
         if rclpy.ok():
             rclpy.shutdown()
         ignore_stop_signals()
-    if node is not None:
-        end_process(code)
+    # Also after a constructor that refused its parameters: the half-made
+    # node's middleware objects, collected by the interpreter's finalization
+    # after rclpy's shutdown, ended a refusal (exit 2) by SIGSEGV once here.
+    end_process(code)
     return code
 
 
