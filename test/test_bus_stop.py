@@ -270,7 +270,9 @@ def test_a_stalled_bridge_skips_the_syncs_it_missed_sends_no_burst_and_loses_no_
     # it), while the drives beat on the wall clock (100 ms: lost after 300 ms).
     import json
     summary = ros.log_dir / 'bridge_summary.json'
-    proc = start_bridge(ros, drives, '-p', 'summary_file:=%s' % summary)
+    # (no controller: the SYNC clock starts after discovery_timeout, 20 s by default)
+    proc = start_bridge(ros, drives, '-p', 'summary_file:=%s' % summary,
+                        '-p', 'discovery_timeout:=1.0')
     wait_enabled(drives, proc)
     time.sleep(0.5)
     before = len(drives.sync_times)
