@@ -294,12 +294,12 @@ def test_pause_step_faults_and_reset_of_a_lockstep_rig(ros, monkeypatch, tmp_pat
         assert answer.message.startswith('resetting after sample %d: run 2 ' % (k + 9))
         # A second reset while the first is pending (its 1 s quiet, which
         # began as the first was answered) is refused.
+        run_3 = 'resetting before the first sample of run 2: run 3 starts'
         again = client.trigger(client.reset)
         if again.success:
             # A loaded machine answered it after the quiet: run 2 had begun,
             # paused before its first sample, and this is the reset below.
-            assert again.message.startswith(
-                'resetting before the first sample of run 2: run 3 starts'), again.message
+            assert again.message.startswith(run_3), again.message
         else:
             assert again.message == (
                 'a reset is already pending (run 2 starts after the quiet)'), again
@@ -309,8 +309,7 @@ def test_pause_step_faults_and_reset_of_a_lockstep_rig(ros, monkeypatch, tmp_pat
             assert status[2]['fault: sensor_bias:leg_1:0.01'] == 'scheduled from 0 s'
             # a reset before the new run's first sample says so (not "after sample -1")
             answer = client.trigger(client.reset)
-            assert answer.success and answer.message.startswith(
-                'resetting before the first sample of run 2: run 3 starts'), answer.message
+            assert answer.success and answer.message.startswith(run_3), answer.message
         status = client.wait_status(lambda s: s[2].get('run') == 'paused'
                                     and s[2].get('run_number') == '3')
         assert status[2]['sample'] == '0' and status[2]['resets'] == '2'

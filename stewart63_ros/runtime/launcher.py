@@ -184,8 +184,7 @@ def run(prog: str, description: str, node_class, argv=None, extra_args=None) -> 
     # Also after a constructor that refused its parameters: the half-made
     # node's middleware objects, collected by the interpreter's finalization
     # after rclpy's shutdown, ended a refusal (exit 2) by SIGSEGV once here.
-    end_process(code)
-    return code
+    end_process(code)       # (never returns)
 
 
 def end_process(code: int) -> None:
