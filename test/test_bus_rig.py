@@ -147,8 +147,15 @@ def test_realtime_over_the_bus_counts_missed_cycles(ros, monkeypatch, tmp_path):
     assert 0 <= bridge['missed_cycles'] < bridge['cycles'], bridge
     lengths, n = by_stamp(bag, 'leg_lengths')
     assert n == 201
-    print('\nrealtime over the bus, 200 Hz: %d missed cycles of %d, plant late %d'
-          % (bridge['missed_cycles'], bridge['cycles'], summary['late_cycles']))
+    # The drives' answers are armed for their SYNC once the cycle's torques
+    # are in (the bus gives them out as the SYNC passes): at 200 Hz nearly
+    # every sample but the first; each a sample of its own, stamped by its SYNC.
+    assert 150 <= summary['bus_samples_armed'] <= 200, summary
+    stamps = sorted(lengths)
+    assert len(set(stamps)) == 201 and all(b > a for a, b in zip(stamps, stamps[1:]))
+    print('\nrealtime over the bus, 200 Hz: %d missed cycles of %d, plant late %d, '
+          '%d samples armed' % (bridge['missed_cycles'], bridge['cycles'],
+                                summary['late_cycles'], summary['bus_samples_armed']))
 
 
 # One node-level case (each costs a node start); the others' messages are

@@ -273,6 +273,13 @@ class CycleSide:
                 return True
         return False
 
+    def all_in(self) -> bool:
+        """Whether every drive that is up has answered this cycle's SYNC
+        already (drives whose answers were armed for it: canbus/hub.py)."""
+        self.pump()
+        with self._arrived:
+            return all(link.tpdo_sync == self.cycle for link in self.links if link.up)
+
     @property
     def opened_at(self) -> float:
         """``time.monotonic()`` at the cycle's SYNC: its window starts there."""

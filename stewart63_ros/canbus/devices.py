@@ -38,6 +38,7 @@ import time
 
 import can
 
+from stewart63_ros.canbus.hub import can_arm
 from stewart63_ros.core.machine.bus import (
     FAULT,
     HOME_OFFSET,
@@ -116,6 +117,9 @@ class Drive:
         self._rpdo = self._tpdo1 = self._tpdo2 = None     # decoded mappings (cob, fmt, keys)
         self._tpdo2_sent = None
         self.heartbeat_ms = 0
+        #: how many SYNCs its bus had carried when its last RPDO came (an
+        #: RPDO after the newest SYNC: the torque for the cycle it opened)
+        self.commanded_after = -1
 
     # -- frames out ---------------------------------------------------------------------
     def send(self, cob_id: int, data: bytes) -> None:
@@ -245,15 +249,25 @@ class Drive:
         self.values[(0x6061, 0)] = self.drive.mode
         self._send_tpdo2_if_changed()
 
-    def on_rpdo(self, data: bytes) -> None:
+    def on_rpdo(self, data: bytes) -> bool:
+        """An RPDO for this drive: its values written; False if it did not act."""
         mapping = self._rpdo
         if self.off or self.silent or self.nmt != 'OPERATIONAL' or mapping is None:
-            return
+            return False
         _, fmt, keys, _ = mapping
         if len(data) < fmt.size:
-            return
+            return False
         for key, value in zip(keys, fmt.unpack_from(data)):
             self.write(key[0], key[1], value)
+        return True
+
+    @property
+    def answers_sync(self) -> bool:
+        """Whether this drive sends a TPDO1 at a SYNC now (it is up, and
+        operational with a synchronous TPDO1)."""
+        mapping = self._tpdo1
+        return (not (self.off or self.silent) and self.nmt == 'OPERATIONAL'
+                and mapping is not None and 1 <= mapping[3] <= 240)
 
     # -- each sample ----------------------------------------------------------------------
     def answer_sync(self, length: float, rate: float) -> None:
@@ -309,6 +323,11 @@ class DeviceSet:
             self.drives.append(drive)
             self.by_bus[leg.bus][leg.node_id] = drive
         self.syncs = {name: 0 for name in self.buses}      # SYNCs received, not yet answered
+        self.syncs_seen = {name: 0 for name in self.buses}  # SYNCs received in all
+        #: the stamp of the last SYNC received on each bus (None: none yet)
+        self.last_sync: dict[str, float | None] = {name: None for name in self.buses}
+        #: whether the answers to a SYNC can be armed before it (``s63hub``)
+        self.can_arm = can_arm(self.buses.values())
         self.frames_in = 0
         self.frames_out = 0
         self._next_heartbeat = 0.0
@@ -354,6 +373,8 @@ class DeviceSet:
         drives = self.by_bus[bus]
         if cob == 0x080 and not data:
             self.syncs[bus] += 1
+            self.syncs_seen[bus] += 1
+            self.last_sync[bus] = msg.timestamp
         elif cob == 0x000 and len(data) >= 2:
             targets = drives.values() if data[1] == 0 else [drives.get(data[1])]
             for drive in targets:
@@ -366,8 +387,8 @@ class DeviceSet:
         else:
             for drive in drives.values():
                 mapping = drive._rpdo
-                if mapping is not None and mapping[0] == cob:
-                    drive.on_rpdo(bytes(data))
+                if mapping is not None and mapping[0] == cob and drive.on_rpdo(bytes(data)):
+                    drive.commanded_after = self.syncs_seen[bus]
 
     def sync_ready(self) -> bool:
         return all(self.syncs.values())
@@ -376,6 +397,23 @@ class DeviceSet:
         """One SYNC of every bus is being answered."""
         for name in self.syncs:
             self.syncs[name] -= 1
+
+    def next_answer_known(self) -> bool:
+        """Whether the answers to the next SYNC can be armed now: the
+        buses can arm, every bus has had a SYNC and none is waiting, and
+        every drive that answers a SYNC has had its RPDO since the newest
+        SYNC (the torque the physics steps with until the next one)."""
+        if not self.can_arm or any(self.syncs.values()) \
+                or None in self.last_sync.values():
+            return False
+        answering = [d for d in self.drives if d.answers_sync]
+        return bool(answering) and all(d.commanded_after == self.syncs_seen[d.leg.bus]
+                                       for d in answering)
+
+    def armed_after(self) -> dict:
+        """{bus: the stamp of its last SYNC}: for ``batched``, to arm the
+        answers for each bus's next SYNC."""
+        return {self.buses[name]: stamp for name, stamp in self.last_sync.items()}
 
     def answer_sync(self, lengths, rates) -> None:
         """Each drive's TPDO1 for the sample (lengths [m], rates [m/s])."""

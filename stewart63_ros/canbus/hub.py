@@ -22,6 +22,23 @@ last bus has closed. Use it as any python-can interface::
 
 (registered under python-can's ``can.interface`` entry points by setup.py).
 
+**Frames armed for the next SYNC.** A drive's answer to a SYNC leaves on
+the wire the moment the SYNC passes: its CAN controller holds the frames
+(a SYNC-triggered transmit mailbox), the drive's processor does not have to
+wake in time. A process standing in for drives does the same with
+``batched(buses, after_sync=...)``: the frames go to every peer at once,
+marked to be delivered right after the first SYNC (COB-ID 0x80) stamped
+later than ``after_sync`` (the stamp of the last SYNC the sender saw). A
+reader keeps them until it sees that SYNC, its own or a peer's, then gives
+them out after it, stamped just after the SYNC (or, if the SYNC had already
+passed when they were armed, at the time they were armed): on the wire
+they are the answer to that SYNC, whichever side is slow to wake. On a
+machine whose kernel does not preempt (this one's: ``PREEMPT_NONE``) a
+process woken for a SYNC can wait a millisecond for its CPU; armed
+answers take that wait out of the SYNC's window (docs/bus.md). A reader
+that opened after the SYNC an armed set refers to holds it until the next
+SYNC.
+
 What it guarantees: every frame sent after a bus's ``can.Bus(...)`` returned
 reaches that bus, and the frames of one sender arrive in the order sent;
 frames of two senders may interleave differently at two readers (a CAN bus
@@ -34,6 +51,8 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import math
+import os
 import select
 import socket
 import struct
@@ -47,6 +66,19 @@ import can
 #: one frame on the stream: timestamp, arbitration id, flags, dlc, 8 data bytes
 RECORD = struct.Struct('<dIBB8s')
 EXTENDED, REMOTE, ERROR = 1, 2, 4
+#: flags of a record that is no frame: the next ``dlc`` records are armed for
+#: the first SYNC stamped after this record's timestamp (see the module's doc)
+ARM = 16
+#: the SYNC's COB-ID (CiA 301 0x1005's default, the one the bridge sends)
+SYNC_COB_ID = 0x80
+#: records of one armed set at most (a record's dlc byte counts them)
+ARM_MAX = 255
+#: s: the frames released by a SYNC are stamped this far apart after it, in order
+ARM_SPACING = 1e-6
+#: armed sets a reader keeps for SYNCs to come at most (the oldest go)
+ARM_PENDING_MAX = 64
+#: the flags' byte in a record (the count of an armed set follows it)
+FLAGS_AT = 12
 #: s: how long a new bus waits for the hub it started to listen, and for its introduction
 HUB_START_TIMEOUT = 5.0
 #: s: a hub with no bus left ends after this long (a bus opening just then finds it)
@@ -151,6 +183,18 @@ class HubBus(can.BusABC):
         self.gone = False
         #: the records sent since ``hold`` (None: each goes out as it is sent)
         self._held: bytearray | None = None
+        #: armed sets read from peers whose SYNC has not passed here yet:
+        #: (the stamp of the SYNC before theirs, their records)
+        self._pending: list[tuple[float, list[bytes]]] = []
+        #: records an armed set gave out after its SYNC, in order, to read first
+        self._released: collections.deque[bytes] = collections.deque()
+        #: the stamp of the newest SYNC this bus has seen, its own or a peer's
+        self._last_sync = -math.inf
+        self._arm_lock = threading.Lock()
+        #: readable while released records wait (a reader blocked in ``poll``
+        #: wakes when a SYNC this bus sends releases some)
+        self._wake = os.eventfd(0, os.EFD_NONBLOCK)
+        self._poll.register(self._wake, select.EPOLLIN)
         self._control = connect(self.channel)
         self._control.settimeout(HUB_START_TIMEOUT)
         try:
@@ -234,6 +278,10 @@ class HubBus(can.BusABC):
                 peer.sock.sendall(records)  # blocks while that reader is full: no loss
             except OSError:
                 self._drop(peer)
+        size = RECORD.size
+        for start in range(0, len(records), size):    # its own SYNC passes here too
+            if is_sync(records, start):
+                self._synced(RECORD.unpack_from(records, start)[0])
 
     def hold(self) -> None:
         """Keep the frames sent from now on until ``release``, which writes
@@ -243,36 +291,100 @@ class HubBus(can.BusABC):
             if self._held is None:
                 self._held = bytearray()
 
-    def release(self) -> None:
-        """Send what was held since ``hold``, in order, and stop holding."""
+    def release(self, after_sync: float | None = None) -> None:
+        """Send what was held since ``hold``, in order, and stop holding.
+        ``after_sync``: arm them instead, for the first SYNC stamped later
+        than this (the last SYNC the sender saw; see the module's doc)."""
         with self._send_lock:
             held, self._held = self._held, None
-            if held:
-                self._write(bytes(held))
+            if not held:
+                return
+            if after_sync is not None:
+                held = armed(bytes(held), after_sync)
+            self._write(bytes(held))
+
+    # -- armed sets: delivered after their SYNC --------------------------------------------
+    def _arm(self, after: float, records: list[bytes]) -> None:
+        with self._arm_lock:
+            if after < self._last_sync:         # its SYNC has passed here: out now
+                self._give_out(records, self._last_sync)
+            else:
+                self._pending.append((after, records))
+                del self._pending[:-ARM_PENDING_MAX]
+
+    def _synced(self, stamp: float) -> None:
+        """A SYNC stamped ``stamp`` passed: the sets armed for it go out."""
+        with self._arm_lock:
+            self._last_sync = max(self._last_sync, stamp)
+            if not self._pending:
+                return
+            waiting = []
+            for after, records in self._pending:
+                if after < stamp:
+                    self._give_out(records, stamp)
+                else:
+                    waiting.append((after, records))
+            self._pending = waiting
+
+    def _give_out(self, records: list[bytes], sync_stamp: float) -> None:
+        """(under ``_arm_lock``) ``records`` to be read next, each stamped
+        when it went on the wire: just after the SYNC, or when it was armed
+        if that was later."""
+        for i, record in enumerate(records):
+            out = bytearray(record)
+            own = RECORD.unpack_from(out)[0]
+            struct.pack_into('<d', out, 0, max(own, sync_stamp + ARM_SPACING * (i + 1)))
+            self._released.append(bytes(out))
+        os.eventfd_write(self._wake, 1)
 
     def _take(self):
-        """A record already read from a peer, or None."""
+        """A record already read from a peer, or None (an armed set read
+        on the way is kept for its SYNC; a SYNC releases the sets armed for it)."""
         size = RECORD.size
         for peer in self._peers:
-            if len(peer.buffer) >= size:
-                record = bytes(peer.buffer[:size])
-                del peer.buffer[:size]
+            buffer = peer.buffer
+            while len(buffer) >= size:
+                if buffer[FLAGS_AT] & ARM:
+                    count = buffer[FLAGS_AT + 1]
+                    if len(buffer) < size * (count + 1):
+                        break                   # the rest of the set is on its way
+                    after = RECORD.unpack_from(buffer)[0]
+                    records = [bytes(buffer[size * i:size * (i + 1)]) for i in range(1, count + 1)]
+                    del buffer[:size * (count + 1)]
+                    self._arm(after, records)
+                    continue
+                record = bytes(buffer[:size])
+                del buffer[:size]
+                if is_sync(record):
+                    self._synced(RECORD.unpack_from(record)[0])
                 return record
         return None
 
     def _recv_internal(self, timeout: float | None):
         if self._own:
             return unpack(self._own.popleft(), self.channel), False
+        if self._released:
+            return unpack(self._released.popleft(), self.channel), False
         record = self._take()
         if record is not None:
             return unpack(record, self.channel), False
+        if self._released:                      # a set whose SYNC had passed
+            return unpack(self._released.popleft(), self.channel), False
+        try:
+            os.eventfd_read(self._wake)         # (nothing released is left unread)
+        except BlockingIOError:
+            pass
         try:
             ready = self._poll.poll(-1 if timeout is None else max(0.0, timeout))
         except InterruptedError:
             return None, False
+        if self._released:
+            return unpack(self._released.popleft(), self.channel), False
         for fd, _ in ready:
             if fd == self._control.fileno():
                 self._introductions()
+                continue
+            if fd == self._wake:
                 continue
             peer = self._by_fd.get(fd)
             if peer is None:
@@ -288,6 +400,8 @@ class HubBus(can.BusABC):
                 continue
             peer.buffer += chunk
         record = self._take()
+        if record is None and self._released:
+            record = self._released.popleft()
         return (unpack(record, self.channel) if record is not None else None), False
 
     def fileno(self) -> int:
@@ -301,6 +415,7 @@ class HubBus(can.BusABC):
                 self._peers = ()
                 self._control.close()
                 self._poll.close()
+                os.close(self._wake)
         finally:
             super().shutdown()
 
@@ -310,10 +425,17 @@ class HubBus(can.BusABC):
 
 
 @contextlib.contextmanager
-def batched(buses):
+def batched(buses, after_sync: dict | None = None):
     """Within the block, the frames sent on the ``s63hub`` buses among
     ``buses`` go out together at its end, one write per bus and peer (other
-    interfaces send as usual): what a device set sends in answer to one SYNC."""
+    interfaces send as usual): what a device set sends in answer to one SYNC.
+
+    ``after_sync``: {bus: the stamp of the last SYNC it saw}: the frames of
+    those buses are armed for the SYNC after that one instead (see the
+    module's doc; every bus in it must be an ``s63hub`` bus, ``can_arm``)."""
+    after_sync = after_sync or {}
+    if not can_arm(after_sync):
+        raise ValueError('s63hub: only s63hub buses arm frames for a SYNC')
     held = [bus for bus in buses if isinstance(bus, HubBus)]
     for bus in held:
         bus.hold()
@@ -321,7 +443,32 @@ def batched(buses):
         yield
     finally:
         for bus in held:
-            bus.release()
+            bus.release(after_sync.get(bus))
+
+
+def can_arm(buses) -> bool:
+    """Whether every bus of ``buses`` can arm frames for a SYNC (``s63hub``)."""
+    return all(isinstance(bus, HubBus) for bus in buses)
+
+
+def is_sync(records: bytes, at: int = 0) -> bool:
+    """Whether the record at ``at`` is a SYNC: COB-ID 0x80, no data or a counter."""
+    # (bytes compared, not unpacked: every write is looked at)
+    return records[at + 8:at + 14] in _SYNC_HEADS
+
+
+#: a SYNC record's bytes after its stamp: COB-ID 0x80, no flags, dlc 0 or 1
+_SYNC_HEADS = frozenset(struct.pack('<IBB', SYNC_COB_ID, 0, dlc) for dlc in (0, 1))
+
+
+def armed(records: bytes, after_sync: float) -> bytes:
+    """``records`` as armed sets for the first SYNC stamped after ``after_sync``."""
+    size = RECORD.size
+    out = bytearray()
+    for start in range(0, len(records), size * ARM_MAX):
+        chunk = records[start:start + size * ARM_MAX]
+        out += RECORD.pack(after_sync, 0, ARM, len(chunk) // size, bytes(8)) + chunk
+    return bytes(out)
 
 
 def _introduce(newcomer: socket.socket, clients: dict[int, socket.socket]) -> None:

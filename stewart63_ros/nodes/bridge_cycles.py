@@ -184,13 +184,20 @@ class BridgeCycles:
         k = 0
         answered_ns = None
         # composed: the other nodes' side work (fk, housekeeping) is done while
-        # the drives answer a SYNC, not between the answer and the next SYNC
+        # the drives answer a SYNC, not between the answer and the next SYNC;
+        # when their answers came with the SYNC (armed: canbus/hub.py), once
+        # the sample is answered
         idle = getattr(self.forces_in, 'idle', None)
+        side_work_due = False
         while not STOP.requested:
             due = schedule.due()
             while True:     # at least once: composed, this serves the controller too
                 wake = due if idle else min(due, self.housekeeping(time.monotonic()))
-                self.forces_in.poll(max(0.0, wake - time.monotonic()))
+                answered = self.forces_in.poll(max(0.0, wake - time.monotonic()))
+                if side_work_due and (answered or time.monotonic() >= due):
+                    side_work_due = False
+                    self.housekeeping(time.monotonic())
+                    idle()
                 if time.monotonic() >= due:
                     break
             woke = clock()
@@ -204,8 +211,10 @@ class BridgeCycles:
             if k:
                 master.sync(k)
                 if idle is not None:
-                    self.housekeeping(time.monotonic())
-                    idle()
+                    side_work_due = master.all_in()
+                    if not side_work_due:
+                        self.housekeeping(time.monotonic())
+                        idle()
                 window = SYNC_WINDOW * self.period
                 master.collect(master.opened_at + window, window, window,
                                catch_up=CATCH_UP * self.period)

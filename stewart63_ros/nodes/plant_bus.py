@@ -28,6 +28,7 @@ make the drives look lost.
 from __future__ import annotations
 
 import math
+import os
 import time
 
 import numpy as np
@@ -40,7 +41,10 @@ from stewart63_ros.runtime.launcher import STOP
 #: s: how often the bus is served before the loop starts (SDO answers of the bring-up)
 IDLE_SERVICE_PERIOD = 0.002
 #: the columns of the realtime drives' per-sample trace (canbus/trace.py)
-TRACE_FIELDS = ('k', 'waited', 'sync_seen', 'periods', 'answered', 'cpu', 'thread_cpu')
+TRACE_FIELDS = ('k', 'waited', 'sync_seen', 'periods', 'answered', 'cpu', 'thread_cpu', 'armed')
+#: set (to anything but empty) in the plant's environment: no sample is armed
+#: ahead, each is computed when its SYNC is seen (to compare the two)
+NO_ARM_ENV = 'STEWART63_NO_ARM'
 #: s: at its stop, how long the plant's drives go on answering for the bridge's
 #: safe stop (its wait for the statuswords and its SDO budget, canbus/master.py)
 SAFE_STOP_WAIT = 1.0
@@ -78,10 +82,17 @@ class PlantBus:
         from stewart63_ros.canbus.hub import batched
         # A sample's frames (TPDOs, heartbeats) leave together on each local
         # bus: the bridge wakes once a bus and SYNC, not once a frame.
-        self.bus_batch = lambda: batched(devices.buses.values())
+        self.bus_batch = lambda after_sync=None: batched(devices.buses.values(), after_sync)
         self.bus_timer = self.create_timer(IDLE_SERVICE_PERIOD, self.serve_bus_idle)
         self.syncs_skipped = 0
         self.bus_first = True
+        #: realtime: the next sample is computed and its answers armed for
+        #: the SYNC to come (``arm_next_sample``), its time stamped here
+        self.armed_at = None
+        #: {bus: stamp} while ``publish_sample`` arms the answers (else None)
+        self.arming = None
+        self.samples_armed = 0
+        self.arms = False
         return devices
 
     def serve_bus_idle(self) -> None:
@@ -102,7 +113,7 @@ class PlantBus:
         devices = self.devices
         for event in devices.apply_faults(self.fault_model.bus_active()):
             self.get_logger().warning(event)
-        with self.bus_batch():
+        with self.bus_batch(self.arming):
             if self.mode == 'realtime':
                 devices.heartbeats(time.monotonic())
             else:
@@ -120,14 +131,34 @@ class PlantBus:
         while not devices.poll(0.0):
             if STOP.requested:
                 return False
-            if self.hold_due and interruptible:
-                return True
+            if self.hold_due and interruptible and self.armed_at is None:
+                return True             # (an armed sample waits for its SYNC first)
             self.wall_heartbeats()
             now = time.monotonic()
             wake = self.housekeeping(now)
             self.forces_in.poll(0.0)            # external_wrench
+            if self.armed_at is None and self.arms and not self.hold_due \
+                    and devices.next_answer_known():
+                self.arm_next_sample()
             devices.poll(max(0.0, min(wake - time.monotonic(), 0.005)))
         return True
+
+    def arm_next_sample(self) -> None:
+        """Realtime, once the cycle's torques are in: the step to the next
+        SYNC's sample, and the drives' answers armed for that SYNC (the bus
+        gives them out the moment it passes, as a drive's SYNC-triggered
+        transmit does; canbus/hub.py). The same step and sample as at the
+        SYNC (the torques are the ones it would use), taken while waiting:
+        a SYNC seen late no longer makes the answer late."""
+        self.armed_at = time.monotonic()
+        self.force = self.bus_forces()
+        self.step()
+        self.arming = self.devices.armed_after()
+        try:
+            self.publish_sample()
+        finally:
+            self.arming = None
+        self.samples_armed += 1
 
     def run_bus(self, n_samples) -> None:
         """The loop on the bus: a sample per SYNC (see the module's doc)."""
@@ -144,7 +175,12 @@ class PlantBus:
         devices = self.devices
         self.bus_first = True
         clock = time.monotonic
+        arming = self.mode == 'realtime' and devices.can_arm \
+            and not os.environ.get(NO_ARM_ENV)
         while True:
+            # the next sample may be armed ahead: realtime, not the run's first
+            # (it has no torque yet) nor past its last
+            self.arms = arming and not self.bus_first and (n_samples is None or self.k < n_samples)
             stepping = False
             if self.hold_due:
                 if not self.sample_boundary():          # pause, step, reset
@@ -154,7 +190,8 @@ class PlantBus:
             if not self.wait_for_sync(interruptible=not stepping):
                 return
             sync_seen = clock()
-            if self.hold_due and not stepping:
+            armed_at, self.armed_at = self.armed_at, None
+            if self.hold_due and not stepping and armed_at is None:
                 continue
             periods = 1
             if self.mode == 'realtime':
@@ -168,15 +205,19 @@ class PlantBus:
                 for name in devices.syncs:
                     devices.syncs[name] -= periods - 1
             devices.take_sync()
-            if not self.bus_first:
+            # (an armed sample answered the first of these SYNCs)
+            steps = periods - 1 if armed_at is not None else periods
+            if not self.bus_first and steps:
                 self.force = self.bus_forces()
-                for _ in range(periods):
+                for _ in range(steps):
                     self.step()
             self.bus_first = False
-            self.publish_sample()
+            if armed_at is None or steps:
+                self.publish_sample()
             if trace is not None:
-                trace.add(self.k, waited, sync_seen, periods, clock(), time.process_time(),
-                          time.thread_time())
+                trace.add(self.k, waited, sync_seen, periods,
+                          clock() if armed_at is None or steps else armed_at,
+                          time.process_time(), time.thread_time(), armed_at is not None)
             if n_samples is not None and self.k >= n_samples:
                 return
 
@@ -213,6 +254,7 @@ class PlantBus:
         values['bus_frames_in'] = devices.frames_in
         values['bus_frames_out'] = devices.frames_out
         values['bus_syncs_skipped'] = self.syncs_skipped
+        values['bus_samples_armed'] = self.samples_armed
         # what the drives apply now (zero once the bridge withholds torque)
         values['bus_forces'] = [round(f, 1) for f in devices.forces()]
         values['bus_drives'] = ', '.join(

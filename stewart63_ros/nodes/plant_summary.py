@@ -77,4 +77,8 @@ def run_summary(plant, stopped: bool) -> dict:
             'held_samples': peers.holds, 'dropped': dict(peers.dropped)}
     if plant.tracking is not None:
         summary['tracking_error'] = plant.tracking.summary()
+    if plant.devices is not None:
+        # realtime on the local bus: the samples whose drives' answers were
+        # armed for their SYNC (nodes/plant_bus.py), the others answered it
+        summary['bus_samples_armed'] = plant.samples_armed
     return summary

@@ -35,7 +35,7 @@ from stewart63_ros.core.machine.supervisor import (
     limits_from_params,
     supervisor_from_params,
 )
-from stewart63_ros.core.plumbing.stamps import NS_PER_S, SampleSpacing
+from stewart63_ros.core.plumbing.stamps import NS_PER_S, SampleSpacing, ns_of
 from stewart63_ros.exits import quiet_on_closed_pipe
 from stewart63_ros.nodes.supervisor_homing import SupervisorHoming
 from stewart63_ros.runtime import wire
@@ -202,12 +202,19 @@ class SupervisorNode(SupervisorHoming, RigNode):
         """The controller's forces for a sample: checked and answered if that
         sample waits; kept if it has not come yet; a late one is counted."""
         self.health.received[REQUEST_TOPIC] += 1
-        msg = wire.deserialize(data, JointState)
-        if msg is None:
-            self.health.reject(REQUEST_TOPIC, Rejected('undecodable', 'not a JointState'))
-            return
-        ns = stamp_ns(msg.header.stamp)
-        forces = np.array(msg.effort, float)
+        # (the plain request read straight from its bytes, 2 us, not a full
+        # deserialize, 12 us, in this 1 kHz loop; anything else the long way)
+        fast = wire.read_joint_state(data, ('effort',))
+        if fast is not None:
+            ns = ns_of(fast[0], fast[1])
+            forces = fast[3]['effort']
+        else:
+            msg = wire.deserialize(data, JointState)
+            if msg is None:
+                self.health.reject(REQUEST_TOPIC, Rejected('undecodable', 'not a JointState'))
+                return
+            ns = stamp_ns(msg.header.stamp)
+            forces = np.array(msg.effort, float)
         if self.core.homing is not None:
             return                  # withheld until every leg is homed
         if self.pending is not None and ns == self.pending[0]:
