@@ -205,6 +205,10 @@ def where_missed(folder) -> dict | None:
     when = b['due'][bad] - t0
     span = max(1.0, b['ended'][-1] - t0)
     in_gc = bgc[(bgc[:, 0] >= t0)] if len(bgc) else bgc
+    # the plant's answers armed for their SYNC (canbus/hub.py) were ready
+    # before it: its answer time is that of the samples it answered on a SYNC
+    armed = p['armed'] > 0 if 'armed' in p else np.zeros(len(p['k']), bool)
+    answered = (p['answered'] - p['sync_seen'])[~armed]
     return {
         'missing_cycles': int(bad.sum()), 'longest_run': int(max(runs, default=0)),
         'first_second': int((when < 1.0).sum()),
@@ -213,7 +217,9 @@ def where_missed(folder) -> dict | None:
         'sync_late_p99_ms': float(np.percentile(b['woke'] - b['due'], 99) * 1e3),
         'bridge_cpu_us': float(np.median(np.diff(b['cpu'])) * 1e6),
         'plant_cpu_us': float(np.median(np.diff(p['cpu'])) * 1e6),
-        'plant_answer_p99_ms': float(np.percentile(p['answered'] - p['sync_seen'], 99) * 1e3),
+        'armed_percent': float(100 * armed.mean()) if len(armed) else 0.0,
+        'plant_answer_p99_ms': float(np.percentile(answered, 99) * 1e3) if len(answered)
+        else 0.0,
         'gc_over_1ms': int((in_gc[:, 2] > 1e-3).sum()) if len(in_gc) else 0}
 
 
@@ -309,11 +315,13 @@ def describe(name, run) -> str:
     if where:
         text += ('\n  where: %d cycles with a TPDO missing (%d in the first second, longest '
                  'run %d; by tenths of the run %s), %d SYNCs skipped, SYNC late p99 %.2f ms, '
-                 'plant answer p99 %.2f ms; CPU a cycle: bridge\'s process %.0f us, plant '
+                 '%.1f %% of the samples armed for their SYNC, the others\' answer p99 %.2f '
+                 'ms; CPU a cycle: bridge\'s process %.0f us, plant '
                  '%.0f us; %d GC pauses over 1 ms' % (
                      where['missing_cycles'], where['first_second'], where['longest_run'],
                      ' '.join(map(str, where['per_tenth'])), where['skipped_syncs'],
-                     where['sync_late_p99_ms'], where['plant_answer_p99_ms'],
+                     where['sync_late_p99_ms'], where['armed_percent'],
+                     where['plant_answer_p99_ms'],
                      where['bridge_cpu_us'], where['plant_cpu_us'], where['gc_over_1ms']))
     return text
 
