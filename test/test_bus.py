@@ -374,7 +374,7 @@ def test_realtime_tpdo_miss_is_late_until_it_persists_for_tpdo_error_cycles(benc
     master.reset_all()
     assert master.wait_for_boot(5.0) == []
     assert all(master.bring_up(link) for link in master.links)
-    master.tpdo_error_cycles = 3            # the bridge's tpdo_missing_error_cycles
+    master.tpdo_error_cycles = 3            # the bridge's tpdo_missing_error_ms, in SYNCs
     assert b.cycle(0) == []
     b.faults = {3: {'bus_tpdo_missing': None}}
     for k in (1, 2):        # missed, not yet persistent: late (WARN), torque kept

@@ -1,5 +1,6 @@
 """The device config file's keys (core/machine/bus.py ``load_bus_config``): a key the
-bridge does not read is refused in one line naming it and a close match."""
+bridge does not read is refused in one line naming it and a close match; and the
+bridge's silence limit, a time counted in SYNCs."""
 from __future__ import annotations
 
 import pytest
@@ -35,3 +36,13 @@ def test_an_unknown_key_is_refused_naming_it_and_a_close_match(tmp_path, edit, w
 
 def test_the_packaged_config_has_no_unknown_key():
     assert len(load_bus_config(CONFIG).legs) == 6
+
+
+def test_a_drive_is_silent_after_the_same_time_at_any_rate_counted_in_syncs():
+    from stewart63_ros.canbus.sync import silent_cycles
+    # the bridge's tpdo_missing_error_ms (20 ms): the SYNCs covering it
+    assert silent_cycles(20.0, 200.0) == 4
+    assert silent_cycles(20.0, 1000.0) == 20
+    assert silent_cycles(25.0, 200.0) == 5          # what 5 cycles at 200 Hz were
+    assert silent_cycles(20.5, 1000.0) == 21        # a part of a period is one more
+    assert silent_cycles(0.1, 200.0) == 1           # never none

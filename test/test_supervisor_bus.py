@@ -204,7 +204,7 @@ def test_rig_cli_realtime_supervised_bus_answers_sync_0_and_prints_the_bus_rate(
     # A stall of this shared machine (a controller kept off the CPU for
     # 90 ms, seen beside a busy core) is not what this test is about: its
     # staleness limits are a second, and a stall long enough to lose the
-    # TPDOs for tpdo_missing_error_cycles trips (allowed below).
+    # TPDOs for tpdo_missing_error_ms trips (allowed below).
     params['/**/supervisor'] = {'ros__parameters': {
         'trip_leg_speed': 1.5, 'stale_forces_ms': 1000.0, 'stale_lengths_ms': 1000.0}}
     params['/**/plant']['ros__parameters']['force_stale_ms'] = 1000.0
@@ -221,7 +221,7 @@ def test_rig_cli_realtime_supervised_bus_answers_sync_0_and_prints_the_bus_rate(
         done.stdout
     assert 'canopen_bridge: 200 Hz, 201 cycles' in done.stdout, done.stdout
     bridge_log = (tmp_path / 'rig' / 'canopen_bridge.log').read_text()
-    # No trip, unless the machine stalled the drives for tpdo_missing_error_cycles
+    # No trip, unless the machine stalled the drives for tpdo_missing_error_ms
     # in a row (a persistent loss: ERROR by design), never for an isolated miss.
     assert 'supervisor: no trip' in done.stdout or 'TPDO missing since' in bridge_log, \
         (done.stdout, logs)

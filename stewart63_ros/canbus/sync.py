@@ -9,7 +9,8 @@ files every frame under the SYNC it answered, and a frame that comes after
 its window has closed is late, never the next sample's reading.
 
 ``Schedule`` is the realtime SYNC clock: after a stall it skips the SYNCs
-whose time has passed (counted) and never sends a burst.
+whose time has passed (counted) and never sends a burst. ``silent_cycles``:
+how many SYNCs in a row a drive may miss before it is a bus fault.
 
 No ROS and no CAN library here.
 """
@@ -90,3 +91,16 @@ class Schedule:
         self.slot += skip
         self.skipped += skip
         return skip
+
+
+def silent_cycles(missing_ms: float, rate: float) -> int:
+    """SYNCs in a row a drive's TPDO may miss before it is a bus fault.
+
+    The bridge's ``tpdo_missing_error_ms`` in cycles at ``rate`` [Hz]: the
+    SYNCs that cover that time, at least one. Counted in SYNCs sent, not on
+    the clock: a stall of the bridge, whose SYNCs are skipped, makes no drive
+    look silent (docs/bus.md). A time, not a count, so that a rate does not
+    change what is a fault: 20 ms is 4 cycles at 200 Hz, 20 at 1 kHz, the
+    supervisor's ``stale_lengths_ms`` either way.
+    """
+    return max(1, math.ceil(missing_ms * rate / 1000.0 - 1e-9))

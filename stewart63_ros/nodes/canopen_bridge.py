@@ -47,6 +47,7 @@ from sensor_msgs.msg import JointState
 from stewart63_ros import topics
 from stewart63_ros.canbus.busload import WARNING_PREFIX, WireLoad
 from stewart63_ros.canbus.master import Master
+from stewart63_ros.canbus.sync import silent_cycles
 from stewart63_ros.core.machine.bus import BusConfigError, BusLoadError, load_bus_config
 from stewart63_ros.core.plumbing.errors import ParameterError
 from stewart63_ros.exits import quiet_on_closed_pipe
@@ -117,7 +118,8 @@ class BridgeNode(BridgeCycles, RigNode):
         self.master.sync_window_us = int(SYNC_WINDOW * 1e6 / self.rate) \
             if self.mode == 'realtime' else 0
         if self.mode == 'realtime':     # lockstep: a miss has waited bus_timeout already
-            self.master.tpdo_error_cycles = self.param('tpdo_missing_error_cycles')
+            self.master.tpdo_error_cycles = silent_cycles(self.param('tpdo_missing_error_ms'),
+                                                          self.rate)
             self.master.clock = 'wall'  # heartbeats judged on their reception times
         self.late_tpdo = ''             # the last TPDO that missed its cycle (realtime)
         # The plant's start-up waits, now the bridge's: it publishes the samples.
@@ -279,7 +281,7 @@ class BridgeNode(BridgeCycles, RigNode):
             self.late_tpdo = '; '.join(late)
             if self.health.log_due('late TPDO'):
                 self.get_logger().warning('late TPDO: %s' % self.late_tpdo)
-            self.health.warning = 'late, not yet a fault (tpdo_missing_error_cycles %d): %s' % (
+            self.health.warning = 'late, not yet a fault (tpdo_missing_error_ms: %d SYNCs): %s' % (
                 self.master.tpdo_error_cycles, self.late_tpdo)
 
     def serve(self, timeout: float) -> None:

@@ -513,11 +513,13 @@ DECLARED: tuple[Declared, ...] = (
              'a SYNC, how long to wait for a drive\'s TPDO before naming it missing (a drive '
              'already silent is waited for 2 ms after the others: a pulled cable costs this '
              'once)', positive),
-    Declared('tpdo_missing_error_cycles', ('canopen_bridge',), 5, 'cycles (SYNCs)', '1-1000',
-             'realtime: a drive\'s TPDO missing this many cycles in a row is a bus fault (ERROR, '
-             'torque withheld); fewer is a late message (WARN, counted): the supervisor\'s '
-             '`stale_lengths_ms` judges the missing readings. Lockstep: every miss (after '
-             '`bus_timeout`) is a fault', integer(1, 1000, 'a number of cycles')),
+    Declared('tpdo_missing_error_ms', ('canopen_bridge',), 20.0, 'ms (in SYNCs)', '0.1-10000',
+             'realtime: a drive\'s TPDO missing this long in a row, counted in the SYNCs sent '
+             '(20 ms: 4 at 200 Hz, 20 at 1 kHz; skipped ones do not count), is a bus fault '
+             '(ERROR, torque withheld); shorter is a late message (WARN, counted), as the '
+             'supervisor\'s `stale_lengths_ms` judges the missing readings. Lockstep: every '
+             'miss (after `bus_timeout`) is a fault',
+             number_from(0.1, 10000.0, 'a time in ms')),
     Declared('boot_timeout', ('canopen_bridge',), 30.0, 's', '', 'at start-up, how long to '
              'wait for every drive\'s boot-up; one still missing is named on '
              '`/diagnostics` and brought up when it boots', positive),
