@@ -148,6 +148,9 @@ def test_hang_kill_and_restart_of_nodes_in_a_realtime_rig(ros, tmp_path):
             for t, v in stamps.items() if v}
     why = (found, held, 'record: ' + _text(record)[-1500:],
            'fk: ' + _text(procs['fk'])[-1500:], events)
+    # (whole, in the captured output: pytest cuts an assertion's message
+    # short, and what the recorder and the plant said is at its end)
+    print('\nthe bag and the nodes: %r\nplant: %s' % (why, _text(procs['plant'])[-1500:]))
     # the hang and the kill of the controller: two gaps in the forces; fk's
     # restart: one in the poses; the plant's restart: one in everything
     assert len(found['leg_forces']) >= 2, why
