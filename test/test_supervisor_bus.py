@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 from pathlib import Path
 
@@ -67,6 +68,7 @@ def test_homing_over_the_bus_sets_the_drives_and_a_killed_supervisor_leaves_no_t
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import JointState
+    from std_srvs.srv import SetBool
 
     from stewart63_ros import bagio
     from stewart63_ros import topics as T
@@ -130,9 +132,23 @@ def test_homing_over_the_bus_sets_the_drives_and_a_killed_supervisor_leaves_no_t
                                                pose.position.z]),
                                Rotation.from_quat(quat).as_matrix())
             assert np.abs(readings[ns] - true).max() <= RESOLUTION, (ns, readings[ns], true)
-        # killed: zero torque stale_forces_ms (50 samples) after its last answer
+        # killed: zero torque stale_forces_ms (50 samples) after its last answer.
+        # This test's own record of the answers catches up first (a loaded
+        # machine's spin lagged 289 answers behind the flat-out lockstep rig,
+        # and a killed publisher's undelivered answers are lost): the plant
+        # paused before sample k, every earlier sample answered.
+        pause = node.create_client(SetBool, '/plant/pause')
+
+        def hold(paused: bool) -> str:
+            assert ros.spin_until(pause.service_is_ready, 30)
+            future = pause.call_async(SetBool.Request(data=paused))
+            assert ros.spin_until(future.done, 30) and future.result().success, future.result()
+            return future.result().message
+        k = int(re.search(r'paused before sample (\d+)', hold(True)).group(1))
+        wait_for(lambda: max(ns for ns, _ in answers) == (k - 1) * 1_000_000, 30)
         os.kill(rig.procs['supervisor'].pid, signal.SIGKILL)
         rig.procs['supervisor'].wait(10)
+        hold(False)
         wait_for(lambda: last('canopen_bridge', 'stale_force_from_sample'), 60)
         last_answer = max(ns for ns, _ in answers) // 1_000_000
         # A SIGKILL during a publish can deliver the last answer to one reader
