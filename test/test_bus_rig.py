@@ -176,3 +176,18 @@ def test_bridge_refuses_bad_bus_input_with_one_line(ros, param, why):
         done.stderr
     if 'bitrate' in param:
         assert 'at most 668 Hz' in lines[0] and 'needs 800 kbit/s' in lines[0]
+
+
+def test_plant_refuses_a_no_arm_switch_it_does_not_know(ros):
+    import os
+    import subprocess
+
+    from ros_harness import PYTHON, child_env
+    env = dict(child_env(ros.domain_id), STEWART63_NO_ARM='yes')
+    done = subprocess.run([PYTHON, '-m', 'stewart63_ros.nodes.plant', '--ros-args', '-p',
+                           'io:=canopen', '-p', 'bus_channels:=[t%d-a, t%d-b]'
+                           % (os.getpid(), os.getpid())],
+                          env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done
+    assert done.stderr.strip() == ("plant: parameter error: STEWART63_NO_ARM: must be 1 (no "
+                                   "answers armed ahead) or 0, got 'yes'"), done.stderr

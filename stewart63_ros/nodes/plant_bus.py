@@ -42,8 +42,8 @@ from stewart63_ros.runtime.launcher import STOP
 IDLE_SERVICE_PERIOD = 0.002
 #: the columns of the realtime drives' per-sample trace (canbus/trace.py)
 TRACE_FIELDS = ('k', 'waited', 'sync_seen', 'periods', 'answered', 'cpu', 'thread_cpu', 'armed')
-#: set (to anything but empty) in the plant's environment: no sample is armed
-#: ahead, each is computed when its SYNC is seen (to compare the two)
+#: ``1`` in the plant's environment: no sample is armed ahead, each is
+#: computed when its SYNC is seen (to compare the two); ``0`` or unset: armed
 NO_ARM_ENV = 'STEWART63_NO_ARM'
 #: s: at its stop, how long the plant's drives go on answering for the bridge's
 #: safe stop (its wait for the statuswords and its SDO budget, canbus/master.py)
@@ -56,6 +56,11 @@ class PlantBus:
     def init_bus(self):
         """The drives, on the buses of ``bus_config``; a timer serves them
         until the loop starts. ParameterError for a config that cannot work."""
+        no_arm = os.environ.get(NO_ARM_ENV, '')
+        if no_arm not in ('', '0', '1'):
+            raise ParameterError(NO_ARM_ENV, 'must be 1 (no answers armed ahead) or 0, '
+                                 'got %r' % no_arm)
+        self.arm_ahead = no_arm != '1'
         # lazy: python-can costs 292 ms; only the plant on a bus needs it
         from stewart63_ros.canbus.devices import DeviceSet
         try:
@@ -175,8 +180,7 @@ class PlantBus:
         devices = self.devices
         self.bus_first = True
         clock = time.monotonic
-        arming = self.mode == 'realtime' and devices.can_arm \
-            and not os.environ.get(NO_ARM_ENV)
+        arming = self.mode == 'realtime' and devices.can_arm and self.arm_ahead
         while True:
             # the next sample may be armed ahead: realtime, not the run's first
             # (it has no torque yet) nor past its last
