@@ -399,12 +399,12 @@ class DeviceSet:
             self.syncs[name] -= 1
 
     def next_answer_known(self) -> bool:
-        """Whether the answers to the next SYNC can be armed now: the
-        buses can arm, every bus has had a SYNC and none is waiting, and
-        every drive that answers a SYNC has had its RPDO since the newest
-        SYNC (the torque the physics steps with until the next one)."""
-        if not self.can_arm or any(self.syncs.values()) \
-                or None in self.last_sync.values():
+        """Whether the answers to the next SYNC are known now (on buses
+        that can arm them, ``can_arm``): every bus has had a SYNC and none
+        is waiting, and every drive that answers a SYNC has had its RPDO
+        since the newest SYNC (the torque the physics steps with until the
+        next one)."""
+        if any(self.syncs.values()) or None in self.last_sync.values():
             return False
         answering = [d for d in self.drives if d.answers_sync]
         return bool(answering) and all(d.commanded_after == self.syncs_seen[d.leg.bus]

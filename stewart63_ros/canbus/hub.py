@@ -342,8 +342,11 @@ class HubBus(can.BusABC):
         os.eventfd_write(self._wake, 1)
 
     def _take(self):
-        """A record already read from a peer, or None (an armed set read
+        """The next record to read: one an armed set gave out after its
+        SYNC, else one already read from a peer, or None (an armed set read
         on the way is kept for its SYNC; a SYNC releases the sets armed for it)."""
+        if self._released:
+            return self._released.popleft()
         size = RECORD.size
         for peer in self._peers:
             buffer = peer.buffer
@@ -356,6 +359,8 @@ class HubBus(can.BusABC):
                     records = [bytes(buffer[size * i:size * (i + 1)]) for i in range(1, count + 1)]
                     del buffer[:size * (count + 1)]
                     self._arm(after, records)
+                    if self._released:          # its SYNC had passed: out now
+                        return self._released.popleft()
                     continue
                 record = bytes(buffer[:size])
                 del buffer[:size]
@@ -367,19 +372,13 @@ class HubBus(can.BusABC):
     def _recv_internal(self, timeout: float | None):
         if self._own:
             return unpack(self._own.popleft(), self.channel), False
-        if self._released:
-            return unpack(self._released.popleft(), self.channel), False
         record = self._take()
         if record is not None:
             return unpack(record, self.channel), False
-        if self._released:                      # a set whose SYNC had passed
-            return unpack(self._released.popleft(), self.channel), False
         try:
             ready = self._poll.poll(-1 if timeout is None else max(0.0, timeout))
         except InterruptedError:
             return None, False
-        if self._released:
-            return unpack(self._released.popleft(), self.channel), False
         for fd, _ in ready:
             if fd == self._control.fileno():
                 self._introductions()
@@ -404,8 +403,6 @@ class HubBus(can.BusABC):
                 continue
             peer.buffer += chunk
         record = self._take()
-        if record is None and self._released:
-            record = self._released.popleft()
         return (unpack(record, self.channel) if record is not None else None), False
 
     def fileno(self) -> int:

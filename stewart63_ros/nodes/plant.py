@@ -172,9 +172,10 @@ class PlantNode(PlantBus, PlantControl, RigNode):
         base = 0.0 if self.mode == 'lockstep' else self.t0_wall
         return base + k * self.period
 
-    def publish_sample(self):
+    def publish_sample(self, after_sync=None):
         """Sample ``self.k`` out: the sensors' readings (faults applied) and the
-        rest (see SampleOutputs); returns its stamp [ns]."""
+        rest (see SampleOutputs); returns its stamp [ns]. ``after_sync``: on
+        the bus, the drives' answers armed for the next SYNC (``bus_sample``)."""
         out = self.outputs
         now = time.perf_counter()
         if now >= out.listeners_due:
@@ -197,7 +198,7 @@ class PlantNode(PlantBus, PlantControl, RigNode):
         lengths, rates = self.sensor.measure(lengths, rates)
         lengths, rates, self.sample_complete = self.fault_model.sense(lengths, rates)
         if self.devices is not None:
-            self.bus_sample(lengths, rates)
+            self.bus_sample(lengths, rates, after_sync)
         out.send(ns, sec, nanosec, lengths, rates, self.y)
         out.send_tracked(self.k, sec, nanosec, self.y)
         return ns

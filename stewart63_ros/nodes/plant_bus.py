@@ -94,8 +94,6 @@ class PlantBus:
         #: realtime: the next sample is computed and its answers armed for
         #: the SYNC to come (``arm_next_sample``), its time stamped here
         self.armed_at = None
-        #: {bus: stamp} while ``publish_sample`` arms the answers (else None)
-        self.arming = None
         self.samples_armed = 0
         self.arms = False
         return devices
@@ -112,13 +110,14 @@ class PlantBus:
         if self.mode == 'realtime':
             self.devices.heartbeats(time.monotonic())
 
-    def bus_sample(self, lengths, rates) -> None:
+    def bus_sample(self, lengths, rates, after_sync=None) -> None:
         """Sample ``self.k`` on the bus: faults, heartbeats, each drive's TPDO
-        (a leg without a reading, NaN, sends none)."""
+        (a leg without a reading, NaN, sends none); ``after_sync``
+        ({bus: stamp}): armed for each bus's next SYNC (``hub.batched``)."""
         devices = self.devices
         for event in devices.apply_faults(self.fault_model.bus_active()):
             self.get_logger().warning(event)
-        with self.bus_batch(self.arming):
+        with self.bus_batch(after_sync):
             if self.mode == 'realtime':
                 devices.heartbeats(time.monotonic())
             else:
@@ -158,11 +157,7 @@ class PlantBus:
         self.armed_at = time.monotonic()
         self.force = self.bus_forces()
         self.step()
-        self.arming = self.devices.armed_after()
-        try:
-            self.publish_sample()
-        finally:
-            self.arming = None
+        self.publish_sample(self.devices.armed_after())
         self.samples_armed += 1
 
     def run_bus(self, n_samples) -> None:
